@@ -1,0 +1,349 @@
+"""Arm description (DH table, joint limits, tool) and hand poses.
+
+An arm is read from a TOML file (schema in the README, "Arm files")::
+
+    from companion.arm import Arm, Pose
+    arm = Arm.default()                    # the papers' 6-DOF arm, standard DH + Table 2 limits
+    arm = Arm.from_toml("my_arm.toml")
+    pose = arm.fk([q1, ..., q6])           # joint angles in degrees -> Pose
+
+Centimetres and degrees live at this boundary (the papers' units); inside, angles are radians
+and lengths centimetres.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.errors import ArmConfigError, JointLimitError
+from companion.kinematics import (
+    DHConvention,
+    FloatArray,
+    chain,
+    link_transforms,
+    matrix_to_rpy,
+    rpy_to_matrix,
+)
+
+LENGTH_UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
+"""Units accepted for ``length_unit`` and their size in centimetres."""
+
+DEFAULT_ARM_FILE = "paper_arm.toml"
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A hand pose: position in cm, orientation as roll/pitch/yaw in degrees.
+
+    Orientation convention: ``R = Rz(yaw) · Ry(pitch) · Rx(roll)`` (fixed-axis X–Y–Z).
+    Every field must be a finite number; anything else raises ``ValueError`` naming it.
+    """
+
+    x_cm: float
+    y_cm: float
+    z_cm: float
+    roll_deg: float
+    pitch_deg: float
+    yaw_deg: float
+
+    def __post_init__(self) -> None:
+        for name in ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg"):
+            value = getattr(self, name)
+            try:
+                number = float(value)
+            except (TypeError, ValueError) as exc:
+                raise ValueError(f"Pose.{name}={value!r} is not a number") from exc
+            if not math.isfinite(number):
+                raise ValueError(f"Pose.{name}={value!r} must be finite")
+            object.__setattr__(self, name, number)
+
+    @classmethod
+    def from_sequence(cls, values: Sequence[float]) -> Pose:
+        """``(x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg)`` → Pose; wrong length raises."""
+        values = list(values)
+        if len(values) != 6:
+            raise ValueError(
+                f"pose needs 6 values (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), "
+                f"got {len(values)}"
+            )
+        return cls(*values)
+
+    @classmethod
+    def from_matrix(cls, transform: FloatArray) -> Pose:
+        """Pose of a 4×4 homogeneous transform whose translation is in cm."""
+        t = np.asarray(transform, float)
+        roll, pitch, yaw = np.degrees(matrix_to_rpy(t[:3, :3]))
+        return cls(t[0, 3], t[1, 3], t[2, 3], roll, pitch, yaw)
+
+    @property
+    def position_cm(self) -> FloatArray:
+        return np.array([self.x_cm, self.y_cm, self.z_cm])
+
+    @property
+    def rpy_rad(self) -> FloatArray:
+        return np.radians([self.roll_deg, self.pitch_deg, self.yaw_deg])
+
+    @property
+    def rotation(self) -> FloatArray:
+        """3×3 rotation matrix of the orientation."""
+        return rpy_to_matrix(*self.rpy_rad)
+
+    def as_matrix(self) -> FloatArray:
+        """4×4 homogeneous transform (translation in cm)."""
+        out = np.eye(4)
+        out[:3, :3] = self.rotation
+        out[:3, 3] = self.position_cm
+        return out
+
+    def as_tuple(self) -> tuple[float, float, float, float, float, float]:
+        return (self.x_cm, self.y_cm, self.z_cm, self.roll_deg, self.pitch_deg, self.yaw_deg)
+
+
+@dataclass(frozen=True)
+class Joint:
+    """One DH row. Angles in radians, lengths in cm; limits apply to ``q`` (before the offset)."""
+
+    name: str
+    alpha_rad: float
+    a_cm: float
+    d_cm: float
+    offset_rad: float
+    min_rad: float
+    max_rad: float
+
+
+@dataclass(frozen=True)
+class Arm:
+    """A serial arm: DH table, joint limits and an optional fixed tool transform (cm)."""
+
+    name: str
+    convention: DHConvention
+    joints: tuple[Joint, ...]
+    tool: FloatArray | None = field(default=None, compare=False)
+
+    # -- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def default(cls) -> Arm:
+        """The papers' 6-DOF arm: standard DH table and the Table 2 joint ranges."""
+        return cls.from_package_file(DEFAULT_ARM_FILE)
+
+    @classmethod
+    def from_package_file(cls, name: str) -> Arm:
+        """Load one of the arm files shipped in ``companion/arms/``."""
+        ref = resources.files("companion") / "arms" / name
+        return cls.from_dict(tomllib.loads(ref.read_text(encoding="utf-8")), source=name)
+
+    @classmethod
+    def from_toml(cls, path: str | Path, *, dof: int | None = None) -> Arm:
+        """Load an arm file; ``dof`` (if given) is the joint count the caller requires."""
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ArmConfigError(str(path), "<file>", f"cannot read: {exc.strerror}") from exc
+        try:
+            data = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ArmConfigError(str(path), "<file>", f"not valid TOML: {exc}") from exc
+        return cls.from_dict(data, source=str(path), dof=dof)
+
+    @classmethod
+    def from_dict(
+        cls, data: Mapping[str, Any], *, source: str = "<dict>", dof: int | None = None
+    ) -> Arm:
+        """Build an arm from the parsed TOML structure; every problem names source and field."""
+        return _parse_arm(data, source, dof)
+
+    # -- derived arrays (radians / cm), computed once ----------------------------------------
+
+    @property
+    def dof(self) -> int:
+        return len(self.joints)
+
+    @cached_property
+    def lower_rad(self) -> FloatArray:
+        return np.array([j.min_rad for j in self.joints])
+
+    @cached_property
+    def upper_rad(self) -> FloatArray:
+        return np.array([j.max_rad for j in self.joints])
+
+    @cached_property
+    def _dh(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        return (
+            np.array([j.alpha_rad for j in self.joints]),
+            np.array([j.a_cm for j in self.joints]),
+            np.array([j.d_cm for j in self.joints]),
+            np.array([j.offset_rad for j in self.joints]),
+        )
+
+    # -- kinematics ---------------------------------------------------------------------------
+
+    def fk_batch(self, q_rad: FloatArray) -> FloatArray:
+        """Hand transforms ``(S, 4, 4)`` (translation in cm) for joint vectors ``(S, dof)`` rad."""
+        q = np.asarray(q_rad, float)
+        if q.ndim != 2 or q.shape[1] != self.dof:
+            raise ValueError(f"q_rad must have shape (S, {self.dof}), got {q.shape}")
+        alpha, a, d, offset = self._dh
+        return chain(link_transforms(q, alpha, a, d, offset, self.convention), self.tool)
+
+    def fk_matrix(self, q_rad: Sequence[float] | FloatArray) -> FloatArray:
+        """Hand transform 4×4 for one joint vector in radians."""
+        return self.fk_batch(np.asarray(q_rad, float).reshape(1, -1))[0]
+
+    def fk(self, q_deg: Sequence[float]) -> Pose:
+        """Hand pose for one joint vector in degrees (limits are not checked; see check_limits)."""
+        q = np.asarray(q_deg, float)
+        if q.shape != (self.dof,):
+            raise ValueError(f"q_deg must have {self.dof} values, got shape {q.shape}")
+        return Pose.from_matrix(self.fk_matrix(np.radians(q)))
+
+    def within_limits(self, q_rad: FloatArray, tol_rad: float = 1e-9) -> np.ndarray:
+        """Per row of ``q_rad`` ``(S, dof)`` (a scalar for ``(dof,)``) with every joint in range."""
+        q = np.asarray(q_rad, float)
+        ok = (q >= self.lower_rad - tol_rad) & (q <= self.upper_rad + tol_rad)
+        return ok.all(axis=-1)
+
+    def check_limits(self, q_deg: Sequence[float]) -> None:
+        """Raise :class:`JointLimitError` naming the first joint outside its range (or NaN)."""
+        for joint, value in zip(self.joints, q_deg, strict=True):
+            lo, hi = math.degrees(joint.min_rad), math.degrees(joint.max_rad)
+            if not (lo - 1e-9 <= value <= hi + 1e-9):
+                raise JointLimitError(
+                    f"joint {joint.name}: angle_deg={value!r} outside [{lo:g}, {hi:g}]"
+                )
+
+    def random_q_rad(self, rng: np.random.Generator, count: int) -> FloatArray:
+        """``count`` joint vectors drawn uniformly within the limits, shape ``(count, dof)``."""
+        return self.lower_rad + rng.random((count, self.dof)) * (self.upper_rad - self.lower_rad)
+
+
+# -- TOML parsing ---------------------------------------------------------------------------------
+
+_TOP_FIELDS = {"name", "convention", "length_unit", "dof", "joint", "tool"}
+_JOINT_FIELDS = {"name", "alpha_deg", "a", "d", "offset_deg", "min_deg", "max_deg"}
+_JOINT_REQUIRED = ("alpha_deg", "a", "d", "min_deg", "max_deg")
+_TOOL_FIELDS = {"xyz", "rpy_deg"}
+
+
+def _number(source: str, where: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ArmConfigError(source, where, f"must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise ArmConfigError(source, where, f"must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _vector3(source: str, where: str, value: Any) -> list[float]:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ArmConfigError(source, where, f"must be a list of 3 numbers, got {value!r}")
+    return [_number(source, f"{where}[{i}]", v) for i, v in enumerate(value)]
+
+
+def _reject_unknown(source: str, where: str, table: Mapping[str, Any], allowed: set[str]) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise ArmConfigError(
+            source, f"{prefix}{unknown[0]}", f"unknown field; allowed: {', '.join(sorted(allowed))}"
+        )
+
+
+def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
+    if not isinstance(data, Mapping):
+        raise ArmConfigError(source, "<root>", "must be a table")
+    _reject_unknown(source, "", data, _TOP_FIELDS)
+
+    conv_name = data.get("convention")
+    valid_conv = [c.value for c in DHConvention]
+    if conv_name not in valid_conv:
+        raise ArmConfigError(
+            source, "convention", f"{conv_name!r} is not one of {', '.join(valid_conv)}"
+        )
+    convention = DHConvention(conv_name)
+
+    unit = data.get("length_unit", "cm")
+    if unit not in LENGTH_UNITS_TO_CM:
+        raise ArmConfigError(
+            source, "length_unit", f"{unit!r} is not one of {', '.join(LENGTH_UNITS_TO_CM)}"
+        )
+    to_cm = LENGTH_UNITS_TO_CM[unit]
+
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str) or not name:
+        raise ArmConfigError(source, "name", f"must be a non-empty string, got {name!r}")
+
+    rows = data.get("joint")
+    if not isinstance(rows, list) or not rows or not all(isinstance(r, Mapping) for r in rows):
+        raise ArmConfigError(
+            source, "joint", "must be an array of tables ([[joint]]), one per joint"
+        )
+
+    declared = data.get("dof")
+    if declared is not None:
+        if isinstance(declared, bool) or not isinstance(declared, int) or declared < 1:
+            raise ArmConfigError(source, "dof", f"must be a positive integer, got {declared!r}")
+        if declared != len(rows):
+            raise ArmConfigError(
+                source, "joint", f"{len(rows)} [[joint]] tables but dof = {declared}"
+            )
+    if dof is not None and len(rows) != dof:
+        raise ArmConfigError(source, "joint", f"{len(rows)} joints given, this use needs {dof}")
+
+    joints = []
+    for i, row in enumerate(rows, start=1):
+        where = f"joint[{i}]"
+        _reject_unknown(source, where, row, _JOINT_FIELDS)
+        for key in _JOINT_REQUIRED:
+            if key not in row:
+                raise ArmConfigError(source, f"{where}.{key}", "missing (required)")
+        values = {k: _number(source, f"{where}.{k}", row[k]) for k in _JOINT_REQUIRED}
+        offset_deg = _number(source, f"{where}.offset_deg", row.get("offset_deg", 0.0))
+        lo, hi = values["min_deg"], values["max_deg"]
+        if not lo < hi:
+            raise ArmConfigError(
+                source, f"{where}.min_deg", f"min_deg={lo:g} must be less than max_deg={hi:g}"
+            )
+        if hi - lo > 360.0:
+            raise ArmConfigError(
+                source, f"{where}.max_deg", f"range [{lo:g}, {hi:g}] spans more than 360 degrees"
+            )
+        joint_name = row.get("name", f"q{i}")
+        if not isinstance(joint_name, str) or not joint_name:
+            raise ArmConfigError(source, f"{where}.name", "must be a non-empty string")
+        joints.append(
+            Joint(
+                name=joint_name,
+                alpha_rad=math.radians(values["alpha_deg"]),
+                a_cm=values["a"] * to_cm,
+                d_cm=values["d"] * to_cm,
+                offset_rad=math.radians(offset_deg),
+                min_rad=math.radians(lo),
+                max_rad=math.radians(hi),
+            )
+        )
+
+    tool = None
+    tool_table = data.get("tool")
+    if tool_table is not None:
+        if not isinstance(tool_table, Mapping):
+            raise ArmConfigError(source, "tool", "must be a table with xyz and/or rpy_deg")
+        _reject_unknown(source, "tool", tool_table, _TOOL_FIELDS)
+        xyz = _vector3(source, "tool.xyz", tool_table.get("xyz", [0.0, 0.0, 0.0]))
+        rpy = _vector3(source, "tool.rpy_deg", tool_table.get("rpy_deg", [0.0, 0.0, 0.0]))
+        tool = np.eye(4)
+        tool[:3, :3] = rpy_to_matrix(*np.radians(rpy))
+        tool[:3, 3] = np.asarray(xyz) * to_cm
+        tool.setflags(write=False)
+
+    return Arm(name=name, convention=convention, joints=tuple(joints), tool=tool)

@@ -1,0 +1,37 @@
+"""Exceptions of the arm side of the bridge, all under one base.
+
+``ArmError`` is the root; callers that only want "anything the arm code refused" catch it.
+Configuration problems are also ``ValueError`` so that plain ``except ValueError`` still works.
+"""
+
+from __future__ import annotations
+
+
+class ArmError(Exception):
+    """Base of every error raised by :mod:`companion`."""
+
+
+class ArmConfigError(ArmError, ValueError):
+    """An arm description (TOML file or dict) is malformed.
+
+    ``source`` names the file (or ``"<dict>"``), ``field`` the offending field in dotted form
+    (``joint[2].min_deg``), and the message states the allowed values.
+    """
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        self.source = source
+        self.field = field
+        self.problem = problem
+        super().__init__(f"{source}: {field}: {problem}")
+
+
+class KinematicsError(ArmError):
+    """Base for kinematic failures (unreachable targets, limit violations)."""
+
+
+class JointLimitError(KinematicsError, ValueError):
+    """A joint angle lies outside its allowed range."""
+
+
+class UnreachableTarget(KinematicsError):
+    """No joint configuration within the limits reaches the target within tolerance."""
