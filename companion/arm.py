@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -128,7 +128,8 @@ class Arm:
     name: str
     convention: DHConvention
     joints: tuple[Joint, ...]
-    tool: FloatArray | None = field(default=None, compare=False)
+    tool: tuple[tuple[float, ...], ...] | None = None
+    """Fixed 4×4 transform from the last DH frame to the hand (cm), row by row; None = identity."""
 
     # -- construction -------------------------------------------------------------------------
 
@@ -179,6 +180,15 @@ class Arm:
         return np.array([j.max_rad for j in self.joints])
 
     @cached_property
+    def tool_matrix(self) -> FloatArray | None:
+        """The tool transform as a read-only 4×4 array, or None."""
+        if self.tool is None:
+            return None
+        matrix = np.array(self.tool, dtype=float)
+        matrix.setflags(write=False)
+        return matrix
+
+    @cached_property
     def _dh(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         return (
             np.array([j.alpha_rad for j in self.joints]),
@@ -195,7 +205,7 @@ class Arm:
         if q.ndim != 2 or q.shape[1] != self.dof:
             raise ValueError(f"q_rad must have shape (S, {self.dof}), got {q.shape}")
         alpha, a, d, offset = self._dh
-        return chain(link_transforms(q, alpha, a, d, offset, self.convention), self.tool)
+        return chain(link_transforms(q, alpha, a, d, offset, self.convention), self.tool_matrix)
 
     def fk_matrix(self, q_rad: Sequence[float] | FloatArray) -> FloatArray:
         """Hand transform 4×4 for one joint vector in radians."""
@@ -344,6 +354,6 @@ def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
         tool = np.eye(4)
         tool[:3, :3] = rpy_to_matrix(*np.radians(rpy))
         tool[:3, 3] = np.asarray(xyz) * to_cm
-        tool.setflags(write=False)
+        tool = tuple(tuple(float(v) for v in row) for row in tool)
 
     return Arm(name=name, convention=convention, joints=tuple(joints), tool=tool)

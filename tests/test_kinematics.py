@@ -53,7 +53,7 @@ def reference_fk(arm: Arm, q_rad) -> np.ndarray:
         for p in parts:
             t = _matmul(t, p)
     if arm.tool is not None:
-        t = _matmul(t, arm.tool.tolist())
+        t = _matmul(t, [list(row) for row in arm.tool])
     return np.array(t)
 
 

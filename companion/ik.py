@@ -1,0 +1,285 @@
+"""Deadline-bounded, warm-startable inverse kinematics: :func:`solve`.
+
+This is where the time budget is enforced. The search itself is memetic differential evolution,
+compiled (:mod:`companion.solvers.memetic`): DE rand/1/bin is the global search, and
+damped-least-squares steps refine its best individual. This module runs it one generation at a
+time, reading the clock between generations. It stops:
+
+* as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
+* before a generation that would not finish inside ``budget_ms``. The slowest generation so
+  far is the estimate, so the budget holds up to one generation's jitter (DEADLINE);
+* at ``settings.max_generations`` (ITERATION_LIMIT).
+
+It always returns the best configuration found, within the joint limits, with both errors.
+A target it cannot reach (the papers' G is one) comes back with ``converged=False``; that is
+never an exception.
+
+Warm start: ``q_start_deg`` (normally the previous command) seeds a third of the population
+around it, and a minimal-movement term (``settings.movement_weight``) keeps consecutive
+solutions on the same elbow/wrist branch.
+
+The kernels are compiled when this module is imported: a disk-cache load after the first time,
+a few seconds before that. So no solve pays for compilation. :data:`IMPORT_WARMUP_S` records
+what the warm-up cost.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from companion.arm import Arm, Pose
+from companion.kinematics import DHConvention, FloatArray
+from companion.solvers import memetic
+from companion.solvers.base import Clock, StopReason
+
+_MASK64 = (1 << 64) - 1
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
+
+    pop_size: int = 12
+    """DE population (NP)."""
+    F: float = 0.7
+    """DE scale factor."""
+    Cr: float = 0.9
+    """DE crossover probability (binomial)."""
+    lm_iterations: int = 10
+    """Damped-least-squares steps per refinement of DE's best."""
+    lm_lambda0: float = 1e-3
+    """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
+    stall_generations: int = 12
+    """Generations without improvement before the population is drawn anew."""
+    movement_weight: float = 1.0
+    """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
+    warm_spread_deg: float = 5.0
+    """Warm start: half-width of the uniform noise around ``q_start`` for a third of the pop."""
+    max_generations: int = 1_000_000
+    """Generation limit (the budget normally ends the search first)."""
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("pop_size", self.pop_size >= 4, ">= 4"),
+            ("F", 0.0 < self.F <= 2.0, "in (0, 2]"),
+            ("Cr", 0.0 <= self.Cr <= 1.0, "in [0, 1]"),
+            ("lm_iterations", self.lm_iterations >= 0, ">= 0"),
+            ("lm_lambda0", self.lm_lambda0 > 0.0, "> 0"),
+            ("stall_generations", self.stall_generations >= 1, ">= 1"),
+            ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
+            ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
+            ("max_generations", self.max_generations >= 0, ">= 0"),
+        )
+        for name, ok, allowed in checks:
+            if not ok:
+                raise ValueError(f"SolverSettings.{name}={getattr(self, name)!r} must be {allowed}")
+
+
+DEFAULT_SETTINGS = SolverSettings()
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Outcome of :func:`solve`.
+
+    ``q_deg`` is the best joint vector found, always within the limits. ``pos_err_cm`` and
+    ``ori_err_deg`` are its errors; the latter is the rotation angle of ``R_goalᵀ·R``. ``cost`` is
+    what the solver minimised: ``pos_err_cm² + ori_err_deg²``. ``elapsed_ms`` is measured on
+    the solver's clock, from the call to the return.
+    """
+
+    q_deg: tuple[float, ...]
+    pos_err_cm: float
+    ori_err_deg: float
+    cost: float
+    converged: bool
+    elapsed_ms: float
+    generations: int
+    evaluations: int
+    lm_iterations: int
+    restarts: int
+    stop_reason: StopReason
+
+    @property
+    def q_rad(self) -> FloatArray:
+        return np.radians(self.q_deg)
+
+
+@dataclass(frozen=True)
+class _ArmArrays:
+    dh: FloatArray
+    modified: bool
+    tool: FloatArray
+    lower: FloatArray
+    upper: FloatArray
+
+
+@lru_cache(maxsize=32)
+def _arm_arrays(arm: Arm) -> _ArmArrays:
+    joints = arm.joints
+    dh = np.array(
+        [
+            [math.cos(j.alpha_rad) for j in joints],
+            [math.sin(j.alpha_rad) for j in joints],
+            [j.a_cm for j in joints],
+            [j.d_cm for j in joints],
+            [j.offset_rad for j in joints],
+        ]
+    )
+    tool = np.eye(4) if arm.tool_matrix is None else np.array(arm.tool_matrix)
+    return _ArmArrays(
+        dh=dh,
+        modified=arm.convention is DHConvention.MODIFIED,
+        tool=tool,
+        lower=arm.lower_rad.copy(),
+        upper=arm.upper_rad.copy(),
+    )
+
+
+def _rng_state(seed: int | np.random.Generator | None) -> np.ndarray:
+    """splitmix64 state from a seed (any int), a Generator (advanced by one draw) or entropy."""
+    if seed is None:
+        value = int.from_bytes(os.urandom(8), "little")
+    elif isinstance(seed, np.random.Generator):
+        value = int(seed.integers(0, 1 << 63)) * 2 + int(seed.integers(0, 2))
+    elif isinstance(seed, int | np.integer) and not isinstance(seed, bool):
+        value = int(seed) & _MASK64
+    else:
+        raise ValueError(f"seed={seed!r} must be an int, a numpy Generator or None")
+    return np.array([value], dtype=np.uint64)
+
+
+def _positive(name: str, value: float) -> float:
+    try:
+        number = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}={value!r} is not a number") from exc
+    if not (math.isfinite(number) and number > 0.0):
+        raise ValueError(f"{name}={value!r} must be a finite number > 0")
+    return number
+
+
+def _as_pose(target: Pose | Sequence[float]) -> Pose:
+    if isinstance(target, Pose):
+        return target
+    try:
+        return Pose.from_sequence(target)
+    except TypeError as exc:
+        raise ValueError(f"target={target!r} must be a Pose or 6 numbers") from exc
+
+
+def solve(
+    arm: Arm,
+    target: Pose | Sequence[float],
+    *,
+    budget_ms: float = 20.0,
+    seed: int | np.random.Generator | None = None,
+    q_start_deg: Sequence[float] | None = None,
+    tol_pos_cm: float = 1e-3,
+    tol_ori_deg: float = 1e-3,
+    settings: SolverSettings = DEFAULT_SETTINGS,
+    clock: Clock = time.perf_counter,
+) -> IKResult:
+    """Joint angles that put ``arm``'s hand at ``target``, within ``budget_ms``.
+
+    ``target`` is a :class:`Pose` (or 6 numbers: x, y, z in cm; roll, pitch, yaw in degrees).
+    ``q_start_deg`` is the joint vector to start from and stay close to (the previous
+    command), or None for a cold start. ``seed`` makes the search repeatable (same seed, same
+    inputs → same result, as long as the budget doesn't cut it short). Bad input raises
+    ``ValueError`` naming the argument.
+    """
+    started = clock()
+    pose = _as_pose(target)
+    budget_s = _positive("budget_ms", budget_ms) / 1e3
+    tol_pos = _positive("tol_pos_cm", tol_pos_cm)
+    tol_ori = _positive("tol_ori_deg", tol_ori_deg)
+    k = _arm_arrays(arm)
+    n = arm.dof
+
+    if q_start_deg is None:
+        has_prev = 0
+        q_start = np.zeros(n)
+    else:
+        q_start = np.radians(np.asarray(q_start_deg, dtype=float))
+        if q_start.shape != (n,) or not np.all(np.isfinite(q_start)):
+            raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
+        q_start = np.clip(q_start, k.lower, k.upper)
+        has_prev = 1
+
+    fp = np.empty(memetic.N_FPARAMS)
+    fp[memetic.F_SCALE] = settings.F
+    fp[memetic.F_CR] = settings.Cr
+    fp[memetic.F_TOL_POS] = tol_pos
+    fp[memetic.F_TOL_ORI] = tol_ori
+    fp[memetic.F_MOVE_W] = settings.movement_weight
+    fp[memetic.F_LM_LAMBDA0] = settings.lm_lambda0
+    ip = np.empty(memetic.N_IPARAMS, dtype=np.int64)
+    ip[memetic.I_LM_ITERS] = settings.lm_iterations
+    ip[memetic.I_STALL_GENS] = settings.stall_generations
+    ip[memetic.I_HAS_PREV] = has_prev
+    st = np.zeros(memetic.N_STATE, dtype=np.int64)
+    pop = np.empty((settings.pop_size, n))
+    cost = np.empty(settings.pop_size)
+    stuck = np.zeros(settings.pop_size, dtype=np.bool_)
+    record = np.empty(3)
+    record_q = np.empty(n)
+    rng = _rng_state(seed)
+    goal = pose.as_matrix()
+    args = (pop, cost, stuck, k.lower, k.upper, k.dh, k.modified, k.tool, goal, q_start, fp, ip,
+            rng, st, record, record_q)
+
+    done = memetic.init_population(*args, q_start, math.radians(settings.warm_spread_deg))
+    slowest_s = 0.0
+    while True:
+        if done:
+            reason = StopReason.CONVERGED
+            break
+        if st[memetic.S_GENERATIONS] >= settings.max_generations:
+            reason = StopReason.ITERATION_LIMIT
+            break
+        before = clock()
+        if before - started + slowest_s > budget_s:
+            reason = StopReason.DEADLINE
+            break
+        done = memetic.generation(*args)
+        slowest_s = max(slowest_s, clock() - before)
+
+    return IKResult(
+        q_deg=tuple(float(v) for v in np.degrees(record_q)),
+        pos_err_cm=float(record[memetic.R_POS_CM]),
+        ori_err_deg=float(record[memetic.R_ORI_DEG]),
+        cost=float(record[memetic.R_COST]),
+        converged=reason is StopReason.CONVERGED,
+        elapsed_ms=(clock() - started) * 1e3,
+        generations=int(st[memetic.S_GENERATIONS]),
+        evaluations=int(st[memetic.S_EVALUATIONS]),
+        lm_iterations=int(st[memetic.S_LM_ITERATIONS]),
+        restarts=int(st[memetic.S_RESTARTS]),
+        stop_reason=reason,
+    )
+
+
+def _warm_up() -> float:
+    """Compile (or load from the numba cache) every kernel :func:`solve` uses; returns seconds.
+
+    The target is the papers' G, which cannot converge, so both the initialisation and the
+    generation kernels run, cold and warm.
+    """
+    t = time.perf_counter()
+    arm = Arm.default()
+    unreachable = Pose(-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
+    few = SolverSettings(max_generations=2)
+    solve(arm, unreachable, budget_ms=1e4, seed=0, settings=few)
+    solve(arm, unreachable, budget_ms=1e4, seed=0, q_start_deg=[0, 90, 0, 0, 0, 0], settings=few)
+    return time.perf_counter() - t
+
+
+IMPORT_WARMUP_S = _warm_up()
+"""Seconds the import-time warm-up took (numba compile the first time, cache load after)."""

@@ -1,0 +1,439 @@
+"""Compiled kernels of the deadline-bounded IK solver: memetic differential evolution.
+
+DE (rand/1/bin) is the global search over the joint box. After each generation, a few
+damped-least-squares (Levenberg–Marquardt) iterations with the analytic geometric Jacobian
+refine the best individual that is not yet known to be stuck. The result is clamped to the
+limits, accepted only if the pose error drops, and written back into the population. On
+stagnation the population is re-drawn and the best found so far is kept aside ("record").
+
+Everything here is compiled with numba, eagerly (explicit signatures) and with the on-disk
+cache, so importing this module costs a cache load, and no solve ever pays a JIT compile. The
+kernels are pure: arrays in and out, no clocks. :mod:`companion.ik` owns the deadline loop.
+
+Units inside: radians and centimetres. The pose residual is ``(Δp in cm, rotation vector in
+degrees)``, so one degree of orientation error weighs like one centimetre of position error. The
+cost minimised is ``‖Δp‖² + θ_deg² + movement_weight·‖q − q_prev‖²`` (rad² for the last term).
+
+Randomness: a splitmix64 stream whose state lives in a ``uint64[1]`` array, seeded by the caller
+from a seed or ``numpy.random.Generator``. Passing numpy's ``Generator`` into compiled code
+costs about 6 µs per call, more than a whole generation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+
+DEG_PER_RAD = 180.0 / math.pi
+
+# Layout of the float parameter vector ``fp``.
+F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0 = range(6)
+N_FPARAMS = 6
+# Layout of the integer parameter vector ``ip``.
+I_LM_ITERS, I_STALL_GENS, I_HAS_PREV = range(3)
+N_IPARAMS = 3
+# Layout of the integer state vector ``st`` (counters the Python loop reads).
+S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
+N_STATE = 5
+# Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
+R_COST, R_POS_CM, R_ORI_DEG = range(3)
+
+_U64 = nb.types.uint64
+
+
+@nb.njit(cache=True, inline="always")
+def _next_u64(rng):
+    z = rng[0] + _U64(0x9E3779B97F4A7C15)
+    rng[0] = z
+    z = (z ^ (z >> _U64(30))) * _U64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> _U64(27))) * _U64(0x94D049BB133111EB)
+    return z ^ (z >> _U64(31))
+
+
+@nb.njit(cache=True, inline="always")
+def _rand(rng):
+    """Uniform in [0, 1) with 53 random bits."""
+    return float(_next_u64(rng) >> _U64(11)) * (1.0 / 9007199254740992.0)
+
+
+@nb.njit(cache=True, inline="always")
+def _randint(rng, n):
+    return min(int(_rand(rng) * n), n - 1)
+
+
+@nb.njit(cache=True)
+def fk_frames(q, dh, modified, tool, rot, pos, axes, points, want_axes):
+    """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
+
+    ``dh`` rows: cos α, sin α, a (cm), d (cm), offset (rad). With ``want_axes``, also each joint's
+    rotation axis and a point on it (world frame), for the geometric Jacobian.
+    """
+    n = q.shape[0]
+    for r in range(3):
+        pos[r] = 0.0
+        for c in range(3):
+            rot[r, c] = 1.0 if r == c else 0.0
+    for i in range(n):
+        theta = q[i] + dh[4, i]
+        ct = math.cos(theta)
+        st = math.sin(theta)
+        ca = dh[0, i]
+        sa = dh[1, i]
+        a = dh[2, i]
+        d = dh[3, i]
+        if modified:
+            # Rx(α)·Tx(a)·Rz(θ)·Tz(d); the joint turns about z after Rx(α), through p + R·(a,0,0).
+            a00, a01, a02 = ct, -st, 0.0
+            a10, a11, a12 = st * ca, ct * ca, -sa
+            a20, a21, a22 = st * sa, ct * sa, ca
+            t0, t1, t2 = a, -d * sa, d * ca
+            if want_axes:
+                for k in range(3):
+                    axes[i, k] = rot[k, 1] * a12 + rot[k, 2] * a22
+                    points[i, k] = pos[k] + rot[k, 0] * a
+        else:
+            # Rz(θ)·Tz(d)·Tx(a)·Rx(α); the joint turns about the current z through the origin.
+            a00, a01, a02 = ct, -st * ca, st * sa
+            a10, a11, a12 = st, ct * ca, -ct * sa
+            a20, a21, a22 = 0.0, sa, ca
+            t0, t1, t2 = a * ct, a * st, d
+            if want_axes:
+                for k in range(3):
+                    axes[i, k] = rot[k, 2]
+                    points[i, k] = pos[k]
+        for k in range(3):
+            r0 = rot[k, 0]
+            r1 = rot[k, 1]
+            r2 = rot[k, 2]
+            pos[k] += r0 * t0 + r1 * t1 + r2 * t2
+            rot[k, 0] = r0 * a00 + r1 * a10 + r2 * a20
+            rot[k, 1] = r0 * a01 + r1 * a11 + r2 * a21
+            rot[k, 2] = r0 * a02 + r1 * a12 + r2 * a22
+    for k in range(3):
+        r0 = rot[k, 0]
+        r1 = rot[k, 1]
+        r2 = rot[k, 2]
+        pos[k] += r0 * tool[0, 3] + r1 * tool[1, 3] + r2 * tool[2, 3]
+        for c in range(3):
+            rot[k, c] = r0 * tool[0, c] + r1 * tool[1, c] + r2 * tool[2, c]
+
+
+@nb.njit(cache=True)
+def pose_residual(rot, pos, goal, res):
+    """Fill ``res`` (6,) with ``(p_goal − p [cm], rotvec(R_goal·Rᵀ) [deg])``.
+
+    Returns ``(position error cm, orientation error deg)``; the latter is the rotation angle.
+    """
+    for k in range(3):
+        res[k] = goal[k, 3] - pos[k]
+    # E = R_goal · Rᵀ, the rotation still to apply, in the world frame.
+    e00 = goal[0, 0] * rot[0, 0] + goal[0, 1] * rot[0, 1] + goal[0, 2] * rot[0, 2]
+    e01 = goal[0, 0] * rot[1, 0] + goal[0, 1] * rot[1, 1] + goal[0, 2] * rot[1, 2]
+    e02 = goal[0, 0] * rot[2, 0] + goal[0, 1] * rot[2, 1] + goal[0, 2] * rot[2, 2]
+    e10 = goal[1, 0] * rot[0, 0] + goal[1, 1] * rot[0, 1] + goal[1, 2] * rot[0, 2]
+    e11 = goal[1, 0] * rot[1, 0] + goal[1, 1] * rot[1, 1] + goal[1, 2] * rot[1, 2]
+    e12 = goal[1, 0] * rot[2, 0] + goal[1, 1] * rot[2, 1] + goal[1, 2] * rot[2, 2]
+    e20 = goal[2, 0] * rot[0, 0] + goal[2, 1] * rot[0, 1] + goal[2, 2] * rot[0, 2]
+    e21 = goal[2, 0] * rot[1, 0] + goal[2, 1] * rot[1, 1] + goal[2, 2] * rot[1, 2]
+    e22 = goal[2, 0] * rot[2, 0] + goal[2, 1] * rot[2, 1] + goal[2, 2] * rot[2, 2]
+    vx = 0.5 * (e21 - e12)
+    vy = 0.5 * (e02 - e20)
+    vz = 0.5 * (e10 - e01)
+    s = math.sqrt(vx * vx + vy * vy + vz * vz)
+    c = 0.5 * (e00 + e11 + e22 - 1.0)
+    theta = math.atan2(s, c)
+    if s > 1e-6 or c > 0.0:
+        scale = theta / s if s > 1e-12 else 1.0
+        res[3] = scale * vx * DEG_PER_RAD
+        res[4] = scale * vy * DEG_PER_RAD
+        res[5] = scale * vz * DEG_PER_RAD
+    else:
+        # Half a turn: the axis is the dominant column of (E + I)/2.
+        if e00 >= e11 and e00 >= e22:
+            ax, ay, az = e00 + 1.0, e10, e20
+        elif e11 >= e22:
+            ax, ay, az = e01, e11 + 1.0, e21
+        else:
+            ax, ay, az = e02, e12, e22 + 1.0
+        norm = math.sqrt(ax * ax + ay * ay + az * az)
+        res[3] = theta * ax / norm * DEG_PER_RAD
+        res[4] = theta * ay / norm * DEG_PER_RAD
+        res[5] = theta * az / norm * DEG_PER_RAD
+    pos_err = math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
+    return pos_err, theta * DEG_PER_RAD
+
+
+@nb.njit(cache=True)
+def _movement(q, q_prev):
+    m = 0.0
+    for j in range(q.shape[0]):
+        m += (q[j] - q_prev[j]) ** 2
+    return m
+
+
+@nb.njit(cache=True)
+def candidate_cost(q, dh, modified, tool, goal, q_prev, move_w, rot, pos, res):
+    """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
+    fk_frames(q, dh, modified, tool, rot, pos, rot, rot, False)  # no axes wanted
+    pos_err, ori_err = pose_residual(rot, pos, goal, res)
+    cost = pos_err * pos_err + ori_err * ori_err
+    if move_w > 0.0:
+        cost += move_w * _movement(q, q_prev)
+    return cost
+
+
+@nb.njit(cache=True)
+def _cholesky_solve(a, b, n):
+    """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``."""
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= a[j, k] * a[j, k]
+        if s <= 0.0:
+            return False
+        a[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= a[i, k] * a[j, k]
+            a[i, j] = s / a[j, j]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= a[i, k] * b[k]
+        b[i] = s / a[i, i]
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= a[k, i] * b[k]
+        b[i] = s / a[i, i]
+    return True
+
+
+@nb.njit(cache=True)
+def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
+    """Damped least squares on the pose residual from ``q`` (modified in place).
+
+    Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``, clamps ``q + Δq`` into the
+    limits and keeps it only if ``‖r‖`` drops (λ shrinks on success, grows on failure). Stops
+    at the tolerances, after ``iters`` steps, or when λ explodes. ``out`` receives
+    ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps taken.
+    """
+    n = q.shape[0]
+    rot = np.empty((3, 3))
+    pos = np.empty(3)
+    axes = np.empty((n, 3))
+    points = np.empty((n, 3))
+    res = np.empty(6)
+    jac = np.empty((6, n))
+    a = np.empty((n, n))
+    g = np.empty(n)
+    q_new = np.empty(n)
+    res_new = np.empty(6)
+    tol_pos = fp[F_TOL_POS]
+    tol_ori = fp[F_TOL_ORI]
+    lam = fp[F_LM_LAMBDA0]
+
+    fk_frames(q, dh, modified, tool, rot, pos, axes, points, True)
+    pos_err, ori_err = pose_residual(rot, pos, goal, res)
+    cost = pos_err * pos_err + ori_err * ori_err
+    steps = 0
+    while steps < iters and not (pos_err <= tol_pos and ori_err <= tol_ori):
+        steps += 1
+        for j in range(n):
+            zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
+            dx = pos[0] - points[j, 0]
+            dy = pos[1] - points[j, 1]
+            dz = pos[2] - points[j, 2]
+            jac[0, j] = zy * dz - zz * dy
+            jac[1, j] = zz * dx - zx * dz
+            jac[2, j] = zx * dy - zy * dx
+            jac[3, j] = zx * DEG_PER_RAD
+            jac[4, j] = zy * DEG_PER_RAD
+            jac[5, j] = zz * DEG_PER_RAD
+        for r in range(n):
+            s = 0.0
+            for k in range(6):
+                s += jac[k, r] * res[k]
+            g[r] = s
+            for c in range(r + 1):
+                s = 0.0
+                for k in range(6):
+                    s += jac[k, r] * jac[k, c]
+                a[r, c] = s
+                a[c, r] = s
+        for r in range(n):
+            a[r, r] += lam * a[r, r] + 1e-9
+        if not _cholesky_solve(a, g, n):
+            lam *= 10.0
+            continue
+        for j in range(n):
+            q_new[j] = min(max(q[j] + g[j], lo[j]), hi[j])
+        fk_frames(q_new, dh, modified, tool, rot, pos, axes, points, True)
+        new_pos, new_ori = pose_residual(rot, pos, goal, res_new)
+        new_cost = new_pos * new_pos + new_ori * new_ori
+        if new_cost < cost:
+            for j in range(n):
+                q[j] = q_new[j]
+            for k in range(6):
+                res[k] = res_new[k]
+            cost, pos_err, ori_err = new_cost, new_pos, new_ori
+            lam = max(lam * 0.2, 1e-12)
+        else:
+            lam *= 8.0
+            if lam > 1e8:
+                break
+            # Frames must describe q again, not the rejected q_new.
+            fk_frames(q, dh, modified, tool, rot, pos, axes, points, True)
+    out[0] = cost
+    out[1] = pos_err
+    out[2] = ori_err
+    return steps
+
+
+@nb.njit(cache=True)
+def _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w):
+    rot = np.empty((3, 3))
+    pos = np.empty(3)
+    res = np.empty(6)
+    for i in range(pop.shape[0]):
+        cost[i] = candidate_cost(pop[i], dh, modified, tool, goal, q_prev, move_w, rot, pos, res)
+
+
+@nb.njit(cache=True)
+def _draw_population(pop, lo, hi, rng, first):
+    for i in range(first, pop.shape[0]):
+        for j in range(pop.shape[1]):
+            pop[i, j] = lo[j] + _rand(rng) * (hi[j] - lo[j])
+
+
+@nb.njit(cache=True)
+def _update_record(q, pose_cost, pos_err, ori_err, record, record_q):
+    if pose_cost < record[R_COST]:
+        record[R_COST] = pose_cost
+        record[R_POS_CM] = pos_err
+        record[R_ORI_DEG] = ori_err
+        for j in range(q.shape[0]):
+            record_q[j] = q[j]
+
+
+@nb.njit(cache=True)
+def _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
+                 record, record_q):
+    """LM on the best individual not marked stuck; returns True once the tolerances are met."""
+    best = -1
+    for i in range(pop.shape[0]):
+        if not stuck[i] and (best < 0 or cost[i] < cost[best]):
+            best = i
+    if best < 0:
+        return False
+    q = pop[best].copy()
+    out = np.empty(3)
+    st[S_LM_ITERATIONS] += lm_refine(q, lo, hi, dh, modified, tool, goal, fp, ip[I_LM_ITERS], out)
+    st[S_EVALUATIONS] += 1
+    pose_cost, pos_err, ori_err = out[0], out[1], out[2]
+    new_cost = pose_cost
+    if ip[I_HAS_PREV]:
+        new_cost += fp[F_MOVE_W] * _movement(q, q_prev)
+    if new_cost < cost[best]:
+        for j in range(q.shape[0]):
+            pop[best, j] = q[j]
+        cost[best] = new_cost
+    # Whether improved or not, LM has done what it can from here until the individual changes.
+    stuck[best] = True
+    _update_record(q, pose_cost, pos_err, ori_err, record, record_q)
+    return pos_err <= fp[F_TOL_POS] and ori_err <= fp[F_TOL_ORI]
+
+
+@nb.njit(cache=True)
+def init_population(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng,
+                    st, record, record_q, q_start, spread_rad):
+    """Fill the population (around ``q_start`` when ``ip[I_HAS_PREV]``), evaluate, refine the best.
+
+    Warm start: row 0 is ``q_start`` (clamped), the next third are ``q_start`` plus uniform noise
+    of ±``spread_rad``, the rest uniform in the box, for when the target has jumped.
+    Returns True if the tolerances are already met.
+    """
+    n_pop, n = pop.shape
+    first = 0
+    if ip[I_HAS_PREV]:
+        n_local = max(1, n_pop // 3)
+        for i in range(n_local):
+            for j in range(n):
+                noise = 0.0 if i == 0 else (2.0 * _rand(rng) - 1.0) * spread_rad
+                pop[i, j] = min(max(q_start[j] + noise, lo[j]), hi[j])
+        first = n_local
+    _draw_population(pop, lo, hi, rng, first)
+    _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV])
+    st[S_EVALUATIONS] += n_pop
+    stuck[:] = False
+    record[R_COST] = np.inf
+    return _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
+                        record, record_q)
+
+
+@nb.njit(cache=True)
+def generation(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng, st,
+               record, record_q):
+    """One memetic generation: DE rand/1/bin with greedy selection, then LM on the best
+    unstuck individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
+    generations. Returns True once the tolerances are met."""
+    n_pop, n = pop.shape
+    f_scale = fp[F_SCALE]
+    cr = fp[F_CR]
+    move_w = fp[F_MOVE_W] * ip[I_HAS_PREV]
+    trial = np.empty(n)
+    trials = np.empty((n_pop, n))
+    trial_cost = np.empty(n_pop)
+    rot = np.empty((3, 3))
+    pos = np.empty(3)
+    res = np.empty(6)
+    best_before = cost.min()
+    for i in range(n_pop):
+        r1 = _randint(rng, n_pop - 1)
+        r1 += r1 >= i
+        r2 = r1
+        while r2 == r1 or r2 == i:
+            r2 = _randint(rng, n_pop)
+        r3 = r1
+        while r3 == r1 or r3 == r2 or r3 == i:
+            r3 = _randint(rng, n_pop)
+        j_rand = _randint(rng, n)
+        for j in range(n):
+            if j == j_rand or _rand(rng) <= cr:
+                v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
+                trial[j] = min(max(v, lo[j]), hi[j])
+            else:
+                trial[j] = pop[i, j]
+        trial_cost[i] = candidate_cost(trial, dh, modified, tool, goal, q_prev, move_w, rot, pos,
+                                       res)
+        for j in range(n):
+            trials[i, j] = trial[j]
+    for i in range(n_pop):
+        if trial_cost[i] <= cost[i]:
+            if trial_cost[i] < cost[i]:
+                stuck[i] = False
+            cost[i] = trial_cost[i]
+            for j in range(n):
+                pop[i, j] = trials[i, j]
+    st[S_GENERATIONS] += 1
+    st[S_EVALUATIONS] += n_pop
+    done = _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
+                        record, record_q)
+    if done:
+        return True
+    if cost.min() < best_before * (1.0 - 1e-9):
+        st[S_STALE] = 0
+    else:
+        st[S_STALE] += 1
+        if st[S_STALE] >= ip[I_STALL_GENS]:
+            # Restart: the record keeps the best so far; the whole population is drawn anew.
+            _draw_population(pop, lo, hi, rng, 0)
+            _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w)
+            st[S_EVALUATIONS] += n_pop
+            stuck[:] = False
+            st[S_STALE] = 0
+            st[S_RESTARTS] += 1
+    return False
