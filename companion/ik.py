@@ -232,8 +232,24 @@ def solve(
     record_q = np.empty(n)
     rng = _rng_state(seed)
     goal = pose.as_matrix()
-    args = (pop, cost, stuck, k.lower, k.upper, k.dh, k.modified, k.tool, goal, q_start, fp, ip,
-            rng, st, record, record_q)
+    args = (
+        pop,
+        cost,
+        stuck,
+        k.lower,
+        k.upper,
+        k.dh,
+        k.modified,
+        k.tool,
+        goal,
+        q_start,
+        fp,
+        ip,
+        rng,
+        st,
+        record,
+        record_q,
+    )
 
     done = memetic.init_population(*args, q_start, math.radians(settings.warm_spread_deg))
     slowest_s = 0.0
