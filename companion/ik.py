@@ -30,7 +30,6 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -56,7 +55,7 @@ class SolverSettings:
     """Damped-least-squares steps per refinement of DE's best."""
     lm_lambda0: float = 1e-3
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
-    stall_generations: int = 12
+    stall_generations: int = 3
     """Generations without improvement before the population is drawn anew."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
@@ -121,8 +120,18 @@ class _ArmArrays:
     upper: FloatArray
 
 
-@lru_cache(maxsize=32)
+_last_arm: list = [None, None]  # (arm, arrays): the daemon solves for one arm over and over
+
+
 def _arm_arrays(arm: Arm) -> _ArmArrays:
+    if _last_arm[0] is arm:
+        return _last_arm[1]
+    arrays = _build_arm_arrays(arm)
+    _last_arm[:] = [arm, arrays]
+    return arrays
+
+
+def _build_arm_arrays(arm: Arm) -> _ArmArrays:
     joints = arm.joints
     dh = np.array(
         [
@@ -231,7 +240,16 @@ def solve(
     record = np.empty(3)
     record_q = np.empty(n)
     rng = _rng_state(seed)
-    goal = pose.as_matrix()
+    goal = np.empty((4, 4))
+    memetic.goal_matrix(
+        pose.x_cm,
+        pose.y_cm,
+        pose.z_cm,
+        math.radians(pose.roll_deg),
+        math.radians(pose.pitch_deg),
+        math.radians(pose.yaw_deg),
+        goal,
+    )
     args = (
         pop,
         cost,

@@ -134,3 +134,12 @@ def test_rng_stream_is_uniform_and_repeatable():
     assert abs(xs.mean() - 0.5) < 0.01
     counts = np.bincount([memetic._randint(a, 7) for _ in range(70000)], minlength=7)
     assert counts.min() > 9000 and counts.max() < 11000
+
+
+def test_goal_matrix_equals_pose_as_matrix():
+    from companion.arm import Pose
+
+    pose = Pose(-20.0, 3.0, 40.0, 25.0, -80.0, 170.0)
+    goal = np.empty((4, 4))
+    memetic.goal_matrix(*pose.as_tuple()[:3], *np.radians(pose.as_tuple()[3:]), goal)
+    np.testing.assert_allclose(goal, pose.as_matrix(), atol=1e-15)

@@ -121,6 +121,30 @@ def fk_frames(q, dh, modified, tool, rot, pos, axes, points, want_axes):
 
 
 @nb.njit(cache=True)
+def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
+    """Fill ``goal`` (4×4) with the pose: translation in cm, ``R = Rz(yaw)·Ry(pitch)·Rx(roll)``."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    goal[0, 0] = cy * cp
+    goal[0, 1] = cy * sp * sr - sy * cr
+    goal[0, 2] = cy * sp * cr + sy * sr
+    goal[1, 0] = sy * cp
+    goal[1, 1] = sy * sp * sr + cy * cr
+    goal[1, 2] = sy * sp * cr - cy * sr
+    goal[2, 0] = -sp
+    goal[2, 1] = cp * sr
+    goal[2, 2] = cp * cr
+    goal[0, 3] = x_cm
+    goal[1, 3] = y_cm
+    goal[2, 3] = z_cm
+    goal[3, 0] = 0.0
+    goal[3, 1] = 0.0
+    goal[3, 2] = 0.0
+    goal[3, 3] = 1.0
+
+
+@nb.njit(cache=True)
 def pose_residual(rot, pos, goal, res):
     """Fill ``res`` (6,) with ``(p_goal − p [cm], rotvec(R_goal·Rᵀ) [deg])``.
 
@@ -320,8 +344,9 @@ def _update_record(q, pose_cost, pos_err, ori_err, record, record_q):
 
 
 @nb.njit(cache=True)
-def _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
-                 record, record_q):
+def _refine_best(
+    pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
+):
     """LM on the best individual not marked stuck; returns True once the tolerances are met."""
     best = -1
     for i in range(pop.shape[0]):
@@ -337,19 +362,38 @@ def _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp,
     new_cost = pose_cost
     if ip[I_HAS_PREV]:
         new_cost += fp[F_MOVE_W] * _movement(q, q_prev)
+    # LM that still made good progress may go on next generation; otherwise it has done what it
+    # can from here, until DE replaces the individual.
+    stuck[best] = not new_cost < 0.5 * cost[best]
     if new_cost < cost[best]:
         for j in range(q.shape[0]):
             pop[best, j] = q[j]
         cost[best] = new_cost
-    # Whether improved or not, LM has done what it can from here until the individual changes.
-    stuck[best] = True
     _update_record(q, pose_cost, pos_err, ori_err, record, record_q)
     return pos_err <= fp[F_TOL_POS] and ori_err <= fp[F_TOL_ORI]
 
 
 @nb.njit(cache=True)
-def init_population(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng,
-                    st, record, record_q, q_start, spread_rad):
+def init_population(
+    pop,
+    cost,
+    stuck,
+    lo,
+    hi,
+    dh,
+    modified,
+    tool,
+    goal,
+    q_prev,
+    fp,
+    ip,
+    rng,
+    st,
+    record,
+    record_q,
+    q_start,
+    spread_rad,
+):
     """Fill the population (around ``q_start`` when ``ip[I_HAS_PREV]``), evaluate, refine the best.
 
     Warm start: row 0 is ``q_start`` (clamped), the next third are ``q_start`` plus uniform noise
@@ -370,13 +414,15 @@ def init_population(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, 
     st[S_EVALUATIONS] += n_pop
     stuck[:] = False
     record[R_COST] = np.inf
-    return _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
-                        record, record_q)
+    return _refine_best(
+        pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
+    )
 
 
 @nb.njit(cache=True)
-def generation(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng, st,
-               record, record_q):
+def generation(
+    pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng, st, record, record_q
+):
     """One memetic generation: DE rand/1/bin with greedy selection, then LM on the best
     unstuck individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
     generations. Returns True once the tolerances are met."""
@@ -407,8 +453,9 @@ def generation(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, i
                 trial[j] = min(max(v, lo[j]), hi[j])
             else:
                 trial[j] = pop[i, j]
-        trial_cost[i] = candidate_cost(trial, dh, modified, tool, goal, q_prev, move_w, rot, pos,
-                                       res)
+        trial_cost[i] = candidate_cost(
+            trial, dh, modified, tool, goal, q_prev, move_w, rot, pos, res
+        )
         for j in range(n):
             trials[i, j] = trial[j]
     for i in range(n_pop):
@@ -420,8 +467,9 @@ def generation(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, i
                 pop[i, j] = trials[i, j]
     st[S_GENERATIONS] += 1
     st[S_EVALUATIONS] += n_pop
-    done = _refine_best(pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st,
-                        record, record_q)
+    done = _refine_best(
+        pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
+    )
     if done:
         return True
     if cost.min() < best_before * (1.0 - 1e-9):
