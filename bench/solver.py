@@ -11,7 +11,8 @@ around the call, in ms.
 
 Rows (a row is skipped, with a note, when its package is missing: ``pip install -e '.[bench]'``):
 * this solver, cold (no start configuration) and warm (100 Hz circle and figure-eight paths);
-* the same kernel with the least-squares refinement off (DE only), same budget;
+* the same kernel with the least-squares refinement off (DE only, NP 20), same budget;
+* an ablation: the same compiled LM from random starts, no DE (what DE adds is the gap);
 * the papers' DE as published (numpy, rand/1/bin, F 0.9, Cr 0.95, NP 12, 400 generations,
   Euler objective);
 * scipy ``least_squares`` (trf, bounds) from mid-range, then ≤ 10 random restarts;
@@ -36,8 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from companion.arm import Arm, Pose
-from companion.ik import SolverSettings, solve
+from companion.ik import SolverSettings, kernel_arrays, solve
 from companion.objective import IKObjective
+from companion.solvers import memetic
 from companion.solvers.de import differential_evolution
 
 TOL_POS_CM = 1e-3
@@ -88,6 +90,37 @@ def ours(arm: Arm, budget_ms: float, settings: SolverSettings | None = None) -> 
     return run
 
 
+DE_ONLY = SolverSettings(lm_iterations=0, pop_size=20, stall_generations=100)
+"""DE alone in the compiled kernel; NP 20 because NP 12 stalls at about half the poses."""
+
+
+def multistart_lm(arm: Arm, budget_ms: float) -> Solver:
+    """Ablation: the solver's LM (20 steps) from uniform random starts until the tolerances
+    are met or the budget is spent: what DE adds is the difference to this row."""
+    k = kernel_arrays(arm)
+    fp = np.zeros(memetic.N_FPARAMS)
+    fp[memetic.F_TOL_POS] = TOL_POS_CM
+    fp[memetic.F_TOL_ORI] = TOL_ORI_DEG
+    fp[memetic.F_LM_LAMBDA0] = SolverSettings().lm_lambda0
+    out = np.empty(3)
+
+    def run(target: Pose, seed: int) -> np.ndarray:
+        started = time.perf_counter()
+        rng = np.random.default_rng(seed)
+        goal = target.as_matrix()
+        best, best_cost = None, math.inf
+        while time.perf_counter() - started < budget_ms / 1e3:
+            q = k.lower + rng.random(arm.dof) * (k.upper - k.lower)
+            memetic.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 20, out)
+            if out[0] < best_cost:
+                best, best_cost = q, out[0]
+            if out[1] <= TOL_POS_CM and out[2] <= TOL_ORI_DEG:
+                break
+        return best
+
+    return run
+
+
 def papers_de(arm: Arm) -> Solver:
     def run(target: Pose, seed: int) -> np.ndarray:
         obj = IKObjective(arm, target)
@@ -101,15 +134,16 @@ def papers_de(arm: Arm) -> Solver:
 def scipy_least_squares(arm: Arm) -> Solver | None:
     try:
         from scipy.optimize import least_squares
+        from scipy.spatial.transform import Rotation
     except ImportError:
         return None
     lo, hi = arm.lower_rad, arm.upper_rad
 
     def residual(q: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        # Position (cm) and the rotation vector of R_goalᵀ·R (deg): zero only at the goal.
         t = arm.fk_matrix(q)
-        e = goal[:3, :3].T @ t[:3, :3]
-        rotvec = 0.5 * np.array([e[2, 1] - e[1, 2], e[0, 2] - e[2, 0], e[1, 0] - e[0, 1]])
-        return np.concatenate([t[:3, 3] - goal[:3, 3], np.degrees(rotvec)])
+        rotvec = Rotation.from_matrix(goal[:3, :3].T @ t[:3, :3]).as_rotvec(degrees=True)
+        return np.concatenate([t[:3, 3] - goal[:3, 3], rotvec])
 
     def run(target: Pose, seed: int) -> np.ndarray:
         goal = target.as_matrix()
@@ -304,8 +338,16 @@ def main() -> None:
     rows.append(
         run_row(
             arm,
-            "same kernel, DE only (no least-squares steps)",
-            ours(arm, args.budget_ms, SolverSettings(lm_iterations=0)),
+            "same kernel, DE only (NP 20, no least-squares steps)",
+            ours(arm, args.budget_ms, DE_ONLY),
+            base,
+        )
+    )
+    rows.append(
+        run_row(
+            arm,
+            "ablation: multi-start LM, same compiled LM, no DE",
+            multistart_lm(arm, args.budget_ms),
             base,
         )
     )

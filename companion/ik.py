@@ -123,15 +123,15 @@ class _ArmArrays:
 _last_arm: list = [None, None]  # (arm, arrays): the daemon solves for one arm over and over
 
 
-def _arm_arrays(arm: Arm) -> _ArmArrays:
+def kernel_arrays(arm: Arm) -> _ArmArrays:
     if _last_arm[0] is arm:
         return _last_arm[1]
-    arrays = _build_arm_arrays(arm)
+    arrays = _buildkernel_arrays(arm)
     _last_arm[:] = [arm, arrays]
     return arrays
 
 
-def _build_arm_arrays(arm: Arm) -> _ArmArrays:
+def _buildkernel_arrays(arm: Arm) -> _ArmArrays:
     joints = arm.joints
     dh = np.array(
         [
@@ -209,7 +209,7 @@ def solve(
     budget_s = _positive("budget_ms", budget_ms) / 1e3
     tol_pos = _positive("tol_pos_cm", tol_pos_cm)
     tol_ori = _positive("tol_ori_deg", tol_ori_deg)
-    k = _arm_arrays(arm)
+    k = kernel_arrays(arm)
     n = arm.dof
 
     if q_start_deg is None:

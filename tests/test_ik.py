@@ -199,3 +199,17 @@ def test_result_is_always_within_limits_whatever_the_target(values, seed):
     res = solve(ARM, Pose(*values), seed=seed, budget_ms=1.0)
     assert ARM.within_limits(res.q_rad, tol_rad=0.0)
     assert math.isfinite(res.pos_err_cm) and math.isfinite(res.ori_err_deg)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_de_only_converged_result_is_within_both_tolerances(seed):
+    # Without least-squares steps DE ends just inside the tolerances; the returned joints must
+    # be the ones that met both, not an earlier record with a lower cm² + deg² sum.
+    target = reachable(100 + seed)
+    de_only = SolverSettings(lm_iterations=0, pop_size=20, stall_generations=100)
+    res = solve(
+        ARM, target, seed=seed, budget_ms=1e4, settings=de_only, tol_pos_cm=1e-2, tol_ori_deg=1e-2
+    )
+    assert res.converged
+    pos, ori = independent_errors(ARM, res.q_deg, target)
+    assert pos <= 1e-2 and ori <= 1e-2

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from companion.arm import Arm
-from companion.ik import _arm_arrays
+from companion.ik import kernel_arrays
 from companion.kinematics import rotation_angle, rpy_to_matrix
 from companion.solvers import memetic
 
@@ -29,7 +29,7 @@ ARMS = pytest.mark.parametrize("arm", [PAPER, MODIFIED, TOOLED], ids=["std", "mo
 
 
 def kernel_fk(arm, q, want_axes=False):
-    k = _arm_arrays(arm)
+    k = kernel_arrays(arm)
     rot, pos = np.empty((3, 3)), np.empty(3)
     axes, points = np.empty((arm.dof, 3)), np.empty((arm.dof, 3))
     memetic.fk_frames(q, k.dh, k.modified, k.tool, rot, pos, axes, points, want_axes)
@@ -86,7 +86,7 @@ def test_pose_residual_is_position_and_rotation_vector():
 
 
 def _lm_inputs(arm, seed):
-    k = _arm_arrays(arm)
+    k = kernel_arrays(arm)
     fp = np.zeros(memetic.N_FPARAMS)
     fp[memetic.F_TOL_POS] = 1e-9
     fp[memetic.F_TOL_ORI] = 1e-9

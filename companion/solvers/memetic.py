@@ -334,8 +334,10 @@ def _draw_population(pop, lo, hi, rng, first):
 
 
 @nb.njit(cache=True)
-def _update_record(q, pose_cost, pos_err, ori_err, record, record_q):
-    if pose_cost < record[R_COST]:
+def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q):
+    # A configuration within both tolerances always wins: a lower cm² + deg² sum is no use if
+    # one of the two errors is outside its tolerance.
+    if within_tol or pose_cost < record[R_COST]:
         record[R_COST] = pose_cost
         record[R_POS_CM] = pos_err
         record[R_ORI_DEG] = ori_err
@@ -369,8 +371,9 @@ def _refine_best(
         for j in range(q.shape[0]):
             pop[best, j] = q[j]
         cost[best] = new_cost
-    _update_record(q, pose_cost, pos_err, ori_err, record, record_q)
-    return pos_err <= fp[F_TOL_POS] and ori_err <= fp[F_TOL_ORI]
+    within_tol = pos_err <= fp[F_TOL_POS] and ori_err <= fp[F_TOL_ORI]
+    _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
+    return within_tol
 
 
 @nb.njit(cache=True)
