@@ -3,7 +3,8 @@
 Subcommands:
 
 * ``demo``: solve the inverse kinematics of a few poses of the default arm (reachable ones and
-  the papers' unreachable target G) and print the joints, errors and times.
+  the papers' unreachable target G) with :func:`companion.ik.solve` and print the joints,
+  errors and times.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK for a target in cm and degrees.
 
 Exit codes: 0 success, 1 target not reached within tolerance, 2 bad input or configuration.
@@ -15,12 +16,9 @@ import argparse
 import sys
 from collections.abc import Sequence
 
-import numpy as np
-
+from companion import ik
 from companion.arm import Arm, Pose
 from companion.errors import ArmConfigError
-from companion.objective import IKObjective, OrientationMetric
-from companion.solvers.de import differential_evolution
 
 PAPER_TARGET_G = Pose(-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)  # papers' test target (cm, deg)
 
@@ -32,66 +30,43 @@ DEMO_JOINTS_DEG = (
 )
 
 
-def _solve(arm: Arm, target: Pose, *, seed: int, tol_pos_cm: float, tol_ori_deg: float):
-    """DE (rand/1/bin, F 0.9, Cr 0.95) on the rotation-angle objective, restarted up to 4 times."""
-    obj = IKObjective(arm, target, metric=OrientationMetric.ROTATION)
-    best = None
-    for restart in range(4):
-        res = differential_evolution(
-            obj, pop_size=30, generations=1000, tol=1e-7, seed=seed + restart
-        )
-        errors = obj.errors(res.x)
-        pos, ori = float(errors.pos_err_cm[0]), float(errors.ori_err_deg[0])
-        if best is None or res.cost < best[0].cost:
-            best = (res, pos, ori)
-        if pos <= tol_pos_cm and ori <= tol_ori_deg:
-            break
-    return best
-
-
-def _print_solution(
-    arm: Arm, target: Pose, *, seed: int, tol_pos_cm: float, tol_ori_deg: float
-) -> bool:
-    res, pos, ori = _solve(arm, target, seed=seed, tol_pos_cm=tol_pos_cm, tol_ori_deg=tol_ori_deg)
-    ok = pos <= tol_pos_cm and ori <= tol_ori_deg
-    q = ", ".join(f"{v:7.2f}" for v in np.degrees(res.x))
+def _print_solution(arm: Arm, target: Pose, args: argparse.Namespace) -> bool:
+    res = ik.solve(
+        arm,
+        target,
+        budget_ms=args.budget_ms,
+        seed=args.seed,
+        tol_pos_cm=args.tol_pos_cm,
+        tol_ori_deg=args.tol_ori_deg,
+    )
+    q = ", ".join(f"{v:7.2f}" for v in res.q_deg)
     print(
         f"target  x,y,z = {target.x_cm:7.2f} {target.y_cm:7.2f} {target.z_cm:7.2f} cm   "
         f"r,p,y = {target.roll_deg:7.2f} {target.pitch_deg:7.2f} {target.yaw_deg:7.2f} deg"
     )
     print(f"  joints_deg = [{q}]")
     print(
-        f"  pos_err = {pos:.2e} cm   ori_err = {ori:.2e} deg   J = {res.cost:.3g}   "
-        f"{res.generations} generations   {res.elapsed_s * 1e3:.0f} ms   "
-        f"{'REACHED' if ok else 'NOT REACHED (best compromise shown)'}"
+        f"  pos_err = {res.pos_err_cm:.1e} cm   ori_err = {res.ori_err_deg:.1e} deg   "
+        f"{res.elapsed_ms:.3f} ms   {res.generations} generations   "
+        f"{'REACHED' if res.converged else 'NOT REACHED (best compromise shown)'}"
     )
-    return ok
+    return res.converged
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     arm = Arm.default()
     print(f"arm: {arm.name} ({arm.convention.value} DH, {arm.dof} joints)\n")
     for q in DEMO_JOINTS_DEG:
-        _print_solution(
-            arm, arm.fk(q), seed=args.seed, tol_pos_cm=args.tol_pos_cm, tol_ori_deg=args.tol_ori_deg
-        )
+        _print_solution(arm, arm.fk(q), args)
     print("\nthe papers' target G (unreachable within the Table 2 limits):")
-    _print_solution(
-        arm,
-        PAPER_TARGET_G,
-        seed=args.seed,
-        tol_pos_cm=args.tol_pos_cm,
-        tol_ori_deg=args.tol_ori_deg,
-    )
+    _print_solution(arm, PAPER_TARGET_G, args)
     return 0
 
 
 def _cmd_solve(args: argparse.Namespace) -> int:
     arm = Arm.from_toml(args.arm, dof=None) if args.arm else Arm.default()
     target = Pose.from_sequence(args.pose)
-    ok = _print_solution(
-        arm, target, seed=args.seed, tol_pos_cm=args.tol_pos_cm, tol_ori_deg=args.tol_ori_deg
-    )
+    ok = _print_solution(arm, target, args)
     return 0 if ok else 1
 
 
@@ -100,11 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def tolerances(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--tol-pos-cm", type=float, default=1e-2, help="position tolerance (cm)")
+        p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="position tolerance (cm)")
         p.add_argument(
-            "--tol-ori-deg", type=float, default=1e-1, help="orientation tolerance (deg)"
+            "--tol-ori-deg", type=float, default=1e-3, help="orientation tolerance (deg)"
         )
         p.add_argument("--seed", type=int, default=0, help="random seed")
+        p.add_argument("--budget-ms", type=float, default=20.0, help="solver time budget (ms)")
 
     demo = sub.add_parser("demo", help="solve IK for a few poses of the default arm and print them")
     tolerances(demo)
