@@ -120,18 +120,23 @@ class _ArmArrays:
     upper: FloatArray
 
 
-_last_arm: list = [None, None]  # (arm, arrays): the daemon solves for one arm over and over
+# The daemon solves for one arm over and over: remember the last one. A tuple swapped whole, so
+# a reader in another thread never sees one arm paired with another's arrays.
+_last_arm: tuple[Arm | None, _ArmArrays | None] = (None, None)
 
 
 def kernel_arrays(arm: Arm) -> _ArmArrays:
-    if _last_arm[0] is arm:
-        return _last_arm[1]
-    arrays = _buildkernel_arrays(arm)
-    _last_arm[:] = [arm, arrays]
+    """The arm's DH table, tool and limits as the compiled kernels take them."""
+    global _last_arm
+    last = _last_arm
+    if last[0] is arm:
+        return last[1]
+    arrays = _build_kernel_arrays(arm)
+    _last_arm = (arm, arrays)
     return arrays
 
 
-def _buildkernel_arrays(arm: Arm) -> _ArmArrays:
+def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
     joints = arm.joints
     dh = np.array(
         [
