@@ -65,14 +65,17 @@ class LinkTimeout(LinkError):
 class CommandRejected(LinkError):
     """The autopilot answered a command with a result other than MAV_RESULT_ACCEPTED.
 
-    ``command`` is the MAV_CMD id, ``result`` the MAV_RESULT value, ``result_name`` its name.
+    ``command`` is the MAV_CMD id, ``result`` the MAV_RESULT value, ``result_name`` its name,
+    ``statustext`` the last STATUSTEXT the target sent while the command was in flight (or None).
     """
 
-    def __init__(self, message: str, *, command: int, result: int, result_name: str) -> None:
+    def __init__(self, message: str, *, command: int, result: int, result_name: str,
+                 statustext: str | None = None) -> None:
         super().__init__(message)
         self.command = command
         self.result = result
         self.result_name = result_name
+        self.statustext = statustext
 
 
 class ServoOutputUnavailable(CommandRejected):
@@ -92,6 +95,6 @@ class ServoOutputUnavailable(CommandRejected):
         output: int,
         statustext: str | None,
     ) -> None:
-        super().__init__(message, command=command, result=result, result_name=result_name)
+        super().__init__(message, command=command, result=result, result_name=result_name,
+                         statustext=statustext)
         self.output = output
-        self.statustext = statustext
