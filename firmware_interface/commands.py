@@ -144,9 +144,11 @@ class CommandSender:
             try:
                 for attempt in range(retries + 1):
                     pending.confirmation = attempt
+                    # The deadline is fixed before sending, so it covers the send itself and
+                    # an answer can never arrive "before" the clock started.
+                    deadline = clock() + timeout_s
                     self.link.send(self.link.mav.command_long_encode(
                         target[0], target[1], command, attempt, *values))
-                    deadline = clock() + timeout_s
                     while not pending.event.wait(self._poll_s):
                         if self.link.closed:
                             raise LinkClosed(f"link closed while waiting for {name} ACK") \
