@@ -132,7 +132,9 @@ class JointCalibration:
     def check_angle_deg(self, angle_deg: float) -> float:
         """Return ``angle_deg`` as a float, or raise if it is non-finite or out of range."""
         if not _is_real(angle_deg):
-            raise NonFiniteAngle(f"angle_deg={angle_deg!r} is not a real number for {self._describe()}")
+            raise NonFiniteAngle(
+                f"angle_deg={angle_deg!r} is not a real number for {self._describe()}"
+            )
         angle = float(angle_deg)
         if not math.isfinite(angle):
             raise NonFiniteAngle(
@@ -260,7 +262,9 @@ class ArmCalibration:
         }
 
     def check_pwm_us(self, pwm_by_output: Mapping[int, int]) -> None:
-        """Refuse any PWM that is not an integer within its output's range (last gate before send)."""
+        """Refuse any PWM that is not an integer within its output's range.
+
+        This is the last gate before anything is sent."""
         for output, pwm in pwm_by_output.items():
             joint = self.for_output(output)
             if not _is_int(pwm):

@@ -28,6 +28,8 @@ from firmware_interface.commands import CommandSender
 from firmware_interface.errors import CommandRejected, ConfigurationError, ServoOutputUnavailable
 
 PX4_ACTUATOR_SLOTS = 6
+#: One COMMAND_LONG: the MAV_CMD id and its seven params.
+CommandParams = tuple[int, tuple[float, ...]]
 
 
 class ServoDialect(abc.ABC):
@@ -53,7 +55,7 @@ class ServoDialect(abc.ABC):
         self._send_checked(dict(pwm_by_output))
 
     @abc.abstractmethod
-    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
         """The ``(MAV_CMD, params)`` pairs one update sends, in order (for sending and sizing)."""
 
     @abc.abstractmethod
@@ -65,7 +67,7 @@ class ArduPilotServoDialect(ServoDialect):
 
     name = "ardupilot"
 
-    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
         return [
             (mavlink.MAV_CMD_DO_SET_SERVO, (float(output), float(pwm), 0.0, 0.0, 0.0, 0.0, 0.0))
             for output, pwm in pwm_by_output.items()
@@ -101,7 +103,7 @@ class Px4ServoDialect(ServoDialect):
             )
         super().__init__(commands, calibration)
 
-    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
         missing = [j.name for j in self.calibration.joints if j.output not in pwm_by_output]
         if missing:
             raise ConfigurationError(

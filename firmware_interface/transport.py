@@ -124,7 +124,8 @@ def parse_url(url: str) -> TransportSpec:
         query = parse_qs(parts.query)
         if "baud" not in query:
             raise _invalid(url, "missing ?baud=N")
-        return TransportSpec(kind="serial", address=device, baud=_parse_baud(url, query["baud"][-1]))
+        baud = _parse_baud(url, query["baud"][-1])
+        return TransportSpec(kind="serial", address=device, baud=baud)
     scheme, sep, rest = url.partition(":")
     if sep and scheme in _HOST_PORT_SCHEMES:
         return _parse_host_port(url, _HOST_PORT_SCHEMES[scheme], rest)

@@ -128,7 +128,8 @@ class ScriptedPeer:
 
     def send_heartbeat(self, autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
                        vehicle_type=mavlink.MAV_TYPE_QUADROTOR) -> None:
-        self.send(self.mav.heartbeat_encode(vehicle_type, autopilot, 0, 0, mavlink.MAV_STATE_STANDBY))
+        self.send(self.mav.heartbeat_encode(
+            vehicle_type, autopilot, 0, 0, mavlink.MAV_STATE_STANDBY))
 
     def send_statustext(self, text: str) -> None:
         self.send(self.mav.statustext_encode(mavlink.MAV_SEVERITY_INFO, text.encode()))

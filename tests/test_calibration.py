@@ -69,7 +69,8 @@ def test_trim_shifts_and_refuses_rather_than_clamps():
     joint = theta2(trim_us=20)
     assert joint.angle_to_pwm_us(90.0) == 1520
     assert joint.pwm_us_to_angle_deg(1520) == pytest.approx(90.0)
-    with pytest.raises(PwmOutOfRange, match=r"pwm_us=2020 outside \[1000, 2000\].*theta2.*output 10"):
+    pattern = r"pwm_us=2020 outside \[1000, 2000\].*theta2.*output 10"
+    with pytest.raises(PwmOutOfRange, match=pattern):
         joint.angle_to_pwm_us(180.0)
 
 
@@ -91,7 +92,8 @@ def test_non_finite_angles_are_refused(bad):
 def test_angle_out_of_range_message_names_joint_value_and_range():
     with pytest.raises(AngleOutOfRange) as info:
         default_calibration().angles_to_pwm_us([0, 180.5, 0, 0, 0, 0])
-    assert str(info.value) == "angle_deg=180.5 outside [0.0, 180.0] for joint 'theta2' (servo output 10)"
+    assert str(info.value) == (
+        "angle_deg=180.5 outside [0.0, 180.0] for joint 'theta2' (servo output 10)")
 
 
 def test_non_numbers_are_refused():

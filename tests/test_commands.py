@@ -3,10 +3,10 @@ import threading
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from _mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint, wait_until
 from firmware_interface.commands import CommandSender, command_name, result_name
 from firmware_interface.errors import CommandRejected, ConfigurationError, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, MavlinkLink
+from tests._mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint, wait_until
 
 SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 
@@ -100,10 +100,13 @@ def test_only_one_command_of_an_id_in_flight_per_target(peer, sender, clock):
     first_sent = threading.Event()
     peer.on_command = lambda cmd: first_sent.set()
     results = {}
-    a = threading.Thread(target=lambda: results.setdefault("a", sender.command_long(SERVO, (9, 1100))))
+    def call(name, params):
+        results[name] = sender.command_long(SERVO, params)
+
+    a = threading.Thread(target=call, args=("a", (9, 1100)))
     a.start()
     assert first_sent.wait(5.0)
-    b = threading.Thread(target=lambda: results.setdefault("b", sender.command_long(SERVO, (10, 1900))))
+    b = threading.Thread(target=call, args=("b", (10, 1900)))
     b.start()
     # While the first DO_SET_SERVO is unanswered the second must not go out.
     assert not peer.wait_for(lambda: len(peer.messages("COMMAND_LONG")) >= 2, timeout_s=0.3)

@@ -3,9 +3,9 @@ import os
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from _mavlink_peer import FakeClock, PtyEndpoint, ScriptedPeer, UdpEndpoint, wait_until
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
+from tests._mavlink_peer import FakeClock, PtyEndpoint, ScriptedPeer, UdpEndpoint, wait_until
 
 FAST = dict(heartbeat_rate_hz=20.0, reconnect_initial_s=0.02, reconnect_max_s=0.2)
 
@@ -43,7 +43,8 @@ def test_heartbeat_from_start_up_as_onboard_controller(udp_peer, udp_link):
 def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
     udp_peer.wait_for_messages("HEARTBEAT")
     # A GCS heartbeat must not be mistaken for the autopilot.
-    udp_peer.send_heartbeat(autopilot=mavlink.MAV_AUTOPILOT_INVALID, vehicle_type=mavlink.MAV_TYPE_GCS)
+    udp_peer.send_heartbeat(autopilot=mavlink.MAV_AUTOPILOT_INVALID,
+                            vehicle_type=mavlink.MAV_TYPE_GCS)
     udp_peer.send_heartbeat()
     info = udp_link.wait_for_autopilot(timeout_s=5.0)
     assert (info.system_id, info.component_id) == (42, 1)
@@ -57,7 +58,8 @@ def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
 
 def test_configured_target_ignores_other_systems(udp_peer, clock):
     config = LinkConfig(target_system=7, system_id=7, **FAST)
-    with MavlinkLink.open(f"udpout:127.0.0.1:{udp_peer.endpoint.port}", config, clock=clock) as link:
+    url = f"udpout:127.0.0.1:{udp_peer.endpoint.port}"
+    with MavlinkLink.open(url, config, clock=clock) as link:
         udp_peer.wait_for_messages("HEARTBEAT")
         udp_peer.send_heartbeat()  # from system 42
         with pytest.raises(LinkTimeout, match="no autopilot HEARTBEAT within timeout_s=0.2"):

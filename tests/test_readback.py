@@ -3,11 +3,11 @@ import threading
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from _mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import ConfigurationError, LinkTimeout
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.readback import OutputReadback
+from tests._mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@ import math
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from _mavlink_peer import PtyEndpoint, ScriptedPeer, UdpEndpoint
 from firmware_interface.calibration import calibration_from_ranges, default_calibration
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import (
@@ -19,6 +18,7 @@ from firmware_interface.servo import (
     Px4ServoDialect,
     make_servo_dialect,
 )
+from tests._mavlink_peer import PtyEndpoint, ScriptedPeer, UdpEndpoint
 
 IN_USE = "ServoRelayEvent: Channel 11 is already in use"
 

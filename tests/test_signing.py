@@ -1,7 +1,6 @@
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from _mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
 from firmware_interface.errors import ConfigurationError
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.signing import (
@@ -12,6 +11,7 @@ from firmware_interface.signing import (
     load_key,
     wall_to_ticks,
 )
+from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
 
 KEY = bytes(range(32))
 WRONG_KEY = bytes(32)
