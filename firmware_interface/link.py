@@ -40,7 +40,7 @@ from firmware_interface.errors import (
     TransportError,
 )
 from firmware_interface.signing import SigningConfig, TimestampKeeper
-from firmware_interface.transport import Transport, open_transport
+from firmware_interface.transport import Transport, open_transport, parse_url
 
 log = logging.getLogger(__name__)
 
@@ -256,8 +256,6 @@ class MavlinkLink:
              clock: Clock = time.monotonic) -> MavlinkLink:
         """Open the transport ``url`` names and start the link. The first open must succeed
         (a wrong URL or missing device is reported at once); later failures are retried."""
-        from firmware_interface.transport import parse_url
-
         spec = parse_url(url)
         link = cls(lambda: open_transport(spec), config, clock=clock, description=url)
         link.start()

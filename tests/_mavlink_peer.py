@@ -87,6 +87,24 @@ class PtyEndpoint:
                 pass
 
 
+class TcpEndpoint:
+    """The autopilot's side of a TCP link (like SITL on 5760): accepts one connection."""
+
+    def __init__(self, listener: socket.socket) -> None:
+        self.listener = listener
+        self.sock, _ = listener.accept()
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.sock], [], [], timeout_s)
+        return self.sock.recv(4096) if ready else b""
+
+    def write(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 class ScriptedPeer:
     """Autopilot ``system_id``/``component_id`` speaking over ``endpoint``.
 

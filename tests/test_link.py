@@ -1,11 +1,19 @@
 import os
+import socket
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
-from tests._mavlink_peer import FakeClock, PtyEndpoint, ScriptedPeer, UdpEndpoint, wait_until
+from tests._mavlink_peer import (
+    FakeClock,
+    PtyEndpoint,
+    ScriptedPeer,
+    TcpEndpoint,
+    UdpEndpoint,
+    wait_until,
+)
 
 FAST = dict(heartbeat_rate_hz=20.0, reconnect_initial_s=0.02, reconnect_max_s=0.2)
 
@@ -201,3 +209,30 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
         link.close()
         if second is not None:
             second.close()
+
+
+def test_defaults_match_the_issue():
+    config = LinkConfig()
+    assert (config.component_id, config.heartbeat_rate_hz, config.loss_timeout_s) == (191, 1.0, 3.0)
+    assert config.system_id is None and config.target_system is None and config.signing is None
+
+
+def test_tcp_peer_closing_is_survived_by_reconnecting():
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+        listener.settimeout(5.0)
+        link = MavlinkLink.open(f"tcp:127.0.0.1:{port}", LinkConfig(**FAST))
+        second = None
+        try:
+            first = ScriptedPeer(TcpEndpoint(listener), system_id=5)
+            first.wait_for_messages("HEARTBEAT")
+            first.close()  # SITL restarted: the connection drops
+            second = ScriptedPeer(TcpEndpoint(listener), system_id=5)  # the link dials again
+            second.wait_for_messages("HEARTBEAT")
+            second.send_heartbeat()
+            assert link.wait_for_autopilot(timeout_s=5.0).system_id == 5
+            assert link.stats.reconnects >= 1 and link.stats.transport_errors >= 1
+        finally:
+            link.close()
+            if second is not None:
+                second.close()
