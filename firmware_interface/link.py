@@ -549,8 +549,7 @@ class MavlinkLink:
     def _heartbeat_loop(self) -> None:
         period_s = 1.0 / self.config.heartbeat_rate_hz
         while not self._stop.is_set():
-            if not self._stop.is_set():
-                self._send_heartbeat()
+            self._send_heartbeat()
             try:
                 self._publish_state()
             except Exception:

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.commands import CommandOutcome, CommandSender
-from firmware_interface.errors import ConfigurationError, LinkTimeout
+from firmware_interface.errors import ConfigurationError, LinkError, LinkTimeout
 from firmware_interface.link import MavlinkLink, MavMessage
 
 SERVO_OUTPUT_RAW_OUTPUTS = 16
@@ -49,7 +49,7 @@ class OutputReadback:
         try:
             if msg.get_srcSystem() != self.link.target[0]:
                 return
-        except Exception:  # no autopilot known yet
+        except LinkError:  # no autopilot known yet
             return
         values: dict[int, float] = {}
         if msg.get_type() == "SERVO_OUTPUT_RAW":
