@@ -33,6 +33,7 @@ from companion.kinematics import (
     matrix_to_rpy,
     rpy_to_matrix,
 )
+from companion.tomltable import Table, load_toml
 
 LENGTH_UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
 """Units accepted for ``length_unit`` and their size in centimetres."""
@@ -147,15 +148,7 @@ class Arm:
     @classmethod
     def from_toml(cls, path: str | Path, *, dof: int | None = None) -> Arm:
         """Load an arm file; ``dof`` (if given) is the joint count the caller requires."""
-        path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ArmConfigError(str(path), "<file>", f"cannot read: {exc.strerror}") from exc
-        try:
-            data = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as exc:
-            raise ArmConfigError(str(path), "<file>", f"not valid TOML: {exc}") from exc
+        data = load_toml(path, ArmConfigError)
         return cls.from_dict(data, source=str(path), dof=dof)
 
     @classmethod
@@ -240,120 +233,54 @@ class Arm:
 
 # -- TOML parsing ---------------------------------------------------------------------------------
 
-_TOP_FIELDS = {"name", "convention", "length_unit", "dof", "joint", "tool"}
-_JOINT_FIELDS = {"name", "alpha_deg", "a", "d", "offset_deg", "min_deg", "max_deg"}
-_JOINT_REQUIRED = ("alpha_deg", "a", "d", "min_deg", "max_deg")
-_TOOL_FIELDS = {"xyz", "rpy_deg"}
-
-
-def _number(source: str, where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ArmConfigError(source, where, f"must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise ArmConfigError(source, where, f"must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _vector3(source: str, where: str, value: Any) -> list[float]:
-    if not isinstance(value, list) or len(value) != 3:
-        raise ArmConfigError(source, where, f"must be a list of 3 numbers, got {value!r}")
-    return [_number(source, f"{where}[{i}]", v) for i, v in enumerate(value)]
-
-
-def _reject_unknown(source: str, where: str, table: Mapping[str, Any], allowed: set[str]) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        prefix = f"{where}." if where else ""
-        raise ArmConfigError(
-            source, f"{prefix}{unknown[0]}", f"unknown field; allowed: {', '.join(sorted(allowed))}"
-        )
+_TOP_FIELDS = ("name", "convention", "length_unit", "dof", "joint", "tool")
+_JOINT_FIELDS = ("name", "alpha_deg", "a", "d", "offset_deg", "min_deg", "max_deg")
+_TOOL_FIELDS = ("xyz", "rpy_deg")
 
 
 def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
-    if not isinstance(data, Mapping):
-        raise ArmConfigError(source, "<root>", "must be a table")
-    _reject_unknown(source, "", data, _TOP_FIELDS)
+    root = Table(data, source, allowed=_TOP_FIELDS, error=ArmConfigError)
+    convention = DHConvention(
+        root.string("convention", choices=tuple(c.value for c in DHConvention))
+    )
+    to_cm = LENGTH_UNITS_TO_CM[root.string("length_unit", "cm", choices=tuple(LENGTH_UNITS_TO_CM))]
+    name = root.string("name", Path(source).stem or "arm")
 
-    conv_name = data.get("convention")
-    valid_conv = [c.value for c in DHConvention]
-    if conv_name not in valid_conv:
-        raise ArmConfigError(
-            source, "convention", f"{conv_name!r} is not one of {', '.join(valid_conv)}"
-        )
-    convention = DHConvention(conv_name)
-
-    unit = data.get("length_unit", "cm")
-    if unit not in LENGTH_UNITS_TO_CM:
-        raise ArmConfigError(
-            source, "length_unit", f"{unit!r} is not one of {', '.join(LENGTH_UNITS_TO_CM)}"
-        )
-    to_cm = LENGTH_UNITS_TO_CM[unit]
-
-    name = data.get("name", Path(source).stem)
-    if not isinstance(name, str) or not name:
-        raise ArmConfigError(source, "name", f"must be a non-empty string, got {name!r}")
-
-    rows = data.get("joint")
-    if not isinstance(rows, list) or not rows or not all(isinstance(r, Mapping) for r in rows):
-        raise ArmConfigError(
-            source, "joint", "must be an array of tables ([[joint]]), one per joint"
-        )
-
-    declared = data.get("dof")
-    if declared is not None:
-        if isinstance(declared, bool) or not isinstance(declared, int) or declared < 1:
-            raise ArmConfigError(source, "dof", f"must be a positive integer, got {declared!r}")
+    rows = root.tables("joint", allowed=_JOINT_FIELDS)
+    if "dof" in root:
+        declared = root.integer("dof", min_value=1)
         if declared != len(rows):
-            raise ArmConfigError(
-                source, "joint", f"{len(rows)} [[joint]] tables but dof = {declared}"
-            )
+            raise root.fail("joint", f"{len(rows)} [[joint]] tables but dof = {declared}")
     if dof is not None and len(rows) != dof:
-        raise ArmConfigError(source, "joint", f"{len(rows)} joints given, this use needs {dof}")
+        raise root.fail("joint", f"{len(rows)} joints given, this use needs {dof}")
 
     joints = []
     for i, row in enumerate(rows, start=1):
-        where = f"joint[{i}]"
-        _reject_unknown(source, where, row, _JOINT_FIELDS)
-        for key in _JOINT_REQUIRED:
-            if key not in row:
-                raise ArmConfigError(source, f"{where}.{key}", "missing (required)")
-        values = {k: _number(source, f"{where}.{k}", row[k]) for k in _JOINT_REQUIRED}
-        offset_deg = _number(source, f"{where}.offset_deg", row.get("offset_deg", 0.0))
-        lo, hi = values["min_deg"], values["max_deg"]
+        lo, hi = row.number("min_deg"), row.number("max_deg")
         if not lo < hi:
-            raise ArmConfigError(
-                source, f"{where}.min_deg", f"min_deg={lo:g} must be less than max_deg={hi:g}"
-            )
+            raise row.fail("min_deg", f"min_deg={lo:g} must be less than max_deg={hi:g}")
         if hi - lo > 360.0:
-            raise ArmConfigError(
-                source, f"{where}.max_deg", f"range [{lo:g}, {hi:g}] spans more than 360 degrees"
-            )
-        joint_name = row.get("name", f"q{i}")
-        if not isinstance(joint_name, str) or not joint_name:
-            raise ArmConfigError(source, f"{where}.name", "must be a non-empty string")
+            raise row.fail("max_deg", f"range [{lo:g}, {hi:g}] spans more than 360 degrees")
         joints.append(
             Joint(
-                name=joint_name,
-                alpha_rad=math.radians(values["alpha_deg"]),
-                a_cm=values["a"] * to_cm,
-                d_cm=values["d"] * to_cm,
-                offset_rad=math.radians(offset_deg),
+                name=row.string("name", f"q{i}"),
+                alpha_rad=math.radians(row.number("alpha_deg")),
+                a_cm=row.number("a") * to_cm,
+                d_cm=row.number("d") * to_cm,
+                offset_rad=math.radians(row.number("offset_deg", 0.0)),
                 min_rad=math.radians(lo),
                 max_rad=math.radians(hi),
             )
         )
 
     tool = None
-    tool_table = data.get("tool")
-    if tool_table is not None:
-        if not isinstance(tool_table, Mapping):
-            raise ArmConfigError(source, "tool", "must be a table with xyz and/or rpy_deg")
-        _reject_unknown(source, "tool", tool_table, _TOOL_FIELDS)
-        xyz = _vector3(source, "tool.xyz", tool_table.get("xyz", [0.0, 0.0, 0.0]))
-        rpy = _vector3(source, "tool.rpy_deg", tool_table.get("rpy_deg", [0.0, 0.0, 0.0]))
-        tool = np.eye(4)
-        tool[:3, :3] = rpy_to_matrix(*np.radians(rpy))
-        tool[:3, 3] = np.asarray(xyz) * to_cm
-        tool = tuple(tuple(float(v) for v in row) for row in tool)
+    if "tool" in root:
+        tool_table = root.table("tool", allowed=_TOOL_FIELDS)
+        xyz = tool_table.numbers("xyz", [0.0, 0.0, 0.0], length=3)
+        rpy = tool_table.numbers("rpy_deg", [0.0, 0.0, 0.0], length=3)
+        matrix = np.eye(4)
+        matrix[:3, :3] = rpy_to_matrix(*np.radians(rpy))
+        matrix[:3, 3] = np.asarray(xyz) * to_cm
+        tool = tuple(tuple(float(v) for v in row) for row in matrix)
 
     return Arm(name=name, convention=convention, joints=tuple(joints), tool=tool)

@@ -11,8 +11,8 @@ class ArmError(Exception):
     """Base of every error raised by :mod:`companion`."""
 
 
-class ArmConfigError(ArmError, ValueError):
-    """An arm description (TOML file or dict) is malformed.
+class ConfigError(ArmError, ValueError):
+    """A configuration file (arm description or daemon config) is malformed.
 
     ``source`` names the file (or ``"<dict>"``), ``field`` the offending field in dotted form
     (``joint[2].min_deg``), and the message states the allowed values.
@@ -23,6 +23,10 @@ class ArmConfigError(ArmError, ValueError):
         self.field = field
         self.problem = problem
         super().__init__(f"{source}: {field}: {problem}")
+
+
+class ArmConfigError(ConfigError):
+    """An arm description (TOML file or dict) is malformed."""
 
 
 class KinematicsError(ArmError):
