@@ -1,0 +1,135 @@
+"""Servo commands for the arm, in two autopilot dialects behind one interface.
+
+* ``ardupilot``: one COMMAND_LONG ``MAV_CMD_DO_SET_SERVO`` (183) per joint — param1 = output
+  number (1-based), param2 = PWM µs — sent one at a time, each waiting for its ACK (ACKs carry
+  no sequence number, see :mod:`firmware_interface.commands`). ArduPilot accepts it only on
+  outputs whose ``SERVOn_FUNCTION`` is 0, 1 or 51–66; otherwise it sends the STATUSTEXT
+  "ServoRelayEvent: Channel N is already in use" and ``MAV_RESULT_FAILED``
+  (AP_ServoRelayEvents.cpp), which we raise as :class:`ServoOutputUnavailable`.
+  ArduPilot does not clamp the PWM: :meth:`ArmCalibration.check_pwm_us` is the gate.
+* ``px4``: one COMMAND_LONG ``MAV_CMD_DO_SET_ACTUATOR`` (187) with params 1–6 = the joints,
+  in joint order, normalised to −1…1 over [pwm_min_us, pwm_max_us]; param7 = 0 (actuator set
+  1–6). Joint k drives the output whose function is "Peripheral via Actuator Set k" (301…306).
+  PX4 copies all six params at once (FunctionActuatorSet.hpp) and NaN turns an output off, so
+  every joint must be commanded in each update; with fewer than six joints the spare slots are
+  NaN.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from collections.abc import Callable, Mapping, Sequence
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_interface.calibration import ArmCalibration
+from firmware_interface.commands import CommandSender
+from firmware_interface.errors import CommandRejected, ConfigurationError, ServoOutputUnavailable
+
+PX4_ACTUATOR_SLOTS = 6
+
+
+class ServoDialect(abc.ABC):
+    """Moves the arm's servos through one autopilot's command set."""
+
+    name: str
+
+    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
+        self.commands = commands
+        self.calibration = calibration
+
+    def send_angles(self, angles_deg: Sequence[float] | Mapping[str, float]) -> dict[int, int]:
+        """Convert joint angles (degrees) through the calibration and send them.
+        Returns the ``{output: pwm_us}`` that was commanded."""
+        pwm_by_output = self.calibration.angles_to_pwm_us(angles_deg)
+        self.send_pwm(pwm_by_output)
+        return pwm_by_output
+
+    def send_pwm(self, pwm_by_output: Mapping[int, int]) -> None:
+        """Send ``{output: pwm_us}`` and wait until the autopilot acknowledged all of it.
+        Every value is checked against its output's range before anything is sent."""
+        self.calibration.check_pwm_us(pwm_by_output)
+        self._send_checked(dict(pwm_by_output))
+
+    @abc.abstractmethod
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+        """The ``(MAV_CMD, params)`` pairs one update sends, in order (for sending and sizing)."""
+
+    @abc.abstractmethod
+    def _send_checked(self, pwm_by_output: dict[int, int]) -> None: ...
+
+
+class ArduPilotServoDialect(ServoDialect):
+    """One DO_SET_SERVO per output, each acknowledged before the next is sent."""
+
+    name = "ardupilot"
+
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+        return [
+            (mavlink.MAV_CMD_DO_SET_SERVO, (float(output), float(pwm), 0.0, 0.0, 0.0, 0.0, 0.0))
+            for output, pwm in pwm_by_output.items()
+        ]
+
+    def _send_checked(self, pwm_by_output: dict[int, int]) -> None:
+        for command, params in self.command_params(pwm_by_output):
+            output, pwm = int(params[0]), int(params[1])
+            try:
+                self.commands.command_long(command, params)
+            except CommandRejected as exc:
+                if exc.result != mavlink.MAV_RESULT_FAILED:
+                    raise
+                raise ServoOutputUnavailable(
+                    f"servo output {output} refused DO_SET_SERVO pwm_us={pwm} "
+                    f"({exc.result_name}); autopilot said: {exc.statustext!r}. "
+                    f"Set SERVO{output}_FUNCTION to 0 (disabled) on the flight controller.",
+                    command=command, result=exc.result, result_name=exc.result_name,
+                    output=output, statustext=exc.statustext,
+                ) from exc
+
+
+class Px4ServoDialect(ServoDialect):
+    """One DO_SET_ACTUATOR carrying all joints as −1…1 values."""
+
+    name = "px4"
+
+    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
+        if len(calibration) > PX4_ACTUATOR_SLOTS:
+            raise ConfigurationError(
+                f"px4 dialect drives at most {PX4_ACTUATOR_SLOTS} joints "
+                f"(Actuator Set 1–6), calibration has {len(calibration)}"
+            )
+        super().__init__(commands, calibration)
+
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[tuple[int, tuple[float, ...]]]:
+        missing = [j.name for j in self.calibration.joints if j.output not in pwm_by_output]
+        if missing:
+            raise ConfigurationError(
+                f"px4 DO_SET_ACTUATOR sets all joints at once; missing {missing}"
+            )
+        values = [j.pwm_us_to_normalized(pwm_by_output[j.output]) for j in self.calibration.joints]
+        values += [math.nan] * (PX4_ACTUATOR_SLOTS - len(values))
+        return [(mavlink.MAV_CMD_DO_SET_ACTUATOR, (*values, 0.0))]
+
+    def _send_checked(self, pwm_by_output: dict[int, int]) -> None:
+        for command, params in self.command_params(pwm_by_output):
+            self.commands.command_long(command, params)
+
+
+#: The dialects by name; an unknown name is refused with this list.
+SERVO_DIALECTS: dict[str, Callable[[CommandSender, ArmCalibration], ServoDialect]] = {
+    "ardupilot": ArduPilotServoDialect,
+    "px4": Px4ServoDialect,
+}
+
+
+def make_servo_dialect(name: str, commands: CommandSender,
+                       calibration: ArmCalibration) -> ServoDialect:
+    """Build the dialect called ``name`` (``ardupilot`` or ``px4``)."""
+    try:
+        factory = SERVO_DIALECTS[name]
+    except KeyError:
+        raise ConfigurationError(
+            f"unknown servo dialect {name!r}; valid: {sorted(SERVO_DIALECTS)}"
+        ) from None
+    return factory(commands, calibration)

@@ -1,0 +1,203 @@
+"""A minimal scripted autopilot for tests: its own pymavlink codec over a raw socket or pty fd.
+
+It decodes everything the link sends (so frames are checked independently of the code under
+test), answers COMMAND_LONG with COMMAND_ACK according to a small script, and sends HEARTBEAT /
+STATUSTEXT / SERVO_OUTPUT_RAW only when the test asks.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+WAIT_S = 5.0
+
+
+class FakeClock:
+    """A monotonic clock the test advances by hand."""
+
+    def __init__(self, start: float = 1000.0) -> None:
+        self.now = start
+        self._lock = threading.Lock()
+
+    def __call__(self) -> float:
+        with self._lock:
+            return self.now
+
+    def advance(self, seconds: float) -> None:
+        with self._lock:
+            self.now += seconds
+
+
+class UdpEndpoint:
+    """The autopilot's side of a UDP link: bound on 127.0.0.1, replies to the last sender."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.peer: tuple[str, int] | None = None
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.sock], [], [], timeout_s)
+        if not ready:
+            return b""
+        data, self.peer = self.sock.recvfrom(65535)
+        return data
+
+    def write(self, data: bytes) -> None:
+        assert self.peer is not None, "the link has not sent anything yet"
+        self.sock.sendto(data, self.peer)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class PtyEndpoint:
+    """The autopilot's side of a serial link: the master of a pty pair."""
+
+    def __init__(self) -> None:
+        self.master, self._slave = os.openpty()
+        self.path = os.ttyname(self._slave)
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.master], [], [], timeout_s)
+        if not ready:
+            return b""
+        try:
+            return os.read(self.master, 4096)
+        except OSError:  # EIO while nobody holds the slave open (link reopening)
+            time.sleep(0.01)
+            return b""
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+    def close(self) -> None:
+        for fd in (self.master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class ScriptedPeer:
+    """Autopilot ``system_id``/``component_id`` speaking over ``endpoint``.
+
+    Script knobs: ``drop_acks`` (ACKs to swallow before answering), ``failed_outputs``
+    ({output: STATUSTEXT sent before a FAILED ACK}), ``ack_result`` (default ACCEPTED),
+    ``on_command`` (called with each COMMAND_LONG before answering), ``signing_key``.
+    """
+
+    def __init__(self, endpoint, *, system_id: int = 1, component_id: int = 1,
+                 signing_key: bytes | None = None) -> None:
+        self.endpoint = endpoint
+        self.mav = mavlink.MAVLink(None, system_id, component_id)
+        self.mav.robust_parsing = True
+        if signing_key is not None:
+            for codec_signing in (self.mav.signing,):
+                codec_signing.secret_key = signing_key
+                codec_signing.link_id = 7
+                codec_signing.sign_outgoing = True
+                codec_signing.timestamp = 1
+        self.received: list = []
+        self.bad_frames: list = []
+        self.drop_acks = 0
+        self.failed_outputs: dict[int, str] = {}
+        self.ack_result = mavlink.MAV_RESULT_ACCEPTED
+        self.on_command: Callable | None = None
+        self._cond = threading.Condition()
+        self._write_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="scripted-peer", daemon=True)
+        self._thread.start()
+
+    # --- sending ---
+    def send(self, msg) -> bytes:
+        with self._write_lock:
+            buf = msg.pack(self.mav)
+            self.mav.seq = (self.mav.seq + 1) % 256
+            self.endpoint.write(buf)
+            return buf
+
+    def send_heartbeat(self, autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                       vehicle_type=mavlink.MAV_TYPE_QUADROTOR) -> None:
+        self.send(self.mav.heartbeat_encode(vehicle_type, autopilot, 0, 0, mavlink.MAV_STATE_STANDBY))
+
+    def send_statustext(self, text: str) -> None:
+        self.send(self.mav.statustext_encode(mavlink.MAV_SEVERITY_INFO, text.encode()))
+
+    # --- receiving ---
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.endpoint.read(0.05)
+            except (OSError, ValueError):
+                return
+            if not data:
+                continue
+            for msg in self.mav.parse_buffer(data) or ():
+                if isinstance(msg, mavlink.MAVLink_bad_data):
+                    with self._cond:
+                        self.bad_frames.append(msg)
+                        self._cond.notify_all()
+                    continue
+                with self._cond:
+                    self.received.append(msg)
+                    self._cond.notify_all()
+                if msg.get_type() == "COMMAND_LONG":
+                    self._answer(msg)
+
+    def _answer(self, cmd) -> None:
+        if self.on_command is not None:
+            self.on_command(cmd)
+        if self.drop_acks > 0:
+            self.drop_acks -= 1
+            return
+        result = self.ack_result
+        if cmd.command == mavlink.MAV_CMD_DO_SET_SERVO and int(cmd.param1) in self.failed_outputs:
+            self.send_statustext(self.failed_outputs[int(cmd.param1)])
+            result = mavlink.MAV_RESULT_FAILED
+        self.send(self.mav.command_ack_encode(
+            cmd.command, result, 0, 0, cmd.get_srcSystem(), cmd.get_srcComponent()))
+
+    def messages(self, msg_type: str) -> list:
+        with self._cond:
+            return [m for m in self.received if m.get_type() == msg_type]
+
+    def wait_for(self, predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
+        """Wait until ``predicate()`` holds (re-checked on every received frame), bounded."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not predicate():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._cond.wait(min(remaining, 0.05))
+            return True
+
+    def wait_for_messages(self, msg_type: str, count: int = 1, timeout_s: float = WAIT_S) -> list:
+        assert self.wait_for(lambda: len(self.messages(msg_type)) >= count, timeout_s), (
+            f"peer did not receive {count} {msg_type} within {timeout_s} s")
+        return self.messages(msg_type)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.endpoint.close()
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
+    """Poll ``predicate`` until true or the deadline passes; for state owned by the link."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.005)
+    return True
