@@ -22,7 +22,7 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   ACCEPTED for messages we can stream, FAILED for the others.
 * PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST (GCS_Param.cpp): unknown names get no
   reply; integer parameters take ``value + 0.01`` (away from zero) truncated; the answer is
-  PARAM_VALUE with ``param_index`` −1 for a set or a read by name.
+  PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
 * Anything else in COMMAND_LONG → UNSUPPORTED.
 
 PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
@@ -223,7 +223,7 @@ class SimAutopilot:
         self._emit_sink({"t_s": self._t(now_s), "event": event, **fields})
 
     def _time_boot_us(self, now_s: float) -> int:
-        return max(0, int((now_s - self._start_s) * 1e6))
+        return max(0, round((now_s - self._start_s) * 1e6))
 
     # -- output pipeline -------------------------------------------------------------------
 
@@ -534,8 +534,9 @@ class SimAutopilot:
     # -- parameters over MAVLink -----------------------------------------------------------
 
     def _param_value(self, param: Param, index: int) -> mavlink.MAVLink_message:
+        # param_index is a uint16_t on the wire: ArduPilot's -1 arrives as 65535.
         return self._enc.param_value_encode(param.name.encode(), self._encode_param_value(param),
-                                            param.param_type, len(self.params), index)
+                                            param.param_type, len(self.params), index & 0xFFFF)
 
     def _on_param_set(self, msg: Any, now_s: float) -> None:
         if msg.target_system not in (0, self.config.system_id):

@@ -65,12 +65,10 @@ class Servo:
     def position_us(self, now_s: float) -> float:
         """Horn position at ``now_s`` (µs of pulse it corresponds to)."""
         distance = self._target_us - self._from_us
-        if distance == 0:
+        if distance == 0 or now_s >= self.arrival_s():
             return self._target_us
         travelled = self.params.rate_us_per_s * max(0.0, now_s - self._start_s)
-        if travelled >= abs(distance):
-            return self._target_us
-        return self._from_us + math.copysign(travelled, distance)
+        return self._from_us + math.copysign(min(travelled, abs(distance)), distance)
 
     def arrival_s(self) -> float:
         """When the horn reaches its target (``start`` of the last move if already there)."""
