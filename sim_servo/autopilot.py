@@ -140,7 +140,8 @@ class SimAutopilot:
         self._interval_ms: dict[int, int] = {msg_id: self._default_interval_ms(msg_id)
                                              for msg_id in self._stream_msgs}
         self._next_due_s: dict[int, float | None] = {
-            msg_id: now_s if self._interval_ms[msg_id] > 0 else None for msg_id in self._stream_msgs}
+            msg_id: now_s if self._interval_ms[msg_id] > 0 else None
+            for msg_id in self._stream_msgs}
         self._heartbeat_paused = False
         self._moving = False
         self.peer: tuple[int, int] | None = None
@@ -195,7 +196,8 @@ class SimAutopilot:
 
     def _pwm_limits(self, output: int) -> tuple[int, int]:
         if self.config.flavour == "ardupilot":
-            return (self.params[f"SERVO{output}_MIN"].value, self.params[f"SERVO{output}_MAX"].value)
+            return (self.params[f"SERVO{output}_MIN"].value,
+                    self.params[f"SERVO{output}_MAX"].value)
         return (self.params[f"PWM_MAIN_MIN{output}"].value,
                 self.params[f"PWM_MAIN_MAX{output}"].value)
 
@@ -415,7 +417,8 @@ class SimAutopilot:
             else mavlink.MAV_RESULT_UNSUPPORTED
         withheld = (self.config.faults.withhold_all_acks
                     or command.command in self.config.faults.withhold_ack_commands)
-        self.emit(now_s, "ack", command=command.command, command_name=_command_name(command.command),
+        self.emit(now_s, "ack", command=command.command,
+                  command_name=_command_name(command.command),
                   result=result, result_name=_result_name(result), withheld=withheld)
         if withheld:
             self.stats["acks_withheld"] += 1

@@ -61,7 +61,8 @@ def _int(value: Any, name: str, low: int, high: int, source: str = "") -> int:
     return value
 
 
-def _optional_real(value: Any, name: str, low: float, high: float, source: str = "") -> float | None:
+def _optional_real(value: Any, name: str, low: float, high: float,
+                   source: str = "") -> float | None:
     return None if value is None else _real(value, name, low, high, source)
 
 
@@ -92,7 +93,8 @@ class ServoConfig:
         _real(self.travel_max_us, "travel_max_us", 0.0, 5000.0)
         if not self.travel_min_us < self.travel_max_us:
             raise SimConfigError(
-                f"travel_min_us={self.travel_min_us} must be below travel_max_us={self.travel_max_us}")
+                f"travel_min_us={self.travel_min_us} must be below "
+                f"travel_max_us={self.travel_max_us}")
         _real(self.initial_us, "initial_us", self.travel_min_us, self.travel_max_us)
 
 

@@ -11,7 +11,6 @@ from sim_servo.errors import SimConfigError
 from sim_servo.hand import HandModel
 
 
-
 def model() -> HandModel:
     return HandModel.from_config(ArmConfig())
 
