@@ -99,6 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
                          help="SERVO_OUTPUT_RAW rate before any SET_MESSAGE_INTERVAL (default 0: "
                               "off)")
 
+    vehicle.add_argument("--loop-rate-hz", type=_non_negative,
+                         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
+                              "sent, on loop passes (default 400, as ArduCopter)")
+
     servo = parser.add_argument_group("servos and arm")
     servo.add_argument("--slew-s-per-60deg", type=_non_negative,
                        help="servo speed (default 0.12 s per 60 degrees; 0: instant)")
@@ -151,7 +155,8 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         data = load_toml(args.config)
         base_dir = Path(args.config).resolve().parent
     for key, value in (("flavour", args.flavour), ("system_id", args.system_id),
-                       ("servo_output_rate_hz", args.servo_output_rate_hz)):
+                       ("servo_output_rate_hz", args.servo_output_rate_hz),
+                       ("loop_rate_hz", args.loop_rate_hz)):
         if value is not None:
             data[key] = value
     if args.function:

@@ -8,6 +8,8 @@ numbers; the server (:mod:`sim_servo.server`) drives it with ``time.monotonic``.
 ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 
 * HEARTBEAT at 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, disarmed, STANDBY.
+* Received frames are handled on the next main-loop pass (``loop_rate_hz``, 400 Hz as
+  ArduCopter), like ``GCS::update_receive`` running once per loop.
 * COMMAND_LONG / COMMAND_INT are handled only when addressed to us (system ours or 0, component
   ours or 0); the COMMAND_ACK goes out at once, addressed to the sender
   (GCS_Common.cpp ``handle_command_long``).
@@ -121,6 +123,7 @@ class SimAutopilot:
         self._outbox: list[tuple[float, int, bytes]] = []
         self._seq = itertools.count()
         self._deferred: list[tuple[float, mavlink.MAVLink_message]] = []
+        self._inbox: list[tuple[float, mavlink.MAVLink_message]] = []
         self.params: dict[str, Param] = self._make_params()
         self._param_names = list(self.params)
         self.pwm_us: dict[int, int] = {
@@ -249,6 +252,7 @@ class SimAutopilot:
 
     def poll(self, now_s: float) -> list[bytes]:
         """Run the periodic work due by ``now_s`` and return the frames to write now."""
+        self._run_inbox(now_s)
         self._run_deferred(now_s)
         self._run_heartbeat(now_s)
         self._run_streams(now_s)
@@ -263,6 +267,7 @@ class SimAutopilot:
         """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""
         candidates = [due for due in self._next_due_s.values() if due is not None]
         candidates += [due for due, _ in self._deferred]
+        candidates += [due for due, _ in self._inbox]
         if self._outbox:
             candidates.append(self._outbox[0][0])
         if self._moving:
@@ -360,7 +365,20 @@ class SimAutopilot:
             messages = self._dec.parse_buffer(corrupted) or []
         except mavlink.MAVError as exc:  # robust_parsing reports most problems as BAD_DATA
             messages = [mavlink.MAVLink_bad_data(b"", str(exc))]
-        for msg in messages:
+        due = self._next_tick_s(now_s)
+        self._inbox.extend((due, msg) for msg in messages)
+
+    def _next_tick_s(self, now_s: float) -> float:
+        """The next main-loop pass at or after ``now_s`` (passes every ``1/loop_rate_hz``)."""
+        ticks = math.ceil(round((now_s - self._start_s) / self._loop_s, 9))
+        return self._start_s + ticks * self._loop_s
+
+    def _run_inbox(self, now_s: float) -> None:
+        # ArduPilot reads its links once per main-loop pass (GCS::update_receive), so a frame
+        # waits for the next pass before it is handled and answered.
+        due = [msg for at, msg in self._inbox if at <= now_s]
+        self._inbox = [(at, msg) for at, msg in self._inbox if at > now_s]
+        for msg in due:
             self._dispatch(msg, now_s)
 
     def _dispatch(self, msg: mavlink.MAVLink_message, now_s: float) -> None:

@@ -140,6 +140,15 @@ def test_do_set_servo_on_motor_fails_with_exact_statustext_after_the_ack(output)
     assert h.ap.pwm_us[output] == 1000
 
 
+def test_frames_are_handled_on_the_next_main_loop_pass():
+    h = Harness()
+    h.run_until(START_S + 0.001)
+    h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    h.run_for(0.01)
+    ack_time = [t for t, m in h.received if m.get_type() == "COMMAND_ACK"][0]
+    assert ack_time == pytest.approx(START_S + 0.0025)  # 400 Hz loop
+
+
 @pytest.mark.parametrize("pwm", [2500, 800, 0, 65535])
 def test_pwm_applied_as_given_without_clamping(pwm):
     h = Harness()
@@ -444,6 +453,7 @@ def _drop_pattern(seed: int) -> list[bool]:
     for _ in range(40):
         before = h.ap.stats["dropped_in"]
         h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+        h.run_for(0.003)
         pattern.append(h.ap.stats["dropped_in"] > before)
     return pattern
 
