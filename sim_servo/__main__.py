@@ -1,0 +1,250 @@
+"""``python -m sim_servo``: a simulated flight controller with servos, for tests without hardware.
+
+The first line on stdout is the link URL to give the daemon (``udpout:127.0.0.1:PORT``,
+``tcp:127.0.0.1:PORT`` or ``/dev/pts/N,115200``), printed once the port is open. SIGTERM or
+SIGINT stops the simulator cleanly (exit status 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from sim_servo.autopilot import SimAutopilot
+from sim_servo.config import (
+    FLAVOURS,
+    OUTPUT_COUNT,
+    config_from_mapping,
+    load_key,
+    load_toml,
+    parse_withhold,
+)
+from sim_servo.endpoints import PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
+from sim_servo.errors import SimError
+from sim_servo.eventlog import EventLog
+from sim_servo.faults import FaultInjector
+from sim_servo.hand import HandModel
+from sim_servo.server import SimServer
+
+log = logging.getLogger("sim_servo")
+
+
+def _probability(text: str) -> float:
+    value = float(text)
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"probability={value!r} outside [0, 1]")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not value >= 0.0:
+        raise argparse.ArgumentTypeError(f"value={value!r} must be >= 0")
+    return value
+
+
+def _function(text: str) -> tuple[int, int]:
+    output, sep, function = text.partition("=")
+    try:
+        pair = (int(output), int(function))
+    except ValueError:
+        pair = None
+    if not sep or pair is None:
+        raise argparse.ArgumentTypeError(f"{text!r} must be OUTPUT=FUNCTION, e.g. 9=0")
+    if not 1 <= pair[0] <= OUTPUT_COUNT:
+        raise argparse.ArgumentTypeError(f"output={pair[0]} outside [1, {OUTPUT_COUNT}]")
+    return pair
+
+
+def _outputs(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} must be comma-separated outputs") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m sim_servo",
+        description="Simulated flight controller (ArduPilot or PX4 behaviour) with slew-limited "
+                    "servos and the arm's hand pose, over UDP, TCP or a pseudo-terminal. The "
+                    "first stdout line is the link URL for the daemon.")
+    link = parser.add_argument_group("link (exactly one)")
+    where = link.add_mutually_exclusive_group(required=True)
+    where.add_argument("--udp", metavar="HOST:PORT",
+                       help="serve MAVLink 2 on UDP (port 0: any free port); replies go to the "
+                            "last sender")
+    where.add_argument("--tcp", metavar="HOST:PORT", help="listen on TCP for one client")
+    where.add_argument("--pty", action="store_true",
+                       help="serve on a new pseudo-terminal; its device path is printed")
+
+    vehicle = parser.add_argument_group("vehicle")
+    vehicle.add_argument("--config", metavar="TOML",
+                         help="settings file (see sim_servo/examples/quad_arm.toml); flags win")
+    vehicle.add_argument("--flavour", choices=FLAVOURS, help="autopilot behaviour "
+                         "(default ardupilot)")
+    vehicle.add_argument("--system-id", type=int, help="MAVLink system id (default 1)")
+    vehicle.add_argument("--function", type=_function, action="append", default=[],
+                         metavar="OUTPUT=FUNCTION",
+                         help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
+                              "default: outputs 1-4 motors, others free (px4: arm outputs "
+                              "301-306)")
+    vehicle.add_argument("--servo-output-rate-hz", type=_non_negative,
+                         help="SERVO_OUTPUT_RAW rate before any SET_MESSAGE_INTERVAL (default 0: "
+                              "off)")
+
+    vehicle.add_argument("--loop-rate-hz", type=_non_negative,
+                         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
+                              "sent, on loop passes (default 400, as ArduCopter)")
+
+    servo = parser.add_argument_group("servos and arm")
+    servo.add_argument("--slew-s-per-60deg", type=_non_negative,
+                       help="servo speed (default 0.12 s per 60 degrees; 0: instant)")
+    servo.add_argument("--deadband-us", type=_non_negative, help="servo deadband (default 1 us)")
+    servo.add_argument("--arm", metavar="TOML", help="arm file (default: the paper arm)")
+    servo.add_argument("--arm-outputs", type=_outputs, metavar="N,N,...",
+                       help="outputs of the arm's joints in order (default 9,10,11,12,13,14)")
+
+    report = parser.add_argument_group("observation")
+    report.add_argument("--event-log", metavar="PATH", help="append JSON-lines events here")
+    report.add_argument("--query-socket", metavar="PATH",
+                        help="answer 'state' / 'events' / 'ping' lines on this Unix socket")
+    report.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
+
+    faults = parser.add_argument_group("fault injection")
+    faults.add_argument("--seed", type=int, help="seed for every random fault (default 0)")
+    faults.add_argument("--drop-in", type=_probability, metavar="P",
+                        help="drop each incoming frame with probability P")
+    faults.add_argument("--drop-out", type=_probability, metavar="P",
+                        help="drop each outgoing frame with probability P")
+    faults.add_argument("--corrupt-in", type=_probability, metavar="P",
+                        help="flip a byte of each incoming read with probability P")
+    faults.add_argument("--corrupt-out", type=_probability, metavar="P",
+                        help="flip a byte of each outgoing frame with probability P")
+    faults.add_argument("--latency-ms", type=_non_negative, help="delay every outgoing frame")
+    faults.add_argument("--jitter-ms", type=_non_negative,
+                        help="add uniform +-jitter to the delay (frames may reorder)")
+    faults.add_argument("--heartbeat-pause-after", type=_non_negative, metavar="S",
+                        help="stop sending HEARTBEAT S seconds after start")
+    faults.add_argument("--heartbeat-pause-for", type=_non_negative, metavar="S",
+                        help="... for S seconds (default: for ever)")
+    faults.add_argument("--withhold-ack", action="append", default=[], metavar="CMD",
+                        help="execute but never acknowledge command CMD (id, name such as "
+                             "DO_SET_SERVO, or 'all'); repeatable")
+    faults.add_argument("--nack-output", type=int, action="append", default=[], metavar="N",
+                        help="answer FAILED (no STATUSTEXT) to commands for output N; repeatable")
+    faults.add_argument("--hangup-after", type=_non_negative, metavar="S",
+                        help="close the port (pty, socket) S seconds after start")
+    faults.add_argument("--signing-key", metavar="PATH",
+                        help="require MAVLink 2 signing with this key (32 bytes or 64 hex "
+                             "digits); unsigned frames are ignored, ours are signed")
+    return parser
+
+
+def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
+    """The TOML data (if any) with the flags layered on top."""
+    base_dir = None
+    data: dict[str, Any] = {}
+    if args.config:
+        data = load_toml(args.config)
+        base_dir = Path(args.config).resolve().parent
+    for key, value in (("flavour", args.flavour), ("system_id", args.system_id),
+                       ("servo_output_rate_hz", args.servo_output_rate_hz),
+                       ("loop_rate_hz", args.loop_rate_hz)):
+        if value is not None:
+            data[key] = value
+    if args.function:
+        outputs = dict(data.get("outputs", {}))
+        outputs.update({str(o): f for o, f in args.function})
+        data["outputs"] = outputs
+    servo = dict(data.get("servo", {}))
+    for key, value in (("slew_s_per_60deg", args.slew_s_per_60deg),
+                       ("deadband_us", args.deadband_us)):
+        if value is not None:
+            servo[key] = value
+    data["servo"] = servo
+    arm = dict(data.get("arm", {}))
+    if args.arm:
+        arm["file"] = str(Path(args.arm).resolve())
+    if args.arm_outputs:
+        arm["outputs"] = list(args.arm_outputs)
+    data["arm"] = arm
+    faults = dict(data.get("faults", {}))
+    for key in ("seed", "drop_in", "drop_out", "corrupt_in", "corrupt_out", "latency_ms",
+                "jitter_ms"):
+        if getattr(args, key) is not None:
+            faults[key] = getattr(args, key)
+    for key, value in (("heartbeat_pause_after_s", args.heartbeat_pause_after),
+                       ("heartbeat_pause_for_s", args.heartbeat_pause_for),
+                       ("hangup_after_s", args.hangup_after)):
+        if value is not None:
+            faults[key] = value
+    if args.withhold_ack:
+        faults["withhold_ack"] = list(args.withhold_ack)
+    if args.nack_output:
+        faults["nack_outputs"] = list(args.nack_output)
+    data["faults"] = faults
+    return data, base_dir
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        stream=sys.stderr, format="%(name)s: %(message)s")
+    events: EventLog | None = None
+    endpoint = None
+    try:
+        data, base_dir = config_data(args)
+        if args.withhold_ack:
+            parse_withhold(list(args.withhold_ack))  # fail early with the flag's own message
+        config = config_from_mapping(data, source=args.config or "<flags>", base_dir=base_dir)
+        if args.signing_key:
+            from dataclasses import replace
+            config = replace(config, signing_key=load_key(args.signing_key))
+        hand = HandModel.from_config(config.arm)
+        events = EventLog(args.event_log)
+        if args.udp:
+            endpoint = UdpEndpoint(*parse_host_port(args.udp, "--udp"))
+        elif args.tcp:
+            endpoint = TcpEndpoint(*parse_host_port(args.tcp, "--tcp"))
+        else:
+            endpoint = PtyEndpoint()
+        start_s = time.monotonic()
+        autopilot = SimAutopilot(config, now_s=start_s, emit=events, hand=hand,
+                                 faults=FaultInjector(config.faults))
+        server = SimServer(autopilot, endpoint, events, query_path=args.query_socket,
+                           hangup_after_s=config.faults.hangup_after_s, start_s=start_s)
+    except SimError as exc:
+        if endpoint is not None:
+            endpoint.close()
+        if events is not None:
+            events.close()
+        print(f"sim_servo: {exc}", file=sys.stderr)
+        return 2
+
+    def on_signal(signum: int, _frame: object) -> None:
+        server.stop()
+
+    previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    autopilot.emit(start_s, "start", url=endpoint.url, flavour=config.flavour,
+                   system_id=config.system_id, functions=dict(config.functions))
+    print(endpoint.url, flush=True)
+    try:
+        status = server.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        autopilot.emit(time.monotonic(), "stop", stats=dict(autopilot.stats))
+        events.close()
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

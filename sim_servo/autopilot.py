@@ -1,0 +1,654 @@
+"""The simulated autopilot's MAVLink behaviour: bytes in, frames out, given the time.
+
+:class:`SimAutopilot` does no I/O and reads no clock: :meth:`~SimAutopilot.receive` takes the
+bytes that arrived and the time, :meth:`~SimAutopilot.poll` returns the frames due by a time,
+:meth:`~SimAutopilot.next_event_s` says when to call ``poll`` next. A test drives it with plain
+numbers; the server (:mod:`sim_servo.server`) drives it with ``time.monotonic``.
+
+ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
+
+* HEARTBEAT at 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, disarmed, STANDBY.
+* Received frames are handled on the next main-loop pass (``loop_rate_hz``, 400 Hz as
+  ArduCopter), like ``GCS::update_receive`` running once per loop.
+* COMMAND_LONG / COMMAND_INT are handled only when addressed to us (system ours or 0, component
+  ours or 0); the COMMAND_ACK goes out at once, addressed to the sender
+  (GCS_Common.cpp ``handle_command_long``).
+* MAV_CMD_DO_SET_SERVO (GCS_ServoRelay.cpp, AP_ServoRelayEvents.cpp ``do_set_servo``): an output
+  outside 1–16 → FAILED; an output whose SERVOn_FUNCTION is not 0 (disabled), 1 (RC pass-through)
+  or 51–66 (RC input 1–16) → STATUSTEXT severity INFO "ServoRelayEvent: Channel N is already in
+  use" and FAILED; otherwise the PWM is applied as given (no clamping) and ACCEPTED.
+  STATUSTEXTs are queued and sent from the main loop (GCS.cpp ``service_statustext``), so the
+  text arrives one loop period *after* the ACK.
+* MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): −1 stops, 0 resets to
+  the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds;
+  ACCEPTED for messages we can stream, FAILED for the others.
+* PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST (GCS_Param.cpp): unknown names get no
+  reply; integer parameters take ``value + 0.01`` (away from zero) truncated; the answer is
+  PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
+* Anything else in COMMAND_LONG → UNSUPPORTED.
+
+PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
+(Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
+Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
+streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does).
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+import struct
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim_servo.config import (
+    ARDUPILOT_PWM_MAX_US,
+    ARDUPILOT_PWM_MIN_US,
+    ARDUPILOT_PWM_TRIM_US,
+    OUTPUT_COUNT,
+    PX4_ACTUATOR_SET_COUNT,
+    PX4_ACTUATOR_SET_FIRST_FUNCTION,
+    PX4_PWM_MAX_US,
+    PX4_PWM_MIN_US,
+    SimConfig,
+)
+from sim_servo.faults import FaultInjector
+from sim_servo.hand import HandModel
+from sim_servo.servo import Servo, ServoParams
+
+Emit = Callable[[dict[str, Any]], None]
+
+#: SERVOn_FUNCTION values DO_SET_SERVO may drive (AP_ServoRelayEvents.cpp): k_none, k_manual,
+#: k_rcin1 … k_rcin16.
+ARDUPILOT_FREE_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
+STATUSTEXT_IN_USE = "ServoRelayEvent: Channel {output} is already in use"
+#: What an output assigned to a function (a motor, disarmed) reports before any command.
+IDLE_ASSIGNED_PWM_US = 1000
+#: ArduPilot's SET_MESSAGE_INTERVAL bounds (GCS_Common.cpp).
+MAX_INTERVAL_MS = 60_000
+#: Signing timestamps: 10 µs ticks since 2015-01-01 UTC (MAVLink signing spec).
+SIGNING_EPOCH_UNIX_S = 1_420_070_400
+#: Accepted unsigned even when signing is required (GCS_Signing.cpp accept list).
+UNSIGNED_ALLOWED_IDS = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})
+
+
+@dataclass
+class Param:
+    name: str
+    value: int
+    param_type: int  # MAV_PARAM_TYPE
+    low: int
+    high: int
+
+
+@dataclass(frozen=True)
+class Command:
+    """A COMMAND_LONG or COMMAND_INT, normalised (``params`` has 7 floats)."""
+
+    command: int
+    params: tuple[float, ...]
+    source: tuple[int, int]
+
+
+class SimAutopilot:
+    """A simulated ArduPilot (or PX4) flight controller with 16 servo outputs."""
+
+    def __init__(self, config: SimConfig, *, now_s: float, emit: Emit | None = None,
+                 hand: HandModel | None = None, faults: FaultInjector | None = None,
+                 wall_clock: Callable[[], float] = time.time) -> None:
+        self.config = config
+        self.hand = hand
+        self.faults = faults or FaultInjector(config.faults)
+        self._emit_sink = emit or (lambda event: None)
+        self._start_s = now_s
+        self._loop_s = 1.0 / config.loop_rate_hz
+        self._enc = mavlink.MAVLink(None, srcSystem=config.system_id,
+                                    srcComponent=config.component_id)
+        self._dec = mavlink.MAVLink(None)
+        self._dec.robust_parsing = True
+        if config.signing_key is not None:
+            self._enc.signing.secret_key = config.signing_key
+            self._enc.signing.sign_outgoing = True
+            self._enc.signing.link_id = 0
+            self._enc.signing.timestamp = max(
+                1, int((wall_clock() - SIGNING_EPOCH_UNIX_S) * 100_000))
+            self._dec.signing.secret_key = config.signing_key
+            self._dec.signing.allow_unsigned_callback = (
+                lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED_IDS)
+        self._outbox: list[tuple[float, int, bytes]] = []
+        self._seq = itertools.count()
+        self._deferred: list[tuple[float, mavlink.MAVLink_message]] = []
+        self._inbox: list[tuple[float, mavlink.MAVLink_message]] = []
+        self.params: dict[str, Param] = self._make_params()
+        self._param_names = list(self.params)
+        self.pwm_us: dict[int, int] = {
+            output: 0 if self._function(output) == 0 else IDLE_ASSIGNED_PWM_US
+            for output in range(1, OUTPUT_COUNT + 1)}
+        self.servos: dict[int, Servo] = {}
+        for output in range(1, OUTPUT_COUNT + 1):
+            deg_per_us = config.servo.deg_per_us
+            if hand is not None and output in hand.outputs:
+                deg_per_us = hand.deg_per_us(output)
+            params = ServoParams(slew_s_per_60deg=config.servo.slew_s_per_60deg,
+                                 deg_per_us=deg_per_us, deadband_us=config.servo.deadband_us,
+                                 travel_min_us=config.servo.travel_min_us,
+                                 travel_max_us=config.servo.travel_max_us)
+            self.servos[output] = Servo(params, config.servo.initial_us, now_s)
+        self._stream_msgs = self._streamable()
+        self._interval_ms: dict[int, int] = {msg_id: self._default_interval_ms(msg_id)
+                                             for msg_id in self._stream_msgs}
+        self._next_due_s: dict[int, float | None] = {
+            msg_id: now_s if self._interval_ms[msg_id] > 0 else None
+            for msg_id in self._stream_msgs}
+        self._heartbeat_paused = False
+        self._moving = False
+        self.peer: tuple[int, int] | None = None
+        self.stats = dict.fromkeys(
+            ("rx", "tx", "bad_frames", "rejected_signature", "dropped_in", "dropped_out",
+             "corrupted_in", "corrupted_out", "acks", "acks_withheld"), 0)
+        self._commands: dict[int, Callable[[Command, float], int]] = {
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
+            mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
+            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
+        }
+        if config.flavour == "ardupilot":
+            self._commands[mavlink.MAV_CMD_DO_SET_SERVO] = self._cmd_do_set_servo
+        else:
+            self._commands[mavlink.MAV_CMD_DO_SET_ACTUATOR] = self._cmd_do_set_actuator
+        self._handlers: dict[str, Callable[[Any, float], None]] = {
+            "HEARTBEAT": self._on_heartbeat,
+            "COMMAND_LONG": self._on_command_long,
+            "COMMAND_INT": self._on_command_int,
+            "PARAM_SET": self._on_param_set,
+            "PARAM_REQUEST_READ": self._on_param_request_read,
+            "PARAM_REQUEST_LIST": self._on_param_request_list,
+        }
+
+    # -- parameters ------------------------------------------------------------------------
+
+    def _make_params(self) -> dict[str, Param]:
+        params: dict[str, Param] = {}
+        functions = self.config.functions
+        if self.config.flavour == "ardupilot":
+            int16 = mavlink.MAV_PARAM_TYPE_INT16
+            for n in range(1, OUTPUT_COUNT + 1):
+                for suffix, value in (("FUNCTION", functions[n]), ("MIN", ARDUPILOT_PWM_MIN_US),
+                                      ("MAX", ARDUPILOT_PWM_MAX_US),
+                                      ("TRIM", ARDUPILOT_PWM_TRIM_US)):
+                    name = f"SERVO{n}_{suffix}"
+                    params[name] = Param(name, value, int16, -32768, 32767)
+        else:
+            int32 = mavlink.MAV_PARAM_TYPE_INT32
+            for n in range(1, OUTPUT_COUNT + 1):
+                for prefix, value in (("PWM_MAIN_FUNC", functions[n]),
+                                      ("PWM_MAIN_MIN", PX4_PWM_MIN_US),
+                                      ("PWM_MAIN_MAX", PX4_PWM_MAX_US)):
+                    name = f"{prefix}{n}"
+                    params[name] = Param(name, value, int32, -(2**31), 2**31 - 1)
+        return params
+
+    def _function(self, output: int) -> int:
+        key = f"SERVO{output}_FUNCTION" if self.config.flavour == "ardupilot" \
+            else f"PWM_MAIN_FUNC{output}"
+        return self.params[key].value
+
+    def _pwm_limits(self, output: int) -> tuple[int, int]:
+        if self.config.flavour == "ardupilot":
+            return (self.params[f"SERVO{output}_MIN"].value,
+                    self.params[f"SERVO{output}_MAX"].value)
+        return (self.params[f"PWM_MAIN_MIN{output}"].value,
+                self.params[f"PWM_MAIN_MAX{output}"].value)
+
+    def _encode_param_value(self, param: Param) -> float:
+        if self.config.flavour == "px4":
+            # PX4 sends integer parameters bytewise: the int32's bits read as a float.
+            return struct.unpack("<f", struct.pack("<i", param.value))[0]
+        return float(param.value)
+
+    def _decode_param_value(self, param: Param, value: float) -> int | None:
+        if self.config.flavour == "px4":
+            return struct.unpack("<i", struct.pack("<f", value))[0]
+        if not math.isfinite(value):
+            return None
+        # GCS_Param: add 0.01 away from zero before truncating, then constrain to the type.
+        nudged = value + (0.01 if value >= 0 else -0.01)
+        return int(min(max(nudged, param.low), param.high))
+
+    # -- time helpers ----------------------------------------------------------------------
+
+    def _t(self, now_s: float) -> float:
+        return round(now_s - self._start_s, 6)
+
+    def emit(self, now_s: float, event: str, **fields: Any) -> None:
+        self._emit_sink({"t_s": self._t(now_s), "event": event, **fields})
+
+    def _time_boot_us(self, now_s: float) -> int:
+        return max(0, round((now_s - self._start_s) * 1e6))
+
+    # -- output pipeline -------------------------------------------------------------------
+
+    def _send(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
+        frame = msg.pack(self._enc)
+        self._enc.seq = (self._enc.seq + 1) % 256
+        self._enc.total_packets_sent += 1
+        if self.faults.drop_out():
+            self.stats["dropped_out"] += 1
+            self.emit(now_s, "fault", fault="drop_out", msg=msg.get_type())
+            return
+        corrupted = self.faults.corrupt_out(frame)
+        if corrupted != frame:
+            self.stats["corrupted_out"] += 1
+            self.emit(now_s, "fault", fault="corrupt_out", msg=msg.get_type())
+        heapq.heappush(self._outbox, (now_s + self.faults.delay_s(), next(self._seq), corrupted))
+
+    def _defer(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
+        """Send on the next main-loop pass, as ArduPilot does for STATUSTEXT and PARAM_VALUE."""
+        self._deferred.append((now_s + self._loop_s, msg))
+
+    def poll(self, now_s: float) -> list[bytes]:
+        """Run the periodic work due by ``now_s`` and return the frames to write now."""
+        self._run_inbox(now_s)
+        self._run_deferred(now_s)
+        self._run_heartbeat(now_s)
+        self._run_streams(now_s)
+        self._check_settled(now_s)
+        frames = []
+        while self._outbox and self._outbox[0][0] <= now_s:
+            frames.append(heapq.heappop(self._outbox)[2])
+        self.stats["tx"] += len(frames)
+        return frames
+
+    def next_event_s(self, now_s: float) -> float:
+        """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""
+        candidates = [due for due in self._next_due_s.values() if due is not None]
+        candidates += [due for due, _ in self._deferred]
+        candidates += [due for due, _ in self._inbox]
+        if self._outbox:
+            candidates.append(self._outbox[0][0])
+        if self._moving:
+            candidates.append(max(servo.arrival_s() for servo in self.servos.values()))
+        return max(now_s, min(candidates)) if candidates else now_s + 1.0
+
+    def _run_deferred(self, now_s: float) -> None:
+        due = [msg for at, msg in self._deferred if at <= now_s]
+        self._deferred = [(at, msg) for at, msg in self._deferred if at > now_s]
+        for msg in due:
+            self._send(msg, now_s)
+
+    def _heartbeat_paused_at(self, now_s: float) -> bool:
+        after = self.config.faults.heartbeat_pause_after_s
+        if after is None:
+            return False
+        elapsed = now_s - self._start_s
+        length = self.config.faults.heartbeat_pause_for_s
+        return elapsed >= after and (length is None or elapsed < after + length)
+
+    def _run_heartbeat(self, now_s: float) -> None:
+        msg_id = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+        due = self._next_due_s.get(msg_id)
+        if due is None or now_s < due:
+            return
+        self._advance(msg_id, now_s)
+        paused = self._heartbeat_paused_at(now_s)
+        if paused != self._heartbeat_paused:
+            self._heartbeat_paused = paused
+            self.emit(now_s, "fault", fault="heartbeat_paused" if paused else "heartbeat_resumed")
+        if not paused:
+            self._send(self._heartbeat(), now_s)
+
+    def _heartbeat(self) -> mavlink.MAVLink_message:
+        autopilot = (mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA if self.config.flavour == "ardupilot"
+                     else mavlink.MAV_AUTOPILOT_PX4)
+        return self._enc.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, autopilot, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            0, mavlink.MAV_STATE_STANDBY)
+
+    def _advance(self, msg_id: int, now_s: float) -> None:
+        interval_ms = self._interval_ms[msg_id]
+        if interval_ms <= 0:
+            self._next_due_s[msg_id] = None
+            return
+        due = self._next_due_s[msg_id] + interval_ms / 1000.0
+        # Behind by more than a period (a stalled loop): restart the cadence from now.
+        self._next_due_s[msg_id] = due if due > now_s else now_s + interval_ms / 1000.0
+
+    def _run_streams(self, now_s: float) -> None:
+        for msg_id in self._stream_msgs:
+            if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+                continue
+            due = self._next_due_s[msg_id]
+            if due is None or now_s < due:
+                continue
+            self._advance(msg_id, now_s)
+            self._send(self._stream_message(msg_id, now_s), now_s)
+
+    def _streamable(self) -> tuple[int, ...]:
+        ids = [mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW]
+        if self.config.flavour == "px4":
+            ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
+        return tuple(ids)
+
+    def _default_interval_ms(self, msg_id: int) -> int:
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return round(1000.0 / self.config.heartbeat_rate_hz)
+        if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW and self.config.servo_output_rate_hz:
+            return max(1, round(1000.0 / self.config.servo_output_rate_hz))
+        return 0
+
+    def _stream_message(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message:
+        if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW:
+            values = [self.pwm_us[o] & 0xFFFF for o in range(1, OUTPUT_COUNT + 1)]
+            return self._enc.servo_output_raw_encode(
+                self._time_boot_us(now_s) & 0xFFFFFFFF, 0, *values)
+        if msg_id == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
+            values = [float(self.pwm_us[o]) for o in range(1, OUTPUT_COUNT + 1)]
+            return self._enc.actuator_output_status_encode(
+                self._time_boot_us(now_s), OUTPUT_COUNT, values + [0.0] * (32 - OUTPUT_COUNT))
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            return self._heartbeat()
+        raise AssertionError(f"message id {msg_id} is not streamable")  # _streamable() guards
+
+    # -- input pipeline --------------------------------------------------------------------
+
+    def receive(self, data: bytes, now_s: float) -> None:
+        """Feed bytes that arrived at ``now_s`` (a datagram, or a chunk of a serial stream)."""
+        corrupted = self.faults.corrupt_in(data)
+        if corrupted != data:
+            self.stats["corrupted_in"] += 1
+            self.emit(now_s, "fault", fault="corrupt_in", bytes=len(data))
+        try:
+            messages = self._dec.parse_buffer(corrupted) or []
+        except mavlink.MAVError as exc:  # robust_parsing reports most problems as BAD_DATA
+            messages = [mavlink.MAVLink_bad_data(b"", str(exc))]
+        due = self._next_tick_s(now_s)
+        self._inbox.extend((due, msg) for msg in messages)
+
+    def _next_tick_s(self, now_s: float) -> float:
+        """The next main-loop pass at or after ``now_s`` (passes every ``1/loop_rate_hz``)."""
+        ticks = math.ceil(round((now_s - self._start_s) / self._loop_s, 9))
+        return self._start_s + ticks * self._loop_s
+
+    def _run_inbox(self, now_s: float) -> None:
+        # ArduPilot reads its links once per main-loop pass (GCS::update_receive), so a frame
+        # waits for the next pass before it is handled and answered.
+        due = [msg for at, msg in self._inbox if at <= now_s]
+        self._inbox = [(at, msg) for at, msg in self._inbox if at > now_s]
+        for msg in due:
+            self._dispatch(msg, now_s)
+
+    def _dispatch(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            if "signature" in reason:
+                self.stats["rejected_signature"] += 1
+                self.emit(now_s, "rejected", reason=reason)
+            else:
+                self.stats["bad_frames"] += 1
+                self.emit(now_s, "bad_frame", reason=reason)
+            return
+        if self.faults.drop_in():
+            self.stats["dropped_in"] += 1
+            self.emit(now_s, "fault", fault="drop_in", msg=kind)
+            return
+        self.stats["rx"] += 1
+        self.emit(now_s, "rx", msg=kind, src=[msg.get_srcSystem(), msg.get_srcComponent()],
+                  fields=_fields(msg))
+        handler = self._handlers.get(kind)
+        if handler is not None:
+            handler(msg, now_s)
+
+    def _for_us(self, msg: Any) -> bool:
+        return (msg.target_system in (0, self.config.system_id)
+                and msg.target_component in (0, self.config.component_id))
+
+    def _on_heartbeat(self, msg: Any, now_s: float) -> None:
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        if source != self.peer:
+            self.peer = source
+            self.emit(now_s, "peer", src=list(source), type=msg.type, autopilot=msg.autopilot)
+
+    def _on_command_long(self, msg: Any, now_s: float) -> None:
+        if not self._for_us(msg):
+            return
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
+                  msg.param7)
+        self._run_command(Command(msg.command, params,
+                                  (msg.get_srcSystem(), msg.get_srcComponent())), now_s)
+
+    def _on_command_int(self, msg: Any, now_s: float) -> None:
+        if not self._for_us(msg):
+            return
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
+                  msg.z)
+        self._run_command(Command(msg.command, params,
+                                  (msg.get_srcSystem(), msg.get_srcComponent())), now_s)
+
+    def _run_command(self, command: Command, now_s: float) -> None:
+        handler = self._commands.get(command.command)
+        result = handler(command, now_s) if handler is not None \
+            else mavlink.MAV_RESULT_UNSUPPORTED
+        withheld = (self.config.faults.withhold_all_acks
+                    or command.command in self.config.faults.withhold_ack_commands)
+        self.emit(now_s, "ack", command=command.command,
+                  command_name=_command_name(command.command),
+                  result=result, result_name=_result_name(result), withheld=withheld)
+        if withheld:
+            self.stats["acks_withheld"] += 1
+            return
+        self.stats["acks"] += 1
+        self._send(self._enc.command_ack_encode(command.command, result, 0, 0, *command.source),
+                   now_s)
+
+    def _statustext(self, severity: int, text: str, now_s: float) -> None:
+        self.emit(now_s, "statustext", severity=severity, text=text)
+        self._defer(self._enc.statustext_encode(severity, text.encode()), now_s)
+
+    # -- commands --------------------------------------------------------------------------
+
+    def _cmd_do_set_servo(self, command: Command, now_s: float) -> int:
+        channel_f, pwm_f = command.params[0], command.params[1]
+        # param1/param2 reach do_set_servo as uint8_t / uint16_t (C truncation).
+        if not (math.isfinite(channel_f) and math.isfinite(pwm_f)) or not 0 <= channel_f < 256:
+            return mavlink.MAV_RESULT_FAILED
+        output, pwm = int(channel_f), int(pwm_f) % 65536
+        if not 1 <= output <= OUTPUT_COUNT:
+            return mavlink.MAV_RESULT_FAILED
+        if output in self.config.faults.nack_outputs:
+            self.emit(now_s, "fault", fault="nack_output", output=output, pwm_us=pwm)
+            return mavlink.MAV_RESULT_FAILED
+        if self._function(output) not in ARDUPILOT_FREE_FUNCTIONS:
+            self._statustext(mavlink.MAV_SEVERITY_INFO, STATUSTEXT_IN_USE.format(output=output),
+                             now_s)
+            return mavlink.MAV_RESULT_FAILED
+        self._apply(output, pwm, now_s)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_do_set_actuator(self, command: Command, now_s: float) -> int:
+        index = command.params[6]
+        if index == 0:  # actuator set 1–6; PX4 has no other sets for functions 301–306
+            for output in range(1, OUTPUT_COUNT + 1):
+                slot = self._function(output) - PX4_ACTUATOR_SET_FIRST_FUNCTION
+                if not 0 <= slot < PX4_ACTUATOR_SET_COUNT:
+                    continue
+                if output in self.config.faults.nack_outputs:
+                    self.emit(now_s, "fault", fault="nack_output", output=output)
+                    return mavlink.MAV_RESULT_FAILED
+                value = command.params[slot]
+                if math.isnan(value):
+                    pwm = 0
+                else:
+                    low, high = self._pwm_limits(output)
+                    fraction = (min(max(value, -1.0), 1.0) + 1.0) / 2.0
+                    pwm = math.floor(low + fraction * (high - low) + 0.5)
+                self._apply(output, pwm, now_s, value=value)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _apply(self, output: int, pwm: int, now_s: float, **extra: Any) -> None:
+        self.pwm_us[output] = pwm
+        servo = self.servos[output]
+        servo.command(pwm, now_s)
+        self._moving = True
+        self.emit(now_s, "servo", output=output, pwm_us=pwm,
+                  position_us=round(servo.position_us(now_s), 3),
+                  target_us=round(servo.target_us, 3),
+                  arrival_t_s=self._t(servo.arrival_s()),
+                  **{k: (None if isinstance(v, float) and math.isnan(v) else v)
+                     for k, v in extra.items()})
+
+    def _check_settled(self, now_s: float) -> None:
+        if not self._moving or any(servo.moving(now_s) for servo in self.servos.values()):
+            return
+        self._moving = False
+        arrival = max(servo.arrival_s() for servo in self.servos.values())
+        self.emit(arrival, "settled", positions_us=self._positions(now_s),
+                  hand=self.hand.state(self._positions(now_s)).as_dict() if self.hand else None)
+
+    def _positions(self, now_s: float) -> dict[int, float]:
+        return {o: round(s.position_us(now_s), 3) for o, s in self.servos.items()}
+
+    def _cmd_set_message_interval(self, command: Command, now_s: float) -> int:
+        msg_id_f, interval_f = command.params[0], command.params[1]
+        if not (math.isfinite(msg_id_f) and math.isfinite(interval_f)):
+            return mavlink.MAV_RESULT_FAILED
+        msg_id, interval_us = int(msg_id_f), int(interval_f)
+        if msg_id not in self._stream_msgs:
+            return mavlink.MAV_RESULT_FAILED
+        if interval_us == 0:
+            interval_ms = self._default_interval_ms(msg_id)
+        elif interval_us == -1:
+            interval_ms = 0
+        elif interval_us < 1000:
+            interval_ms = 1  # "don't squash sub-ms times to zero"
+        elif interval_us > MAX_INTERVAL_MS * 1000:
+            interval_ms = MAX_INTERVAL_MS
+        else:
+            interval_ms = interval_us // 1000
+        self._interval_ms[msg_id] = interval_ms
+        self._next_due_s[msg_id] = now_s if interval_ms > 0 else None
+        self.emit(now_s, "stream", msg=_message_name(msg_id), interval_ms=interval_ms)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_get_message_interval(self, command: Command, now_s: float) -> int:
+        msg_id = int(command.params[0]) if math.isfinite(command.params[0]) else -1
+        if msg_id in self._interval_ms:
+            interval_ms = self._interval_ms[msg_id]
+            interval_us = interval_ms * 1000 if interval_ms > 0 else -1
+        else:
+            interval_us = 0  # not available
+        self._defer(self._enc.message_interval_encode(max(0, msg_id) & 0xFFFF, interval_us),
+                    now_s)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_request_message(self, command: Command, now_s: float) -> int:
+        msg_id = int(command.params[0]) if math.isfinite(command.params[0]) else -1
+        if msg_id not in self._stream_msgs:
+            return mavlink.MAV_RESULT_FAILED
+        self._defer(self._stream_message(msg_id, now_s), now_s)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    # -- parameters over MAVLink -----------------------------------------------------------
+
+    def _param_value(self, param: Param, index: int) -> mavlink.MAVLink_message:
+        # param_index is a uint16_t on the wire: ArduPilot's -1 arrives as 65535.
+        return self._enc.param_value_encode(param.name.encode(), self._encode_param_value(param),
+                                            param.param_type, len(self.params), index & 0xFFFF)
+
+    def _on_param_set(self, msg: Any, now_s: float) -> None:
+        if msg.target_system not in (0, self.config.system_id):
+            return
+        name = _param_id(msg.param_id)
+        param = self.params.get(name)
+        if param is None:
+            self.emit(now_s, "param_unknown", name=name)
+            return
+        value = self._decode_param_value(param, msg.param_value)
+        if value is None:
+            return
+        old = param.value
+        param.value = value
+        self.emit(now_s, "param_set", name=name, old=old, value=value)
+        index = -1 if self.config.flavour == "ardupilot" else self._param_names.index(name)
+        self._defer(self._param_value(param, index), now_s)
+
+    def _on_param_request_read(self, msg: Any, now_s: float) -> None:
+        if msg.target_system not in (0, self.config.system_id):
+            return
+        if msg.param_index == -1:
+            name = _param_id(msg.param_id)
+            index = -1
+        elif 0 <= msg.param_index < len(self._param_names):
+            name = self._param_names[msg.param_index]
+            index = msg.param_index
+        else:
+            return
+        param = self.params.get(name)
+        if param is None:
+            self.emit(now_s, "param_unknown", name=name)
+            return
+        self._defer(self._param_value(param, index), now_s)
+
+    def _on_param_request_list(self, msg: Any, now_s: float) -> None:
+        if msg.target_system not in (0, self.config.system_id):
+            return
+        for index, name in enumerate(self._param_names):
+            self._defer(self._param_value(self.params[name], index), now_s)
+
+    # -- state for the query socket --------------------------------------------------------
+
+    def snapshot(self, now_s: float) -> dict[str, Any]:
+        """Everything a test may assert on, as JSON-ready data."""
+        positions = self._positions(now_s)
+        outputs = {
+            str(o): {"function": self._function(o), "pwm_us": self.pwm_us[o],
+                     "position_us": positions[o], "target_us": round(s.target_us, 3),
+                     "moving": s.moving(now_s)}
+            for o, s in self.servos.items()}
+        return {
+            "t_s": self._t(now_s),
+            "flavour": self.config.flavour,
+            "system_id": self.config.system_id,
+            "peer": list(self.peer) if self.peer else None,
+            "outputs": outputs,
+            "settled": not any(s.moving(now_s) for s in self.servos.values()),
+            "hand": self.hand.state(positions).as_dict() if self.hand else None,
+            "streams": {_message_name(m): self._interval_ms[m] for m in self._stream_msgs},
+            "stats": dict(self.stats),
+        }
+
+
+def _param_id(raw: Any) -> str:
+    text = raw.decode("ascii", "replace") if isinstance(raw, bytes | bytearray) else str(raw)
+    return text.split("\x00", 1)[0]
+
+
+def _fields(msg: mavlink.MAVLink_message) -> dict[str, Any]:
+    fields = {}
+    for name in msg.get_fieldnames():
+        value = getattr(msg, name)
+        if isinstance(value, bytes | bytearray):
+            value = value.decode("ascii", "replace").split("\x00", 1)[0]
+        elif isinstance(value, float) and not math.isfinite(value):
+            value = str(value)  # JSON has no NaN / inf
+        elif isinstance(value, list):
+            value = [str(v) if isinstance(v, float) and not math.isfinite(v) else v for v in value]
+        fields[name] = value
+    return fields
+
+
+def _command_name(command: int) -> str:
+    entry = mavlink.enums["MAV_CMD"].get(command)
+    return entry.name if entry is not None else str(command)
+
+
+def _result_name(result: int) -> str:
+    return mavlink.enums["MAV_RESULT"][result].name
+
+
+def _message_name(msg_id: int) -> str:
+    return mavlink.mavlink_map[msg_id].msgname

@@ -1,0 +1,340 @@
+"""Simulator settings: flavour, identity, output function table, servo model, arm, faults.
+
+Settings come from a TOML file (``--config``, schema in ``docs/sim_servo.md`` and
+``sim_servo/examples/quad_arm.toml``) and are then overridden by command-line flags. Every value
+is validated here, once; the message names the field, the value and the allowed range.
+
+Output functions use each flavour's own numbers:
+
+* ``ardupilot``: ``SERVOn_FUNCTION`` — 0 disabled, 1 RC pass-through, 33–36 motors 1–4,
+  51–66 RC input 1–16 … A quad's defaults are outputs 1–4 = 33–36, the rest 0.
+* ``px4``: ``PWM_MAIN_FUNCn`` — 0 disabled, 101–104 motors 1–4, 301–306 "Peripheral via
+  Actuator Set 1–6". The defaults are outputs 1–4 = 101–104 and the arm's outputs = 301–306.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sim_servo.errors import SimConfigError
+
+FLAVOURS = ("ardupilot", "px4")
+#: SERVO1…SERVO16: the outputs SERVO_OUTPUT_RAW port 0 reports.
+OUTPUT_COUNT = 16
+#: ArduPilot SRV_Channel parameter defaults (SERVOn_MIN / MAX / TRIM).
+ARDUPILOT_PWM_MIN_US = 1100
+ARDUPILOT_PWM_MAX_US = 1900
+ARDUPILOT_PWM_TRIM_US = 1500
+#: PX4 PWM_MAIN_MINn / MAXn defaults.
+PX4_PWM_MIN_US = 1000
+PX4_PWM_MAX_US = 2000
+#: The arm's outputs by default (same as firmware_interface.calibration.DEFAULT_OUTPUTS).
+DEFAULT_ARM_OUTPUTS = (9, 10, 11, 12, 13, 14)
+ARDUPILOT_MOTOR_FUNCTIONS = {1: 33, 2: 34, 3: 35, 4: 36}
+PX4_MOTOR_FUNCTIONS = {1: 101, 2: 102, 3: 103, 4: 104}
+PX4_ACTUATOR_SET_FIRST_FUNCTION = 301
+PX4_ACTUATOR_SET_COUNT = 6
+
+
+def _where(source: str, name: str) -> str:
+    return f"{name} in {source}" if source else name
+
+
+def _real(value: Any, name: str, low: float, high: float, source: str = "") -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise SimConfigError(f"{_where(source, name)}={value!r} is not a finite number")
+    if not low <= value <= high:
+        raise SimConfigError(f"{_where(source, name)}={value!r} outside [{low}, {high}]")
+    return float(value)
+
+
+def _int(value: Any, name: str, low: int, high: int, source: str = "") -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise SimConfigError(f"{_where(source, name)}={value!r} is not an integer")
+    if not low <= value <= high:
+        raise SimConfigError(f"{_where(source, name)}={value!r} outside [{low}, {high}]")
+    return value
+
+
+def _optional_real(value: Any, name: str, low: float, high: float,
+                   source: str = "") -> float | None:
+    return None if value is None else _real(value, name, low, high, source)
+
+
+@dataclass(frozen=True)
+class ServoConfig:
+    """The servo model shared by every output.
+
+    ``slew_s_per_60deg`` is the datasheet speed (0.12 s/60° for a typical hobby servo);
+    ``deadband_us`` the command change the servo ignores; ``deg_per_us`` how far the horn turns
+    per µs on outputs the arm calibration does not cover (calibrated outputs use the
+    calibration's span); the horn stops at ``[travel_min_us, travel_max_us]``; it starts at
+    ``initial_us``.
+    """
+
+    slew_s_per_60deg: float = 0.12
+    deadband_us: float = 1.0
+    deg_per_us: float = 0.09
+    travel_min_us: float = 500.0
+    travel_max_us: float = 2500.0
+    initial_us: float = 1500.0
+
+    def __post_init__(self) -> None:
+        _real(self.slew_s_per_60deg, "slew_s_per_60deg", 0.0, 60.0)
+        _real(self.deadband_us, "deadband_us", 0.0, 100.0)
+        if _real(self.deg_per_us, "deg_per_us", 0.0, 10.0) == 0.0:
+            raise SimConfigError("deg_per_us=0 must be > 0")
+        _real(self.travel_min_us, "travel_min_us", 0.0, 5000.0)
+        _real(self.travel_max_us, "travel_max_us", 0.0, 5000.0)
+        if not self.travel_min_us < self.travel_max_us:
+            raise SimConfigError(
+                f"travel_min_us={self.travel_min_us} must be below "
+                f"travel_max_us={self.travel_max_us}")
+        _real(self.initial_us, "initial_us", self.travel_min_us, self.travel_max_us)
+
+
+@dataclass(frozen=True)
+class FaultConfig:
+    """Fault injection; every field off by default. Probabilities are per frame, in [0, 1]."""
+
+    drop_in: float = 0.0
+    drop_out: float = 0.0
+    corrupt_in: float = 0.0
+    corrupt_out: float = 0.0
+    latency_ms: float = 0.0
+    jitter_ms: float = 0.0
+    heartbeat_pause_after_s: float | None = None
+    heartbeat_pause_for_s: float | None = None  # None: for ever
+    withhold_ack_commands: frozenset[int] = frozenset()
+    withhold_all_acks: bool = False
+    nack_outputs: frozenset[int] = frozenset()
+    hangup_after_s: float | None = None
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("drop_in", "drop_out", "corrupt_in", "corrupt_out"):
+            _real(getattr(self, name), name, 0.0, 1.0)
+        _real(self.latency_ms, "latency_ms", 0.0, 60_000.0)
+        _real(self.jitter_ms, "jitter_ms", 0.0, 60_000.0)
+        _optional_real(self.heartbeat_pause_after_s, "heartbeat_pause_after_s", 0.0, 1e6)
+        _optional_real(self.heartbeat_pause_for_s, "heartbeat_pause_for_s", 0.0, 1e6)
+        _optional_real(self.hangup_after_s, "hangup_after_s", 0.0, 1e6)
+        for command in self.withhold_ack_commands:
+            _int(command, "withhold_ack command", 0, 65535)
+        for output in self.nack_outputs:
+            _int(output, "nack_output", 1, OUTPUT_COUNT)
+        _int(self.seed, "seed", 0, 2**63 - 1)
+        object.__setattr__(self, "withhold_ack_commands", frozenset(self.withhold_ack_commands))
+        object.__setattr__(self, "nack_outputs", frozenset(self.nack_outputs))
+
+
+@dataclass(frozen=True)
+class ArmConfig:
+    """Which arm the servos move and how its joints map onto outputs (the daemon's calibration).
+
+    ``arm_file`` None is the default paper arm. The calibration maps each joint's limits onto
+    ``[pwm_min_us, pwm_max_us]`` of its output, as ``firmware_interface.calibration`` does.
+    """
+
+    arm_file: Path | None = None
+    outputs: tuple[int, ...] = DEFAULT_ARM_OUTPUTS
+    pwm_min_us: int = 1000
+    pwm_max_us: int = 2000
+    reversed_joints: tuple[str, ...] = ()
+    trims_us: Mapping[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        outputs = tuple(self.outputs)
+        for output in outputs:
+            _int(output, "arm output", 1, OUTPUT_COUNT)
+        if len(set(outputs)) != len(outputs):
+            raise SimConfigError(f"arm outputs={list(outputs)} repeat an output")
+        object.__setattr__(self, "outputs", outputs)
+        object.__setattr__(self, "reversed_joints", tuple(self.reversed_joints))
+        object.__setattr__(self, "trims_us", dict(self.trims_us))
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything the simulated autopilot needs. ``functions`` maps output (1–16) → function."""
+
+    flavour: str = "ardupilot"
+    system_id: int = 1
+    component_id: int = 1
+    functions: Mapping[int, int] = field(default_factory=dict)
+    servo: ServoConfig = field(default_factory=ServoConfig)
+    arm: ArmConfig = field(default_factory=ArmConfig)
+    faults: FaultConfig = field(default_factory=FaultConfig)
+    signing_key: bytes | None = None
+    servo_output_rate_hz: float = 0.0
+    heartbeat_rate_hz: float = 1.0
+    loop_rate_hz: float = 400.0
+
+    def __post_init__(self) -> None:
+        if self.flavour not in FLAVOURS:
+            raise SimConfigError(f"flavour={self.flavour!r}; valid: {list(FLAVOURS)}")
+        _int(self.system_id, "system_id", 1, 255)
+        _int(self.component_id, "component_id", 1, 255)
+        functions = default_functions(self.flavour, self.arm.outputs)
+        for output, function in dict(self.functions).items():
+            _int(output, "output", 1, OUTPUT_COUNT)
+            functions[output] = _int(function, f"function of output {output}", 0, 65535)
+        object.__setattr__(self, "functions", functions)
+        if self.signing_key is not None and (
+            not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32
+        ):
+            raise SimConfigError("signing_key must be 32 bytes")
+        _real(self.servo_output_rate_hz, "servo_output_rate_hz", 0.0, 1000.0)
+        if _real(self.heartbeat_rate_hz, "heartbeat_rate_hz", 0.0, 100.0) == 0.0:
+            raise SimConfigError("heartbeat_rate_hz=0 must be > 0")
+        if _real(self.loop_rate_hz, "loop_rate_hz", 0.0, 10_000.0) == 0.0:
+            raise SimConfigError("loop_rate_hz=0 must be > 0")
+
+
+def default_functions(flavour: str, arm_outputs: tuple[int, ...]) -> dict[int, int]:
+    """The output function table of a quad carrying the arm, for ``flavour``."""
+    functions = dict.fromkeys(range(1, OUTPUT_COUNT + 1), 0)
+    if flavour == "ardupilot":
+        functions.update(ARDUPILOT_MOTOR_FUNCTIONS)
+    elif flavour == "px4":
+        functions.update(PX4_MOTOR_FUNCTIONS)
+        for index, output in enumerate(arm_outputs[:PX4_ACTUATOR_SET_COUNT]):
+            functions[output] = PX4_ACTUATOR_SET_FIRST_FUNCTION + index
+    else:
+        raise SimConfigError(f"flavour={flavour!r}; valid: {list(FLAVOURS)}")
+    return functions
+
+
+def load_key(path: str | Path) -> bytes:
+    """A 32-byte signing key from a file: 32 raw bytes or 64 hex digits."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise SimConfigError(f"cannot read signing key file {str(path)!r}: {exc}") from exc
+    if len(data) == 32:
+        return data
+    text = data.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise SimConfigError(
+        f"signing key file {str(path)!r} holds {len(data)} bytes; expected 32 raw bytes or 64 hex "
+        "digits")
+
+
+_TOP_KEYS = {"flavour", "system_id", "component_id", "servo_output_rate_hz", "heartbeat_rate_hz",
+             "loop_rate_hz", "signing_key_file", "outputs", "servo", "arm", "faults"}
+_FAULT_KEYS = {"drop_in", "drop_out", "corrupt_in", "corrupt_out", "latency_ms", "jitter_ms",
+               "heartbeat_pause_after_s", "heartbeat_pause_for_s", "withhold_ack", "nack_outputs",
+               "hangup_after_s", "seed"}
+_ARM_KEYS = {"file", "outputs", "pwm_min_us", "pwm_max_us", "reversed", "trims_us"}
+
+
+def _reject_unknown(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise SimConfigError(f"unknown keys {unknown} in {where}; valid: {sorted(allowed)}")
+
+
+def _table(data: Mapping[str, Any], key: str, source: str) -> Mapping[str, Any]:
+    value = data.get(key, {})
+    if not isinstance(value, Mapping):
+        raise SimConfigError(f"[{key}] in {source} must be a table")
+    return value
+
+
+def parse_withhold(values: list[Any] | str, source: str = "") -> tuple[frozenset[int], bool]:
+    """``"all"`` or a list of command ids / names (``DO_SET_SERVO``, ``183``)."""
+    from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+    if values == "all" or (isinstance(values, list) and "all" in values):
+        return frozenset(), True
+    commands = set()
+    for value in values if isinstance(values, list) else [values]:
+        if isinstance(value, int) and not isinstance(value, bool):
+            commands.add(value)
+            continue
+        text = str(value).strip().upper()
+        if text.isdigit():
+            commands.add(int(text))
+            continue
+        name = text if text.startswith("MAV_CMD_") else f"MAV_CMD_{text}"
+        number = getattr(mavlink, name, None)
+        if not isinstance(number, int):
+            raise SimConfigError(
+                f"{_where(source, 'withhold_ack')}={value!r} is not a command id, MAV_CMD name "
+                "or 'all'")
+        commands.add(number)
+    return frozenset(commands), False
+
+
+def config_from_mapping(data: Mapping[str, Any], source: str = "<dict>",
+                        base_dir: Path | None = None) -> SimConfig:
+    """Build a :class:`SimConfig` from the TOML structure; paths are relative to ``base_dir``."""
+    _reject_unknown(data, _TOP_KEYS, source)
+    kwargs: dict[str, Any] = {}
+    for key in ("flavour", "system_id", "component_id", "servo_output_rate_hz",
+                "heartbeat_rate_hz", "loop_rate_hz"):
+        if key in data:
+            kwargs[key] = data[key]
+    if "signing_key_file" in data:
+        kwargs["signing_key"] = load_key(_resolve(data["signing_key_file"], base_dir))
+    outputs = _table(data, "outputs", source)
+    functions = {}
+    for key, function in outputs.items():
+        try:
+            output = int(key)
+        except ValueError:
+            raise SimConfigError(f"[outputs] key {key!r} in {source} is not an output number") \
+                from None
+        functions[output] = _int(function, f"outputs.{key}", 0, 65535, source)
+    kwargs["functions"] = functions
+    servo = _table(data, "servo", source)
+    _reject_unknown(servo, set(ServoConfig.__dataclass_fields__), f"[servo] in {source}")
+    kwargs["servo"] = ServoConfig(**servo)
+    arm = _table(data, "arm", source)
+    _reject_unknown(arm, _ARM_KEYS, f"[arm] in {source}")
+    kwargs["arm"] = ArmConfig(
+        arm_file=_resolve(arm["file"], base_dir) if "file" in arm else None,
+        outputs=tuple(arm.get("outputs", DEFAULT_ARM_OUTPUTS)),
+        pwm_min_us=arm.get("pwm_min_us", 1000),
+        pwm_max_us=arm.get("pwm_max_us", 2000),
+        reversed_joints=tuple(arm.get("reversed", ())),
+        trims_us=dict(arm.get("trims_us", {})),
+    )
+    faults = dict(_table(data, "faults", source))
+    _reject_unknown(faults, _FAULT_KEYS, f"[faults] in {source}")
+    if "withhold_ack" in faults:
+        commands, all_acks = parse_withhold(faults.pop("withhold_ack"), source)
+        faults["withhold_ack_commands"], faults["withhold_all_acks"] = commands, all_acks
+    if "nack_outputs" in faults:
+        faults["nack_outputs"] = frozenset(faults["nack_outputs"])
+    kwargs["faults"] = FaultConfig(**faults)
+    return SimConfig(**kwargs)
+
+
+def _resolve(path: Any, base_dir: Path | None) -> Path:
+    if not isinstance(path, str) or not path:
+        raise SimConfigError(f"path={path!r} must be a non-empty string")
+    candidate = Path(path).expanduser()
+    if not candidate.is_absolute() and base_dir is not None:
+        candidate = base_dir / candidate
+    return candidate
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    """Read a simulator TOML file into a plain dict (validated by :func:`config_from_mapping`)."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise SimConfigError(f"cannot read config file {str(path)!r}: {exc.strerror}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise SimConfigError(f"config file {str(path)!r} is not valid TOML: {exc}") from exc

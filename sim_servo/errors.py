@@ -1,0 +1,20 @@
+"""Exceptions raised by ``sim_servo``: one base, layered by concern.
+
+    SimError
+    ├── SimConfigError     (also a ValueError: a bad flag, TOML field or value)
+    └── SimIOError         (a socket / pty failure; the OS error is the ``__cause__``)
+"""
+
+from __future__ import annotations
+
+
+class SimError(Exception):
+    """Base of every error raised by the simulator."""
+
+
+class SimConfigError(SimError, ValueError):
+    """A setting is invalid; the message names the value and the allowed range."""
+
+
+class SimIOError(SimError):
+    """An endpoint (socket, pty, query socket) failed."""

@@ -1,0 +1,58 @@
+"""Seeded fault decisions: drop, corrupt, delay. Pure; the same seed gives the same faults.
+
+The generator is drawn from only when a fault is enabled, so turning one fault on does not
+change the sequence another one sees in a run where it was already on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sim_servo.config import FaultConfig
+
+
+class FaultInjector:
+    """Decides, frame by frame, what the faulty link does. ``rng`` defaults to ``config.seed``."""
+
+    def __init__(self, config: FaultConfig, rng: np.random.Generator | None = None) -> None:
+        self.config = config
+        self.rng = rng if rng is not None else np.random.default_rng(config.seed)
+
+    def _hit(self, probability: float) -> bool:
+        if probability <= 0.0:
+            return False
+        if probability >= 1.0:
+            return True
+        return bool(self.rng.random() < probability)
+
+    def drop_in(self) -> bool:
+        """True when the next incoming frame is lost."""
+        return self._hit(self.config.drop_in)
+
+    def drop_out(self) -> bool:
+        """True when the next outgoing frame is lost."""
+        return self._hit(self.config.drop_out)
+
+    def _corrupt(self, data: bytes, probability: float) -> bytes:
+        if not data or not self._hit(probability):
+            return data
+        index = int(self.rng.integers(0, len(data)))
+        flip = int(self.rng.integers(1, 256))  # never 0: the byte always changes
+        corrupted = bytearray(data)
+        corrupted[index] ^= flip
+        return bytes(corrupted)
+
+    def corrupt_in(self, data: bytes) -> bytes:
+        """``data`` with one byte flipped, with probability ``corrupt_in``; else unchanged."""
+        return self._corrupt(data, self.config.corrupt_in)
+
+    def corrupt_out(self, data: bytes) -> bytes:
+        """``data`` with one byte flipped, with probability ``corrupt_out``; else unchanged."""
+        return self._corrupt(data, self.config.corrupt_out)
+
+    def delay_s(self) -> float:
+        """Added latency for one outgoing frame: ``latency_ms ± jitter_ms`` (uniform), ≥ 0."""
+        delay_ms = self.config.latency_ms
+        if self.config.jitter_ms > 0:
+            delay_ms += float(self.rng.uniform(-self.config.jitter_ms, self.config.jitter_ms))
+        return max(0.0, delay_ms) / 1000.0

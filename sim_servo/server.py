@@ -1,0 +1,122 @@
+"""The I/O loop: owns the endpoint and the query socket, hands bytes to the autopilot.
+
+One thread, one ``select``: it waits until a descriptor is readable or the autopilot's next
+event is due, feeds what arrived to :meth:`SimAutopilot.receive`, writes what
+:meth:`SimAutopilot.poll` returns, answers queries and applies the hang-up fault. Nothing here
+decides protocol behaviour. An exception from the autopilot ends the loop; it is logged as an
+``error`` event and :meth:`SimServer.run` returns 1.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+from sim_servo.autopilot import SimAutopilot
+from sim_servo.endpoints import Endpoint
+from sim_servo.eventlog import EventLog
+from sim_servo.query import QueryServer
+
+log = logging.getLogger(__name__)
+#: Longest sleep between two looks at the clock (bounds the hang-up fault's lateness).
+MAX_WAIT_S = 0.1
+
+
+class SimServer:
+    """Runs ``autopilot`` over ``endpoint`` until :meth:`stop` (or a signal via ``wakeup_fd``)."""
+
+    def __init__(self, autopilot: SimAutopilot, endpoint: Endpoint, events: EventLog, *,
+                 query_path: str | None = None, hangup_after_s: float | None = None,
+                 clock: Callable[[], float] = time.monotonic, start_s: float | None = None
+                 ) -> None:
+        self.autopilot = autopilot
+        self.endpoint = endpoint
+        self.events = events
+        self.clock = clock
+        self._start_s = clock() if start_s is None else start_s
+        self._hangup_at_s = None if hangup_after_s is None else self._start_s + hangup_after_s
+        self._stopping = False
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
+        self.query = QueryServer(query_path, self._respond) if query_path else None
+
+    @property
+    def wakeup_fd(self) -> int:
+        """Write end of the self-pipe, for ``signal.set_wakeup_fd``."""
+        return self._wake_w
+
+    def stop(self) -> None:
+        """Ask the loop to end (safe from a signal handler or another thread)."""
+        self._stopping = True
+        try:
+            os.write(self._wake_w, b"\0")
+        except OSError:
+            pass
+
+    def _respond(self, request: str) -> dict[str, Any]:
+        if request == "state":
+            state = self.autopilot.snapshot(self.clock())
+            state["link"] = {"url": self.endpoint.url, "closed": self.endpoint.closed,
+                             "dropped_writes": self.endpoint.dropped_writes}
+            return state
+        if request == "events":
+            return {"events": list(self.events.recent)}
+        return {"ok": True}
+
+    def run(self) -> int:
+        """Serve until stopped; 0 on a requested stop, 1 if the protocol code failed."""
+        try:
+            while not self._stopping:
+                self._step()
+            return 0
+        except Exception as exc:  # protocol code failed: end cleanly, keep the cause
+            now = self.clock()
+            self.autopilot.emit(now, "error", error=repr(exc), traceback=traceback.format_exc())
+            log.error("simulator stopped on an error: %r", exc)
+            return 1
+        finally:
+            self.close()
+
+    def _step(self) -> None:
+        now = self.clock()
+        wait_s = min(MAX_WAIT_S, self.autopilot.next_event_s(now) - now)
+        if self._hangup_at_s is not None and not self.endpoint.closed:
+            wait_s = min(wait_s, self._hangup_at_s - now)
+        link_fds = self.endpoint.fds()
+        query_fds = self.query.fds() if self.query else []
+        readable, _, _ = select.select([self._wake_r, *link_fds, *query_fds], [], [],
+                                       max(0.0, wait_s))
+        now = self.clock()
+        for fd in readable:
+            if fd == self._wake_r:
+                try:
+                    os.read(self._wake_r, 512)
+                except BlockingIOError:
+                    pass
+            elif fd in link_fds:
+                data = self.endpoint.read_ready(fd)
+                if data:
+                    self.autopilot.receive(data, now)
+            elif self.query is not None:
+                self.query.handle(fd)
+        if self._hangup_at_s is not None and now >= self._hangup_at_s and not self.endpoint.closed:
+            self.endpoint.close()
+            self.autopilot.emit(now, "fault", fault="hangup", url=self.endpoint.url)
+        for frame in self.autopilot.poll(now):
+            self.endpoint.write(frame)
+
+    def close(self) -> None:
+        self.endpoint.close()
+        if self.query is not None:
+            self.query.close()
+        for fd in (self._wake_r, self._wake_w):
+            try:
+                os.close(fd)
+            except OSError:
+                pass

@@ -1,0 +1,30 @@
+"""The JSON-lines event log."""
+
+import json
+
+import pytest
+
+from sim_servo.errors import SimIOError
+from sim_servo.eventlog import EventLog, read_events
+
+
+def test_lines_are_json_and_flushed(tmp_path):
+    path = tmp_path / "events.jsonl"
+    log = EventLog(path, keep=2)
+    log({"t_s": 0.0, "event": "start"})
+    log({"t_s": 0.5, "event": "servo", "output": 9, "pwm_us": 1500})
+    assert read_events(path)[1]["pwm_us"] == 1500  # readable before close
+    log({"t_s": 1.0, "event": "stop", "odd": b"bytes"})
+    log.close()
+    lines = path.read_text().splitlines()
+    assert [json.loads(line)["event"] for line in lines] == ["start", "servo", "stop"]
+    assert [e["event"] for e in log.recent] == ["servo", "stop"]
+
+
+def test_memory_only_and_bad_path(tmp_path):
+    log = EventLog(None)
+    log({"t_s": 0, "event": "x"})
+    assert len(log.recent) == 1
+    log.close()
+    with pytest.raises(SimIOError, match="cannot open event log"):
+        EventLog(tmp_path / "no" / "such" / "dir.jsonl")

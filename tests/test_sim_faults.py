@@ -1,0 +1,44 @@
+"""Seeded fault decisions."""
+
+import numpy as np
+
+from sim_servo.config import FaultConfig
+from sim_servo.faults import FaultInjector
+
+
+def test_off_by_default_and_rng_untouched():
+    rng = np.random.default_rng(1)
+    faults = FaultInjector(FaultConfig(), rng)
+    assert not faults.drop_in() and not faults.drop_out()
+    assert faults.corrupt_out(b"abc") == b"abc" and faults.delay_s() == 0.0
+    assert rng.random() == np.random.default_rng(1).random()  # nothing was drawn
+
+
+def test_same_seed_same_faults():
+    config = FaultConfig(drop_out=0.3, corrupt_out=0.3, jitter_ms=5, latency_ms=5, seed=11)
+
+    def run():
+        faults = FaultInjector(config)
+        return [(faults.drop_out(), faults.corrupt_out(b"0123456789"), faults.delay_s())
+                for _ in range(50)]
+    assert run() == run()
+
+
+def test_corruption_always_changes_exactly_one_byte():
+    faults = FaultInjector(FaultConfig(corrupt_in=1.0, seed=2))
+    for _ in range(100):
+        data = bytes(range(20))
+        corrupted = faults.corrupt_in(data)
+        assert sum(a != b for a, b in zip(data, corrupted, strict=True)) == 1
+
+
+def test_drop_rate_close_to_probability():
+    faults = FaultInjector(FaultConfig(drop_in=0.2, seed=5))
+    rate = sum(faults.drop_in() for _ in range(5000)) / 5000
+    assert 0.17 < rate < 0.23
+
+
+def test_delay_within_latency_plus_minus_jitter_never_negative():
+    faults = FaultInjector(FaultConfig(latency_ms=2, jitter_ms=5, seed=3))
+    delays = [faults.delay_s() for _ in range(1000)]
+    assert min(delays) == 0.0 and max(delays) <= 0.007
