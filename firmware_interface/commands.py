@@ -56,16 +56,20 @@ class _Pending:
     ack: MavMessage | None = None
     confirmation: int = 0
     statustexts: list[str] = field(default_factory=list)
+    statustext_event: threading.Event = field(default_factory=threading.Event)
 
 
 class CommandSender:
     """Sends COMMAND_LONG to the link's autopilot and waits for its COMMAND_ACK.
 
     ``timeout_s`` is the wait per attempt, ``retries`` the number of resends after the first.
+    ArduPilot queues the STATUSTEXT explaining a refusal for its main loop, so it arrives just
+    *after* the FAILED ACK: after a refusal we keep listening up to ``statustext_grace_s``
+    (stopping as soon as one arrives) so the error can carry it.
     """
 
     def __init__(self, link: MavlinkLink, *, timeout_s: float = 1.0, retries: int = 2,
-                 poll_s: float = 0.01) -> None:
+                 poll_s: float = 0.01, statustext_grace_s: float = 0.2) -> None:
         if not timeout_s > 0:
             raise ConfigurationError(f"timeout_s={timeout_s!r} must be > 0")
         if not isinstance(retries, int) or not 0 <= retries <= 254:
@@ -74,6 +78,7 @@ class CommandSender:
         self.timeout_s = timeout_s
         self.retries = retries
         self._poll_s = poll_s
+        self.statustext_grace_s = statustext_grace_s
         self._lock = threading.Lock()
         self._key_locks: dict[tuple[int, int, int], threading.Lock] = {}
         self._pending: dict[tuple[int, int, int], _Pending] = {}
@@ -91,6 +96,7 @@ class CommandSender:
                 for pending in self._pending.values():
                     if pending.target_system == msg.get_srcSystem():
                         pending.statustexts.append(msg.text)
+                        pending.statustext_event.set()
             return
         if msg.target_system not in (0, self.link.system_id) or msg.target_component not in (
             0, self.link.config.component_id
@@ -164,6 +170,9 @@ class CommandSender:
                         f"no COMMAND_ACK for {name} from {target[0]}/{target[1]} after "
                         f"{retries + 1} attempts of timeout_s={timeout_s}"
                     )
+                ack = pending.ack
+                if ack is not None and ack.result != mavlink.MAV_RESULT_ACCEPTED:
+                    pending.statustext_event.wait(self.statustext_grace_s)
             finally:
                 with self._lock:
                     del self._pending[key]

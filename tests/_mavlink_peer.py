@@ -109,7 +109,8 @@ class ScriptedPeer:
     """Autopilot ``system_id``/``component_id`` speaking over ``endpoint``.
 
     Script knobs: ``drop_acks`` (ACKs to swallow before answering), ``failed_outputs``
-    ({output: STATUSTEXT sent before a FAILED ACK}), ``ack_result`` (default ACCEPTED),
+    ({output: STATUSTEXT sent with a FAILED ACK; after it, as ArduPilot does, unless
+    ``statustext_after_ack`` is False}), ``ack_result`` (default ACCEPTED),
     ``on_command`` (called with each COMMAND_LONG before answering), ``signing_key``.
     """
 
@@ -128,6 +129,9 @@ class ScriptedPeer:
         self.bad_frames: list = []
         self.drop_acks = 0
         self.failed_outputs: dict[int, str] = {}
+        # ArduPilot queues STATUSTEXT for its main loop, so it goes out after the ACK.
+        self.statustext_after_ack = True
+        self.statustext_delay_s = 0.02
         self.ack_result = mavlink.MAV_RESULT_ACCEPTED
         self.on_command: Callable | None = None
         self._cond = threading.Condition()
@@ -180,11 +184,19 @@ class ScriptedPeer:
             self.drop_acks -= 1
             return
         result = self.ack_result
+        text = None
         if cmd.command == mavlink.MAV_CMD_DO_SET_SERVO and int(cmd.param1) in self.failed_outputs:
-            self.send_statustext(self.failed_outputs[int(cmd.param1)])
+            text = self.failed_outputs[int(cmd.param1)]
             result = mavlink.MAV_RESULT_FAILED
+        if text is not None and not self.statustext_after_ack:
+            self.send_statustext(text)
         self.send(self.mav.command_ack_encode(
             cmd.command, result, 0, 0, cmd.get_srcSystem(), cmd.get_srcComponent()))
+        if text is not None and self.statustext_after_ack:
+            # One main-loop pass later, as ArduPilot's queued STATUSTEXT goes out.
+            timer = threading.Timer(self.statustext_delay_s, self.send_statustext, (text,))
+            timer.daemon = True
+            timer.start()
 
     def messages(self, msg_type: str) -> list:
         with self._cond:

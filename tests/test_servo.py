@@ -56,9 +56,13 @@ def test_ardupilot_one_do_set_servo_per_joint_in_joint_order(udp):
     assert all(c.confirmation == 0 for c in peer.messages("COMMAND_LONG"))
 
 
-def test_ardupilot_failed_names_the_output_and_the_statustext(udp):
+@pytest.mark.parametrize("after_ack", [True, False], ids=["text-after-ack", "text-before-ack"])
+def test_ardupilot_failed_names_the_output_and_the_statustext(udp, after_ack):
+    # Real ArduPilot sends the STATUSTEXT just after the FAILED ACK (it is queued for the main
+    # loop); either order must end up in the error.
     peer, sender = udp
     peer.failed_outputs = {11: IN_USE}
+    peer.statustext_after_ack = after_ack
     dialect = ArduPilotServoDialect(sender, default_calibration())
     with pytest.raises(ServoOutputUnavailable) as info:
         dialect.send_angles([0, 90, 0, 0, 0, 10])
