@@ -1,0 +1,495 @@
+"""The companion daemon: target in, deadline-bounded IK, speed-limited safe PWM out.
+
+Threads and who owns what:
+
+* the link's reader thread (firmware_interface) only *enqueues*: a MAVLink COMMAND_LONG
+  ``MAV_CMD_USER_1`` addressed to us becomes a request on the control queue;
+* the control socket's thread (:mod:`companion.control`) only enqueues too;
+* the **control thread** (this module) owns all arm state. It takes requests (validate →
+  solve → accept or refuse), and on every tick at ``rate_hz`` moves the commanded joints
+  towards the goal by at most ``joint_speed_deg_s / rate_hz`` and sends the servo commands.
+  It blocks only on its own ACKs, which the reader thread delivers.
+
+Safety rules, in this order:
+
+1. A target must be six finite numbers, or it is DENIED. With the autopilot link down it is
+   TEMPORARILY_REJECTED. If the solution misses the tolerances it is FAILED, and nothing moves.
+2. Every PWM goes through the calibration, which refuses anything outside a servo's range.
+   The dialect checks it again before sending. Nothing is ever clamped into range silently.
+3. Autopilot link lost: stop commanding and hold. When it comes back, re-send the current PWMs
+   first, then carry on.
+4. The arm is assumed to start at the park pose (or mid-range if none is set). Nothing is sent
+   until the first target, and never faster than the joint speed limit from there.
+
+MAVLink target input (document for ground stations): COMMAND_LONG ``MAV_CMD_USER_1`` (31010) to
+our system / component id, params 1–6 = x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg (param
+7 ignored). Answer: COMMAND_ACK ``ACCEPTED`` once the first servo commands towards it are out,
+``DENIED`` for non-finite params, ``FAILED`` when it is out of reach (with a STATUSTEXT giving
+both errors) or the servos refused, ``TEMPORARILY_REJECTED`` while the autopilot link is down.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion import ik
+from companion.arm import Pose
+from companion.config import DaemonConfig
+from companion.motion import limit_step
+from firmware_interface import (
+    CalibrationError,
+    CommandSender,
+    LinkConfig,
+    LinkError,
+    LinkState,
+    MavlinkLink,
+    make_servo_dialect,
+)
+
+log = logging.getLogger("armbridge")
+
+MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
+STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
+
+
+class Outcome(Enum):
+    """How a target request ended; maps onto MAV_RESULT for MAVLink clients."""
+
+    ACCEPTED = "accepted"
+    DENIED = "denied"
+    FAILED = "failed"
+    TEMPORARILY_REJECTED = "temporarily_rejected"
+
+
+MAV_RESULT = {
+    Outcome.ACCEPTED: mavlink.MAV_RESULT_ACCEPTED,
+    Outcome.DENIED: mavlink.MAV_RESULT_DENIED,
+    Outcome.FAILED: mavlink.MAV_RESULT_FAILED,
+    Outcome.TEMPORARILY_REJECTED: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+}
+
+
+@dataclass(frozen=True)
+class Reply:
+    """The answer to one request: an outcome, a one-line reason, the solve if there was one."""
+
+    outcome: Outcome
+    message: str
+    solve: ik.IKResult | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}
+        if self.solve is not None:
+            out["solve"] = {
+                "q_deg": list(self.solve.q_deg),
+                "pos_err_cm": self.solve.pos_err_cm,
+                "ori_err_deg": self.solve.ori_err_deg,
+                "elapsed_ms": self.solve.elapsed_ms,
+                "converged": self.solve.converged,
+            }
+        return out
+
+
+@dataclass
+class _Request:
+    kind: str  # goto | trajectory | park | stop
+    payload: Any
+    direct: bool = False
+    accepted: Reply | None = None  # the reply sent once its first servo commands are out
+    future: Future = field(default_factory=Future)
+
+
+class ArmDaemon:
+    """The bridge between targets and servos; see the module docstring.
+
+    ``start()`` opens the link and starts the control thread; ``close()`` stops both (after an
+    optional park). ``clock`` paces the control ticks (monotonic seconds).
+    """
+
+    def __init__(self, config: DaemonConfig, *, clock: Callable[[], float] = time.monotonic):
+        self.config = config
+        self.clock = clock
+        self._queue: queue.Queue[_Request | None] = queue.Queue()
+        self._lock = threading.Lock()  # guards _status
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.link: MavlinkLink | None = None
+        self._sender: CommandSender | None = None
+        self._dialect = None
+        self._last_tick = clock()
+        arm = config.arm
+        start = config.park_deg or tuple(
+            math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints
+        )
+        self._current: tuple[float, ...] = tuple(start)
+        self._goal: tuple[float, ...] | None = None
+        self._pending: list[_Request] = []  # accepted, waiting for their first servo commands
+        self._trajectory: list[tuple[float, Pose]] = []
+        self._trajectory_t0 = 0.0
+        self._last_pwm: dict[int, int] | None = None
+        self._holding = False
+        self._counters = {
+            "targets": 0,
+            "accepted": 0,
+            "denied": 0,
+            "failed": 0,
+            "temporarily_rejected": 0,
+            "servo_updates": 0,
+            "servo_errors": 0,
+            "not_for_us": 0,
+        }
+        self._last_target: dict[str, Any] | None = None
+
+    # -- life cycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        s = self.config.link
+        self.link = MavlinkLink.open(
+            s.url,
+            LinkConfig(
+                system_id=s.system_id,
+                component_id=s.component_id,
+                target_system=s.target_system,
+                loss_timeout_s=s.loss_timeout_s,
+                signing=s.signing,
+            ),
+        )
+        self._sender = CommandSender(
+            self.link, timeout_s=s.command_timeout_s, retries=s.command_retries
+        )
+        self._dialect = make_servo_dialect(s.dialect, self._sender, self.config.calibration)
+        self.link.subscribe(self._on_command_long, ["COMMAND_LONG"])
+        self._thread = threading.Thread(target=self._run, name="armbridge-control", daemon=True)
+        self._thread.start()
+        log.info(
+            "started: link %s (%s), arm %s, %g Hz, budget %g ms",
+            s.url,
+            s.dialect,
+            self.config.arm.name,
+            self.config.rate_hz,
+            self.config.budget_ms,
+        )
+
+    def wait_for_autopilot(self, timeout_s: float) -> bool:
+        """True once an autopilot HEARTBEAT was heard (bounded wait)."""
+        assert self.link is not None
+        try:
+            self.link.wait_for_autopilot(timeout_s)
+        except LinkError:
+            return False
+        return True
+
+    @property
+    def healthy(self) -> bool:
+        """The control thread is alive and ticked within the last two periods (for the
+        watchdog)."""
+        alive = self._thread is not None and self._thread.is_alive()
+        return alive and self.clock() - self._last_tick < 2.0 / self.config.rate_hz + 1.0
+
+    def close(self, *, park: bool = False, timeout_s: float = 0.8) -> None:
+        """Stop the control thread (parking first if asked) and close the link."""
+        if park and self.config.park_deg is not None and self._thread is not None:
+            self.submit("park", direct=True).result(timeout=timeout_s)
+        self._stop.set()
+        self._queue.put(None)
+        if self._thread is not None:
+            self._thread.join(timeout=timeout_s)
+        if self._sender is not None:
+            self._sender.close()
+        if self.link is not None:
+            self.link.close()
+
+    # -- requests (any thread) --------------------------------------------------------------
+
+    def submit(self, kind: str, payload: Any = None, *, direct: bool = False) -> Future:
+        """Queue a request for the control thread; the future resolves to a :class:`Reply`.
+
+        ``goto``: a Pose or 6 numbers. ``trajectory``: ``[(t_s, pose), ...]`` relative to now.
+        ``park``, ``stop``: no payload. ``direct`` (park only) skips the speed limit: used on
+        shutdown, when there is no time to creep.
+        """
+        if kind not in ("goto", "trajectory", "park", "stop"):
+            raise ValueError(f"unknown request {kind!r}; valid: goto, trajectory, park, stop")
+        request = _Request(kind, payload, direct)
+        if self._stop.is_set():
+            request.future.set_result(Reply(Outcome.TEMPORARILY_REJECTED, "daemon stopping"))
+        else:
+            self._queue.put(request)
+        return request.future
+
+    def status(self) -> dict[str, Any]:
+        """A snapshot: link state, joints, last target, counters (thread-safe)."""
+        link = self.link
+        with self._lock:
+            return {
+                "link": link.state.value if link is not None else "closed",
+                "holding": self._holding,
+                "current_deg": list(self._current),
+                "goal_deg": list(self._goal) if self._goal is not None else None,
+                "moving": self._goal is not None and self._goal != self._current,
+                "last_pwm_us": dict(self._last_pwm) if self._last_pwm else None,
+                "last_target": self._last_target,
+                "trajectory_points_left": len(self._trajectory),
+                "counters": dict(self._counters),
+            }
+
+    # -- MAVLink input (reader thread: enqueue only) ------------------------------------------
+
+    def _on_command_long(self, msg: Any) -> None:
+        if msg.command != MAV_CMD_USER_1:
+            return
+        link = self.link
+        assert link is not None
+        if msg.target_system != link.system_id or msg.target_component != link.config.component_id:
+            with self._lock:
+                self._counters["not_for_us"] += 1
+            return
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6)
+        future = self.submit("goto", params)
+        future.add_done_callback(lambda f: self._answer_mavlink(source, f.result()))
+
+    def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
+        link = self.link
+        if link is None:
+            return
+        try:
+            if reply.outcome is not Outcome.ACCEPTED:
+                severity = (
+                    mavlink.MAV_SEVERITY_WARNING
+                    if reply.outcome is Outcome.FAILED
+                    else mavlink.MAV_SEVERITY_NOTICE
+                )
+                text = reply.message[:STATUSTEXT_MAX].encode("ascii", "replace")
+                link.send(link.mav.statustext_encode(severity, text))
+            link.send(
+                link.mav.command_ack_encode(
+                    MAV_CMD_USER_1, MAV_RESULT[reply.outcome], 0, 0, source[0], source[1]
+                )
+            )
+        except LinkError as exc:
+            log.warning("could not answer %d/%d: %s", *source, exc)
+
+    # -- control thread ---------------------------------------------------------------------
+
+    def _run(self) -> None:
+        period = 1.0 / self.config.rate_hz
+        next_tick = self.clock()
+        while not self._stop.is_set():
+            timeout = max(0.0, next_tick - self.clock())
+            try:
+                request = self._queue.get(timeout=timeout)
+            except queue.Empty:
+                request = None
+            if request is not None:
+                self._handle(request)
+            now = self.clock()
+            if now >= next_tick:
+                self._tick(now, period)
+                next_tick = max(next_tick + period, now)
+        for request in self._pending:
+            request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
+
+    def _count(self, outcome: Outcome) -> None:
+        with self._lock:
+            self._counters[outcome.value] += 1
+
+    def _finish(self, request: _Request, reply: Reply) -> None:
+        if reply.outcome is not Outcome.ACCEPTED:
+            self._count(reply.outcome)
+            log.info("%s refused (%s): %s", request.kind, reply.outcome.value, reply.message)
+        if not request.future.done():
+            request.future.set_result(reply)
+
+    def _link_up(self) -> bool:
+        return self.link is not None and self.link.poll_state() is LinkState.UP
+
+    def _handle(self, request: _Request) -> None:
+        payload = request.payload
+        if request.kind == "stop":
+            self._trajectory.clear()
+            self._set_goal(None)
+            self._finish(request, Reply(Outcome.ACCEPTED, "holding"))
+            return
+        if not self._link_up():
+            self._finish(request, Reply(Outcome.TEMPORARILY_REJECTED, "autopilot link down"))
+            return
+        if request.kind == "park":
+            if self.config.park_deg is None:
+                self._finish(request, Reply(Outcome.DENIED, "no park_deg configured"))
+                return
+            self._trajectory.clear()
+            if request.direct:
+                self._set_current(self.config.park_deg)
+            self._accept(request, self.config.park_deg, "parking")
+            return
+        if request.kind == "trajectory":
+            try:
+                points = sorted((float(t), _as_pose(p)) for t, p in payload)
+                if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
+                    raise ValueError("times must be finite and >= 0, at least one point")
+            except (TypeError, ValueError) as exc:
+                self._finish(request, Reply(Outcome.DENIED, f"bad trajectory: {exc}"))
+                return
+            self._trajectory = points
+            self._trajectory_t0 = self.clock()
+            self._finish(request, Reply(Outcome.ACCEPTED, f"trajectory of {len(points)} points"))
+            return
+        # goto
+        with self._lock:
+            self._counters["targets"] += 1
+        try:
+            pose = _as_pose(payload)
+        except ValueError as exc:
+            self._finish(request, Reply(Outcome.DENIED, f"invalid target: {exc}"))
+            return
+        self._trajectory.clear()
+        self._goto(request, pose)
+
+    def _goto(self, request: _Request | None, pose: Pose) -> bool:
+        start = self._goal if self._goal is not None else self._current
+        result = ik.solve(
+            self.config.arm,
+            pose,
+            budget_ms=self.config.budget_ms,
+            seed=self.config.seed,
+            q_start_deg=start,
+            tol_pos_cm=self.config.tol_pos_cm,
+            tol_ori_deg=self.config.tol_ori_deg,
+        )
+        with self._lock:
+            self._last_target = {
+                "pose": list(pose.as_tuple()),
+                "converged": result.converged,
+                "pos_err_cm": result.pos_err_cm,
+                "ori_err_deg": result.ori_err_deg,
+                "solve_ms": result.elapsed_ms,
+            }
+        if not result.converged:
+            reply = Reply(
+                Outcome.FAILED,
+                f"unreachable: pos {result.pos_err_cm:.2f}cm ori {result.ori_err_deg:.1f}deg",
+                result,
+            )
+            if request is not None:
+                self._finish(request, reply)
+            else:
+                log.warning("trajectory point refused: %s", reply.message)
+            return False
+        try:
+            self.config.calibration.angles_to_pwm_us(result.q_deg)
+        except CalibrationError as exc:  # the config check makes this unreachable; stay safe
+            if request is not None:
+                self._finish(request, Reply(Outcome.FAILED, f"calibration refused: {exc}", result))
+            return False
+        if request is not None:
+            self._accept(request, result.q_deg, "moving", result)
+        else:
+            self._set_goal(result.q_deg)
+        return True
+
+    def _accept(
+        self,
+        request: _Request,
+        goal: Sequence[float],
+        message: str,
+        result: ik.IKResult | None = None,
+    ) -> None:
+        self._set_goal(tuple(goal))
+        request.accepted = Reply(Outcome.ACCEPTED, message, result)
+        self._pending.append(request)
+
+    def _set_goal(self, goal: Sequence[float] | None) -> None:
+        with self._lock:
+            self._goal = tuple(goal) if goal is not None else None
+
+    def _set_current(self, current: Sequence[float]) -> None:
+        with self._lock:
+            self._current = tuple(current)
+
+    def _due_trajectory_point(self, now: float) -> None:
+        due = [p for p in self._trajectory if p[0] <= now - self._trajectory_t0]
+        if not due:
+            return
+        self._trajectory = self._trajectory[len(due) :]
+        if not self._goto(None, due[-1][1]):
+            log.warning("trajectory aborted: a point is out of reach")
+            self._trajectory.clear()
+
+    def _tick(self, now: float, period: float) -> None:
+        self._last_tick = now
+        if not self._link_up():
+            if not self._holding and self._last_pwm is not None:
+                log.warning("autopilot link lost: holding, no servo commands")
+            with self._lock:
+                self._holding = True
+            for request in self._pending:
+                self._finish(request, Reply(Outcome.TEMPORARILY_REJECTED, "autopilot link lost"))
+            self._pending.clear()
+            return
+        if self._holding:
+            with self._lock:
+                self._holding = False
+            if self._last_pwm is not None:
+                log.info("autopilot link back: re-sending current PWMs")
+                if not self._send(self._last_pwm):
+                    return
+        if self._trajectory:
+            self._due_trajectory_point(now)
+        goal = self._goal
+        if goal is None or (
+            goal == self._current and self._last_pwm is not None and not self._pending
+        ):
+            return
+        step = limit_step(self._current, goal, self.config.joint_speed_deg_s * period)
+        try:
+            pwm = self.config.calibration.angles_to_pwm_us(step)
+        except CalibrationError as exc:  # unreachable by construction; refuse, never clamp
+            log.error("calibration refused a step, holding: %s", exc)
+            self._set_goal(None)
+            return
+        if self._send(pwm):
+            self._set_current(step)
+            for request in self._pending:
+                self._finish(request, request.accepted)
+                self._count(Outcome.ACCEPTED)
+            self._pending.clear()
+
+    def _send(self, pwm: dict[int, int]) -> bool:
+        assert self._dialect is not None
+        try:
+            self._dialect.send_pwm(pwm)
+        except (LinkError, CalibrationError) as exc:
+            with self._lock:
+                self._counters["servo_errors"] += 1
+            log.error("servo command failed, stopping motion: %s", exc)
+            self._set_goal(None)
+            for request in self._pending:
+                self._finish(request, Reply(Outcome.FAILED, f"servo command failed: {exc}"))
+            self._pending.clear()
+            return False
+        with self._lock:
+            self._last_pwm = dict(pwm)
+            self._counters["servo_updates"] += 1
+        return True
+
+
+def _as_pose(value: Any) -> Pose:
+    if isinstance(value, Pose):
+        return value
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise ValueError(
+            f"a pose is 6 numbers (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), got {value!r}"
+        )
+    return Pose.from_sequence(value)

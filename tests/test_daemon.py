@@ -1,0 +1,265 @@
+"""The daemon in-process against the simulated flight controller, a real subprocess.
+
+Targets go in through ``ArmDaemon.submit`` (the path the control socket uses) and, for the
+MAVLink input, as COMMAND_LONG frames from a scripted autopilot that routes a ground station's
+command, the way a real autopilot forwards it to its companion.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.arm import Pose
+from companion.config import parse_config
+from companion.daemon import ArmDaemon, Outcome
+from companion.kinematics import rotation_angle
+from sim_servo.query import query
+from tests._mavlink_peer import ScriptedPeer, UdpEndpoint
+
+WAIT_S = 10.0
+G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
+
+
+def wait_until(predicate, timeout_s=WAIT_S, step_s=0.02):
+    """Poll ``predicate`` until it holds or the bound passes (state lives in other processes)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(step_s)
+    return predicate()
+
+
+@pytest.fixture
+def sim(tmp_path):
+    """A simulated ArduPilot on UDP; yields (url, query socket path, extra args setter)."""
+    procs = []
+
+    def start(*extra):
+        sock = str(tmp_path / f"sim{len(procs)}.sock")
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "sim_servo",
+                "--udp",
+                "127.0.0.1:0",
+                "--query-socket",
+                sock,
+                *extra,
+            ],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        procs.append(proc)
+        url = proc.stdout.readline().strip()
+        assert url.startswith("udpout:"), url
+        assert wait_until(lambda: os.path.exists(sock))
+        return url, sock
+
+    yield start
+    for proc in procs:
+        proc.terminate()
+        assert proc.wait(timeout=5) == 0
+        proc.stdout.close()
+
+
+def make_daemon(url, **arm):
+    cfg = parse_config(
+        {
+            "link": {"url": url, "loss_timeout_s": 1.0, "command_timeout_s": 0.3},
+            "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 360.0, **arm},
+            "control": {"rate_hz": 50.0},
+            "solver": {"seed": 1},
+        }
+    )
+    daemon = ArmDaemon(cfg)
+    daemon.start()
+    assert daemon.wait_for_autopilot(WAIT_S)
+    return daemon
+
+
+def sim_hand(sock):
+    return query(sock, "state")["hand"]
+
+
+def hand_errors(pose_values, hand):
+    """Position (cm) and orientation (deg, rotation angle) of the sim's hand against a target."""
+    target = Pose(*pose_values)
+    reached = Pose(**hand["pose"])
+    pos = float(np.linalg.norm(reached.position_cm - target.position_cm))
+    ori = math.degrees(float(rotation_angle(target.rotation, reached.rotation)))
+    return pos, ori
+
+
+def settled(daemon, sock):
+    return not daemon.status()["moving"] and query(sock, "state")["settled"]
+
+
+def test_goto_moves_the_simulated_hand_to_the_target(sim):
+    url, sock = sim()
+    daemon = make_daemon(url)
+    try:
+        target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.ACCEPTED, reply.message
+        assert wait_until(lambda: settled(daemon, sock))
+        pos, ori = hand_errors(target, sim_hand(sock))
+        # 1 µs of PWM is 0.18° on a 180° joint: the hand is as close as the servos can put it.
+        assert pos < 0.2 and ori < 0.5
+        counters = daemon.status()["counters"]
+        assert counters["accepted"] == 1 and counters["servo_errors"] == 0
+    finally:
+        daemon.close()
+
+
+def test_unreachable_g_is_refused_and_nothing_moves(sim):
+    url, sock = sim()
+    daemon = make_daemon(url)
+    try:
+        before = query(sock, "state")["outputs"]
+        reply = daemon.submit("goto", G).result(WAIT_S)
+        assert reply.outcome is Outcome.FAILED
+        assert "unreachable" in reply.message and reply.solve is not None
+        assert not reply.solve.converged
+        assert daemon.status()["counters"]["servo_updates"] == 0
+        assert query(sock, "state")["outputs"] == before
+    finally:
+        daemon.close()
+
+
+@pytest.mark.parametrize(
+    "bad", [(1, 2, math.nan, 0, 0, 0), (1, 2, 3, math.inf, 0, 0), (1, 2, 3), "x"]
+)
+def test_invalid_target_is_denied(sim, bad):
+    url, _ = sim()
+    daemon = make_daemon(url)
+    try:
+        assert daemon.submit("goto", bad).result(WAIT_S).outcome is Outcome.DENIED
+        assert daemon.status()["counters"]["denied"] == 1
+    finally:
+        daemon.close()
+
+
+def test_link_loss_holds_and_recovery_resends(sim):
+    # The sim stops its heartbeat from 1.5 s to 4 s: the daemon (1 s loss timeout) holds.
+    url, sock = sim("--heartbeat-pause-after", "1.5", "--heartbeat-pause-for", "2.5")
+    daemon = make_daemon(url)
+    try:
+        target = daemon.config.arm.fk([10, 80, 20, 10, 20, 30]).as_tuple()
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: daemon.status()["link"] == "lost")
+        assert wait_until(lambda: daemon.status()["holding"])  # on its next control tick
+        reply = daemon.submit("goto", daemon.config.arm.fk([0, 90, 0, 0, 0, 0]).as_tuple())
+        assert reply.result(WAIT_S).outcome is Outcome.TEMPORARILY_REJECTED
+        updates = daemon.status()["counters"]["servo_updates"]
+        assert wait_until(lambda: daemon.status()["link"] == "up")
+        # Back up: the current PWMs are sent again before anything else.
+        assert wait_until(lambda: daemon.status()["counters"]["servo_updates"] > updates)
+        assert not daemon.status()["holding"]
+    finally:
+        daemon.close()
+
+
+def test_park_and_stop(sim):
+    url, sock = sim()
+    daemon = make_daemon(url)
+    try:
+        assert daemon.submit("park").result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: settled(daemon, sock))
+        assert daemon.status()["current_deg"] == [0, 90, 0, 0, 0, 0]
+        assert daemon.submit("stop").result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert daemon.status()["goal_deg"] is None
+    finally:
+        daemon.close()
+
+
+@pytest.fixture
+def autopilot():
+    """A scripted autopilot on UDP (accepts every servo command) and its endpoint."""
+    endpoint = UdpEndpoint()
+    peer = ScriptedPeer(endpoint)
+    yield endpoint, peer
+    peer.close()
+
+
+def gcs_command(endpoint, params, *, target=(1, 191)):
+    """A ground station's COMMAND_LONG USER_1 as the autopilot forwards it (source 255/190)."""
+    gcs = mavlink.MAVLink(None, 255, 190)
+    msg = gcs.command_long_encode(target[0], target[1], mavlink.MAV_CMD_USER_1, 0, *params, 0)
+    endpoint.write(msg.pack(gcs))
+
+
+def acks_to_gcs(peer):
+    return [m for m in peer.messages("COMMAND_ACK") if m.target_system == 255]
+
+
+@pytest.mark.parametrize(
+    ("params", "result"),
+    [
+        ((45.0, 10.0, 20.0, 0.0, 45.0, 0.0), None),
+        ((1.0, 2.0, math.nan, 0.0, 0.0, 0.0), mavlink.MAV_RESULT_DENIED),
+        (G, mavlink.MAV_RESULT_FAILED),
+    ],
+    ids=["reachable", "nan", "unreachable-G"],
+)
+def test_mavlink_user_1_target_is_answered(autopilot, params, result):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {"url": f"udpout:127.0.0.1:{endpoint.port}"},
+                "arm": {"park_deg": [0, 90, 0, 0, 0, 0]},
+            }
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        if result is None:  # a reachable pose: pick one from the arm itself
+            params = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+            result = mavlink.MAV_RESULT_ACCEPTED
+        gcs_command(endpoint, params)
+        assert peer.wait_for(lambda: acks_to_gcs(peer))
+        ack = acks_to_gcs(peer)[0]
+        assert (ack.command, ack.result, ack.target_component) == (
+            mavlink.MAV_CMD_USER_1,
+            result,
+            190,
+        )
+        texts = [m.text for m in peer.messages("STATUSTEXT")]
+        if result == mavlink.MAV_RESULT_FAILED:
+            assert any("unreachable" in t for t in texts)
+        servo = [
+            m for m in peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_SERVO
+        ]
+        assert bool(servo) == (result == mavlink.MAV_RESULT_ACCEPTED)
+        assert all(1000 <= m.param2 <= 2000 for m in servo)
+    finally:
+        daemon.close()
+
+
+def test_mavlink_target_for_another_component_is_ignored(autopilot):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}"}}))
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        gcs_command(endpoint, (45.0, 10.0, 20.0, 0.0, 45.0, 0.0), target=(1, 100))
+        assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1)
+        assert acks_to_gcs(peer) == []
+    finally:
+        daemon.close()
