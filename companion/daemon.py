@@ -30,6 +30,7 @@ both errors) or the servos refused, ``TEMPORARILY_REJECTED`` while the autopilot
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import queue
@@ -210,6 +211,27 @@ class ArmDaemon:
         if self.link is not None:
             self.link.close()
 
+    def reload(self, new: DaemonConfig) -> list[str]:
+        """Apply a re-read config (SIGHUP). Solver, motion, park and rate settings take effect
+        at once. Link, arm and calibration changes need a restart: they are kept as they were
+        and named in the returned warnings."""
+        warnings = [
+            f"{name} changed: restart the daemon to apply it"
+            for name, old_value, new_value in (
+                ("link", self.config.link, new.link),
+                ("arm", self.config.arm, new.arm),
+                ("calibration", self.config.calibration, new.calibration),
+            )
+            if old_value != new_value
+        ]
+        self.config = dataclasses.replace(
+            new, link=self.config.link, arm=self.config.arm, calibration=self.config.calibration
+        )
+        for warning in warnings:
+            log.warning("reload: %s", warning)
+        log.info("reloaded %s", new.source)
+        return warnings
+
     # -- requests (any thread) --------------------------------------------------------------
 
     def submit(self, kind: str, payload: Any = None, *, direct: bool = False) -> Future:
@@ -284,9 +306,9 @@ class ArmDaemon:
     # -- control thread ---------------------------------------------------------------------
 
     def _run(self) -> None:
-        period = 1.0 / self.config.rate_hz
         next_tick = self.clock()
         while not self._stop.is_set():
+            period = 1.0 / self.config.rate_hz  # re-read: SIGHUP may change it
             timeout = max(0.0, next_tick - self.clock())
             try:
                 request = self._queue.get(timeout=timeout)
@@ -316,46 +338,53 @@ class ArmDaemon:
         return self.link is not None and self.link.poll_state() is LinkState.UP
 
     def _handle(self, request: _Request) -> None:
-        payload = request.payload
         if request.kind == "stop":
             self._trajectory.clear()
             self._set_goal(None)
             self._finish(request, Reply(Outcome.ACCEPTED, "holding"))
             return
+        # Validate first: an invalid request is DENIED whatever the link does.
+        if request.kind == "goto":
+            with self._lock:
+                self._counters["targets"] += 1
+        try:
+            parsed = self._parse(request)
+        except (TypeError, ValueError) as exc:
+            self._finish(request, Reply(Outcome.DENIED, str(exc)))
+            return
         if not self._link_up():
             self._finish(request, Reply(Outcome.TEMPORARILY_REJECTED, "autopilot link down"))
             return
+        self._trajectory.clear()
+        if request.kind == "park":
+            if request.direct:
+                self._set_current(parsed)
+            self._accept(request, parsed, "parking")
+        elif request.kind == "trajectory":
+            self._trajectory = parsed
+            self._trajectory_t0 = self.clock()
+            self._finish(request, Reply(Outcome.ACCEPTED, f"trajectory of {len(parsed)} points"))
+        else:
+            self._goto(request, parsed)
+
+    def _parse(self, request: _Request) -> Any:
+        """The request's validated payload; ValueError says what is wrong with it."""
         if request.kind == "park":
             if self.config.park_deg is None:
-                self._finish(request, Reply(Outcome.DENIED, "no park_deg configured"))
-                return
-            self._trajectory.clear()
-            if request.direct:
-                self._set_current(self.config.park_deg)
-            self._accept(request, self.config.park_deg, "parking")
-            return
+                raise ValueError("no park_deg configured")
+            return self.config.park_deg
         if request.kind == "trajectory":
             try:
-                points = sorted((float(t), _as_pose(p)) for t, p in payload)
-                if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
-                    raise ValueError("times must be finite and >= 0, at least one point")
+                points = sorted((float(t), _as_pose(p)) for t, p in request.payload)
             except (TypeError, ValueError) as exc:
-                self._finish(request, Reply(Outcome.DENIED, f"bad trajectory: {exc}"))
-                return
-            self._trajectory = points
-            self._trajectory_t0 = self.clock()
-            self._finish(request, Reply(Outcome.ACCEPTED, f"trajectory of {len(points)} points"))
-            return
-        # goto
-        with self._lock:
-            self._counters["targets"] += 1
+                raise ValueError(f"bad trajectory: {exc}") from exc
+            if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
+                raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
+            return points
         try:
-            pose = _as_pose(payload)
+            return _as_pose(request.payload)
         except ValueError as exc:
-            self._finish(request, Reply(Outcome.DENIED, f"invalid target: {exc}"))
-            return
-        self._trajectory.clear()
-        self._goto(request, pose)
+            raise ValueError(f"invalid target: {exc}") from exc
 
     def _goto(self, request: _Request | None, pose: Pose) -> bool:
         start = self._goal if self._goal is not None else self._current

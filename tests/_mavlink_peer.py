@@ -114,8 +114,14 @@ class ScriptedPeer:
     ``on_command`` (called with each COMMAND_LONG before answering), ``signing_key``.
     """
 
-    def __init__(self, endpoint, *, system_id: int = 1, component_id: int = 1,
-                 signing_key: bytes | None = None) -> None:
+    def __init__(
+        self,
+        endpoint,
+        *,
+        system_id: int = 1,
+        component_id: int = 1,
+        signing_key: bytes | None = None,
+    ) -> None:
         self.endpoint = endpoint
         self.mav = mavlink.MAVLink(None, system_id, component_id)
         self.mav.robust_parsing = True
@@ -148,10 +154,12 @@ class ScriptedPeer:
             self.endpoint.write(buf)
             return buf
 
-    def send_heartbeat(self, autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
-                       vehicle_type=mavlink.MAV_TYPE_QUADROTOR) -> None:
-        self.send(self.mav.heartbeat_encode(
-            vehicle_type, autopilot, 0, 0, mavlink.MAV_STATE_STANDBY))
+    def send_heartbeat(
+        self, autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, vehicle_type=mavlink.MAV_TYPE_QUADROTOR
+    ) -> None:
+        self.send(
+            self.mav.heartbeat_encode(vehicle_type, autopilot, 0, 0, mavlink.MAV_STATE_STANDBY)
+        )
 
     def send_statustext(self, text: str) -> None:
         self.send(self.mav.statustext_encode(mavlink.MAV_SEVERITY_INFO, text.encode()))
@@ -190,8 +198,11 @@ class ScriptedPeer:
             result = mavlink.MAV_RESULT_FAILED
         if text is not None and not self.statustext_after_ack:
             self.send_statustext(text)
-        self.send(self.mav.command_ack_encode(
-            cmd.command, result, 0, 0, cmd.get_srcSystem(), cmd.get_srcComponent()))
+        self.send(
+            self.mav.command_ack_encode(
+                cmd.command, result, 0, 0, cmd.get_srcSystem(), cmd.get_srcComponent()
+            )
+        )
         if text is not None and self.statustext_after_ack:
             # One main-loop pass later, as ArduPilot's queued STATUSTEXT goes out.
             timer = threading.Timer(self.statustext_delay_s, self.send_statustext, (text,))
@@ -215,7 +226,8 @@ class ScriptedPeer:
 
     def wait_for_messages(self, msg_type: str, count: int = 1, timeout_s: float = WAIT_S) -> list:
         assert self.wait_for(lambda: len(self.messages(msg_type)) >= count, timeout_s), (
-            f"peer did not receive {count} {msg_type} within {timeout_s} s")
+            f"peer did not receive {count} {msg_type} within {timeout_s} s"
+        )
         return self.messages(msg_type)
 
     def close(self) -> None:

@@ -29,6 +29,7 @@ def theta2(**overrides):
 
 # --- golden values -------------------------------------------------------------------------
 
+
 def test_default_calibration_matches_table2_on_outputs_9_to_14():
     cal = default_calibration()
     assert cal.outputs == (9, 10, 11, 12, 13, 14)
@@ -40,12 +41,30 @@ def test_default_calibration_matches_table2_on_outputs_9_to_14():
 def test_golden_values_endpoints_and_middle():
     cal = default_calibration()
     assert cal.angles_to_pwm_us([-90, 0, -90, -90, -90, -70]) == {
-        9: 1000, 10: 1000, 11: 1000, 12: 1000, 13: 1000, 14: 1000}
+        9: 1000,
+        10: 1000,
+        11: 1000,
+        12: 1000,
+        13: 1000,
+        14: 1000,
+    }
     assert cal.angles_to_pwm_us([90, 180, 90, 90, 90, 90]) == {
-        9: 2000, 10: 2000, 11: 2000, 12: 2000, 13: 2000, 14: 2000}
+        9: 2000,
+        10: 2000,
+        11: 2000,
+        12: 2000,
+        13: 2000,
+        14: 2000,
+    }
     # θ6: -70…90 spans 160°, so 10° is the middle.
     assert cal.angles_to_pwm_us([0, 90, 0, 0, 0, 10]) == {
-        9: 1500, 10: 1500, 11: 1500, 12: 1500, 13: 1500, 14: 1500}
+        9: 1500,
+        10: 1500,
+        11: 1500,
+        12: 1500,
+        13: 1500,
+        14: 1500,
+    }
 
 
 def test_rounding_is_nearest_with_halves_up():
@@ -83,6 +102,7 @@ def test_normalised_values_for_px4():
 
 # --- refusals name joint, value and range ------------------------------------------------
 
+
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_angles_are_refused(bad):
     with pytest.raises(NonFiniteAngle, match=r"theta2.*output 10"):
@@ -93,7 +113,8 @@ def test_angle_out_of_range_message_names_joint_value_and_range():
     with pytest.raises(AngleOutOfRange) as info:
         default_calibration().angles_to_pwm_us([0, 180.5, 0, 0, 0, 0])
     assert str(info.value) == (
-        "angle_deg=180.5 outside [0.0, 180.0] for joint 'theta2' (servo output 10)")
+        "angle_deg=180.5 outside [0.0, 180.0] for joint 'theta2' (servo output 10)"
+    )
 
 
 def test_non_numbers_are_refused():
@@ -166,8 +187,11 @@ def test_arm_calibration_refuses_duplicates_and_mismatched_lengths():
 
 def test_calibration_from_ranges_passes_reversal_and_trim():
     cal = calibration_from_ranges(
-        [(-45.0, 45.0), (0.0, 90.0)], outputs=(5, 6), names=("a", "b"),
-        reversed_joints=("b",), trims_us={"a": -10},
+        [(-45.0, 45.0), (0.0, 90.0)],
+        outputs=(5, 6),
+        names=("a", "b"),
+        reversed_joints=("b",),
+        trims_us={"a": -10},
     )
     assert cal.angles_to_pwm_us([0.0, 0.0]) == {5: 1490, 6: 2000}
 
@@ -186,8 +210,13 @@ def joints(draw):
     pwm_max = draw(st.integers(min_value=pwm_min + 1, max_value=2500))
     half = (pwm_max - pwm_min) // 2
     return JointCalibration(
-        name="j", output=draw(st.integers(1, 16)), angle_min_deg=lo, angle_max_deg=hi,
-        pwm_min_us=pwm_min, pwm_max_us=pwm_max, reversed=draw(st.booleans()),
+        name="j",
+        output=draw(st.integers(1, 16)),
+        angle_min_deg=lo,
+        angle_max_deg=hi,
+        pwm_min_us=pwm_min,
+        pwm_max_us=pwm_max,
+        reversed=draw(st.booleans()),
         trim_us=draw(st.integers(-half, half)),
     )
 
@@ -207,7 +236,8 @@ def test_no_input_ever_yields_pwm_outside_the_servo_range(joint, angle):
 @given(joint=joints(), angle=any_angle)
 def test_refusal_exactly_when_angle_is_bad_or_trim_pushes_it_out(joint, angle):
     in_range = (
-        isinstance(angle, (int, float)) and math.isfinite(angle)
+        isinstance(angle, (int, float))
+        and math.isfinite(angle)
         and joint.angle_min_deg <= angle <= joint.angle_max_deg
     )
     if not in_range:

@@ -1,25 +1,26 @@
-"""The ``armbridge`` command line, called in-process through ``main(argv)``."""
+"""The ``armbridge`` command line: in-process for the quick commands, a subprocess for ``run``."""
 
 from __future__ import annotations
 
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
 from companion.cli import main
+from companion.control import request
+
+WAIT_S = 15.0
 
 
-def test_demo_reaches_the_reachable_poses_and_refuses_g(capsys):
-    assert main(["demo"]) == 0
-    out = capsys.readouterr().out
-    # Three reachable demo poses are reached; the papers' G is shown as a compromise.
-    assert out.count("REACHED") == 4
-    assert out.count("NOT REACHED") == 1
-
-
-def test_solve_reachable_pose_exits_zero(capsys):
+def test_solve_reachable_and_unreachable(capsys):
     assert main(["solve", "71", "0", "-2", "0", "0", "0"]) == 0
     assert "REACHED" in capsys.readouterr().out
-
-
-def test_solve_unreachable_pose_exits_one(capsys):
-    assert main(["solve", "-20", "3", "40", "0", "10", "15"]) == 1
+    assert main(["solve", "-20", "3", "40", "0", "10", "15", "--budget-ms", "5"]) == 1
     assert "NOT REACHED" in capsys.readouterr().out
 
 
@@ -28,9 +29,117 @@ def test_solve_nan_is_a_clear_error(capsys):
     assert "Pose.z_cm=nan must be finite" in capsys.readouterr().err
 
 
-def test_solve_with_broken_arm_file(tmp_path, capsys):
-    bad = tmp_path / "arm.toml"
-    bad.write_text('convention = "sideways"\n')
-    assert main(["solve", "--arm", str(bad), "1", "2", "3", "0", "0", "0"]) == 2
+def test_check_config(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    good.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n')
+    assert main(["check-config", str(good)]) == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n[solver]\nbudget_ms = -1\n')
+    assert main(["check-config", str(bad)]) == 2
     err = capsys.readouterr().err
-    assert str(bad) in err and "convention" in err
+    assert str(bad) in err and "solver.budget_ms" in err
+
+
+def test_run_with_broken_config_exits_2_and_sends_nothing(tmp_path, capsys):
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.settimeout(0.3)
+    port = listener.getsockname()[1]
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[link]\nurl = "udpout:127.0.0.1:{port}"\ndialect = "inav"\n')
+    try:
+        assert main(["run", "--config", str(bad)]) == 2
+        assert "link.dialect" in capsys.readouterr().err
+        with pytest.raises(TimeoutError):
+            listener.recv(4096)  # not even a heartbeat went out
+    finally:
+        listener.close()
+
+
+def test_client_without_daemon_exits_3(tmp_path, capsys):
+    assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
+    assert "cannot reach the daemon" in capsys.readouterr().err
+
+
+def test_demo_runs_the_tour(capsys):
+    assert main(["demo"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("ACCEPTED") == 3
+    assert "FAILED: unreachable" in out and "nothing sent" in out
+    assert "figure-eight" in out and "'servo_errors': 0" in out
+
+
+def wait_for(predicate, timeout_s=WAIT_S):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def test_run_as_a_service_ready_goto_sigterm(tmp_path):
+    """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
+    control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify.sock"))
+    notify.settimeout(WAIT_S)
+    sim_sock = str(tmp_path / "sim.sock")
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--query-socket", sim_sock],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    control = str(tmp_path / "control.sock")
+    config = tmp_path / "armbridge.toml"
+    config.write_text(
+        f'[link]\nurl = "{sim.stdout.readline().strip()}"\n'
+        "[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\npark_on_stop = true\n"
+        f'[control]\nsocket = "{control}"\n'
+    )
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "2000000"}
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        messages = []
+        while not any(m.startswith(b"READY=1") for m in messages):
+            messages.append(notify.recv(4096))
+        assert wait_for(lambda: os.path.exists(control))
+        reply = request(
+            control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
+        )
+        assert reply["ok"] and reply["outcome"] == "accepted", reply
+        assert (
+            request(control, {"cmd": "goto", "pose": [-20, 3, 40, 0, 10, 15]})["outcome"]
+            == "failed"
+        )
+        status = request(control, {"cmd": "status"})["status"]
+        assert status["link"] == "up" and status["counters"]["failed"] == 1
+        notify.settimeout(3.0)
+        assert any(notify.recv(4096) == b"WATCHDOG=1" for _ in range(20))
+        started = time.monotonic()
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=5) == 0
+        assert time.monotonic() - started < 1.5
+        rest = []
+        notify.settimeout(0.5)
+        try:
+            while True:
+                rest.append(notify.recv(4096))
+        except TimeoutError:
+            pass
+        assert any(m.startswith(b"STOPPING=1") for m in rest)
+        assert "stopping (parking)" in daemon.stderr.read()
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        daemon.stderr.close()
+        sim.terminate()
+        sim.wait(timeout=5)
+        sim.stdout.close()
+        notify.close()

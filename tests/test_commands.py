@@ -25,8 +25,9 @@ def peer():
 
 @pytest.fixture
 def link(peer, clock):
-    link = MavlinkLink.open(f"udpout:127.0.0.1:{peer.endpoint.port}",
-                            LinkConfig(heartbeat_rate_hz=20.0), clock=clock)
+    link = MavlinkLink.open(
+        f"udpout:127.0.0.1:{peer.endpoint.port}", LinkConfig(heartbeat_rate_hz=20.0), clock=clock
+    )
     peer.wait_for_messages("HEARTBEAT")
     peer.send_heartbeat()
     link.wait_for_autopilot(timeout_s=5.0)
@@ -64,8 +65,11 @@ def test_dropped_ack_is_retried_with_incremented_confirmation(peer, sender, cloc
 def test_every_ack_dropped_gives_a_timeout_after_all_attempts(peer, sender, clock):
     peer.drop_acks = 99
     peer.on_command = lambda cmd: clock.advance(0.6)
-    with pytest.raises(LinkTimeout, match=r"no COMMAND_ACK for MAV_CMD_DO_SET_SERVO from 42/1 "
-                                          r"after 3 attempts of timeout_s=0.5"):
+    with pytest.raises(
+        LinkTimeout,
+        match=r"no COMMAND_ACK for MAV_CMD_DO_SET_SERVO from 42/1 "
+        r"after 3 attempts of timeout_s=0.5",
+    ):
         sender.command_long(SERVO, (9, 1500))
     assert [c.confirmation for c in peer.messages("COMMAND_LONG")] == [0, 1, 2]
 
@@ -81,10 +85,12 @@ def test_rejection_carries_the_result(peer, sender):
 
 def test_in_progress_and_acks_for_others_are_not_the_answer(peer, sender):
     def before_answer(cmd):
-        peer.send(peer.mav.command_ack_encode(cmd.command, mavlink.MAV_RESULT_IN_PROGRESS, 50, 0,
-                                              42, 191))
-        peer.send(peer.mav.command_ack_encode(cmd.command, mavlink.MAV_RESULT_DENIED, 0, 0,
-                                              255, 190))  # meant for a GCS
+        peer.send(
+            peer.mav.command_ack_encode(cmd.command, mavlink.MAV_RESULT_IN_PROGRESS, 50, 0, 42, 191)
+        )
+        peer.send(
+            peer.mav.command_ack_encode(cmd.command, mavlink.MAV_RESULT_DENIED, 0, 0, 255, 190)
+        )  # meant for a GCS
 
     peer.on_command = before_answer
     assert sender.command_long(SERVO, (9, 1500)).attempts == 1
@@ -100,6 +106,7 @@ def test_only_one_command_of_an_id_in_flight_per_target(peer, sender, clock):
     first_sent = threading.Event()
     peer.on_command = lambda cmd: first_sent.set()
     results = {}
+
     def call(name, params):
         results[name] = sender.command_long(SERVO, params)
 

@@ -32,8 +32,9 @@ def clock():
 
 @pytest.fixture
 def udp_link(udp_peer, clock):
-    link = MavlinkLink.open(f"udpout:127.0.0.1:{udp_peer.endpoint.port}", LinkConfig(**FAST),
-                            clock=clock)
+    link = MavlinkLink.open(
+        f"udpout:127.0.0.1:{udp_peer.endpoint.port}", LinkConfig(**FAST), clock=clock
+    )
     yield link
     link.close()
 
@@ -51,8 +52,9 @@ def test_heartbeat_from_start_up_as_onboard_controller(udp_peer, udp_link):
 def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
     udp_peer.wait_for_messages("HEARTBEAT")
     # A GCS heartbeat must not be mistaken for the autopilot.
-    udp_peer.send_heartbeat(autopilot=mavlink.MAV_AUTOPILOT_INVALID,
-                            vehicle_type=mavlink.MAV_TYPE_GCS)
+    udp_peer.send_heartbeat(
+        autopilot=mavlink.MAV_AUTOPILOT_INVALID, vehicle_type=mavlink.MAV_TYPE_GCS
+    )
     udp_peer.send_heartbeat()
     info = udp_link.wait_for_autopilot(timeout_s=5.0)
     assert (info.system_id, info.component_id) == (42, 1)
@@ -61,7 +63,8 @@ def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
     assert udp_link.system_id == 42
     assert udp_link.state is LinkState.UP
     assert udp_peer.wait_for(
-        lambda: any(m.get_srcSystem() == 42 for m in udp_peer.messages("HEARTBEAT")))
+        lambda: any(m.get_srcSystem() == 42 for m in udp_peer.messages("HEARTBEAT"))
+    )
 
 
 def test_configured_target_ignores_other_systems(udp_peer, clock):
@@ -95,13 +98,19 @@ def test_link_lost_and_recovered_by_the_fake_clock(udp_peer, udp_link, clock):
 def test_incoming_commands_queue_and_arbitrary_replies(udp_peer, udp_link):
     udp_peer.wait_for_messages("HEARTBEAT")
     with udp_link.messages(["COMMAND_LONG"]) as inbox:
-        udp_peer.send(udp_peer.mav.command_long_encode(
-            1, 191, mavlink.MAV_CMD_USER_1, 0, 1.5, 0, 0, 0, 0, 0, 0))
+        udp_peer.send(
+            udp_peer.mav.command_long_encode(
+                1, 191, mavlink.MAV_CMD_USER_1, 0, 1.5, 0, 0, 0, 0, 0, 0
+            )
+        )
         cmd = inbox.get(timeout_s=5.0)
         assert cmd.command == mavlink.MAV_CMD_USER_1 and cmd.param1 == 1.5
         assert inbox.get_nowait() is None
-    buf = udp_link.send(udp_link.mav.command_ack_encode(
-        mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 42, 1))
+    buf = udp_link.send(
+        udp_link.mav.command_ack_encode(
+            mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 42, 1
+        )
+    )
     assert buf[0] == 0xFD  # MAVLink 2 framing
     ack = udp_peer.wait_for_messages("COMMAND_ACK")[0]
     assert (ack.command, ack.result, ack.target_system) == (mavlink.MAV_CMD_USER_1, 0, 42)
@@ -174,6 +183,7 @@ def test_bad_url_and_config_are_refused_before_any_thread_starts():
 
 
 # --- serial over a real pty --------------------------------------------------------------
+
 
 def test_heartbeat_and_discovery_over_a_pty():
     peer = ScriptedPeer(PtyEndpoint(), system_id=9)

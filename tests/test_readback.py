@@ -14,8 +14,9 @@ from tests._mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint
 def setup():
     clock = FakeClock()
     peer = ScriptedPeer(UdpEndpoint(), system_id=42)
-    link = MavlinkLink.open(f"udpout:127.0.0.1:{peer.endpoint.port}",
-                            LinkConfig(heartbeat_rate_hz=20.0), clock=clock)
+    link = MavlinkLink.open(
+        f"udpout:127.0.0.1:{peer.endpoint.port}", LinkConfig(heartbeat_rate_hz=20.0), clock=clock
+    )
     peer.wait_for_messages("HEARTBEAT")
     peer.send_heartbeat()
     link.wait_for_autopilot(timeout_s=5.0)

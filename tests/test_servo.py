@@ -43,8 +43,11 @@ def udp():
 
 
 def servo_commands(peer):
-    return [(int(c.param1), int(c.param2)) for c in peer.messages("COMMAND_LONG")
-            if c.command == mavlink.MAV_CMD_DO_SET_SERVO]
+    return [
+        (int(c.param1), int(c.param2))
+        for c in peer.messages("COMMAND_LONG")
+        if c.command == mavlink.MAV_CMD_DO_SET_SERVO
+    ]
 
 
 def test_ardupilot_one_do_set_servo_per_joint_in_joint_order(udp):
@@ -117,8 +120,11 @@ def test_px4_refuses_more_than_six_joints(udp):
 
 def test_unknown_dialect_lists_the_valid_ones(udp):
     _, sender = udp
-    with pytest.raises(ConfigurationError, match=r"unknown servo dialect 'betaflight'; "
-                                                 r"valid: \['ardupilot', 'px4'\]"):
+    with pytest.raises(
+        ConfigurationError,
+        match=r"unknown servo dialect 'betaflight'; "
+        r"valid: \['ardupilot', 'px4'\]",
+    ):
         make_servo_dialect("betaflight", sender, default_calibration())
 
 

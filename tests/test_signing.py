@@ -74,10 +74,13 @@ def peer():
 
 
 def open_signed(peer, tmp_path, wall_s=NOW_UNIX_S):
-    signing = SigningConfig(KEY, link_id=3, state_path=tmp_path / "signing.state",
-                            wall_clock=lambda: wall_s)
-    return MavlinkLink.open(f"udpout:127.0.0.1:{peer.endpoint.port}",
-                            LinkConfig(heartbeat_rate_hz=20.0, signing=signing))
+    signing = SigningConfig(
+        KEY, link_id=3, state_path=tmp_path / "signing.state", wall_clock=lambda: wall_s
+    )
+    return MavlinkLink.open(
+        f"udpout:127.0.0.1:{peer.endpoint.port}",
+        LinkConfig(heartbeat_rate_hz=20.0, signing=signing),
+    )
 
 
 def rogue_frame(peer, key, msg, timestamp=None, link_id=7):

@@ -22,14 +22,20 @@ SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
 
 
 class Harness:
-    def __init__(self, config: SimConfig | None = None, *, signing_key: bytes | None = None
-                 ) -> None:
+    def __init__(
+        self, config: SimConfig | None = None, *, signing_key: bytes | None = None
+    ) -> None:
         self.config = config or SimConfig()
         self.now = START_S
         self.events: list[dict] = []
         self.hand = HandModel.from_config(self.config.arm)
-        self.ap = SimAutopilot(self.config, now_s=self.now, emit=self.events.append,
-                               hand=self.hand, wall_clock=lambda: 1.7e9)
+        self.ap = SimAutopilot(
+            self.config,
+            now_s=self.now,
+            emit=self.events.append,
+            hand=self.hand,
+            wall_clock=lambda: 1.7e9,
+        )
         self.gcs = mavlink.MAVLink(None, 255, 190)
         self.dec = mavlink.MAVLink(None)
         self.dec.robust_parsing = True
@@ -81,6 +87,7 @@ def acks(msgs):
 
 # -- heartbeat ------------------------------------------------------------------------------
 
+
 def test_heartbeat_identity_and_rate():
     h = Harness()
     msgs = h.run_for(3.5)
@@ -106,6 +113,7 @@ def test_system_id_is_configurable():
 
 
 # -- DO_SET_SERVO ---------------------------------------------------------------------------
+
 
 def test_do_set_servo_on_free_output_is_accepted_and_reported():
     h = Harness()
@@ -133,8 +141,9 @@ def test_do_set_servo_on_motor_fails_with_exact_statustext_after_the_ack(output)
     text = h.of_type("STATUSTEXT", msgs)[0]
     assert text.text == f"ServoRelayEvent: Channel {output} is already in use"
     assert text.severity == mavlink.MAV_SEVERITY_INFO
-    times = {m.get_type(): t for t, m in h.received
-             if m.get_type() in ("COMMAND_ACK", "STATUSTEXT")}
+    times = {
+        m.get_type(): t for t, m in h.received if m.get_type() in ("COMMAND_ACK", "STATUSTEXT")
+    }
     assert times["COMMAND_ACK"] == sent_at
     assert times["STATUSTEXT"] == pytest.approx(sent_at + 1 / 400)  # next main-loop pass
     assert h.ap.pwm_us[output] == 1000
@@ -188,14 +197,18 @@ def test_passthrough_functions_also_accept(function):
 
 def test_do_set_servo_over_command_int():
     h = Harness()
-    h.send(h.gcs.command_int_encode(1, 1, 0, mavlink.MAV_CMD_DO_SET_SERVO, 0, 0,
-                                    10, 1234, 0, 0, 0, 0, 0))
+    h.send(
+        h.gcs.command_int_encode(
+            1, 1, 0, mavlink.MAV_CMD_DO_SET_SERVO, 0, 0, 10, 1234, 0, 0, 0, 0, 0
+        )
+    )
     assert acks(h.run_for(0.1))[0].result == mavlink.MAV_RESULT_ACCEPTED
     assert h.ap.pwm_us[10] == 1234
 
 
-@pytest.mark.parametrize("command", [mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_ACTUATOR,
-                                     31999])
+@pytest.mark.parametrize(
+    "command", [mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_ACTUATOR, 31999]
+)
 def test_unknown_commands_are_unsupported(command):
     h = Harness()
     h.command(command, 1, 2, 3)
@@ -212,6 +225,7 @@ def test_commands_for_another_component_are_ignored():
 
 
 # -- streams --------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("rate_hz", [4, 20, 50])
 def test_servo_output_raw_runs_at_the_requested_rate(rate_hz):
@@ -267,6 +281,7 @@ def test_get_message_interval_and_request_message():
 
 # -- parameters -----------------------------------------------------------------------------
 
+
 def param_values(msgs):
     return [m for m in msgs if m.get_type() == "PARAM_VALUE"]
 
@@ -287,8 +302,7 @@ def test_param_request_read_by_name_and_index():
 
 def test_param_set_changes_what_do_set_servo_accepts():
     h = Harness()
-    h.send(h.gcs.param_set_encode(1, 1, b"SERVO9_FUNCTION", 32.999,
-                                  mavlink.MAV_PARAM_TYPE_INT16))
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO9_FUNCTION", 32.999, mavlink.MAV_PARAM_TYPE_INT16))
     value = param_values(h.run_for(0.01))[0]
     assert (value.param_id, value.param_value) == ("SERVO9_FUNCTION", 33.0)
     assert value.param_index == 65535
@@ -328,6 +342,7 @@ def test_param_request_list_sends_every_parameter():
 
 # -- servo motion and the hand ---------------------------------------------------------------
 
+
 def test_slew_timing_in_the_snapshot_and_settled_event():
     h = Harness()
     h.run_for(0.0)
@@ -336,8 +351,9 @@ def test_slew_timing_in_the_snapshot_and_settled_event():
     rate_us_per_s = (60 / 0.12) / 0.18
     h.run_for(0.05)
     out9 = h.ap.snapshot(h.now)["outputs"]["9"]
-    assert out9["moving"] and out9["position_us"] == pytest.approx(1500 + rate_us_per_s * 0.05,
-                                                                  abs=1e-3)
+    assert out9["moving"] and out9["position_us"] == pytest.approx(
+        1500 + rate_us_per_s * 0.05, abs=1e-3
+    )
     h.run_for(1.0)
     settled = [e for e in h.events if e["event"] == "settled"][-1]
     assert settled["t_s"] == pytest.approx(start - START_S + 500 / rate_us_per_s, abs=1e-6)
@@ -358,19 +374,22 @@ def test_hand_reaches_the_commanded_pose():
     # Rounding to whole µs costs at most 0.09° per joint.
     for name in ("x_cm", "y_cm", "z_cm"):
         assert pose[name] == pytest.approx(getattr(expected, name), abs=0.5)
-    for name, q in zip(("theta1", "theta2", "theta3", "theta4", "theta5", "theta6"), q_deg,
-                       strict=True):
+    for name, q in zip(
+        ("theta1", "theta2", "theta3", "theta4", "theta5", "theta6"), q_deg, strict=True
+    ):
         assert state["hand"]["angles_deg"][name] == pytest.approx(q, abs=0.1)
 
 
 # -- PX4 flavour ----------------------------------------------------------------------------
 
+
 def test_px4_heartbeat_and_do_set_actuator():
     h = Harness(SimConfig(flavour="px4"))
     beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
     assert beat.autopilot == mavlink.MAV_AUTOPILOT_PX4
-    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-              mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 100_000)
+    h.command(
+        mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 100_000
+    )
     h.command(mavlink.MAV_CMD_DO_SET_ACTUATOR, -1.0, 0.0, 1.0, 0.5, 2.0, math.nan, 0)
     msgs = h.run_for(0.2)
     assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 2
@@ -388,10 +407,12 @@ def test_px4_refuses_do_set_servo_as_unsupported_and_params_are_bytewise():
     value = param_values(h.run_for(0.01))[0]
     assert value.param_type == mavlink.MAV_PARAM_TYPE_INT32
     import struct
+
     assert struct.unpack("<i", struct.pack("<f", value.param_value))[0] == 301
 
 
 # -- faults ---------------------------------------------------------------------------------
+
 
 def faulty(**faults) -> Harness:
     return Harness(SimConfig(faults=FaultConfig(**faults)))
@@ -418,8 +439,10 @@ def test_nack_output_fails_without_statustext():
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1600)
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 11, 1600)
     msgs = h.run_for(0.1)
-    assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_FAILED,
-                                              mavlink.MAV_RESULT_ACCEPTED]
+    assert [a.result for a in acks(msgs)] == [
+        mavlink.MAV_RESULT_FAILED,
+        mavlink.MAV_RESULT_ACCEPTED,
+    ]
     assert h.of_type("STATUSTEXT", msgs) == []
     assert h.ap.pwm_us[10] == 0 and h.ap.pwm_us[11] == 1600
 
@@ -497,6 +520,7 @@ def test_latency_and_jitter_delay_replies():
 
 # -- signing --------------------------------------------------------------------------------
 
+
 def test_signing_required_rejects_unsigned_and_signs_replies():
     config = SimConfig(signing_key=KEY)
     unsigned = Harness(config)
@@ -516,6 +540,7 @@ def test_signing_required_rejects_unsigned_and_signs_replies():
 
 
 # -- event log content ----------------------------------------------------------------------
+
 
 def test_every_command_is_logged_with_its_fields():
     h = Harness()

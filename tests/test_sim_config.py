@@ -32,26 +32,32 @@ def test_px4_defaults_actuator_set_on_arm_outputs():
     assert [config.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
 
 
-@pytest.mark.parametrize(("kwargs", "message"), [
-    ({"flavour": "inav"}, "flavour='inav'; valid: ['ardupilot', 'px4']"),
-    ({"system_id": 0}, "system_id=0 outside [1, 255]"),
-    ({"functions": {17: 0}}, "output=17 outside [1, 16]"),
-    ({"servo_output_rate_hz": -1}, "servo_output_rate_hz=-1 outside [0.0, 1000.0]"),
-    ({"signing_key": b"short"}, "signing_key must be 32 bytes"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"flavour": "inav"}, "flavour='inav'; valid: ['ardupilot', 'px4']"),
+        ({"system_id": 0}, "system_id=0 outside [1, 255]"),
+        ({"functions": {17: 0}}, "output=17 outside [1, 16]"),
+        ({"servo_output_rate_hz": -1}, "servo_output_rate_hz=-1 outside [0.0, 1000.0]"),
+        ({"signing_key": b"short"}, "signing_key must be 32 bytes"),
+    ],
+)
 def test_validation_names_value_and_range(kwargs, message):
     with pytest.raises(SimConfigError) as info:
         SimConfig(**kwargs)
     assert message in str(info.value)
 
 
-@pytest.mark.parametrize(("cls", "kwargs", "message"), [
-    (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
-    (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
-    (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
-    (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
-    (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
-])
+@pytest.mark.parametrize(
+    ("cls", "kwargs", "message"),
+    [
+        (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
+        (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
+        (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
+        (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
+        (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
+    ],
+)
 def test_part_validation(cls, kwargs, message):
     with pytest.raises(SimConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         cls(**kwargs)
@@ -98,10 +104,28 @@ def test_key_file_forms(tmp_path):
 
 
 def test_flags_override_the_file():
-    args = build_parser().parse_args([
-        "--udp", "127.0.0.1:0", "--config", str(EXAMPLE), "--flavour", "px4",
-        "--function", "9=33", "--drop-in", "0.25", "--withhold-ack", "all",
-        "--nack-output", "10", "--slew-s-per-60deg", "0.2", "--hangup-after", "5"])
+    args = build_parser().parse_args(
+        [
+            "--udp",
+            "127.0.0.1:0",
+            "--config",
+            str(EXAMPLE),
+            "--flavour",
+            "px4",
+            "--function",
+            "9=33",
+            "--drop-in",
+            "0.25",
+            "--withhold-ack",
+            "all",
+            "--nack-output",
+            "10",
+            "--slew-s-per-60deg",
+            "0.2",
+            "--hangup-after",
+            "5",
+        ]
+    )
     data, base = config_data(args)
     config = config_from_mapping(data, "flags", base)
     assert config.flavour == "px4" and config.functions[9] == 33

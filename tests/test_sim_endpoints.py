@@ -104,9 +104,14 @@ def test_pty_hangup_fails_the_other_side():
         os.close(fd)
 
 
-@pytest.mark.parametrize(("text", "message"), [
-    ("localhost", "must be HOST:PORT"), ("h:x", "is not an integer"), ("h:70000", "outside"),
-])
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("localhost", "must be HOST:PORT"),
+        ("h:x", "is not an integer"),
+        ("h:70000", "outside"),
+    ],
+)
 def test_parse_host_port_errors(text, message):
     with pytest.raises(SimIOError, match=message):
         parse_host_port(text, "--udp")

@@ -19,8 +19,11 @@ def test_same_seed_same_faults():
 
     def run():
         faults = FaultInjector(config)
-        return [(faults.drop_out(), faults.corrupt_out(b"0123456789"), faults.delay_s())
-                for _ in range(50)]
+        return [
+            (faults.drop_out(), faults.corrupt_out(b"0123456789"), faults.delay_s())
+            for _ in range(50)
+        ]
+
     assert run() == run()
 
 

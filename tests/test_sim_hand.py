@@ -19,11 +19,14 @@ def test_default_calibration_is_the_daemons():
     assert model().calibration == default_calibration()
 
 
-@pytest.mark.parametrize("q_deg", [
-    [0.0, 90.0, 0.0, 0.0, 0.0, 0.0],
-    [30.0, 120.0, -45.0, 20.0, -10.0, 45.0],
-    [-90.0, 0.0, 90.0, -90.0, 90.0, -70.0],
-])
+@pytest.mark.parametrize(
+    "q_deg",
+    [
+        [0.0, 90.0, 0.0, 0.0, 0.0, 0.0],
+        [30.0, 120.0, -45.0, 20.0, -10.0, 45.0],
+        [-90.0, 0.0, 90.0, -90.0, 90.0, -70.0],
+    ],
+)
 def test_round_trip_angles_pwm_pose(q_deg):
     hand = model()
     pwm = hand.calibration.angles_to_pwm_us(q_deg)
@@ -53,8 +56,9 @@ def test_deg_per_us_from_the_calibration():
 
 
 def test_reversed_joint_and_custom_outputs():
-    hand = HandModel.from_config(ArmConfig(outputs=(5, 6, 7, 8, 9, 10),
-                                           reversed_joints=("theta1",)))
+    hand = HandModel.from_config(
+        ArmConfig(outputs=(5, 6, 7, 8, 9, 10), reversed_joints=("theta1",))
+    )
     state = hand.state({5: 1000.0, 6: 1500.0, 7: 1500.0, 8: 1500.0, 9: 1500.0, 10: 1500.0})
     assert state.angles_deg["theta1"] == pytest.approx(90.0)
 

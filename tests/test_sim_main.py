@@ -33,10 +33,19 @@ class Sim:
     def __init__(self, *args: str, tmp_path: Path) -> None:
         self.query_path = str(tmp_path / "sim.sock")
         self.log_path = tmp_path / "events.jsonl"
-        command = [sys.executable, "-m", "sim_servo", *args,
-                   "--query-socket", self.query_path, "--event-log", str(self.log_path)]
-        self.proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE)
+        command = [
+            sys.executable,
+            "-m",
+            "sim_servo",
+            *args,
+            "--query-socket",
+            self.query_path,
+            "--event-log",
+            str(self.log_path),
+        ]
+        self.proc = subprocess.Popen(
+            command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        )
         ready, _, _ = select.select([self.proc.stdout], [], [], WAIT_S)
         if not ready:
             self.kill()
@@ -145,8 +154,11 @@ def udp_sim(tmp_path):
         sims.append(sim)
         client = UdpClient(sim.url, signing_key)
         clients.append(client)
-        client.send(client.mav.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
-                                                mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+        client.send(
+            client.mav.heartbeat_encode(
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+            )
+        )
         return sim, client
 
     yield start
@@ -160,8 +172,10 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
     sim, client = udp_sim()
     beat = client.wait_for(is_type("HEARTBEAT"))
     assert (beat.get_srcSystem(), beat.get_srcComponent()) == (1, 1)
-    assert (beat.type, beat.autopilot) == (mavlink.MAV_TYPE_QUADROTOR,
-                                           mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert (beat.type, beat.autopilot) == (
+        mavlink.MAV_TYPE_QUADROTOR,
+        mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+    )
 
     client.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1800)
     assert client.wait_for(ack_for(183)).result == mavlink.MAV_RESULT_ACCEPTED
@@ -211,6 +225,7 @@ def test_udp_slew_timing_and_hand_at_target(udp_sim):
     hand = sim.state()["hand"]
     assert settled and hand["angles_deg"]["theta1"] == pytest.approx(-90.0)
     from companion.arm import Arm
+
     expected = Arm.default().fk([-90.0, 90.0, 0.0, 0.0, 0.0, 10.0])
     assert hand["pose"]["y_cm"] == pytest.approx(expected.y_cm, abs=1e-6)
     log_settled = [e for e in sim.events() if e["event"] == "settled"][-1]
@@ -238,8 +253,9 @@ def test_udp_signing_required(udp_sim, tmp_path):
 
 
 def test_udp_faults_withhold_nack_heartbeat_pause(udp_sim):
-    sim, client = udp_sim("--withhold-ack", "DO_SET_SERVO", "--nack-output", "10",
-                          "--heartbeat-pause-after", "0")
+    sim, client = udp_sim(
+        "--withhold-ack", "DO_SET_SERVO", "--nack-output", "10", "--heartbeat-pause-after", "0"
+    )
     client.command(mavlink.MAV_CMD_NAV_TAKEOFF)
     client.wait_for(ack_for(22))  # the link works...
     client.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
@@ -306,14 +322,21 @@ def test_pty_link_and_hangup(tmp_path):
         assert device.startswith("/dev/") and baud == "115200"
         with serial.Serial(device, int(baud), timeout=0.05) as port:
             mav, dec = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None)
-            beat = _pty_exchange(port, mav, dec,
-                                 mav.heartbeat_encode(18, 8, 0, 0, 0), is_type("HEARTBEAT"))
+            beat = _pty_exchange(
+                port, mav, dec, mav.heartbeat_encode(18, 8, 0, 0, 0), is_type("HEARTBEAT")
+            )
             assert beat.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
-            ack = _pty_exchange(port, mav, dec, mav.command_long_encode(
-                1, 1, 183, 0, 3, 1500, 0, 0, 0, 0, 0), ack_for(183))
+            ack = _pty_exchange(
+                port,
+                mav,
+                dec,
+                mav.command_long_encode(1, 1, 183, 0, 3, 1500, 0, 0, 0, 0, 0),
+                ack_for(183),
+            )
             assert ack.result == mavlink.MAV_RESULT_FAILED
-            text = _pty_exchange(port, mav, dec, mav.heartbeat_encode(18, 8, 0, 0, 0),
-                                 is_type("STATUSTEXT"))
+            text = _pty_exchange(
+                port, mav, dec, mav.heartbeat_encode(18, 8, 0, 0, 0), is_type("STATUSTEXT")
+            )
             assert text.text == "ServoRelayEvent: Channel 3 is already in use"
             wait_until(lambda: sim.state()["link"]["closed"], what="hang-up")
 
@@ -323,6 +346,7 @@ def test_pty_link_and_hangup(tmp_path):
                 except (serial.SerialException, OSError):
                     return True
                 return False
+
             wait_until(read_fails, what="reads to fail after the hang-up")
         assert any(e.get("fault") == "hangup" for e in sim.events())
         assert sim.stop() == 0
@@ -335,11 +359,32 @@ def test_help_documents_every_fault_flag(capsys):
         build_parser().parse_args(["--help"])
     assert info.value.code == 0
     text = capsys.readouterr().out
-    for flag in ("--udp", "--tcp", "--pty", "--flavour", "--system-id", "--function", "--config",
-                 "--slew-s-per-60deg", "--deadband-us", "--arm", "--event-log", "--query-socket",
-                 "--seed", "--drop-in", "--drop-out", "--corrupt-in", "--corrupt-out",
-                 "--latency-ms", "--jitter-ms", "--heartbeat-pause-after", "--withhold-ack",
-                 "--nack-output", "--hangup-after", "--signing-key"):
+    for flag in (
+        "--udp",
+        "--tcp",
+        "--pty",
+        "--flavour",
+        "--system-id",
+        "--function",
+        "--config",
+        "--slew-s-per-60deg",
+        "--deadband-us",
+        "--arm",
+        "--event-log",
+        "--query-socket",
+        "--seed",
+        "--drop-in",
+        "--drop-out",
+        "--corrupt-in",
+        "--corrupt-out",
+        "--latency-ms",
+        "--jitter-ms",
+        "--heartbeat-pause-after",
+        "--withhold-ack",
+        "--nack-output",
+        "--hangup-after",
+        "--signing-key",
+    ):
         assert flag in text
 
 

@@ -18,10 +18,12 @@ def server(tmp_path):
 
     def loop():
         import select
+
         while not stop.is_set():
             readable, _, _ = select.select(srv.fds(), [], [], 0.02)
             for fd in readable:
                 srv.handle(fd)
+
     thread = threading.Thread(target=loop, daemon=True)
     thread.start()
     yield path

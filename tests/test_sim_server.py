@@ -17,10 +17,12 @@ def start(tmp_path, autopilot_cls=SimAutopilot):
     events = EventLog(None)
     endpoint = UdpEndpoint("127.0.0.1", 0)
     import time
+
     now = time.monotonic()
     autopilot = autopilot_cls(SimConfig(), now_s=now, emit=events)
-    server = SimServer(autopilot, endpoint, events, query_path=str(tmp_path / "q.sock"),
-                       start_s=now)
+    server = SimServer(
+        autopilot, endpoint, events, query_path=str(tmp_path / "q.sock"), start_s=now
+    )
     result = {}
     thread = threading.Thread(target=lambda: result.setdefault("rc", server.run()), daemon=True)
     thread.start()
@@ -33,8 +35,10 @@ def test_exchange_query_and_stop(tmp_path):
     mav, dec = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
         client.settimeout(5)
-        client.sendto(mav.command_long_encode(1, 1, 183, 0, 9, 1234, 0, 0, 0, 0, 0).pack(mav),
-                      (host, int(port)))
+        client.sendto(
+            mav.command_long_encode(1, 1, 183, 0, 9, 1234, 0, 0, 0, 0, 0).pack(mav),
+            (host, int(port)),
+        )
         got = []
         while not any(m.get_type() == "COMMAND_ACK" for m in got):
             got += dec.parse_buffer(client.recvfrom(4096)[0]) or []

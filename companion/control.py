@@ -1,0 +1,174 @@
+"""The daemon's local control socket: a Unix stream socket speaking JSON lines.
+
+For onboard software (and the ``armbridge goto`` / ``status`` clients). One JSON object per
+line in, one per line out, in order; a connection may send many requests.
+
+Requests::
+
+    {"cmd": "goto", "pose": [x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg]}
+    {"cmd": "trajectory", "points": [[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]}
+    {"cmd": "status"}
+    {"cmd": "park"}
+    {"cmd": "stop"}
+
+Replies: ``{"ok": true, "outcome": "accepted", "message": ..., "solve": {...}}``. ``ok`` is
+false for any outcome other than accepted, and for a malformed request:
+``{"ok": false, "error": "..."}``. ``status`` answers ``{"ok": true, "status": {...}}``.
+Trajectory times are seconds from receipt; the daemon solves each point when it falls due.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import socket
+import threading
+from pathlib import Path
+from typing import Any
+
+from companion.daemon import ArmDaemon, Outcome
+
+log = logging.getLogger("armbridge.control")
+
+MAX_LINE = 1 << 20  # a request line longer than this is refused
+
+
+class ControlServer:
+    """Serves ``daemon`` on the Unix socket ``path`` (a stale socket file is replaced)."""
+
+    def __init__(self, path: str | Path, daemon: ArmDaemon, *, reply_timeout_s: float = 5.0):
+        self.path = str(path)
+        self.daemon = daemon
+        self.reply_timeout_s = reply_timeout_s
+        self._stop = threading.Event()
+        if os.path.exists(self.path):
+            os.unlink(self.path)
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.bind(self.path)
+        self._sock.listen(8)
+        self._sock.settimeout(0.2)
+        self._clients: set[socket.socket] = set()
+        self._thread = threading.Thread(
+            target=self._accept_loop, name="armbridge-control-socket", daemon=True
+        )
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self._sock.close()
+        for client in list(self._clients):
+            client.close()
+        if os.path.exists(self.path):
+            os.unlink(self.path)
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self._clients.add(conn)
+            threading.Thread(
+                target=self._serve, args=(conn,), daemon=True, name="armbridge-control-client"
+            ).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        conn.settimeout(0.2)
+        buffer = b""
+        try:
+            while not self._stop.is_set():
+                try:
+                    chunk = conn.recv(65536)
+                except TimeoutError:
+                    continue
+                if not chunk:
+                    return
+                buffer += chunk
+                if len(buffer) > MAX_LINE and b"\n" not in buffer:
+                    conn.sendall(_line({"ok": False, "error": "request line too long"}))
+                    return
+                while b"\n" in buffer:
+                    line, buffer = buffer.split(b"\n", 1)
+                    if line.strip():
+                        conn.sendall(_line(self.handle_line(line)))
+        except OSError as exc:
+            log.info("control client went away: %s", exc)
+        finally:
+            self._clients.discard(conn)
+            conn.close()
+
+    def handle_line(self, line: bytes) -> dict[str, Any]:
+        """One request line → one reply object (never raises)."""
+        try:
+            request = json.loads(line)
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            return {"ok": False, "error": f"not JSON: {exc}"}
+        if not isinstance(request, dict) or not isinstance(request.get("cmd"), str):
+            return {
+                "ok": False,
+                "error": 'a request is an object with "cmd": '
+                "goto | trajectory | status | park | stop",
+            }
+        cmd = request["cmd"]
+        if cmd == "status":
+            return {"ok": True, "status": self.daemon.status()}
+        if cmd == "goto":
+            payload: Any = request.get("pose")
+        elif cmd == "trajectory":
+            points = request.get("points")
+            if not isinstance(points, list) or not all(
+                isinstance(p, list) and len(p) == 7 for p in points
+            ):
+                return {
+                    "ok": False,
+                    "error": "points must be a list of "
+                    "[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg]",
+                }
+            payload = [(p[0], p[1:]) for p in points]
+        elif cmd in ("park", "stop"):
+            payload = None
+        else:
+            return {
+                "ok": False,
+                "error": f"unknown cmd {cmd!r}; valid: goto, trajectory, status, park, stop",
+            }
+        try:
+            reply = self.daemon.submit(cmd, payload).result(timeout=self.reply_timeout_s)
+        except TimeoutError:
+            return {"ok": False, "error": f"no answer within {self.reply_timeout_s} s"}
+        return {"ok": reply.outcome is Outcome.ACCEPTED, **reply.as_dict()}
+
+
+def _json_safe(value: Any) -> Any:
+    """Non-finite floats become null: strict JSON readers reject NaN and Infinity."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _line(obj: dict[str, Any]) -> bytes:
+    return (json.dumps(_json_safe(obj), allow_nan=False, default=str) + "\n").encode()
+
+
+def request(path: str | Path, obj: dict[str, Any], *, timeout_s: float = 10.0) -> dict[str, Any]:
+    """Client: send one request to the daemon at ``path`` and return its reply."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(str(path))
+        sock.sendall((json.dumps(obj) + "\n").encode())
+        buffer = b""
+        while b"\n" not in buffer:
+            chunk = sock.recv(65536)
+            if not chunk:
+                raise ConnectionError(f"daemon at {path} closed the connection without a reply")
+            buffer += chunk
+    return json.loads(buffer.split(b"\n", 1)[0])
