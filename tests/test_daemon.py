@@ -41,28 +41,17 @@ def wait_until(predicate, timeout_s=WAIT_S, step_s=0.02):
 
 @pytest.fixture
 def sim(tmp_path):
-    """A simulated ArduPilot on UDP; yields (url, query socket path, extra args setter)."""
+    """Starts simulated ArduPilots (UDP by default, or a pty); each start returns
+    (link url, query socket path)."""
     procs = []
 
-    def start(*extra):
+    def start(*extra, transport=("--udp", "127.0.0.1:0")):
         sock = str(tmp_path / f"sim{len(procs)}.sock")
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "sim_servo",
-                "--udp",
-                "127.0.0.1:0",
-                "--query-socket",
-                sock,
-                *extra,
-            ],
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        cmd = [sys.executable, "-m", "sim_servo", *transport, "--query-socket", sock, *extra]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
         procs.append(proc)
         url = proc.stdout.readline().strip()
-        assert url.startswith("udpout:"), url
+        assert url.startswith(("udpout:", "/dev/")), url
         assert wait_until(lambda: os.path.exists(sock))
         return url, sock
 
@@ -105,8 +94,10 @@ def settled(daemon, sock):
     return not daemon.status()["moving"] and query(sock, "state")["settled"]
 
 
-def test_goto_moves_the_simulated_hand_to_the_target(sim):
-    url, sock = sim()
+@pytest.mark.parametrize("transport", [("--udp", "127.0.0.1:0"), ("--pty",)], ids=["udp", "pty"])
+def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
+    # Over UDP, and over a pseudo-terminal opened exactly like the flight controller's serial port.
+    url, sock = sim(transport=transport)
     daemon = make_daemon(url)
     try:
         target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
