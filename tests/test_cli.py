@@ -13,6 +13,7 @@ import pytest
 
 from companion.cli import main
 from companion.control import request
+from tests._mavlink_peer import wait_until
 
 WAIT_S = 15.0
 
@@ -69,15 +70,6 @@ def test_demo_runs_the_tour(capsys):
     assert "figure-eight" in out and "'servo_errors': 0" in out
 
 
-def wait_for(predicate, timeout_s=WAIT_S):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
-
-
 def test_run_as_a_service_ready_goto_sigterm(tmp_path):
     """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
     control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
@@ -108,7 +100,7 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
         messages = []
         while not any(m.startswith(b"READY=1") for m in messages):
             messages.append(notify.recv(4096))
-        assert wait_for(lambda: os.path.exists(control))
+        assert wait_until(lambda: os.path.exists(control), WAIT_S)
         reply = request(
             control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
         )

@@ -11,7 +11,6 @@ import math
 import os
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -22,21 +21,10 @@ from companion.config import parse_config
 from companion.daemon import ArmDaemon, Outcome
 from companion.kinematics import rotation_angle
 from sim_servo.query import query
-from tests._mavlink_peer import ScriptedPeer, UdpEndpoint
+from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
 
 WAIT_S = 10.0
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
-
-
-def wait_until(predicate, timeout_s=WAIT_S, step_s=0.02):
-    """Poll ``predicate`` until it holds or the bound passes (state lives in other processes)."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(step_s)
-    return predicate()
 
 
 @pytest.fixture
@@ -52,7 +40,7 @@ def sim(tmp_path):
         procs.append(proc)
         url = proc.stdout.readline().strip()
         assert url.startswith(("udpout:", "/dev/")), url
-        assert wait_until(lambda: os.path.exists(sock))
+        assert wait_until(lambda: os.path.exists(sock), WAIT_S)
         return url, sock
 
     yield start
@@ -103,7 +91,7 @@ def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
         target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
         reply = daemon.submit("goto", target).result(WAIT_S)
         assert reply.outcome is Outcome.ACCEPTED, reply.message
-        assert wait_until(lambda: settled(daemon, sock))
+        assert wait_until(lambda: settled(daemon, sock), WAIT_S)
         pos, ori = hand_errors(target, sim_hand(sock))
         # 1 µs of PWM is 0.18° on a 180° joint: the hand is as close as the servos can put it.
         assert pos < 0.2 and ori < 0.5
@@ -148,14 +136,14 @@ def test_link_loss_holds_and_recovery_resends(sim):
     try:
         target = daemon.config.arm.fk([10, 80, 20, 10, 20, 30]).as_tuple()
         assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
-        assert wait_until(lambda: daemon.status()["link"] == "lost")
-        assert wait_until(lambda: daemon.status()["holding"])  # on its next control tick
+        assert wait_until(lambda: daemon.status()["link"] == "lost", WAIT_S)
+        assert wait_until(lambda: daemon.status()["holding"], WAIT_S)  # on its next control tick
         reply = daemon.submit("goto", daemon.config.arm.fk([0, 90, 0, 0, 0, 0]).as_tuple())
         assert reply.result(WAIT_S).outcome is Outcome.TEMPORARILY_REJECTED
         updates = daemon.status()["counters"]["servo_updates"]
-        assert wait_until(lambda: daemon.status()["link"] == "up")
+        assert wait_until(lambda: daemon.status()["link"] == "up", WAIT_S)
         # Back up: the current PWMs are sent again before anything else.
-        assert wait_until(lambda: daemon.status()["counters"]["servo_updates"] > updates)
+        assert wait_until(lambda: daemon.status()["counters"]["servo_updates"] > updates, WAIT_S)
         assert not daemon.status()["holding"]
     finally:
         daemon.close()
@@ -166,7 +154,7 @@ def test_park_and_stop(sim):
     daemon = make_daemon(url)
     try:
         assert daemon.submit("park").result(WAIT_S).outcome is Outcome.ACCEPTED
-        assert wait_until(lambda: settled(daemon, sock))
+        assert wait_until(lambda: settled(daemon, sock), WAIT_S)
         assert daemon.status()["current_deg"] == [0, 90, 0, 0, 0, 0]
         assert daemon.submit("stop").result(WAIT_S).outcome is Outcome.ACCEPTED
         assert daemon.status()["goal_deg"] is None
@@ -250,7 +238,7 @@ def test_mavlink_target_for_another_component_is_ignored(autopilot):
         peer.send_heartbeat()
         assert daemon.wait_for_autopilot(WAIT_S)
         gcs_command(endpoint, (45.0, 10.0, 20.0, 0.0, 45.0, 0.0), target=(1, 100))
-        assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1)
+        assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1, WAIT_S)
         assert acks_to_gcs(peer) == []
     finally:
         daemon.close()
