@@ -16,15 +16,11 @@ Usage: python bench/link_bytes.py [--baud 57600 115200 921600] [--joints 6]
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
-
-from firmware_interface.calibration import TABLE2_RANGES_DEG, calibration_from_ranges  # noqa: E402
-from firmware_interface.servo import SERVO_DIALECTS  # noqa: E402
+from firmware_interface.calibration import TABLE2_RANGES_DEG, calibration_from_ranges
+from firmware_interface.servo import SERVO_DIALECTS
 
 BITS_PER_BYTE = 10  # 8N1: start + 8 data + stop
 

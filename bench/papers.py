@@ -23,14 +23,10 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run from a checkout without installing it
-    sys.path.insert(0, str(ROOT))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-from companion.arm import Arm, Pose  # noqa: E402
-from companion.inverse_acceleration import (  # noqa: E402
+from companion.arm import Arm, Pose
+from companion.inverse_acceleration import (
     DEFAULT_FIT_ITERATIONS,
     PAPER_CASE4_CLAIMED_LINKS_M,
     PAPER_CASES_QDD,
@@ -42,11 +38,13 @@ from companion.inverse_acceleration import (  # noqa: E402
     planar_3r,
     recovery_error,
 )
-from companion.objective import IKObjective  # noqa: E402
-from companion.solvers import hs  # noqa: E402
-from companion.solvers.base import SolverResult  # noqa: E402
-from companion.solvers.de import differential_evolution  # noqa: E402
-from companion.solvers.msfla import shuffled_frog_leaping  # noqa: E402
+from companion.objective import IKObjective
+from companion.solvers import hs
+from companion.solvers.base import SolverResult
+from companion.solvers.de import differential_evolution
+from companion.solvers.msfla import shuffled_frog_leaping
+
+ROOT = Path(__file__).resolve().parents[1]
 
 try:  # optional extra: plots
     import matplotlib
