@@ -116,6 +116,39 @@ def initial_population(
     return np.clip(pop, lower, upper)
 
 
+class PopulationSolver:
+    """What DE, MSFLA and HS share: the problem's box, the RNG, a population (one candidate per
+    row, uniform in the box or ``initial`` clamped into it) with its costs, and the counters.
+    Subclasses add ``step()``."""
+
+    def __init__(
+        self,
+        problem: Problem,
+        pop_size: int,
+        rng: np.random.Generator | int | None,
+        initial: FloatArray | None,
+    ) -> None:
+        self.problem = problem
+        self.rng = make_rng(rng)
+        self.lower, self.upper = check_bounds(problem)
+        self.pop = initial_population(self.lower, self.upper, pop_size, self.rng, initial)
+        self.cost = np.asarray(problem.cost(self.pop), float)
+        self.evaluations = pop_size
+        self.iteration = 0
+
+    @property
+    def best_index(self) -> int:
+        return int(np.argmin(self.cost))
+
+    @property
+    def best_x(self) -> FloatArray:
+        return self.pop[self.best_index]
+
+    @property
+    def best_cost(self) -> float:
+        return float(self.cost[self.best_index])
+
+
 def run(
     solver: Steppable,
     *,

@@ -26,11 +26,9 @@ from companion.kinematics import FloatArray
 from companion.solvers.base import (
     DEFAULT_CLOCK,
     Clock,
+    PopulationSolver,
     Problem,
     SolverResult,
-    check_bounds,
-    initial_population,
-    make_rng,
     run,
 )
 
@@ -144,7 +142,7 @@ def _lookup(registry: dict, kind: str, name: str):  # type: ignore[no-untyped-de
         raise ValueError(f"unknown {kind} {name!r}; valid: {', '.join(registry)}") from None
 
 
-class DifferentialEvolution:
+class DifferentialEvolution(PopulationSolver):
     """A DE population over ``problem``'s box; ``step()`` runs one generation."""
 
     def __init__(
@@ -165,26 +163,8 @@ class DifferentialEvolution:
                 f"pop_size={pop_size} too small for mutation {mutation!r}: "
                 f"needs at least {self.mutation.n_random + 1}"
             )
-        self.problem = problem
         self.params = params or DEParams()
-        self.rng = make_rng(rng)
-        self.lower, self.upper = check_bounds(problem)
-        self.pop = initial_population(self.lower, self.upper, pop_size, self.rng, initial)
-        self.cost = np.asarray(problem.cost(self.pop), float)
-        self.evaluations = pop_size
-        self.iteration = 0
-
-    @property
-    def best_index(self) -> int:
-        return int(np.argmin(self.cost))
-
-    @property
-    def best_x(self) -> FloatArray:
-        return self.pop[self.best_index]
-
-    @property
-    def best_cost(self) -> float:
-        return float(self.cost[self.best_index])
+        super().__init__(problem, pop_size, rng, initial)
 
     def trials(self, r: IntArray, a: FloatArray, u: FloatArray, h: IntArray) -> FloatArray:
         """Mutation, crossover and clamping for given random draws (no evaluation)."""

@@ -28,11 +28,9 @@ from companion.kinematics import FloatArray
 from companion.solvers.base import (
     DEFAULT_CLOCK,
     Clock,
+    PopulationSolver,
     Problem,
     SolverResult,
-    check_bounds,
-    initial_population,
-    make_rng,
     run,
 )
 
@@ -51,7 +49,7 @@ def _check_unit(name: str, value: float) -> None:
         raise ValueError(f"{name}={value!r} outside [0, 1]")
 
 
-class HarmonySearch:
+class HarmonySearch(PopulationSolver):
     """A harmony memory over ``problem``'s box; ``step()`` is one improvisation.
 
     ``iterations`` is the run length ``K`` the PAR schedule is spread over; stepping beyond it
@@ -83,26 +81,17 @@ class HarmonySearch:
             raise ValueError(f"bandwidth_frac={bandwidth_frac!r} outside (0, 1]")
         if iterations < 1:
             raise ValueError(f"iterations={iterations} outside [1, ∞)")
-        self.problem = problem
         self.hmcr = float(hmcr)
         self.par_min = float(par_min)
         self.par_max = float(par_max)
         self.iterations_planned = int(iterations)
-        self.rng = make_rng(rng)
-        self.lower, self.upper = check_bounds(problem)
+        super().__init__(problem, memory_size, rng, initial)
         self.bandwidth = bandwidth_frac * (self.upper - self.lower)
-        self.memory = initial_population(self.lower, self.upper, memory_size, self.rng, initial)
-        self.cost = np.asarray(problem.cost(self.memory), float)
-        self.evaluations = memory_size
-        self.iteration = 0
 
     @property
-    def best_x(self) -> FloatArray:
-        return self.memory[int(np.argmin(self.cost))]
-
-    @property
-    def best_cost(self) -> float:
-        return float(self.cost.min())
+    def memory(self) -> FloatArray:
+        """The harmony memory: the population, one harmony per row."""
+        return self.pop
 
     @property
     def par(self) -> float:

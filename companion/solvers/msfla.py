@@ -24,16 +24,15 @@ from companion.kinematics import FloatArray
 from companion.solvers.base import (
     DEFAULT_CLOCK,
     Clock,
+    PopulationSolver,
     Problem,
     SolverResult,
     check_bounds,
-    initial_population,
-    make_rng,
     run,
 )
 
 
-class ShuffledFrogLeaping:
+class ShuffledFrogLeaping(PopulationSolver):
     """A population of ``n_memeplexes · frogs_per_memeplex`` frogs; ``step()`` is one shuffle."""
 
     def __init__(
@@ -57,28 +56,15 @@ class ShuffledFrogLeaping:
             raise ValueError(f"local_iterations={local_iterations} must be >= 1")
         if not (np.isfinite(leap_factor) and leap_factor > 0):
             raise ValueError(f"leap_factor={leap_factor!r} must be > 0")
-        self.problem = problem
-        self.rng = make_rng(rng)
-        self.lower, self.upper = check_bounds(problem)
-        span = self.upper - self.lower
+        lower, upper = check_bounds(problem)
+        span = upper - lower
         self.max_leap = 0.5 * span if max_leap is None else np.broadcast_to(max_leap, span.shape)
         if not np.all(self.max_leap > 0):
             raise ValueError(f"max_leap={max_leap!r} must be > 0")
         self.n_memeplexes = n_memeplexes
         self.local_iterations = local_iterations
         self.leap_factor = leap_factor
-        self.pop = initial_population(self.lower, self.upper, pop_size, self.rng, initial)
-        self.cost = np.asarray(problem.cost(self.pop), float)
-        self.evaluations = pop_size
-        self.iteration = 0
-
-    @property
-    def best_x(self) -> FloatArray:
-        return self.pop[int(np.argmin(self.cost))]
-
-    @property
-    def best_cost(self) -> float:
-        return float(self.cost.min())
+        super().__init__(problem, pop_size, rng, initial)
 
     def memeplexes(self) -> np.ndarray:
         """Frog indices per memeplex, shape ``(m, n)``: ranked frog ``k + m·i`` → memeplex ``k``."""
