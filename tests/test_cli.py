@@ -113,6 +113,20 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
         assert status["link"] == "up" and status["counters"]["failed"] == 1
         notify.settimeout(3.0)
         assert any(notify.recv(4096) == b"WATCHDOG=1" for _ in range(20))
+        # SIGHUP: a new budget applies at once; a new link URL needs a restart and is kept.
+        config.write_text(
+            config.read_text()
+            .replace("[arm]", "[solver]\nbudget_ms = 5.0\n[arm]")
+            .replace("udpout:127.0.0.1:", "udpout:127.0.0.2:")
+        )
+        daemon.send_signal(signal.SIGHUP)
+        seen = []
+        while not (
+            b"RELOADING=1" in seen
+            and any(m.startswith(b"READY=1") for m in seen[seen.index(b"RELOADING=1") :])
+        ):
+            seen.append(notify.recv(4096))  # each recv bounded by the socket timeout
+        assert request(control, {"cmd": "status"})["status"]["link"] == "up"
         started = time.monotonic()
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(timeout=5) == 0
@@ -125,7 +139,10 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
         except TimeoutError:
             pass
         assert any(m.startswith(b"STOPPING=1") for m in rest)
-        assert "stopping (parking)" in daemon.stderr.read()
+        log = daemon.stderr.read()
+        assert "stopping (parking)" in log
+        assert "reload: link changed: restart the daemon to apply it" in log
+        assert "reloaded" in log
     finally:
         if daemon.poll() is None:
             daemon.kill()
