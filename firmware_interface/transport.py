@@ -198,6 +198,15 @@ class _SocketTransport(Transport):
             raise TransportError(f"{self.description}: {exc}") from exc
         return bool(readable)
 
+    def _recv_datagram(self, timeout_s: float) -> tuple[bytes, tuple[str, int] | None]:
+        """One datagram and its sender, or ``(b"", None)`` when none arrived in time."""
+        if not self._wait_readable(timeout_s):
+            return b"", None
+        try:
+            return self._sock.recvfrom(65535)
+        except OSError as exc:
+            raise TransportError(f"receive on {self.description} failed: {exc}") from exc
+
     def close(self) -> None:
         self._sock.close()
 
@@ -231,12 +240,9 @@ class UdpInTransport(_SocketTransport):
             raise TransportError(f"send on {self.description} failed: {exc}") from exc
 
     def read(self, timeout_s: float) -> bytes:
-        if not self._wait_readable(timeout_s):
-            return b""
-        try:
-            data, self._peer = self._sock.recvfrom(65535)
-        except OSError as exc:
-            raise TransportError(f"receive on {self.description} failed: {exc}") from exc
+        data, sender = self._recv_datagram(timeout_s)
+        if sender is not None:
+            self._peer = sender
         return data
 
 
@@ -260,13 +266,7 @@ class UdpOutTransport(_SocketTransport):
             raise TransportError(f"send on {self.description} failed: {exc}") from exc
 
     def read(self, timeout_s: float) -> bytes:
-        if not self._wait_readable(timeout_s):
-            return b""
-        try:
-            data, _ = self._sock.recvfrom(65535)
-        except OSError as exc:
-            raise TransportError(f"receive on {self.description} failed: {exc}") from exc
-        return data
+        return self._recv_datagram(timeout_s)[0]
 
 
 class TcpTransport(_SocketTransport):
