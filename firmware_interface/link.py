@@ -101,7 +101,9 @@ class LinkConfig:
     loss_timeout_s: float = 3.0
     read_timeout_s: float = 0.05
     reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
+    # A failed reopen costs one open() (or one connect) attempt, so trying twice a second is
+    # cheap; a longer cap would leave a re-enumerated serial port unused for seconds.
+    reconnect_max_s: float = 0.5
     signing: SigningConfig | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -498,16 +500,19 @@ class MavlinkLink:
 
     def _read_loop(self) -> None:
         backoff_s = self.config.reconnect_initial_s
+        failed_reopens = 0
         try:
             while not self._stop.is_set():
                 transport = self._transport
                 if transport is None or self._write_failed is transport:
                     if transport is not None:
                         self._drop_transport()
-                    if not self._reopen():
+                    if not self._reopen(quiet=failed_reopens > 0):
+                        failed_reopens += 1
                         self._stop.wait(backoff_s)
                         backoff_s = min(2 * backoff_s, self.config.reconnect_max_s)
                     else:
+                        failed_reopens = 0
                         backoff_s = self.config.reconnect_initial_s
                     continue
                 try:
@@ -527,11 +532,14 @@ class MavlinkLink:
         finally:
             self._drop_transport()
 
-    def _reopen(self) -> bool:
+    def _reopen(self, *, quiet: bool = False) -> bool:
         try:
             transport = self._transport_factory()
         except TransportError as exc:
-            log.info("%s: reopen failed: %s", self.description, exc)
+            # Only the first failure of an outage is logged at INFO: at reconnect_max_s the
+            # attempts would otherwise fill the journal.
+            log.log(logging.DEBUG if quiet else logging.INFO, "%s: reopen failed: %s",
+                    self.description, exc)
             return False
         with self._write_lock:
             self._transport = transport
