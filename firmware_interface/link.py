@@ -16,7 +16,9 @@ pymavlink's generated MAVLink 2 codec (``pymavlink.dialects.v20.ardupilotmega``)
   and decoding use two separate codec objects for the same reason.
 
 Link state (:class:`LinkState`) is computed from the injected ``clock``: UP while the autopilot's
-HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one.
+HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. It is
+also LOST while the transport is down, and after a reopen until a HEARTBEAT arrives on the new
+port: a serial adapter that re-enumerated often means a flight controller that rebooted.
 """
 
 from __future__ import annotations
@@ -243,6 +245,7 @@ class MavlinkLink:
         self._autopilot: AutopilotInfo | None = None
         self._autopilot_event = threading.Event()
         self._last_heartbeat_at: float | None = None
+        self._heard_on_transport = False  # an autopilot HEARTBEAT came in on this transport
         self._counts = dict.fromkeys(
             ("rx_messages", "rx_bad_frames", "rejected_unsigned", "rejected_bad_signature",
              "tx_messages", "reconnects", "transport_errors"), 0)
@@ -335,7 +338,7 @@ class MavlinkLink:
         last = self._last_heartbeat_at
         if last is None:
             return LinkState.WAITING
-        if self.clock() - last > self.config.loss_timeout_s:
+        if not self._heard_on_transport or self.clock() - last > self.config.loss_timeout_s:
             return LinkState.LOST
         return LinkState.UP
 
@@ -494,6 +497,7 @@ class MavlinkLink:
             log.info("%s: autopilot %d/%d found", self.description, system, component)
             self._autopilot_event.set()
         self._last_heartbeat_at = self.clock()
+        self._heard_on_transport = True
         self._publish_state()
 
     # ----- threads ------------------------------------------------------------------------
@@ -551,6 +555,7 @@ class MavlinkLink:
     def _drop_transport(self) -> None:
         with self._write_lock:
             transport, self._transport = self._transport, None
+            self._heard_on_transport = False
         if transport is not None:
             transport.close()
 

@@ -223,6 +223,35 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
             second.close()
 
 
+def test_link_is_lost_while_the_port_is_down_and_up_again_only_on_a_fresh_heartbeat(
+    tmp_path, clock
+):
+    # The fake clock never moves, so the last HEARTBEAT stays "recent": only the port tells.
+    device = tmp_path / "ttyFC"
+    first = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(first.endpoint.path, device)
+    link = MavlinkLink.open(f"{device},115200", LinkConfig(**FAST), clock=clock)
+    second = None
+    try:
+        first.wait_for_messages("HEARTBEAT")
+        first.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+        first.close()  # unplugged
+        device.unlink()
+        assert wait_until(lambda: link.stats.transport_errors >= 1)
+        assert link.state is LinkState.LOST  # nothing can reach the autopilot now
+        second = ScriptedPeer(PtyEndpoint(), system_id=9)  # re-enumerated (maybe rebooted)
+        os.symlink(second.endpoint.path, device)
+        assert wait_until(lambda: link.stats.reconnects >= 1)
+        assert link.state is LinkState.LOST  # not a word from the autopilot on this port yet
+        second.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+    finally:
+        link.close()
+        if second is not None:
+            second.close()
+
+
 def test_default_reconnect_backoff_is_bounded_at_half_a_second(tmp_path):
     # A USB serial adapter re-enumerates under its udev name: with the default config the link
     # must try again at least every 0.5 s, or a port that came back would go unused for seconds.
