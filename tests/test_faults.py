@@ -272,16 +272,17 @@ def _toml_table(name: str, table: dict) -> str:
 
 
 def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, tmp_path):
-    # The autopilot's HEARTBEAT stops 4 s after it starts, for 3 s; the daemon runs with the
+    # The autopilot's HEARTBEAT stops 5 s after it starts, for 3 s; the daemon runs with the
     # default loss timeout (3 s) and a slow joint speed, so the arm is still moving when the
     # link is declared lost: only the hold keeps servo commands from going out.
-    sim = sims("--udp", "127.0.0.1:0", "--heartbeat-pause-after", "4",
+    sim = sims("--udp", "127.0.0.1:0", "--heartbeat-pause-after", "5",
                "--heartbeat-pause-for", "3", "--slew-s-per-60deg", "0")
     daemon = DaemonProcess(tmp_path, sim.url, arm={"joint_speed_deg_s": 10.0},
                            control={"rate_hz": 20.0})
     calibration = daemon.config.calibration
     try:
         assert wait_until(lambda: daemon.status()["link"] == "up", WAIT_S)
+        assert sim.state()["t_s"] < 4.0, "the daemon started too late to be moving at the pause"
         far = daemon.config.arm.fk([80, 20, 70, 60, -60, 80]).as_tuple()
         near = daemon.config.arm.fk([0, 80, 10, 0, 0, 0]).as_tuple()
         assert daemon.request(cmd="goto", pose=list(far))["outcome"] == "accepted"
