@@ -16,9 +16,12 @@ Safety rules, in this order:
    TEMPORARILY_REJECTED. If the solution misses the tolerances it is FAILED, and nothing moves.
 2. Every PWM goes through the calibration, which refuses anything outside a servo's range.
    The dialect checks it again before sending. Nothing is ever clamped into range silently.
-3. Autopilot link lost: stop commanding and hold. When it comes back, re-send the current PWMs
+3. A servo update that goes unanswered (after the CommandSender's retries) during an accepted
+   motion is sent again on the next tick, up to ``UPDATE_ATTEMPTS`` updates in a row; a
+   rejected command stops the motion at once.
+4. Autopilot link lost: stop commanding and hold. When it comes back, re-send the current PWMs
    first, then carry on.
-4. The arm is assumed to start at the park pose (or mid-range if none is set). Nothing is sent
+5. The arm is assumed to start at the park pose (or mid-range if none is set). Nothing is sent
    until the first target, and never faster than the joint speed limit from there.
 
 MAVLink target input (document for ground stations): COMMAND_LONG ``MAV_CMD_USER_1`` (31010) to
@@ -54,6 +57,7 @@ from firmware_interface import (
     LinkConfig,
     LinkError,
     LinkState,
+    LinkTimeout,
     MavlinkLink,
     make_servo_dialect,
 )
@@ -61,6 +65,9 @@ from firmware_interface import (
 log = logging.getLogger("armbridge")
 
 MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
+#: An accepted motion survives this many servo updates in a row that went unanswered (each
+#: already retried by the CommandSender); then it is abandoned.
+UPDATE_ATTEMPTS = 3
 STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
 
 
@@ -140,6 +147,7 @@ class ArmDaemon:
         self._trajectory_t0 = 0.0
         self._last_pwm: dict[int, int] | None = None
         self._holding = False
+        self._unanswered_updates = 0  # servo updates in a row that got no ACK
         self._counters = {
             "targets": 0,
             "accepted": 0,
@@ -502,12 +510,22 @@ class ArmDaemon:
         except (LinkError, CalibrationError) as exc:
             with self._lock:
                 self._counters["servo_errors"] += 1
+            self._unanswered_updates += 1
+            if (isinstance(exc, LinkTimeout) and not self._pending
+                    and self._unanswered_updates < UPDATE_ATTEMPTS):
+                # An accepted motion is not abandoned for one lost answer: the next tick sends
+                # the update again (a rejection, or a refused PWM, stops at once).
+                log.warning("servo update unanswered (%d of %d), trying again: %s",
+                            self._unanswered_updates, UPDATE_ATTEMPTS, exc)
+                return False
+            self._unanswered_updates = 0
             log.error("servo command failed, stopping motion: %s", exc)
             self._set_goal(None)
             for request in self._pending:
                 self._finish(request, Reply(Outcome.FAILED, f"servo command failed: {exc}"))
             self._pending.clear()
             return False
+        self._unanswered_updates = 0
         with self._lock:
             self._last_pwm = dict(pwm)
             self._counters["servo_updates"] += 1
