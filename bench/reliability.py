@@ -692,12 +692,11 @@ def run_mavlink_fuzz(
                 send("user1_elsewhere", factory.user1_elsewhere(reachable))
             sync()
             status_check()
-            if round_index == 0:  # after warm-up: every code path has run once
-                report.rss_kb.append((sum(report.frames.values()), vm_rss_kb(proc.pid)))
+            # The first sample is after the warm-up round: every code path has run once.
+            report.rss_kb.append((sum(report.frames.values()), vm_rss_kb(proc.pid)))
             if progress:
                 progress(f"fuzz round {round_index + 1}/{rounds}: "
                          f"{sum(report.frames.values())} frames")
-        report.rss_kb.append((sum(report.frames.values()), vm_rss_kb(proc.pid)))
         report.message_types_sent = len(types_sent)
         report.user1_not_for_us_sent = factory.user1_not_for_us
         status = _status(control)
@@ -1121,8 +1120,10 @@ def markdown(targets: TargetReport, fuzz: FuzzReport, configs: ConfigReport,
         f"status answers {fuzz.status_answers}, link states {dict(fuzz.link_states)}.",
         f"- **Servo commands (any COMMAND_LONG/INT) reaching the autopilot: "
         f"{len(fuzz.servo_commands)}**; what the daemon sent: {dict(fuzz.peer_received)}.",
-        f"- VmRSS (kB) by frames sent: {fuzz.rss_kb}; growth after warm-up "
-        f"{fuzz.rss_growth_kb} kB.",
+        f"- VmRSS after the warm-up round {fuzz.rss_kb[0][1]} kB, at the end "
+        f"{fuzz.rss_kb[-1][1]} kB: growth {fuzz.rss_growth_kb} kB over "
+        f"{fuzz.rss_kb[-1][0] - fuzz.rss_kb[0][0]} frames; by round (frames, kB): "
+        f"{fuzz.rss_kb[:: max(1, len(fuzz.rss_kb) // 10)]}.",
         f"- Daemon counters: {fuzz.counters} (USER_1 frames sent to someone else: "
         f"{fuzz.user1_not_for_us_sent}; each must be counted as not_for_us).",
         "",
