@@ -383,8 +383,10 @@ class ArmDaemon:
             return self.config.park_deg
         if request.kind == "trajectory":
             try:
-                points = sorted((float(t), _as_pose(p)) for t, p in request.payload)
-            except (TypeError, ValueError) as exc:
+                points = sorted(
+                    ((float(t), _as_pose(p)) for t, p in request.payload), key=lambda tp: tp[0]
+                )
+            except (TypeError, ValueError, OverflowError) as exc:
                 raise ValueError(f"bad trajectory: {exc}") from exc
             if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
                 raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
@@ -535,7 +537,7 @@ class ArmDaemon:
 def _as_pose(value: Any) -> Pose:
     if isinstance(value, Pose):
         return value
-    if isinstance(value, str) or not isinstance(value, Sequence):
+    if isinstance(value, str | bytes | bytearray) or not isinstance(value, Sequence):
         raise ValueError(
             f"a pose is 6 numbers (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), got {value!r}"
         )
