@@ -207,8 +207,9 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
     second = None
     try:
         first.wait_for_messages("HEARTBEAT")
-        first.close()  # the port vanishes ...
-        device.unlink()  # ... and its device node with it
+        # The device node goes first, so no reopen can race to the dying port.
+        device.unlink()
+        first.close()  # the port vanishes
         assert wait_until(lambda: link.stats.transport_errors >= 1)
         assert link.transport is None and not link.closed
         second = ScriptedPeer(PtyEndpoint(), system_id=9)  # plugged back in
