@@ -157,6 +157,7 @@ class ArmDaemon:
             "servo_updates": 0,
             "servo_errors": 0,
             "not_for_us": 0,
+            "internal_errors": 0,
         }
         self._last_target: dict[str, Any] | None = None
 
@@ -323,13 +324,32 @@ class ArmDaemon:
             except queue.Empty:
                 request = None
             if request is not None:
-                self._handle(request)
+                try:
+                    self._handle(request)
+                except Exception as exc:  # a bug must not kill the loop that guards the servos
+                    self._internal_error(f"{request.kind} request", exc)
+                    self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
             now = self.clock()
             if now >= next_tick:
-                self._tick(now, period)
+                try:
+                    self._tick(now, period)
+                except Exception as exc:
+                    self._internal_error("control tick", exc)
                 next_tick = max(next_tick + period, now)
         for request in self._pending:
             request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
+
+    def _internal_error(self, where: str, exc: Exception) -> None:
+        """Something unexpected failed: log it with its traceback, stop moving and hold (the
+        servos keep their last PWM), and carry on serving."""
+        log.exception("internal error in %s, holding: %r", where, exc)
+        self._trajectory.clear()
+        self._set_goal(None)
+        for request in self._pending:
+            self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
+        self._pending.clear()
+        with self._lock:
+            self._counters["internal_errors"] += 1
 
     def _count(self, outcome: Outcome) -> None:
         with self._lock:

@@ -280,3 +280,36 @@ def test_an_accepted_motion_survives_an_unanswered_update(autopilot):
         assert status["counters"]["servo_errors"] == 1
     finally:
         daemon.close()
+
+
+class _BuggyDaemon(ArmDaemon):
+    """Its first solve raises, as a bug anywhere under the control thread would."""
+
+    bugs = 1
+
+    def _goto(self, request, pose):
+        if self.bugs:
+            self.bugs -= 1
+            raise RuntimeError("a bug under the control thread")
+        return super()._goto(request, pose)
+
+
+def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
+    endpoint, peer = autopilot
+    daemon = _BuggyDaemon(
+        parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}",
+                               "loss_timeout_s": 30.0}})
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.FAILED and "internal error" in reply.message
+        assert daemon.healthy and daemon.status()["counters"]["internal_errors"] == 1
+        assert peer.messages("COMMAND_LONG") == []  # nothing was sent for it
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+    finally:
+        daemon.close()
