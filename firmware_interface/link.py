@@ -39,6 +39,7 @@ from firmware_interface.errors import (
     LinkClosed,
     LinkError,
     LinkTimeout,
+    SigningStateError,
     TransportError,
 )
 from firmware_interface.signing import SigningConfig, TimestampKeeper
@@ -403,9 +404,16 @@ class MavlinkLink:
             if transport is None:
                 raise TransportError(f"{self.description}: transport down, reconnecting")
             if self._keeper is not None:
-                self._encoder.signing.timestamp = self._keeper.next_timestamp(
-                    max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
-                )
+                try:
+                    self._encoder.signing.timestamp = self._keeper.next_timestamp(
+                        max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
+                    )
+                except OSError as exc:
+                    # Signing past the stored reservation could replay timestamps after a
+                    # restart: refuse to send rather than sign unsafely.
+                    raise SigningStateError(
+                        f"{self.description}: cannot store the signing timestamp: {exc}"
+                    ) from exc
             buf = msg.pack(self._encoder)
             self._encoder.seq = (self._encoder.seq + 1) % 256
             try:
@@ -429,6 +437,8 @@ class MavlinkLink:
             self.send(msg)
         except TransportError as exc:
             log.debug("%s: heartbeat not sent: %s", self.description, exc)
+        except SigningStateError as exc:
+            log.warning("heartbeat not sent: %s", exc)
 
     # ----- receiving ----------------------------------------------------------------------
 
