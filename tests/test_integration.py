@@ -41,12 +41,12 @@ CALIBRATION = default_calibration()  # what the daemon uses without [[joint]] ta
 class Chain:
     """A simulator and a daemon as subprocesses, and a ground station, in ``tmp_path``."""
 
-    def __init__(self, tmp_path: Path, *, sim_args=(), pty=False, dialect="ardupilot",
-                 link_extra="", gcs_key: bytes | None = None) -> None:
+    def __init__(self, tmp_path: Path, procs: list[subprocess.Popen], *, sim_args=(), pty=False,
+                 dialect="ardupilot", link_extra="", gcs_key: bytes | None = None) -> None:
         self.tmp = tmp_path
         self.sim_sock = str(tmp_path / "sim.sock")
         self.control = str(tmp_path / "control.sock")
-        self.procs: list[subprocess.Popen] = []
+        self.procs = procs
         self.spawned_s = time.monotonic()  # the simulator's clock starts about here
         transport = ["--pty"] if pty else ["--udp", "127.0.0.1:0"]
         sim = self._spawn([sys.executable, "-m", "sim_servo", *transport, "--gcs", "127.0.0.1:0",
@@ -69,7 +69,9 @@ class Chain:
         assert wait_until(lambda: self.status()["link"] == "up", WAIT_S)
         self.gcs_url = gcs_url
         self.gcs = GroundStation(gcs_url, signing_key=gcs_key)
-        assert self.gcs.connect(WAIT_S), "no companion HEARTBEAT through the autopilot"
+        if not self.gcs.connect(WAIT_S):
+            self.gcs.close()
+            raise AssertionError("no companion HEARTBEAT through the autopilot")
 
     def _spawn(self, cmd, **kwargs) -> subprocess.Popen:
         proc = subprocess.Popen(cmd, text=True, **kwargs)
@@ -95,16 +97,6 @@ class Chain:
     def settled(self) -> bool:
         return not self.status()["moving"] and self.sim_state()["settled"]
 
-    def close(self) -> None:
-        self.gcs.close()
-        for proc in reversed(self.procs):
-            proc.terminate()
-        codes = [proc.wait(timeout=5) for proc in self.procs]
-        for proc in self.procs:
-            for stream in (proc.stdout, proc.stderr):
-                if stream is not None:
-                    stream.close()
-        assert codes == [0, 0], codes
 
 
 @pytest.fixture
@@ -112,12 +104,34 @@ def chain(tmp_path):
     made = []
 
     def start(**kwargs) -> Chain:
-        made.append(Chain(tmp_path, **kwargs))
-        return made[-1]
+        procs: list[subprocess.Popen] = []
+        made.append((procs, []))  # owned here, so a chain that fails to start is still stopped
+        chain = Chain(tmp_path, procs, **kwargs)
+        made[-1][1].append(chain)
+        return chain
 
     yield start
-    for c in made:
-        c.close()
+    for procs, chains in made:
+        for chain in chains:
+            chain.gcs.close()
+        stop_all(procs)
+
+
+def stop_all(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM each (daemon first), wait, and check they all exited cleanly."""
+    for proc in reversed(procs):
+        proc.terminate()
+    codes = []
+    for proc in procs:
+        try:
+            codes.append(proc.wait(timeout=5))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            codes.append(proc.wait())
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+    assert all(code == 0 for code in codes), codes
 
 
 def hand_errors(pose_values, hand) -> tuple[float, float]:
