@@ -83,14 +83,25 @@ MAV_RESULT = {
 
 @dataclass(frozen=True)
 class Reply:
-    """The answer to one request: an outcome, a one-line reason, the solve if there was one."""
+    """The answer to one request: an outcome, a one-line reason, the solve if there was one.
+
+    ``timing`` (targets only): daemon-clock seconds (``time.monotonic`` unless a clock was
+    injected; CLOCK_MONOTONIC is system-wide on Linux, so comparable across processes):
+    ``received_s`` (handed to the daemon by its input thread), ``solved_s`` (solve returned),
+    and once accepted ``first_out_s`` (its first servo update started) and ``acked_s`` (the
+    autopilot acknowledged all of that update). ``status()["last_target"]["timing"]`` has the
+    same for the newest target.
+    """
 
     outcome: Outcome
     message: str
     solve: ik.IKResult | None = None
+    timing: dict[str, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}
+        if self.timing is not None:
+            out["timing"] = dict(self.timing)
         if self.solve is not None:
             out["solve"] = {
                 "q_deg": list(self.solve.q_deg),
@@ -107,6 +118,7 @@ class _Request:
     kind: str  # goto | trajectory | park | stop
     payload: Any
     direct: bool = False
+    received_s: float = 0.0  # daemon clock when submitted
     accepted: Reply | None = None  # the reply sent once its first servo commands are out
     future: Future = field(default_factory=Future)
 
@@ -151,6 +163,8 @@ class ArmDaemon:
             "not_for_us": 0,
         }
         self._last_target: dict[str, Any] | None = None
+        # The newest accepted target's timing until its first servo update is out (see status).
+        self._timing_pending: dict[str, float] | None = None
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -243,7 +257,7 @@ class ArmDaemon:
         """
         if kind not in ("goto", "trajectory", "park", "stop"):
             raise ValueError(f"unknown request {kind!r}; valid: goto, trajectory, park, stop")
-        request = _Request(kind, payload, direct)
+        request = _Request(kind, payload, direct, received_s=self.clock())
         if self._stop.is_set():
             request.future.set_result(Reply(Outcome.TEMPORARILY_REJECTED, "daemon stopping"))
         else:
@@ -365,7 +379,7 @@ class ArmDaemon:
             self._trajectory_t0 = self.clock()
             self._finish(request, Reply(Outcome.ACCEPTED, f"trajectory of {len(parsed)} points"))
         else:
-            self._goto(request, parsed)
+            self._goto(request, parsed, request.received_s)
 
     def _parse(self, request: _Request) -> Any:
         """The request's validated payload; ValueError says what is wrong with it."""
@@ -386,7 +400,7 @@ class ArmDaemon:
         except ValueError as exc:
             raise ValueError(f"invalid target: {exc}") from exc
 
-    def _goto(self, request: _Request | None, pose: Pose) -> bool:
+    def _goto(self, request: _Request | None, pose: Pose, received_s: float) -> bool:
         start = self._goal if self._goal is not None else self._current
         result = ik.solve(
             self.config.arm,
@@ -397,6 +411,7 @@ class ArmDaemon:
             tol_pos_cm=self.config.tol_pos_cm,
             tol_ori_deg=self.config.tol_ori_deg,
         )
+        timing = {"received_s": received_s, "solved_s": self.clock()}
         with self._lock:
             self._last_target = {
                 "pose": list(pose.as_tuple()),
@@ -404,6 +419,7 @@ class ArmDaemon:
                 "pos_err_cm": result.pos_err_cm,
                 "ori_err_deg": result.ori_err_deg,
                 "solve_ms": result.elapsed_ms,
+                "timing": timing,
             }
         if not result.converged:
             reply = Reply(
@@ -423,9 +439,10 @@ class ArmDaemon:
                 self._finish(request, Reply(Outcome.FAILED, f"calibration refused: {exc}", result))
             return False
         if request is not None:
-            self._accept(request, result.q_deg, "moving", result)
+            self._accept(request, result.q_deg, "moving", result, timing)
         else:
             self._set_goal(result.q_deg)
+        self._timing_pending = timing
         return True
 
     def _accept(
@@ -434,9 +451,10 @@ class ArmDaemon:
         goal: Sequence[float],
         message: str,
         result: ik.IKResult | None = None,
+        timing: dict[str, float] | None = None,
     ) -> None:
         self._set_goal(tuple(goal))
-        request.accepted = Reply(Outcome.ACCEPTED, message, result)
+        request.accepted = Reply(Outcome.ACCEPTED, message, result, timing)
         self._pending.append(request)
 
     def _set_goal(self, goal: Sequence[float] | None) -> None:
@@ -452,7 +470,7 @@ class ArmDaemon:
         if not due:
             return
         self._trajectory = self._trajectory[len(due) :]
-        if not self._goto(None, due[-1][1]):
+        if not self._goto(None, due[-1][1], now):
             log.warning("trajectory aborted: a point is out of reach")
             self._trajectory.clear()
 
@@ -488,12 +506,28 @@ class ArmDaemon:
             log.error("calibration refused a step, holding: %s", exc)
             self._set_goal(None)
             return
+        first_out_s = self.clock()
         if self._send(pwm):
             self._set_current(step)
+            out = {"first_out_s": first_out_s, "acked_s": self.clock()}
+            self._record_first_out(out)
             for request in self._pending:
-                self._finish(request, request.accepted)
+                reply = request.accepted
+                if reply is not None and reply.timing is not None:
+                    reply = dataclasses.replace(reply, timing={**reply.timing, **out})
+                self._finish(request, reply)
                 self._count(Outcome.ACCEPTED)
             self._pending.clear()
+
+    def _record_first_out(self, out: dict[str, float]) -> None:
+        """Completes the timing of the newest target once its first servo update is acked."""
+        pending, self._timing_pending = self._timing_pending, None
+        if pending is None:
+            return
+        with self._lock:
+            last = self._last_target
+            if last is not None and last["timing"] is pending:
+                self._last_target = {**last, "timing": {**pending, **out}}
 
     def _send(self, pwm: dict[int, int]) -> bool:
         assert self._dialect is not None

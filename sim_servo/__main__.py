@@ -233,8 +233,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         server.stop()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # monotonic_s: t_s = 0 on CLOCK_MONOTONIC (system-wide), to line events up with other
+    # processes' time.monotonic() stamps.
     autopilot.emit(start_s, "start", url=endpoint.url, flavour=config.flavour,
-                   system_id=config.system_id, functions=dict(config.functions))
+                   system_id=config.system_id, functions=dict(config.functions),
+                   monotonic_s=start_s)
     print(endpoint.url, flush=True)
     try:
         status = server.run()
