@@ -35,8 +35,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from companion.arm import Arm, Pose
 from loopback import (
     INPUTS,
     Stack,
@@ -47,6 +45,8 @@ from loopback import (
     plt,
     servo_command_times,
 )
+
+from companion.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
 SEGMENTS = ("input", "solve", "queue", "tick wait", "first frame", "rest of update", "ACK back")

@@ -8,6 +8,8 @@ Threads and who owns what:
 * the **control thread** (this module) owns all arm state. It takes requests (validate →
   solve → accept or refuse), and on every tick at ``rate_hz`` moves the commanded joints
   towards the goal by at most ``joint_speed_deg_s / rate_hz`` and sends the servo commands.
+  An accepted target does not wait for the next tick: its first step goes out at once, at most
+  ``joint_speed_deg_s`` × the time since the previous step, and the ticks restart from there.
   It blocks only on its own ACKs, which the reader thread delivers.
 
 Safety rules, in this order:
@@ -141,6 +143,7 @@ class ArmDaemon:
         self._sender: CommandSender | None = None
         self._dialect = None
         self._last_tick = clock()
+        self._last_step_s = -math.inf  # when the last step was sent (for the speed limit)
         arm = config.arm
         start = config.park_deg or tuple(
             math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints
@@ -334,6 +337,12 @@ class ArmDaemon:
             if now >= next_tick:
                 self._tick(now, period)
                 next_tick = max(next_tick + period, now)
+            elif self._pending:
+                # A newly accepted target does not wait for the next tick: its first step goes
+                # out now (sized by the time since the last step, see _tick), and the ticks
+                # restart from here.
+                self._tick(now, period)
+                next_tick = now + period
         for request in self._pending:
             request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
 
@@ -499,7 +508,12 @@ class ArmDaemon:
             goal == self._current and self._last_pwm is not None and not self._pending
         ):
             return
-        step = limit_step(self._current, goal, self.config.joint_speed_deg_s * period)
+        # The speed limit holds whenever a step goes out: at most the joint speed times the
+        # time since the last step, and never more than one period's worth.
+        max_step_deg = self.config.joint_speed_deg_s * min(period, now - self._last_step_s)
+        if not max_step_deg > 0:
+            return
+        step = limit_step(self._current, goal, max_step_deg)
         try:
             pwm = self.config.calibration.angles_to_pwm_us(step)
         except CalibrationError as exc:  # unreachable by construction; refuse, never clamp
@@ -508,6 +522,7 @@ class ArmDaemon:
             return
         first_out_s = self.clock()
         if self._send(pwm):
+            self._last_step_s = now
             self._set_current(step)
             out = {"first_out_s": first_out_s, "acked_s": self.clock()}
             self._record_first_out(out)
