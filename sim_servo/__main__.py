@@ -1,7 +1,9 @@
 """``python -m sim_servo``: a simulated flight controller with servos, for tests without hardware.
 
 The first line on stdout is the link URL to give the daemon (``udpout:127.0.0.1:PORT``,
-``tcp:127.0.0.1:PORT`` or ``/dev/pts/N,115200``), printed once the port is open. SIGTERM or
+``tcp:127.0.0.1:PORT`` or ``/dev/pts/N,115200``), printed once the port is open. With ``--gcs``
+a second line ``gcs udpout:HOST:PORT`` gives the ground station's address: frames between the
+two links are routed as ArduPilot routes them (see :meth:`SimAutopilot._route`). SIGTERM or
 SIGINT stops the simulator cleanly (exit status 0).
 """
 
@@ -83,6 +85,10 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on TCP for one client")
     where.add_argument("--pty", action="store_true",
                        help="serve on a new pseudo-terminal; its device path is printed")
+    parser.add_argument("--gcs", metavar="HOST:PORT",
+                        help="also serve a ground station on UDP (port 0: any free port; the "
+                             "second stdout line is 'gcs udpout:HOST:PORT'); frames addressed "
+                             "to the companion, and broadcasts, are routed between the links")
 
     vehicle = parser.add_argument_group("vehicle")
     vehicle.add_argument("--config", metavar="TOML",
@@ -200,6 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         stream=sys.stderr, format="%(name)s: %(message)s")
     events: EventLog | None = None
     endpoint = None
+    gcs = None
     try:
         data, base_dir = config_data(args)
         if args.withhold_ack:
@@ -210,6 +217,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             config = replace(config, signing_key=load_key(args.signing_key))
         hand = HandModel.from_config(config.arm)
         events = EventLog(args.event_log)
+        if args.gcs:
+            gcs = UdpEndpoint(*parse_host_port(args.gcs, "--gcs"))
         if args.udp:
             endpoint = UdpEndpoint(*parse_host_port(args.udp, "--udp"))
         elif args.tcp:
@@ -219,11 +228,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         start_s = time.monotonic()
         autopilot = SimAutopilot(config, now_s=start_s, emit=events, hand=hand,
                                  faults=FaultInjector(config.faults))
-        server = SimServer(autopilot, endpoint, events, query_path=args.query_socket,
+        server = SimServer(autopilot, endpoint, events, gcs=gcs, query_path=args.query_socket,
                            hangup_after_s=config.faults.hangup_after_s, start_s=start_s)
     except SimError as exc:
-        if endpoint is not None:
-            endpoint.close()
+        for link in (endpoint, gcs):
+            if link is not None:
+                link.close()
         if events is not None:
             events.close()
         print(f"sim_servo: {exc}", file=sys.stderr)
@@ -237,8 +247,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # processes' time.monotonic() stamps.
     autopilot.emit(start_s, "start", url=endpoint.url, flavour=config.flavour,
                    system_id=config.system_id, functions=dict(config.functions),
-                   monotonic_s=start_s)
+                   gcs_url=gcs.url if gcs is not None else None, monotonic_s=start_s)
     print(endpoint.url, flush=True)
+    if gcs is not None:
+        print(f"gcs {gcs.url}", flush=True)
     try:
         status = server.run()
     finally:

@@ -109,21 +109,21 @@ class SimAutopilot:
         self._loop_s = 1.0 / config.loop_rate_hz
         self._enc = mavlink.MAVLink(None, srcSystem=config.system_id,
                                     srcComponent=config.component_id)
-        self._dec = mavlink.MAVLink(None)
-        self._dec.robust_parsing = True
+        # One decoder per link: a serial stream's partial frame must not meet another link's.
+        self._decoders: dict[int, mavlink.MAVLink] = {}
         if config.signing_key is not None:
             self._enc.signing.secret_key = config.signing_key
             self._enc.signing.sign_outgoing = True
             self._enc.signing.link_id = 0
             self._enc.signing.timestamp = max(
                 1, int((wall_clock() - SIGNING_EPOCH_UNIX_S) * 100_000))
-            self._dec.signing.secret_key = config.signing_key
-            self._dec.signing.allow_unsigned_callback = (
-                lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED_IDS)
+        #: (system, component) → the link it was last heard on (ArduPilot's routing table).
+        self.routes: dict[tuple[int, int], int] = {}
+        self._forwarded: list[tuple[int, bytes]] = []
         self._outbox: list[tuple[float, int, bytes]] = []
         self._seq = itertools.count()
         self._deferred: list[tuple[float, mavlink.MAVLink_message]] = []
-        self._inbox: list[tuple[float, mavlink.MAVLink_message]] = []
+        self._inbox: list[tuple[float, int, mavlink.MAVLink_message]] = []
         self.params: dict[str, Param] = self._make_params()
         self._param_names = list(self.params)
         self.pwm_us: dict[int, int] = {
@@ -148,9 +148,10 @@ class SimAutopilot:
         self._heartbeat_paused = False
         self._moving = False
         self.peer: tuple[int, int] | None = None
+        self._peers_seen: set[tuple[int, int]] = set()
         self.stats = dict.fromkeys(
             ("rx", "tx", "bad_frames", "rejected_signature", "dropped_in", "dropped_out",
-             "corrupted_in", "corrupted_out", "acks", "acks_withheld"), 0)
+             "corrupted_in", "corrupted_out", "acks", "acks_withheld", "routed"), 0)
         self._commands: dict[int, Callable[[Command, float], int]] = {
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
             mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
@@ -267,7 +268,7 @@ class SimAutopilot:
         """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""
         candidates = [due for due in self._next_due_s.values() if due is not None]
         candidates += [due for due, _ in self._deferred]
-        candidates += [due for due, _ in self._inbox]
+        candidates += [due for due, _, _ in self._inbox]
         if self._outbox:
             candidates.append(self._outbox[0][0])
         if self._moving:
@@ -355,18 +356,37 @@ class SimAutopilot:
 
     # -- input pipeline --------------------------------------------------------------------
 
-    def receive(self, data: bytes, now_s: float) -> None:
-        """Feed bytes that arrived at ``now_s`` (a datagram, or a chunk of a serial stream)."""
+    def receive(self, data: bytes, now_s: float, channel: int = 0) -> None:
+        """Feed bytes that arrived at ``now_s`` on link ``channel`` (0: the companion's link;
+        others: e.g. a ground station's), a datagram or a chunk of a serial stream."""
         corrupted = self.faults.corrupt_in(data)
         if corrupted != data:
             self.stats["corrupted_in"] += 1
             self.emit(now_s, "fault", fault="corrupt_in", bytes=len(data))
         try:
-            messages = self._dec.parse_buffer(corrupted) or []
+            messages = self._decoder(channel).parse_buffer(corrupted) or []
         except mavlink.MAVError as exc:  # robust_parsing reports most problems as BAD_DATA
             messages = [mavlink.MAVLink_bad_data(b"", str(exc))]
         due = self._next_tick_s(now_s)
-        self._inbox.extend((due, msg) for msg in messages)
+        self._inbox.extend((due, channel, msg) for msg in messages)
+
+    def _decoder(self, channel: int) -> mavlink.MAVLink:
+        decoder = self._decoders.get(channel)
+        if decoder is None:
+            decoder = mavlink.MAVLink(None)
+            decoder.robust_parsing = True
+            if self.config.signing_key is not None:
+                decoder.signing.secret_key = self.config.signing_key
+                decoder.signing.allow_unsigned_callback = (
+                    lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED_IDS)
+            self._decoders[channel] = decoder
+        return decoder
+
+    def forwarded(self) -> list[tuple[int, bytes]]:
+        """Frames routed between links since the last call: ``(channel, frame)``, to be written
+        as they are (a signed frame keeps its signature)."""
+        frames, self._forwarded = self._forwarded, []
+        return frames
 
     def _next_tick_s(self, now_s: float) -> float:
         """The next main-loop pass at or after ``now_s`` (passes every ``1/loop_rate_hz``)."""
@@ -376,12 +396,12 @@ class SimAutopilot:
     def _run_inbox(self, now_s: float) -> None:
         # ArduPilot reads its links once per main-loop pass (GCS::update_receive), so a frame
         # waits for the next pass before it is handled and answered.
-        due = [msg for at, msg in self._inbox if at <= now_s]
-        self._inbox = [(at, msg) for at, msg in self._inbox if at > now_s]
-        for msg in due:
-            self._dispatch(msg, now_s)
+        due = [(channel, msg) for at, channel, msg in self._inbox if at <= now_s]
+        self._inbox = [entry for entry in self._inbox if entry[0] > now_s]
+        for channel, msg in due:
+            self._dispatch(msg, now_s, channel)
 
-    def _dispatch(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
+    def _dispatch(self, msg: mavlink.MAVLink_message, now_s: float, channel: int = 0) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             reason = str(getattr(msg, "reason", ""))
@@ -399,9 +419,42 @@ class SimAutopilot:
         self.stats["rx"] += 1
         self.emit(now_s, "rx", msg=kind, src=[msg.get_srcSystem(), msg.get_srcComponent()],
                   fields=_fields(msg))
+        if not self._route(msg, channel, now_s):
+            return
         handler = self._handlers.get(kind)
         if handler is not None:
             handler(msg, now_s)
+
+    def _route(self, msg: mavlink.MAVLink_message, channel: int, now_s: float) -> bool:
+        """Learn where ``msg`` came from and forward it to the links of its target, as
+        ArduPilot's ``MAVLink_routing::check_and_forward`` does; True if it is (also) for us.
+
+        No target field, or target system 0: a broadcast, handled here and forwarded to every
+        other link someone was heard on. Target (system, component) elsewhere: forwarded to the
+        link that system/component was heard on, not handled here. Our own system with
+        component 0: handled here and forwarded to our system's other components.
+        """
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        own = (self.config.system_id, self.config.component_id)
+        if source != own:
+            self.routes[source] = channel
+        target_system = getattr(msg, "target_system", 0)
+        target_component = getattr(msg, "target_component", 0)
+        for_us = target_system in (0, own[0]) and target_component in (0, own[1])
+        if for_us and target_system != 0 and target_component != 0:
+            return True
+        links = {
+            link for (system, component), link in self.routes.items()
+            if link != channel and (target_system == 0 or (
+                system == target_system and target_component in (0, component)))
+        }
+        for link in sorted(links):
+            self._forwarded.append((link, bytes(msg.get_msgbuf())))
+            self.stats["routed"] += 1
+        if links and not for_us:
+            self.emit(now_s, "routed", msg=msg.get_type(), src=list(source),
+                      to=[target_system, target_component], links=sorted(links))
+        return for_us
 
     def _for_us(self, msg: Any) -> bool:
         return (msg.target_system in (0, self.config.system_id)
@@ -409,8 +462,9 @@ class SimAutopilot:
 
     def _on_heartbeat(self, msg: Any, now_s: float) -> None:
         source = (msg.get_srcSystem(), msg.get_srcComponent())
-        if source != self.peer:
-            self.peer = source
+        self.peer = source
+        if source not in self._peers_seen:
+            self._peers_seen.add(source)
             self.emit(now_s, "peer", src=list(source), type=msg.type, autopilot=msg.autopilot)
 
     def _on_command_long(self, msg: Any, now_s: float) -> None:
@@ -614,6 +668,8 @@ class SimAutopilot:
             "flavour": self.config.flavour,
             "system_id": self.config.system_id,
             "peer": list(self.peer) if self.peer else None,
+            "routes": [[system, component, link]
+                       for (system, component), link in sorted(self.routes.items())],
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
             "hand": self.hand.state(positions).as_dict() if self.hand else None,

@@ -1,10 +1,12 @@
-"""The I/O loop: owns the endpoint and the query socket, hands bytes to the autopilot.
+"""The I/O loop: owns the endpoints and the query socket, hands bytes to the autopilot.
 
 One thread, one ``select``: it waits until a descriptor is readable or the autopilot's next
-event is due, feeds what arrived to :meth:`SimAutopilot.receive`, writes what
-:meth:`SimAutopilot.poll` returns, answers queries and applies the hang-up fault. Nothing here
-decides protocol behaviour. An exception from the autopilot ends the loop; it is logged as an
-``error`` event and :meth:`SimServer.run` returns 1.
+event is due, feeds what arrived to :meth:`SimAutopilot.receive` (tagged with the link it came
+on: 0 for the companion's endpoint, 1 for the optional ground-station endpoint), writes what
+:meth:`SimAutopilot.poll` returns to every link and what it routed
+(:meth:`SimAutopilot.forwarded`) to its link, answers queries and applies the hang-up fault (to
+the companion's endpoint). Nothing here decides protocol behaviour. An exception from the
+autopilot ends the loop; it is logged as an ``error`` event and :meth:`SimServer.run` returns 1.
 """
 
 from __future__ import annotations
@@ -31,11 +33,15 @@ class SimServer:
     """Runs ``autopilot`` over ``endpoint`` until :meth:`stop` (or a signal via ``wakeup_fd``)."""
 
     def __init__(self, autopilot: SimAutopilot, endpoint: Endpoint, events: EventLog, *,
+                 gcs: Endpoint | None = None,
                  query_path: str | None = None, hangup_after_s: float | None = None,
                  clock: Callable[[], float] = time.monotonic, start_s: float | None = None
                  ) -> None:
         self.autopilot = autopilot
         self.endpoint = endpoint
+        self.gcs = gcs
+        #: The links by channel number: 0 the companion's, 1 the ground station's.
+        self.links: list[Endpoint] = [endpoint] + ([gcs] if gcs is not None else [])
         self.events = events
         self.clock = clock
         self._start_s = clock() if start_s is None else start_s
@@ -64,6 +70,9 @@ class SimServer:
             state = self.autopilot.snapshot(self.clock())
             state["link"] = {"url": self.endpoint.url, "closed": self.endpoint.closed,
                              "dropped_writes": self.endpoint.dropped_writes}
+            if self.gcs is not None:
+                state["gcs_link"] = {"url": self.gcs.url, "closed": self.gcs.closed,
+                                     "dropped_writes": self.gcs.dropped_writes}
             return state
         if request == "events":
             return {"events": list(self.events.recent)}
@@ -88,7 +97,7 @@ class SimServer:
         wait_s = min(MAX_WAIT_S, self.autopilot.next_event_s(now) - now)
         if self._hangup_at_s is not None and not self.endpoint.closed:
             wait_s = min(wait_s, self._hangup_at_s - now)
-        link_fds = self.endpoint.fds()
+        link_fds = {fd: channel for channel, link in enumerate(self.links) for fd in link.fds()}
         query_fds = self.query.fds() if self.query else []
         readable, _, _ = select.select([self._wake_r, *link_fds, *query_fds], [], [],
                                        max(0.0, wait_s))
@@ -100,19 +109,24 @@ class SimServer:
                 except BlockingIOError:
                     pass
             elif fd in link_fds:
-                data = self.endpoint.read_ready(fd)
+                channel = link_fds[fd]
+                data = self.links[channel].read_ready(fd)
                 if data:
-                    self.autopilot.receive(data, now)
+                    self.autopilot.receive(data, now, channel)
             elif self.query is not None:
                 self.query.handle(fd)
         if self._hangup_at_s is not None and now >= self._hangup_at_s and not self.endpoint.closed:
             self.endpoint.close()
             self.autopilot.emit(now, "fault", fault="hangup", url=self.endpoint.url)
         for frame in self.autopilot.poll(now):
-            self.endpoint.write(frame)
+            for link in self.links:
+                link.write(frame)
+        for channel, frame in self.autopilot.forwarded():
+            self.links[channel].write(frame)
 
     def close(self) -> None:
-        self.endpoint.close()
+        for link in self.links:
+            link.close()
         if self.query is not None:
             self.query.close()
         for fd in (self._wake_r, self._wake_w):

@@ -557,3 +557,118 @@ def test_every_command_is_logged_with_its_fields():
 def test_replace_keeps_config_valid():
     config = replace(SimConfig(), system_id=3)
     assert config.functions[1] == 33
+
+
+# -- routing between links (ArduPilot's MAVLink_routing) ------------------------------------
+
+COMPANION = (1, 191)
+
+
+def routing_harness(signing_key: bytes | None = None):
+    """Link 0: the companion (1/191); link 1: a ground station (255/190). Both heard once."""
+    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key)
+    companion = mavlink.MAVLink(None, *COMPANION)
+    if signing_key is not None:
+        companion.signing.secret_key = signing_key
+        companion.signing.sign_outgoing = True
+        companion.signing.timestamp = 1
+    hb = companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                                    mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    h.ap.receive(hb.pack(companion), h.now, 0)
+    gcs_hb = h.gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    h.ap.receive(gcs_hb.pack(h.gcs), h.now, 1)
+    h.run_for(0.01)
+    h.ap.forwarded()  # the heartbeats' own forwarding is checked in its own test
+    return h, companion
+
+
+def test_heartbeats_are_forwarded_to_the_other_link_and_routes_learned():
+    h = Harness()
+    companion = mavlink.MAVLink(None, *COMPANION)
+    frame = companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                                       mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0).pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []  # nobody heard on another link yet: nowhere to forward
+    gcs_frame = h.gcs.heartbeat_encode(6, 8, 0, 0, 0).pack(h.gcs)
+    h.ap.receive(gcs_frame, h.now, 1)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, gcs_frame), (1, frame)]
+    assert h.ap.snapshot(h.now)["routes"] == [[1, 191, 0], [255, 190, 1]]
+
+
+def test_target_for_the_companion_is_forwarded_unchanged_and_not_handled_here():
+    h, _ = routing_harness()
+    routed = h.ap.stats["routed"]
+    msg = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, 1, 2, 3, 4, 5, 6, 0)
+    frame = msg.pack(h.gcs)
+    h.ap.receive(frame, h.now, 1)
+    replies = h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, frame)]
+    assert h.of_type("COMMAND_ACK", replies) == []  # the companion answers, not the autopilot
+    assert h.ap.stats["routed"] == routed + 1
+
+
+def test_commands_for_the_autopilot_are_handled_and_not_forwarded():
+    h, _ = routing_harness()
+    h.ap.receive(h.gcs.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 9, 1500,
+                                           0, 0, 0, 0, 0).pack(h.gcs), h.now, 1)
+    replies = h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    assert [a.result for a in h.of_type("COMMAND_ACK", replies)] == [mavlink.MAV_RESULT_ACCEPTED]
+
+
+def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
+    h, companion = routing_harness()
+    h.ap.receive(h.gcs.command_long_encode(7, 191, mavlink.MAV_CMD_USER_1, 0, *[0] * 7)
+                 .pack(h.gcs), h.now, 1)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
+    frame = ack.pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(1, frame)]
+
+
+def test_statustext_is_a_broadcast_and_is_also_handled_here():
+    h, companion = routing_harness()
+    frame = companion.statustext_encode(4, b"unreachable").pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(1, frame)]
+
+
+def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped():
+    h, _ = routing_harness(signing_key=KEY)
+    signed = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7)
+    frame = signed.pack(h.gcs)
+    assert frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
+    h.ap.receive(frame, h.now, 1)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, frame)]
+    plain = mavlink.MAVLink(None, 255, 190)
+    h.ap.receive(plain.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7)
+                 .pack(plain), h.now, 1)
+    forger = mavlink.MAVLink(None, 255, 190)
+    forger.signing.secret_key = bytes(32)
+    forger.signing.sign_outgoing = True
+    forger.signing.timestamp = 10**12
+    h.ap.receive(forger.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7)
+                 .pack(forger), h.now, 1)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    assert h.ap.stats["rejected_signature"] == 2
+
+
+def test_a_stream_split_across_reads_on_one_link_survives_frames_on_another():
+    h, companion = routing_harness()
+    frame = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[2] * 7).pack(h.gcs)
+    other = companion.statustext_encode(6, b"hello").pack(companion)
+    h.ap.receive(frame[:10], h.now, 1)
+    h.ap.receive(other, h.now, 0)
+    h.ap.receive(frame[10:], h.now, 1)
+    h.run_for(0.01)
+    assert sorted(h.ap.forwarded()) == [(0, frame), (1, other)]
+    assert h.ap.stats["bad_frames"] == 0
