@@ -1,6 +1,6 @@
 """End-to-end latency on UDP loopback: target in → servo commands at the flight controller → ACK.
 
-    python bench/latency.py [--targets 1000] [--dialects ardupilot px4] [--input control]
+    python bench/latency.py [--targets 1000] [--dialects ardupilot px4] [--input mavlink|control]
                             [--budget-ms 20] [--rate-hz 20] [--gap-ms 50] [--seed 0]
                             [--markdown bench/results/latency.md] [--no-plot]
 
@@ -16,11 +16,18 @@ Per target, all on CLOCK_MONOTONIC (client, daemon timing, simulator event log):
 
 * ``→ servos``: target sent → the simulator handled the last servo command of its update;
 * ``→ ACK``: target sent → the answer (ACCEPTED) is back at the client;
-* split into ``input`` (client → daemon's control thread queue), ``solve`` (IK kernel),
+* split into ``input`` (client → the daemon's input thread hands it on; for MAVLink this
+  includes the autopilot routing it on its main loop), ``solve`` (IK kernel),
   ``queue`` (rest of the control thread's handling before the solve result), ``tick wait``
   (solved → first servo command started), ``first frame`` (encode + send + UDP + the autopilot's
   400 Hz main-loop wait), ``rest of update`` (ardupilot: the 5 further ACK round trips; px4: 0)
-  and ``ACK back`` (last servo command handled → the client has the answer).
+  and ``ACK back`` (last servo command handled → its ACK to the daemon → the daemon's answer
+  at the client; for MAVLink, routed back by the autopilot on its main loop).
+
+Inputs (``--input``): ``mavlink`` (default), a ground station (``sim_servo.gcs``) sending
+COMMAND_LONG ``MAV_CMD_USER_1`` to the simulator's ground-station link, which routes it to the
+daemon and the COMMAND_ACK back, as a real autopilot does; ``control``, ``goto`` requests on the
+daemon's control socket, whose reply is the ACK.
 
 The simulator stamps a frame when its main loop handles it (every 2.5 ms, as ArduCopter), so
 ``first frame`` includes up to 2.5 ms of autopilot loop wait per command.
@@ -36,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 from loopback import (
+    DEFAULT_INPUT,
     INPUTS,
     Stack,
     load_average,
@@ -172,7 +180,7 @@ def main() -> int:
     parser.add_argument("--targets", type=int, default=1000)
     parser.add_argument("--dialects", nargs="+", default=["ardupilot", "px4"],
                         choices=["ardupilot", "px4"])
-    parser.add_argument("--input", choices=sorted(INPUTS), default="control")
+    parser.add_argument("--input", choices=sorted(INPUTS), default=DEFAULT_INPUT)
     parser.add_argument("--budget-ms", type=float, default=20.0)
     parser.add_argument("--rate-hz", type=float, default=20.0)
     parser.add_argument("--gap-ms", type=float, default=50.0,

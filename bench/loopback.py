@@ -3,7 +3,9 @@
 ``Stack`` starts the simulated flight controller (``python -m sim_servo``, UDP on 127.0.0.1,
 JSON-lines event log) and the daemon (``python -m companion.cli run --config F``) as two
 subprocesses, and waits until the daemon hears the autopilot. A target goes in through one
-small input class (``INPUTS``); everything else in the benches is the same whatever the input.
+small input class (``INPUTS``: a ground station over MAVLink through the simulated autopilot,
+the default, or the control socket); everything else in the benches is the same whatever the
+input.
 
 Clocks: the client, the daemon's per-target timing (``status()["last_target"]["timing"]``,
 ``Reply.timing``) and the simulator's event log (``t_s`` + the start event's ``monotonic_s``)
@@ -103,8 +105,54 @@ class ControlSocketInput:
         self.client.close()
 
 
+class MavlinkInput:
+    """Targets as a ground station sends them: COMMAND_LONG ``MAV_CMD_USER_1`` to the
+    simulator's ground-station link, routed by the autopilot to the daemon; the COMMAND_ACK
+    routed back is the client's ACK. The daemon's timing and solve time are read from its
+    status on the control socket once the ACK is in (outside the timed path)."""
+
+    name = "MAVLink (ground station → autopilot → daemon)"
+
+    def __init__(self, stack: Stack) -> None:
+        from sim_servo.gcs import GroundStation
+
+        self.gcs = GroundStation(stack.gcs_url)
+        if not self.gcs.connect(WAIT_S):
+            raise TimeoutError("no companion HEARTBEAT through the simulated autopilot")
+        self.status = stack.status
+
+    def goto(self, pose: Sequence[float]) -> dict[str, Any]:
+        """As :meth:`ControlSocketInput.goto`."""
+        sent_s = self.gcs.send_target(pose)
+        ack = self.gcs.wait_ack(WAIT_S, since_s=sent_s)
+        answered_s = time.monotonic()
+        outcome = "no answer" if ack is None else _MAV_OUTCOME.get(ack.result_name, "failed")
+        last = self.status()["last_target"] or {}
+        return {
+            "sent_s": sent_s,
+            "answered_s": answered_s,
+            "outcome": outcome,
+            "timing": last.get("timing"),
+            "solve_ms": last.get("solve_ms"),
+        }
+
+    def close(self) -> None:
+        self.gcs.close()
+
+
+_MAV_OUTCOME = {
+    "MAV_RESULT_ACCEPTED": "accepted",
+    "MAV_RESULT_DENIED": "denied",
+    "MAV_RESULT_FAILED": "failed",
+    "MAV_RESULT_TEMPORARILY_REJECTED": "temporarily_rejected",
+}
+
 #: The target inputs by name (``--input``).
-INPUTS: dict[str, Callable[[Stack], Any]] = {"control": ControlSocketInput}
+INPUTS: dict[str, Callable[[Stack], Any]] = {
+    "mavlink": MavlinkInput,
+    "control": ControlSocketInput,
+}
+DEFAULT_INPUT = "mavlink"
 
 
 class Stack:
@@ -125,14 +173,15 @@ class Stack:
         flavour = "ardupilot" if dialect == "ardupilot" else "px4"
         self.sim = subprocess.Popen(
             [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--flavour", flavour,
-             "--event-log", str(self.event_log), *sim_args],
+             "--gcs", "127.0.0.1:0", "--event-log", str(self.event_log), *sim_args],
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip
         self.daemon: subprocess.Popen | None = None
         try:
             url = self.sim.stdout.readline().strip()
-            if not url.startswith("udpout:"):
-                raise RuntimeError(f"sim_servo did not start (first line {url!r})")
+            kind, _, self.gcs_url = self.sim.stdout.readline().strip().partition(" ")
+            if not url.startswith("udpout:") or kind != "gcs":
+                raise RuntimeError(f"sim_servo did not start (first lines {url!r}, {kind!r})")
             tables: dict[str, dict[str, Any]] = {
                 "link": {"url": url, "dialect": dialect},
                 "control": {"socket": self.control_path},
