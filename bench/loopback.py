@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.eventlog import read_events
 
@@ -78,28 +79,68 @@ class ControlClient:
 
 
 class ControlSocketInput:
-    """Targets as ``goto`` requests on the control socket; the reply is the client's ACK."""
+    """Targets as ``goto`` requests on the control socket; the reply is the client's ACK.
+
+    Requests may be sent without waiting (``send``), answers collected in order (``poll``).
+    """
 
     name = "control socket"
 
     def __init__(self, stack: Stack) -> None:
         self.client = ControlClient(stack.control_path)
-        self.status = stack.status
+        self._buffer = b""
 
-    def goto(self, pose: Sequence[float]) -> dict[str, Any]:
-        """Send one target and wait for its answer: ``sent_s``, ``answered_s`` (client clock),
-        ``outcome``, and the daemon's ``timing`` and ``solve_ms`` when it reported them."""
+    def send(self, pose: Sequence[float]) -> float:
+        """Send one target; the monotonic time it left."""
+        line = (json.dumps({"cmd": "goto", "pose": list(pose)}) + "\n").encode()
         sent_s = time.monotonic()
-        reply = self.client.request({"cmd": "goto", "pose": list(pose)})
+        self.client.sock.sendall(line)
+        return sent_s
+
+    def poll(self, timeout_s: float) -> list[dict[str, Any]]:
+        """The answers that arrive within ``timeout_s`` (at least one read), in order:
+        ``answered_s``, ``outcome``, and the daemon's ``timing`` and ``solve_ms``."""
+        sock = self.client.sock
+        sock.settimeout(max(timeout_s, 1e-6))
+        try:
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            return []
+        if not chunk:
+            raise ConnectionError("the daemon closed the control socket")
         answered_s = time.monotonic()
-        solve = reply.get("solve") or {}
-        return {
-            "sent_s": sent_s,
-            "answered_s": answered_s,
-            "outcome": reply.get("outcome", "error"),
-            "timing": reply.get("timing"),
-            "solve_ms": solve.get("elapsed_ms"),
-        }
+        self._buffer += chunk
+        answers = []
+        while b"\n" in self._buffer:
+            line, self._buffer = self._buffer.split(b"\n", 1)
+            reply = json.loads(line)
+            answers.append({
+                "answered_s": answered_s,
+                "outcome": reply.get("outcome", "error"),
+                "timing": reply.get("timing"),
+                "solve_ms": (reply.get("solve") or {}).get("elapsed_ms"),
+            })  # fmt: skip
+        return answers
+
+    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
+                    since_s: float) -> list[float]:
+        """Per answer: when the autopilot handled the last command of the target's first servo
+        update (inf if not accepted): the last servo command it handled between the daemon
+        starting that update (``timing.first_out_s``) and having all its ACKs
+        (``timing.acked_s``). An update with nothing to send (ardupilot, no PWM changed) ends
+        at ``acked_s``."""
+        sim_s = np.array([t for t, kind in _servo_and_acks(events, since_s) if kind == "servo"])
+        ends = []
+        for answer in answers:
+            timing = answer.get("timing") or {}
+            end = math.inf
+            if answer["outcome"] == "accepted" and "acked_s" in timing:
+                end = timing["acked_s"]
+                last = int(np.searchsorted(sim_s, timing["acked_s"])) - 1
+                if last >= 0 and sim_s[last] >= timing["first_out_s"]:
+                    end = float(sim_s[last])
+            ends.append(end)
+        return ends
 
     def close(self) -> None:
         self.client.close()
@@ -108,8 +149,9 @@ class ControlSocketInput:
 class MavlinkInput:
     """Targets as a ground station sends them: COMMAND_LONG ``MAV_CMD_USER_1`` to the
     simulator's ground-station link, routed by the autopilot to the daemon; the COMMAND_ACK
-    routed back is the client's ACK. The daemon's timing and solve time are read from its
-    status on the control socket once the ACK is in (outside the timed path)."""
+    routed back is the client's ACK. ``status`` (control socket) is asked for the daemon's
+    timing and solve time after each ACK, outside the timed path; they are kept when the
+    newest target is still the one acknowledged."""
 
     name = "MAVLink (ground station → autopilot → daemon)"
 
@@ -120,32 +162,71 @@ class MavlinkInput:
         if not self.gcs.connect(WAIT_S):
             raise TimeoutError("no companion HEARTBEAT through the simulated autopilot")
         self.status = stack.status
+        self._poses: list[list[float]] = []  # sent, not yet answered (ACKs come in order)
 
-    def goto(self, pose: Sequence[float]) -> dict[str, Any]:
-        """As :meth:`ControlSocketInput.goto`."""
-        sent_s = self.gcs.send_target(pose)
-        ack = self.gcs.wait_ack(WAIT_S, since_s=sent_s)
-        answered_s = time.monotonic()
-        outcome = "no answer" if ack is None else _MAV_OUTCOME.get(ack.result_name, "failed")
-        last = self.status()["last_target"] or {}
-        return {
-            "sent_s": sent_s,
-            "answered_s": answered_s,
-            "outcome": outcome,
-            "timing": last.get("timing"),
-            "solve_ms": last.get("solve_ms"),
-        }
+    def send(self, pose: Sequence[float]) -> float:
+        """Send one target; the monotonic time it left."""
+        self._poses.append([float(v) for v in pose])
+        return self.gcs.send_target(pose)
+
+    def poll(self, timeout_s: float) -> list[dict[str, Any]]:
+        """As :meth:`ControlSocketInput.poll`."""
+        answers = []
+        for msg in self.gcs.receive(timeout_s):
+            if msg.get_type() != "COMMAND_ACK" or msg.command != mavlink.MAV_CMD_USER_1:
+                continue
+            answered_s = time.monotonic()
+            pose = self._poses.pop(0) if self._poses else None
+            last = self.status()["last_target"] or {}
+            mine = pose is not None and np.allclose(last.get("pose", ()), pose)
+            answers.append({
+                "answered_s": answered_s,
+                "outcome": _MAV_OUTCOME.get(msg.result, "failed"),
+                "timing": last.get("timing") if mine else None,
+                "solve_ms": last.get("solve_ms") if mine else None,
+            })  # fmt: skip
+        return answers
+
+    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
+                    since_s: float) -> list[float]:
+        """Per answer: when the autopilot handled the last servo command before it routed the
+        daemon's COMMAND_ACK for that target (the daemon answers right after the target's first
+        update is acknowledged, so in the autopilot's log that update ends just before the
+        ACK). An update with nothing to send (ardupilot, no PWM changed) ends at the ACK."""
+        ends, last_servo = [], None
+        for t_s, kind in _servo_and_acks(events, since_s):
+            if kind == "servo":
+                last_servo = t_s
+            else:
+                ends.append(t_s if last_servo is None else last_servo)
+                last_servo = None
+        ends += [math.inf] * (len(answers) - len(ends))
+        return [e if a["outcome"] == "accepted" else math.inf
+                for e, a in zip(ends, answers, strict=False)]
 
     def close(self) -> None:
         self.gcs.close()
 
 
 _MAV_OUTCOME = {
-    "MAV_RESULT_ACCEPTED": "accepted",
-    "MAV_RESULT_DENIED": "denied",
-    "MAV_RESULT_FAILED": "failed",
-    "MAV_RESULT_TEMPORARILY_REJECTED": "temporarily_rejected",
+    mavlink.MAV_RESULT_ACCEPTED: "accepted",
+    mavlink.MAV_RESULT_DENIED: "denied",
+    mavlink.MAV_RESULT_FAILED: "failed",
+    mavlink.MAV_RESULT_TEMPORARILY_REJECTED: "temporarily_rejected",
 }
+
+
+def answer_one(source: Any, pose: Sequence[float]) -> dict[str, Any]:
+    """Send one target and wait for its answer: ``sent_s`` plus the answer's fields."""
+    sent_s = source.send(pose)
+    deadline = time.monotonic() + WAIT_S
+    while (left := deadline - time.monotonic()) > 0:
+        answers = source.poll(left)
+        if answers:
+            return {"sent_s": sent_s, **answers[0]}
+    return {"sent_s": sent_s, "answered_s": math.inf, "outcome": "no answer", "timing": None,
+            "solve_ms": None}
+
 
 #: The target inputs by name (``--input``).
 INPUTS: dict[str, Callable[[Stack], Any]] = {
@@ -256,16 +337,27 @@ def _toml(tables: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def servo_command_times(events: list[dict[str, Any]]) -> np.ndarray:
-    """Monotonic times at which the simulator handled each servo command (DO_SET_SERVO or
-    DO_SET_ACTUATOR), in order."""
+def _servo_and_acks(events: list[dict[str, Any]],
+                    since_s: float = -math.inf) -> list[tuple[float, str]]:
+    """In the simulator's log order, on CLOCK_MONOTONIC, from ``since_s`` on: ``(t, "servo")``
+    for each servo command it handled (DO_SET_SERVO or DO_SET_ACTUATOR) and ``(t, "ack")`` for
+    each COMMAND_ACK to a target command (USER_1) that it routed from the daemon."""
     start = next(e for e in events if e["event"] == "start")
     t0 = start["monotonic_s"]
-    return np.array([
-        t0 + e["t_s"] for e in events
-        if e["event"] == "rx" and e["msg"] == "COMMAND_LONG"
-        and e["fields"]["command"] in SERVO_COMMANDS
-    ])  # fmt: skip
+    out = []
+    for e in events:
+        if e["event"] != "rx" or t0 + e["t_s"] < since_s:
+            continue
+        if e["msg"] == "COMMAND_LONG" and e["fields"]["command"] in SERVO_COMMANDS:
+            out.append((t0 + e["t_s"], "servo"))
+        elif e["msg"] == "COMMAND_ACK" and e["fields"]["command"] == mavlink.MAV_CMD_USER_1:
+            out.append((t0 + e["t_s"], "ack"))
+    return out
+
+
+def servo_command_times(events: list[dict[str, Any]]) -> np.ndarray:
+    """Monotonic times at which the simulator handled each servo command, in order."""
+    return np.array([t for t, kind in _servo_and_acks(events) if kind == "servo"])
 
 
 # -- /proc ----------------------------------------------------------------------------------------

@@ -1,24 +1,33 @@
 """Sustained load on UDP loopback: a 50 Hz stream of hand targets for a while.
 
-    python bench/sustained.py [--duration-s 60] [--dialects ardupilot px4] [--input mavlink|control]
-                              [--rate-hz 50] [--period-s 4] [--budget-ms 20] [--seed 0]
+    python bench/sustained.py [--duration-s 60] [--dialects ardupilot px4]
+                              [--input mavlink|control] [--rate-hz 50] [--period-s 4]
+                              [--budget-ms 20] [--drift-ppm 100] [--seed 0]
                               [--markdown bench/results/sustained.md] [--no-plot]
 
 The daemon and the simulated flight controller run as subprocesses on UDP loopback (see
 ``bench/loopback.py``). The client sends the hand round a figure-eight (10 × 5 cm, one lap
 every ``period_s``, orientation held, around the demo's comfortable pose): one target every
-20 ms, each at the start of its slot, through the same input as ``bench/latency.py``. The daemon
-runs the shipped defaults except ``control.rate_hz`` = 50 (one servo update per target).
+20 ms, each sent at the start of its slot whether or not the earlier ones were answered (open
+loop, as a ground station streams), through the same input as ``bench/latency.py`` (default: a
+ground station over MAVLink through the simulated autopilot). The daemon runs the shipped
+defaults except ``control.rate_hz`` = 50.
 
 A **missed deadline** is a target that was not ACCEPTED, or whose servo update (the last of
 its servo commands, as the simulated autopilot's event log stamps it) was not handled within
 its 20 ms slot, measured from the slot's scheduled start. Stricter, also counted: the answer
-(ACCEPTED, sent once that update is acknowledged) not back at the client within the slot. A
-late target delays the next one's sending, and that one is judged from its own scheduled start.
+(ACCEPTED, sent once that update is acknowledged) not back at the client within the slot.
+The daemon handles targets one after the other, so if it falls behind, the queue shows as
+misses of the following targets.
 
-Also: solve time p50 / p99 / max (from the daemon's replies), the daemon's CPU (utime + stime
-from ``/proc/PID/stat`` over the stream's wall time, all threads, as % of one core), and its
-RSS (``VmRSS``) at the start of the stream, after the first 30 s, and at the end.
+The slots come from a sender clock ``drift_ppm`` (100) fast, as two crystals differ: with exact
+20 ms slots (8 passes of the autopilot's 400 Hz loop) every target would meet the loop at the
+same phase for the whole run; with the drift the phase sweeps the whole 2.5 ms every 25 s.
+
+Also: solve time p50 / p99 / max (from the daemon's replies; over MAVLink from its status after
+each ACK, when the newest target is still the one acknowledged: n says how many), the daemon's
+CPU (utime + stime from ``/proc/PID/stat`` over the stream's wall time, all threads, as % of one
+core), and its RSS (``VmRSS``) at the start of the stream, after the first 30 s, and at the end.
 """
 
 from __future__ import annotations
@@ -34,6 +43,7 @@ from loopback import (
     DEFAULT_INPUT,
     INPUTS,
     Stack,
+    answer_one,
     cpu_s,
     load_average,
     machine,
@@ -41,7 +51,6 @@ from loopback import (
     percentiles_ms,
     plt,
     rss_mb,
-    servo_command_times,
 )
 
 from companion.arm import Arm, Pose
@@ -67,47 +76,50 @@ def run_dialect(dialect: str, args: argparse.Namespace) -> dict:
     with Stack(dialect=dialect, daemon=daemon) as stack:
         pid = stack.daemon_pid
         source = INPUTS[args.input](stack)
-        records, samples = [], []
+        sent, answers, samples = [], [], []
         try:
             # Bring the hand onto the path first (from park this takes a few seconds).
-            source.goto(figure_eight(arm, 0.0, args.period_s).as_tuple())
+            answer_one(source, figure_eight(arm, 0.0, args.period_s).as_tuple())
             time.sleep(3.0)
             slots = int(round(args.duration_s / SLOT_S))
+            # The sender's clock runs drift_ppm fast: 20 ms is 8 passes of the autopilot's
+            # 400 Hz loop, so exact slots would meet the loop at one fixed phase all run long.
+            slot_period_s = SLOT_S * (1.0 - args.drift_ppm * 1e-6)
             t0 = time.monotonic() + 0.1
             cpu0 = cpu_s(pid)
             samples.append((0.0, rss_mb(pid)))
             next_sample = t0 + 1.0
             for k in range(slots):
-                slot_s = t0 + k * SLOT_S
-                delay = slot_s - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                rec = source.goto(figure_eight(arm, k * SLOT_S, args.period_s).as_tuple())
-                rec["slot_s"] = slot_s
-                records.append(rec)
-                now = time.monotonic()
-                if now >= next_sample:
-                    samples.append((now - t0, rss_mb(pid)))
+                # Open loop, as a stream from a ground station: each target leaves at the start
+                # of its slot whether or not the earlier ones were answered.
+                slot_s = t0 + k * slot_period_s
+                while (left := slot_s - time.monotonic()) > 0:
+                    answers += source.poll(left)
+                pose = figure_eight(arm, k * SLOT_S, args.period_s).as_tuple()
+                sent.append({"slot_s": slot_s, "sent_s": source.send(pose)})
+                if time.monotonic() >= next_sample:
+                    samples.append((time.monotonic() - t0, rss_mb(pid)))
                     next_sample += 1.0
             wall_s = time.monotonic() - t0
             cpu_pct = 100.0 * (cpu_s(pid) - cpu0) / wall_s
             samples.append((wall_s, rss_mb(pid)))
+            deadline = time.monotonic() + 5.0
+            while len(answers) < len(sent) and (left := deadline - time.monotonic()) > 0:
+                answers += source.poll(left)
         finally:
             source.close()
         events = stack.stop()
-    # The target's update: the first 6 (ardupilot) or 1 (px4) servo commands the autopilot
-    # handled after the daemon started it; the control thread sends one update at a time.
-    sim_s = servo_command_times(events)
-    per_update = 6 if dialect == "ardupilot" else 1
-    for rec in records:
+    answers += [{"answered_s": math.inf, "outcome": "no answer", "timing": None,
+                 "solve_ms": None}] * (len(sent) - len(answers))  # fmt: skip
+    ends = source.update_ends(events, answers, since_s=sent[0]["sent_s"])
+    records = []
+    for slot, answer, end in zip(sent, answers, ends, strict=True):
+        rec = {**slot, **answer, "servos_s": end}
+        rec["servos_late_s"] = end - rec["slot_s"]
         rec["answer_late_s"] = rec["answered_s"] - rec["slot_s"]
-        rec["servos_late_s"] = math.inf
-        if rec["outcome"] == "accepted":
-            first = int(np.searchsorted(sim_s, rec["timing"]["first_out_s"]))
-            if first + per_update <= len(sim_s):
-                rec["servos_late_s"] = sim_s[first + per_update - 1] - rec["slot_s"]
-        rec["missed"] = rec["servos_late_s"] > SLOT_S
+        rec["missed"] = rec["outcome"] != "accepted" or rec["servos_late_s"] > SLOT_S
         rec["answer_missed"] = rec["outcome"] != "accepted" or rec["answer_late_s"] > SLOT_S
+        records.append(rec)
     warm = [rss for t, rss in samples if t >= WARM_S]
     return {
         "dialect": dialect,
@@ -142,14 +154,15 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         missed = sum(rec["missed"] for rec in recs)
         answer_missed = sum(rec["answer_missed"] for rec in recs)
         refused = sum(rec["outcome"] != "accepted" for rec in recs)
-        solve = percentiles_ms([rec["solve_ms"] / 1e3 for rec in recs if rec["solve_ms"]])
+        solve_s = [rec["solve_ms"] / 1e3 for rec in recs if rec["solve_ms"] is not None]
+        solve = percentiles_ms(solve_s)
         servos = percentiles_ms([rec["servos_late_s"] for rec in recs])
         late = percentiles_ms([rec["answer_late_s"] for rec in recs])
         rows.append([
             r["dialect"], len(recs), f"{missed} ({refused} refused)", answer_missed,
             f"{servos[0]:.2f} / {servos[1]:.2f} / {servos[2]:.2f}",
             f"{late[0]:.2f} / {late[1]:.2f} / {late[2]:.2f}",
-            f"{solve[0]:.3f} / {solve[1]:.3f} / {solve[2]:.3f}",
+            f"{solve[0]:.3f} / {solve[1]:.3f} / {solve[2]:.3f} (n {len(solve_s)})",
             f"{r['cpu_pct']:.1f}",
             f"{r['rss_start_mb']:.1f} / {r['rss_warm_mb']:.1f} / {r['rss_end_mb']:.1f}",
             f"{r['rss_end_mb'] - r['rss_start_mb']:+.2f} / "
@@ -195,6 +208,9 @@ def main() -> int:
     parser.add_argument("--rate-hz", type=float, default=50.0, help="daemon control rate")
     parser.add_argument("--period-s", type=float, default=4.0, help="one figure-eight lap")
     parser.add_argument("--budget-ms", type=float, default=20.0)
+    parser.add_argument("--drift-ppm", type=float, default=100.0,
+                        help="the sender's clock error: the slots sweep the autopilot's loop "
+                        "phase (2.5 ms) every 2.5 ms / (20 ms × ppm) slots")
     parser.add_argument("--seed", type=int, default=0, help="the daemon's solver seed")
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/sustained.md")
     parser.add_argument("--no-plot", action="store_true")

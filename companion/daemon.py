@@ -499,7 +499,8 @@ class ArmDaemon:
                 self._holding = False
             if self._last_pwm is not None:
                 log.info("autopilot link back: re-sending current PWMs")
-                if not self._send(self._last_pwm):
+                # Everything, not only what changed: the autopilot may have restarted meanwhile.
+                if not self._send(self._last_pwm, skip_unchanged=False):
                     return
         if self._trajectory:
             self._due_trajectory_point(now)
@@ -544,10 +545,12 @@ class ArmDaemon:
             if last is not None and last["timing"] is pending:
                 self._last_target = {**last, "timing": {**pending, **out}}
 
-    def _send(self, pwm: dict[int, int]) -> bool:
+    def _send(self, pwm: dict[int, int], *, skip_unchanged: bool = True) -> bool:
+        """Send a servo update (ardupilot: only the outputs whose PWM changed since the
+        autopilot acknowledged them, unless ``skip_unchanged`` is off); False if it failed."""
         assert self._dialect is not None
         try:
-            self._dialect.send_pwm(pwm)
+            self._dialect.send_pwm(pwm, skip_unchanged=skip_unchanged)
         except (LinkError, CalibrationError) as exc:
             with self._lock:
                 self._counters["servo_errors"] += 1
