@@ -37,6 +37,7 @@ The simulator stamps a frame when its main loop handles it (every 2.5 ms, as Ard
 from __future__ import annotations
 
 import argparse
+import gc
 import math
 import sys
 import time
@@ -78,11 +79,15 @@ def run_dialect(dialect: str, poses: list[Pose], args: argparse.Namespace) -> di
     records = []
     with Stack(dialect=dialect, daemon=daemon) as stack:
         source = INPUTS[args.input](stack)
+        gc.collect()
+        gc.freeze()
+        gc.disable()  # the client's collector must not stall its own clock readings
         try:
             for pose in poses:
                 time.sleep(rng.uniform(0.0, args.gap_ms / 1e3))
                 records.append(answer_one(source, pose.as_tuple()))
         finally:
+            gc.enable()
             source.close()
         events = stack.stop()
     sim_s = servo_command_times(events)
