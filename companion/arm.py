@@ -14,6 +14,7 @@ and lengths centimetres.
 from __future__ import annotations
 
 import math
+import numbers
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -59,10 +60,13 @@ class Pose:
     def __post_init__(self) -> None:
         for name in ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg"):
             value = getattr(self, name)
+            # Text, bytes and bools are not numbers here, even where float() would take them.
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"Pose.{name}={value!r} is not a number")
             try:
                 number = float(value)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"Pose.{name}={value!r} is not a number") from exc
+            except OverflowError as exc:  # an int beyond the float range, e.g. 10**400
+                raise ValueError(f"Pose.{name}={value!r} must be finite") from exc
             if not math.isfinite(number):
                 raise ValueError(f"Pose.{name}={value!r} must be finite")
             object.__setattr__(self, name, number)

@@ -113,9 +113,26 @@ def _cmd_run(args: argparse.Namespace) -> int:
     daemon = ArmDaemon(config)
     server = None
     try:
-        daemon.start()
         if config.control_socket:
-            server = ControlServer(config.control_socket, daemon)
+            # Before the link opens: a socket path the system refuses is a config error, and
+            # nothing has been sent yet. Requests wait in the queue until start().
+            try:
+                server = ControlServer(config.control_socket, daemon)
+            except OSError as exc:
+                raise ConfigError(
+                    config.source, "control.socket", f"cannot listen on it: {exc.strerror or exc}"
+                ) from exc
+        try:
+            daemon.start()
+        except OSError as exc:
+            # The link maps transport errors to its own; an OSError left is the signing state
+            # file, the only file it writes (its directory may be missing or read-only).
+            signing = config.link.signing
+            if signing is None or signing.state_path is None:
+                raise
+            raise ConfigError(
+                config.source, "link.signing_state", f"cannot write it: {exc.strerror or exc}"
+            ) from exc
         notifier.status("waiting for the autopilot heartbeat")
         ready = False
         ping_s = notifier.watchdog_period_s / 2 if notifier.watchdog_period_s else 1.0

@@ -10,6 +10,7 @@ example ``companion/examples/armbridge.toml``.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -134,8 +135,21 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         joint_speed_deg_s=arm_table.number("joint_speed_deg_s", 60.0, positive=True),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
-        control_socket=control.string("socket") if "socket" in control else None,
+        control_socket=_socket_path(control) if "socket" in control else None,
     )
+
+
+# A Unix socket's path must fit sockaddr_un.sun_path (108 bytes on Linux, with its NUL).
+SOCKET_PATH_MAX_BYTES = 107
+
+
+def _socket_path(t: Table) -> str:
+    path = t.string("socket")
+    size = len(os.fsencode(path))
+    if size > SOCKET_PATH_MAX_BYTES:
+        raise t.fail("socket", f"path is {size} bytes, a Unix socket path takes at most "
+                     f"{SOCKET_PATH_MAX_BYTES}")
+    return path
 
 
 def _parse_link(t: Table, base: Path) -> LinkSettings:
@@ -210,7 +224,7 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         # them, and an angle the calibration refuses would stop the arm mid-motion.
         if cal.angle_min_deg > lo + 1e-9 or cal.angle_max_deg < hi - 1e-9:
             raise row.fail(
-                "angle_min_deg",
+                "angle_min_deg" if cal.angle_min_deg > lo + 1e-9 else "angle_max_deg",
                 f"calibrated [{cal.angle_min_deg:g}, {cal.angle_max_deg:g}] deg must cover the "
                 f"arm's joint limits [{lo:g}, {hi:g}] for {arm_joint.name}",
             )

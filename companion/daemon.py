@@ -18,9 +18,12 @@ Safety rules, in this order:
    TEMPORARILY_REJECTED. If the solution misses the tolerances it is FAILED, and nothing moves.
 2. Every PWM goes through the calibration, which refuses anything outside a servo's range.
    The dialect checks it again before sending. Nothing is ever clamped into range silently.
-3. Autopilot link lost: stop commanding and hold. When it comes back, re-send the current PWMs
+3. A servo update that goes unanswered (after the CommandSender's retries) during an accepted
+   motion is sent again on the next tick, up to ``UPDATE_ATTEMPTS`` updates in a row; a
+   rejected command stops the motion at once.
+4. Autopilot link lost: stop commanding and hold. When it comes back, re-send the current PWMs
    first, then carry on.
-4. The arm is assumed to start at the park pose (or mid-range if none is set). Nothing is sent
+5. The arm is assumed to start at the park pose (or mid-range if none is set). Nothing is sent
    until the first target, and never faster than the joint speed limit from there.
 
 MAVLink target input (document for ground stations): COMMAND_LONG ``MAV_CMD_USER_1`` (31010) to
@@ -56,6 +59,7 @@ from firmware_interface import (
     LinkConfig,
     LinkError,
     LinkState,
+    LinkTimeout,
     MavlinkLink,
     make_servo_dialect,
 )
@@ -63,6 +67,9 @@ from firmware_interface import (
 log = logging.getLogger("armbridge")
 
 MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
+#: An accepted motion survives this many servo updates in a row that went unanswered (each
+#: already retried by the CommandSender); then it is abandoned.
+UPDATE_ATTEMPTS = 3
 STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
 
 
@@ -155,6 +162,7 @@ class ArmDaemon:
         self._trajectory_t0 = 0.0
         self._last_pwm: dict[int, int] | None = None
         self._holding = False
+        self._unanswered_updates = 0  # servo updates in a row that got no ACK
         self._counters = {
             "targets": 0,
             "accepted": 0,
@@ -164,6 +172,7 @@ class ArmDaemon:
             "servo_updates": 0,
             "servo_errors": 0,
             "not_for_us": 0,
+            "internal_errors": 0,
         }
         self._last_target: dict[str, Any] | None = None
         # The newest accepted target's timing until its first servo update is out (see status).
@@ -332,10 +341,17 @@ class ArmDaemon:
             except queue.Empty:
                 request = None
             if request is not None:
-                self._handle(request)
+                try:
+                    self._handle(request)
+                except Exception as exc:  # a bug must not kill the loop that guards the servos
+                    self._internal_error(f"{request.kind} request", exc)
+                    self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
             now = self.clock()
             if now >= next_tick:
-                self._tick(now, period)
+                try:
+                    self._tick(now, period)
+                except Exception as exc:
+                    self._internal_error("control tick", exc)
                 next_tick = max(next_tick + period, now)
             elif self._pending:
                 # A newly accepted target does not wait for the next tick: its first step goes
@@ -345,6 +361,18 @@ class ArmDaemon:
                 next_tick = now + period
         for request in self._pending:
             request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
+
+    def _internal_error(self, where: str, exc: Exception) -> None:
+        """Something unexpected failed: log it with its traceback, stop moving and hold (the
+        servos keep their last PWM), and carry on serving."""
+        log.exception("internal error in %s, holding: %r", where, exc)
+        self._trajectory.clear()
+        self._set_goal(None)
+        for request in self._pending:
+            self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
+        self._pending.clear()
+        with self._lock:
+            self._counters["internal_errors"] += 1
 
     def _count(self, outcome: Outcome) -> None:
         with self._lock:
@@ -398,8 +426,10 @@ class ArmDaemon:
             return self.config.park_deg
         if request.kind == "trajectory":
             try:
-                points = sorted((float(t), _as_pose(p)) for t, p in request.payload)
-            except (TypeError, ValueError) as exc:
+                points = sorted(
+                    ((float(t), _as_pose(p)) for t, p in request.payload), key=lambda tp: tp[0]
+                )
+            except (TypeError, ValueError, OverflowError) as exc:
                 raise ValueError(f"bad trajectory: {exc}") from exc
             if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
                 raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
@@ -554,12 +584,22 @@ class ArmDaemon:
         except (LinkError, CalibrationError) as exc:
             with self._lock:
                 self._counters["servo_errors"] += 1
+            self._unanswered_updates += 1
+            if (isinstance(exc, LinkTimeout) and not self._pending
+                    and self._unanswered_updates < UPDATE_ATTEMPTS):
+                # An accepted motion is not abandoned for one lost answer: the next tick sends
+                # the update again (a rejection, or a refused PWM, stops at once).
+                log.warning("servo update unanswered (%d of %d), trying again: %s",
+                            self._unanswered_updates, UPDATE_ATTEMPTS, exc)
+                return False
+            self._unanswered_updates = 0
             log.error("servo command failed, stopping motion: %s", exc)
             self._set_goal(None)
             for request in self._pending:
                 self._finish(request, Reply(Outcome.FAILED, f"servo command failed: {exc}"))
             self._pending.clear()
             return False
+        self._unanswered_updates = 0
         with self._lock:
             self._last_pwm = dict(pwm)
             self._counters["servo_updates"] += 1
@@ -569,7 +609,7 @@ class ArmDaemon:
 def _as_pose(value: Any) -> Pose:
     if isinstance(value, Pose):
         return value
-    if isinstance(value, str) or not isinstance(value, Sequence):
+    if isinstance(value, str | bytes | bytearray) or not isinstance(value, Sequence):
         raise ValueError(
             f"a pose is 6 numbers (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), got {value!r}"
         )

@@ -242,8 +242,11 @@ def solve(
     pop = np.empty((settings.pop_size, n))
     cost = np.empty(settings.pop_size)
     stuck = np.zeros(settings.pop_size, dtype=np.bool_)
-    record = np.empty(3)
-    record_q = np.empty(n)
+    # The record starts as "nothing found": infinite errors at the start configuration. A
+    # target so far away that every cost overflows to inf (|p| beyond ~1e154 cm) never beats
+    # it, and must not come back with whatever np.empty left in these arrays.
+    record = np.full(3, np.inf)
+    record_q = q_start.copy() if has_prev else (k.lower + k.upper) / 2
     rng = _rng_state(seed)
     goal = np.empty((4, 4))
     memetic.goal_matrix(

@@ -26,10 +26,15 @@ def load_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise error(str(path), "<file>", f"cannot read: {exc.strerror}") from exc
+    except UnicodeDecodeError as exc:  # TOML is UTF-8
+        raise error(str(path), "<file>", f"not valid TOML: not UTF-8 ({exc.reason} at byte "
+                    f"{exc.start})") from exc
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise error(str(path), "<file>", f"not valid TOML: {exc}") from exc
+    except RecursionError as exc:  # tomllib recurses once per nested array or inline table
+        raise error(str(path), "<file>", "not valid TOML: nested too deeply") from exc
 
 
 class Table:

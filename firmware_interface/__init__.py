@@ -31,6 +31,7 @@ from firmware_interface.errors import (
     NonFiniteAngle,
     PwmOutOfRange,
     ServoOutputUnavailable,
+    SigningStateError,
     TransportError,
 )
 from firmware_interface.link import (
@@ -56,7 +57,8 @@ __all__ = [
     "default_calibration", "CommandOutcome", "CommandSender", "AngleOutOfRange",
     "CalibrationError", "CommandRejected", "ConfigurationError", "FirmwareInterfaceError",
     "InvalidUrl", "LinkClosed", "LinkError", "LinkTimeout", "NonFiniteAngle", "PwmOutOfRange",
-    "ServoOutputUnavailable", "TransportError", "AutopilotInfo", "LinkConfig", "LinkState",
+    "ServoOutputUnavailable", "SigningStateError", "TransportError", "AutopilotInfo",
+    "LinkConfig", "LinkState",
     "LinkStats", "MavlinkLink", "OutputReadback", "SERVO_DIALECTS", "ArduPilotServoDialect",
     "Px4ServoDialect", "ServoDialect", "make_servo_dialect", "SigningConfig", "load_key",
     "Transport", "open_transport", "parse_url",

@@ -58,6 +58,10 @@ class LinkClosed(LinkError):
     """The link is closed, or ended because of an error (kept as ``__cause__``)."""
 
 
+class SigningStateError(LinkError):
+    """The signing timestamp could not be persisted: nothing is signed beyond what is stored."""
+
+
 class LinkTimeout(LinkError):
     """A bounded wait on the link expired."""
 

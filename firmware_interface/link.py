@@ -16,7 +16,9 @@ pymavlink's generated MAVLink 2 codec (``pymavlink.dialects.v20.ardupilotmega``)
   and decoding use two separate codec objects for the same reason.
 
 Link state (:class:`LinkState`) is computed from the injected ``clock``: UP while the autopilot's
-HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one.
+HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. It is
+also LOST while the transport is down, and after a reopen until a HEARTBEAT arrives on the new
+port: a serial adapter that re-enumerated often means a flight controller that rebooted.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from firmware_interface.errors import (
     LinkClosed,
     LinkError,
     LinkTimeout,
+    SigningStateError,
     TransportError,
 )
 from firmware_interface.signing import SigningConfig, TimestampKeeper
@@ -101,7 +104,9 @@ class LinkConfig:
     loss_timeout_s: float = 3.0
     read_timeout_s: float = 0.05
     reconnect_initial_s: float = 0.1
-    reconnect_max_s: float = 5.0
+    # A failed reopen costs one open() (or one connect) attempt, so trying twice a second is
+    # cheap; a longer cap would leave a re-enumerated serial port unused for seconds.
+    reconnect_max_s: float = 0.5
     signing: SigningConfig | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
@@ -241,6 +246,7 @@ class MavlinkLink:
         self._autopilot: AutopilotInfo | None = None
         self._autopilot_event = threading.Event()
         self._last_heartbeat_at: float | None = None
+        self._heard_on_transport = False  # an autopilot HEARTBEAT came in on this transport
         self._counts = dict.fromkeys(
             ("rx_messages", "rx_bad_frames", "rejected_unsigned", "rejected_bad_signature",
              "tx_messages", "reconnects", "transport_errors"), 0)
@@ -333,7 +339,7 @@ class MavlinkLink:
         last = self._last_heartbeat_at
         if last is None:
             return LinkState.WAITING
-        if self.clock() - last > self.config.loss_timeout_s:
+        if not self._heard_on_transport or self.clock() - last > self.config.loss_timeout_s:
             return LinkState.LOST
         return LinkState.UP
 
@@ -398,9 +404,16 @@ class MavlinkLink:
             if transport is None:
                 raise TransportError(f"{self.description}: transport down, reconnecting")
             if self._keeper is not None:
-                self._encoder.signing.timestamp = self._keeper.next_timestamp(
-                    max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
-                )
+                try:
+                    self._encoder.signing.timestamp = self._keeper.next_timestamp(
+                        max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
+                    )
+                except OSError as exc:
+                    # Signing past the stored reservation could replay timestamps after a
+                    # restart: refuse to send rather than sign unsafely.
+                    raise SigningStateError(
+                        f"{self.description}: cannot store the signing timestamp: {exc}"
+                    ) from exc
             buf = msg.pack(self._encoder)
             self._encoder.seq = (self._encoder.seq + 1) % 256
             try:
@@ -424,6 +437,8 @@ class MavlinkLink:
             self.send(msg)
         except TransportError as exc:
             log.debug("%s: heartbeat not sent: %s", self.description, exc)
+        except SigningStateError as exc:
+            log.warning("heartbeat not sent: %s", exc)
 
     # ----- receiving ----------------------------------------------------------------------
 
@@ -492,22 +507,26 @@ class MavlinkLink:
             log.info("%s: autopilot %d/%d found", self.description, system, component)
             self._autopilot_event.set()
         self._last_heartbeat_at = self.clock()
+        self._heard_on_transport = True
         self._publish_state()
 
     # ----- threads ------------------------------------------------------------------------
 
     def _read_loop(self) -> None:
         backoff_s = self.config.reconnect_initial_s
+        failed_reopens = 0
         try:
             while not self._stop.is_set():
                 transport = self._transport
                 if transport is None or self._write_failed is transport:
                     if transport is not None:
                         self._drop_transport()
-                    if not self._reopen():
+                    if not self._reopen(quiet=failed_reopens > 0):
+                        failed_reopens += 1
                         self._stop.wait(backoff_s)
                         backoff_s = min(2 * backoff_s, self.config.reconnect_max_s)
                     else:
+                        failed_reopens = 0
                         backoff_s = self.config.reconnect_initial_s
                     continue
                 try:
@@ -527,11 +546,14 @@ class MavlinkLink:
         finally:
             self._drop_transport()
 
-    def _reopen(self) -> bool:
+    def _reopen(self, *, quiet: bool = False) -> bool:
         try:
             transport = self._transport_factory()
         except TransportError as exc:
-            log.info("%s: reopen failed: %s", self.description, exc)
+            # Only the first failure of an outage is logged at INFO: at reconnect_max_s the
+            # attempts would otherwise fill the journal.
+            log.log(logging.DEBUG if quiet else logging.INFO, "%s: reopen failed: %s",
+                    self.description, exc)
             return False
         with self._write_lock:
             self._transport = transport
@@ -543,6 +565,7 @@ class MavlinkLink:
     def _drop_transport(self) -> None:
         with self._write_lock:
             transport, self._transport = self._transport, None
+            self._heard_on_transport = False
         if transport is not None:
             transport.close()
 

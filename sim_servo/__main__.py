@@ -1,9 +1,10 @@
 """``python -m sim_servo``: a simulated flight controller with servos, for tests without hardware.
 
 The first line on stdout is the link URL to give the daemon (``udpout:127.0.0.1:PORT``,
-``tcp:127.0.0.1:PORT`` or ``/dev/pts/N,115200``), printed once the port is open. With ``--gcs``
-a second line ``gcs udpout:HOST:PORT`` gives the ground station's address: frames between the
-two links are routed as ArduPilot routes them (see :meth:`SimAutopilot._route`). SIGTERM or
+``tcp:127.0.0.1:PORT``, ``/dev/pts/N,115200`` or, with ``--pty-link``, ``PATH,115200``), printed
+once the port is open. With ``--gcs`` a second line ``gcs udpout:HOST:PORT`` gives the ground
+station's address: frames between the two links are routed as ArduPilot routes them (see
+:meth:`SimAutopilot._route`). SIGTERM or
 SIGINT stops the simulator cleanly (exit status 0).
 """
 
@@ -28,7 +29,7 @@ from sim_servo.config import (
     parse_withhold,
 )
 from sim_servo.endpoints import PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
-from sim_servo.errors import SimError
+from sim_servo.errors import SimConfigError, SimError
 from sim_servo.eventlog import EventLog
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
@@ -85,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on TCP for one client")
     where.add_argument("--pty", action="store_true",
                        help="serve on a new pseudo-terminal; its device path is printed")
+    link.add_argument("--pty-link", metavar="PATH",
+                      help="with --pty: keep a symlink at PATH to the current pty (a stable "
+                           "name, as udev gives a USB serial adapter) and print PATH,115200")
     parser.add_argument("--gcs", metavar="HOST:PORT",
                         help="also serve a ground station on UDP (port 0: any free port; the "
                              "second stdout line is 'gcs udpout:HOST:PORT'); frames addressed "
@@ -147,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="answer FAILED (no STATUSTEXT) to commands for output N; repeatable")
     faults.add_argument("--hangup-after", type=_non_negative, metavar="S",
                         help="close the port (pty, socket) S seconds after start")
+    faults.add_argument("--hangup-for", type=_non_negative, metavar="S",
+                        help="with --pty: open a new pty S seconds after the hang-up and point "
+                             "--pty-link at it (default: the port never comes back)")
     faults.add_argument("--signing-key", metavar="PATH",
                         help="require MAVLink 2 signing with this key (32 bytes or 64 hex "
                              "digits); unsigned frames are ignored, ours are signed")
@@ -188,7 +195,8 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
             faults[key] = getattr(args, key)
     for key, value in (("heartbeat_pause_after_s", args.heartbeat_pause_after),
                        ("heartbeat_pause_for_s", args.heartbeat_pause_for),
-                       ("hangup_after_s", args.hangup_after)):
+                       ("hangup_after_s", args.hangup_after),
+                       ("hangup_for_s", args.hangup_for)):
         if value is not None:
             faults[key] = value
     if args.withhold_ack:
@@ -211,10 +219,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         data, base_dir = config_data(args)
         if args.withhold_ack:
             parse_withhold(list(args.withhold_ack))  # fail early with the flag's own message
+        if args.pty_link and not args.pty:
+            raise SimConfigError("--pty-link needs --pty")
         config = config_from_mapping(data, source=args.config or "<flags>", base_dir=base_dir)
         if args.signing_key:
             from dataclasses import replace
             config = replace(config, signing_key=load_key(args.signing_key))
+        if config.faults.hangup_for_s is not None and not args.pty:
+            raise SimConfigError("--hangup-for (hangup_for_s) needs --pty: only a pty comes back")
         hand = HandModel.from_config(config.arm)
         events = EventLog(args.event_log)
         if args.gcs:
@@ -224,12 +236,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif args.tcp:
             endpoint = TcpEndpoint(*parse_host_port(args.tcp, "--tcp"))
         else:
-            endpoint = PtyEndpoint()
+            endpoint = PtyEndpoint(args.pty_link)
         start_s = time.monotonic()
         autopilot = SimAutopilot(config, now_s=start_s, emit=events, hand=hand,
                                  faults=FaultInjector(config.faults))
         server = SimServer(autopilot, endpoint, events, gcs=gcs, query_path=args.query_socket,
-                           hangup_after_s=config.faults.hangup_after_s, start_s=start_s)
+                           hangup_after_s=config.faults.hangup_after_s,
+                           hangup_for_s=config.faults.hangup_for_s, start_s=start_s)
     except SimError as exc:
         for link in (endpoint, gcs):
             if link is not None:

@@ -114,6 +114,7 @@ class FaultConfig:
     withhold_all_acks: bool = False
     nack_outputs: frozenset[int] = frozenset()
     hangup_after_s: float | None = None
+    hangup_for_s: float | None = None  # None: the port never comes back
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -124,6 +125,9 @@ class FaultConfig:
         _optional_real(self.heartbeat_pause_after_s, "heartbeat_pause_after_s", 0.0, 1e6)
         _optional_real(self.heartbeat_pause_for_s, "heartbeat_pause_for_s", 0.0, 1e6)
         _optional_real(self.hangup_after_s, "hangup_after_s", 0.0, 1e6)
+        _optional_real(self.hangup_for_s, "hangup_for_s", 0.0, 1e6)
+        if self.hangup_for_s is not None and self.hangup_after_s is None:
+            raise SimConfigError("hangup_for_s needs hangup_after_s (when the port goes away)")
         for command in self.withhold_ack_commands:
             _int(command, "withhold_ack command", 0, 65535)
         for output in self.nack_outputs:
@@ -233,7 +237,7 @@ _TOP_KEYS = {"flavour", "system_id", "component_id", "servo_output_rate_hz", "he
              "loop_rate_hz", "signing_key_file", "outputs", "servo", "arm", "faults"}
 _FAULT_KEYS = {"drop_in", "drop_out", "corrupt_in", "corrupt_out", "latency_ms", "jitter_ms",
                "heartbeat_pause_after_s", "heartbeat_pause_for_s", "withhold_ack", "nack_outputs",
-               "hangup_after_s", "seed"}
+               "hangup_after_s", "hangup_for_s", "seed"}
 _ARM_KEYS = {"file", "outputs", "pwm_min_us", "pwm_max_us", "reversed", "trims_us"}
 
 

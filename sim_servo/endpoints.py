@@ -2,11 +2,14 @@
 
 Each endpoint exposes the file descriptors to wait on (:meth:`Endpoint.fds`), reads what one of
 them has (:meth:`Endpoint.read_ready`), writes whole frames and can *hang up* (close the port,
-the ``--hangup-after`` fault). They never block: a frame that cannot be written now is dropped
-and counted, as bytes sent to an unread serial port are lost.
+the ``--hangup-after`` fault). A pty can also come back (:meth:`Endpoint.reopen`, the
+``--hangup-for`` fault) as a new device, like a USB serial adapter re-enumerating. They never
+block: a frame that cannot be written now is dropped and counted, as bytes sent to an unread
+serial port are lost.
 
 ``url`` is what the daemon should be given to reach us (the form ``firmware_interface``'s
-``parse_url`` accepts): ``udpout:HOST:PORT``, ``tcp:HOST:PORT`` or ``/dev/pts/N,115200``.
+``parse_url`` accepts): ``udpout:HOST:PORT``, ``tcp:HOST:PORT``, ``/dev/pts/N,115200`` or, with
+a stable link name (``--pty-link``), ``PATH,115200``.
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ class Endpoint(abc.ABC):
     @abc.abstractmethod
     def close(self) -> None:
         """Release everything; idempotent. Used for shutdown and for the hang-up fault."""
+
+    def reopen(self) -> None:
+        """Come back after a hang-up (the ``--hangup-for`` fault); only a pty can."""
+        raise SimIOError(f"{type(self).__name__} cannot reopen after a hang-up (only --pty can)")
 
     @property
     def closed(self) -> bool:
@@ -173,9 +180,24 @@ class PtyEndpoint(Endpoint):
     opened the device yet (or is reopening it), and put the line in raw mode so no byte is
     echoed or translated. Hanging up closes both ends: the daemon's reads then fail as on an
     unplugged USB serial port.
+
+    ``link_path`` plays udev's stable name (``/dev/serial/by-id/...``): a symlink to the current
+    ``/dev/pts/N``, and ``url`` names the link. It is removed at a hang-up, as udev removes it on
+    unplug (a stale link could otherwise lead to another program's pty once N is reused), and
+    :meth:`reopen` opens a new pty and creates the link again by renaming a fresh symlink over
+    its name, so a reader never sees a half-made link.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, link_path: str | None = None) -> None:
+        self.link_path = link_path
+        if link_path is not None and os.path.lexists(link_path) \
+                and not os.path.islink(link_path):
+            raise SimIOError(f"--pty-link {link_path!r} exists and is not a symlink")
+        self._open = False
+        self._open_pty()
+        self.url = f"{link_path or self.path},{PTY_BAUD}"
+
+    def _open_pty(self) -> None:
         try:
             self._master, self._slave = os.openpty()
         except OSError as exc:
@@ -183,8 +205,23 @@ class PtyEndpoint(Endpoint):
         tty.setraw(self._slave)
         os.set_blocking(self._master, False)
         self.path = os.ttyname(self._slave)
-        self.url = f"{self.path},{PTY_BAUD}"
         self._open = True
+        if self.link_path is not None:
+            fresh = f"{self.link_path}.{os.getpid()}.new"
+            try:
+                if os.path.lexists(fresh):
+                    os.unlink(fresh)
+                os.symlink(self.path, fresh)
+                os.replace(fresh, self.link_path)  # atomic: old target or new, never neither
+            except OSError as exc:
+                self.close()
+                raise SimIOError(
+                    f"cannot point --pty-link {self.link_path!r} at {self.path}: {exc}") from exc
+
+    def reopen(self) -> None:
+        """A new pty (a new ``/dev/pts/N``), with the link pointing at it."""
+        if not self._open:
+            self._open_pty()
 
     def fds(self) -> list[int]:
         return [self._master] if self._open else []
@@ -218,6 +255,12 @@ class PtyEndpoint(Endpoint):
     def close(self) -> None:
         if self._open:
             self._open = False
+            if self.link_path is not None:
+                try:
+                    if os.readlink(self.link_path) == self.path:
+                        os.unlink(self.link_path)
+                except OSError as exc:
+                    log.debug("removing %s: %s", self.link_path, exc)
             for fd in (self._master, self._slave):
                 try:
                     os.close(fd)

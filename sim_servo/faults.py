@@ -1,4 +1,5 @@
-"""Seeded fault decisions: drop, corrupt, delay. Pure; the same seed gives the same faults.
+"""Seeded fault decisions: drop, corrupt, delay; and the hang-up schedule. Pure; the same seed
+gives the same faults.
 
 The generator is drawn from only when a fault is enabled, so turning one fault on does not
 change the sequence another one sees in a run where it was already on.
@@ -56,3 +57,31 @@ class FaultInjector:
         if self.config.jitter_ms > 0:
             delay_ms += float(self.rng.uniform(-self.config.jitter_ms, self.config.jitter_ms))
         return max(0.0, delay_ms) / 1000.0
+
+
+class HangupSchedule:
+    """When the port goes away (``hangup_after_s`` after ``start_s``) and, if ``hangup_for_s``
+    is set, when it comes back: a USB serial adapter unplugged and re-enumerated. Each fault
+    happens once; the server applies them to its endpoint."""
+
+    HANGUP = "hangup"
+    REOPEN = "reopen"
+
+    def __init__(self, start_s: float, hangup_after_s: float | None,
+                 hangup_for_s: float | None = None) -> None:
+        self._due: list[tuple[float, str]] = []
+        if hangup_after_s is not None:
+            hangup_at_s = start_s + hangup_after_s
+            self._due.append((hangup_at_s, self.HANGUP))
+            if hangup_for_s is not None:
+                self._due.append((hangup_at_s + hangup_for_s, self.REOPEN))
+
+    def next_s(self) -> float:
+        """The time of the next fault (``inf`` when none is left)."""
+        return self._due[0][0] if self._due else float("inf")
+
+    def due(self, now_s: float) -> list[str]:
+        """The faults due by ``now_s``, in order (``HANGUP``, ``REOPEN``); each only once."""
+        faults = [fault for at_s, fault in self._due if at_s <= now_s]
+        self._due = self._due[len(faults):]
+        return faults

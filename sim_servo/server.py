@@ -22,6 +22,7 @@ from typing import Any
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.endpoints import Endpoint
 from sim_servo.eventlog import EventLog
+from sim_servo.faults import HangupSchedule
 from sim_servo.query import QueryServer
 
 log = logging.getLogger(__name__)
@@ -35,6 +36,7 @@ class SimServer:
     def __init__(self, autopilot: SimAutopilot, endpoint: Endpoint, events: EventLog, *,
                  gcs: Endpoint | None = None,
                  query_path: str | None = None, hangup_after_s: float | None = None,
+                 hangup_for_s: float | None = None,
                  clock: Callable[[], float] = time.monotonic, start_s: float | None = None
                  ) -> None:
         self.autopilot = autopilot
@@ -45,7 +47,7 @@ class SimServer:
         self.events = events
         self.clock = clock
         self._start_s = clock() if start_s is None else start_s
-        self._hangup_at_s = None if hangup_after_s is None else self._start_s + hangup_after_s
+        self._hangup = HangupSchedule(self._start_s, hangup_after_s, hangup_for_s)
         self._stopping = False
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
@@ -95,8 +97,7 @@ class SimServer:
     def _step(self) -> None:
         now = self.clock()
         wait_s = min(MAX_WAIT_S, self.autopilot.next_event_s(now) - now)
-        if self._hangup_at_s is not None and not self.endpoint.closed:
-            wait_s = min(wait_s, self._hangup_at_s - now)
+        wait_s = min(wait_s, self._hangup.next_s() - now)
         link_fds = {fd: channel for channel, link in enumerate(self.links) for fd in link.fds()}
         query_fds = self.query.fds() if self.query else []
         readable, _, _ = select.select([self._wake_r, *link_fds, *query_fds], [], [],
@@ -115,9 +116,12 @@ class SimServer:
                     self.autopilot.receive(data, now, channel)
             elif self.query is not None:
                 self.query.handle(fd)
-        if self._hangup_at_s is not None and now >= self._hangup_at_s and not self.endpoint.closed:
-            self.endpoint.close()
-            self.autopilot.emit(now, "fault", fault="hangup", url=self.endpoint.url)
+        for fault in self._hangup.due(now):
+            if fault == HangupSchedule.REOPEN:
+                self.endpoint.reopen()
+            else:
+                self.endpoint.close()
+            self.autopilot.emit(now, "fault", fault=fault, url=self.endpoint.url)
         for frame in self.autopilot.poll(now):
             for link in self.links:
                 link.write(frame)

@@ -163,3 +163,25 @@ def test_within_limits_and_random_q():
     assert arm.within_limits(q).all()
     q[3, 1] = -0.1
     assert not arm.within_limits(q)[3]
+
+
+@pytest.mark.parametrize(
+    ("values", "field"),
+    [
+        (("45", 10, 20, 0, 45, 0), "x_cm"),  # float() would take the text
+        ((45, 10, 20, 0, b"4", 0), "pitch_deg"),
+        ((45, 10, True, 0, 45, 0), "z_cm"),
+        ((45, 10, 20, 0, 45, None), "yaw_deg"),
+        ((45, 10 ** 400, 20, 0, 45, 0), "y_cm"),  # OverflowError, not ValueError, before
+        ((45, 10, 20, -(10**400), 45, 0), "roll_deg"),
+    ],
+)
+def test_pose_field_that_is_not_a_finite_number_is_named(values, field):
+    with pytest.raises(ValueError, match=f"Pose.{field}="):
+        Pose(*values)
+
+
+def test_pose_takes_numpy_numbers():
+    pose = Pose(*np.arange(6, dtype=np.float32))
+    assert pose.as_tuple() == (0.0, 1.0, 2.0, 3.0, 4.0, 5.0)
+    assert Pose(*np.arange(6)).x_cm == 0.0

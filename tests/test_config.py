@@ -128,7 +128,7 @@ BAD = [
     (
         "narrow calibration",
         lambda t: t.replace("output = 10\n", "output = 10\nangle_max_deg = 90\n"),
-        "joint[2].angle_min_deg",
+        "joint[2].angle_max_deg",  # the side that is too narrow
         "must cover",
     ),
     ("not toml", lambda t: t + "\n[[joint\n", "<file>", "not valid TOML"),

@@ -284,3 +284,74 @@ def test_mavlink_target_for_another_component_is_ignored(autopilot):
         assert acks_to_gcs(peer) == []
     finally:
         daemon.close()
+
+
+def test_an_accepted_motion_survives_an_unanswered_update(autopilot):
+    """One servo update of a moving arm gets no ACK (after the sender's retries): the next tick
+    sends it again and the arm still reaches the target; a second failure in a row does not
+    happen here, so the motion is not abandoned."""
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {
+                    "url": f"udpout:127.0.0.1:{endpoint.port}",
+                    "loss_timeout_s": 30.0,
+                    "command_timeout_s": 0.1,
+                    "command_retries": 0,
+                },
+                "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 100.0},
+                "control": {"rate_hz": 50.0},
+            }
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        target = daemon.config.arm.fk([20, 70, 20, 0, 10, 0]).as_tuple()  # ≥ 20° away: 10 ticks
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.ACCEPTED
+        peer.drop_acks = 1  # the next DO_SET_SERVO goes unanswered
+        assert wait_until(lambda: daemon.status()["counters"]["servo_errors"] == 1, WAIT_S)
+        assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
+        status = daemon.status()
+        assert status["goal_deg"] == pytest.approx(list(reply.solve.q_deg))
+        assert status["current_deg"] == status["goal_deg"]
+        assert status["counters"]["servo_errors"] == 1
+    finally:
+        daemon.close()
+
+
+class _BuggyDaemon(ArmDaemon):
+    """Its first solve raises, as a bug anywhere under the control thread would."""
+
+    bugs = 1
+
+    def _goto(self, request, pose):
+        if self.bugs:
+            self.bugs -= 1
+            raise RuntimeError("a bug under the control thread")
+        return super()._goto(request, pose)
+
+
+def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
+    endpoint, peer = autopilot
+    daemon = _BuggyDaemon(
+        parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}",
+                               "loss_timeout_s": 30.0}})
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.FAILED and "internal error" in reply.message
+        assert daemon.healthy and daemon.status()["counters"]["internal_errors"] == 1
+        assert peer.messages("COMMAND_LONG") == []  # nothing was sent for it
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+    finally:
+        daemon.close()

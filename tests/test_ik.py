@@ -213,3 +213,18 @@ def test_de_only_converged_result_is_within_both_tolerances(seed):
     assert res.converged
     pos, ori = independent_errors(ARM, res.q_deg, target)
     assert pos <= 1e-2 and ori <= 1e-2
+
+
+def test_target_beyond_float_range_reports_infinite_errors_and_an_in_limit_start():
+    # |p| beyond ~1e154 cm: every cost overflows to inf and no configuration becomes the
+    # record. The result used to be whatever np.empty held: another solve's errors and joints.
+    solve(ARM, G, budget_ms=1.0, seed=0)  # leave a finished solve's arrays behind
+    start = (10.0, 80.0, 20.0, 10.0, 20.0, 30.0)
+    far = Pose(1e308, -1e308, 1e200, 0, 0, 0)
+    res = solve(ARM, far, budget_ms=1.0, seed=0, q_start_deg=start)
+    assert not res.converged and res.stop_reason is StopReason.DEADLINE
+    assert res.pos_err_cm == math.inf and res.ori_err_deg == math.inf
+    assert res.q_deg == pytest.approx(start)
+    cold = solve(ARM, Pose(1e155, 0, 0, 0, 0, 0), budget_ms=1.0, seed=0)
+    assert cold.pos_err_cm == math.inf and not cold.converged
+    assert ARM.within_limits(np.radians(cold.q_deg))

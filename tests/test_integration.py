@@ -15,6 +15,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,7 @@ class Chain:
         self.sim_sock = str(tmp_path / "sim.sock")
         self.control = str(tmp_path / "control.sock")
         self.procs: list[subprocess.Popen] = []
+        self.spawned_s = time.monotonic()  # the simulator's clock starts about here
         transport = ["--pty"] if pty else ["--udp", "127.0.0.1:0"]
         sim = self._spawn([sys.executable, "-m", "sim_servo", *transport, "--gcs", "127.0.0.1:0",
                            "--query-socket", self.sim_sock, *sim_args], stdout=subprocess.PIPE)
@@ -227,7 +229,11 @@ def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
 def test_link_loss_rejects_targets_temporarily_then_recovers(chain):
     """Heartbeats stop for 3 s: the daemon holds and answers TEMPORARILY_REJECTED through the
     autopilot (which still routes); when they return, targets are accepted again."""
-    c = chain(sim_args=["--heartbeat-pause-after", "3", "--heartbeat-pause-for", "3"])
+    pause_after_s = 6.0  # room for the three processes to start on a loaded machine
+    c = chain(sim_args=["--heartbeat-pause-after", str(pause_after_s),
+                        "--heartbeat-pause-for", "3"])
+    started_in_s = time.monotonic() - c.spawned_s
+    assert started_in_s < pause_after_s - 1.0, f"the chain took {started_in_s:.1f} s to start"
     assert wait_until(lambda: c.status()["link"] != "up", WAIT_S)
     ack = c.target(ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple())
     assert ack is not None and ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED

@@ -1,11 +1,13 @@
 import os
 import socket
+import time
 
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
+from firmware_interface.transport import open_transport, parse_url
 from tests._mavlink_peer import (
     FakeClock,
     PtyEndpoint,
@@ -205,8 +207,9 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
     second = None
     try:
         first.wait_for_messages("HEARTBEAT")
-        first.close()  # the port vanishes ...
-        device.unlink()  # ... and its device node with it
+        # The device node goes first, so no reopen can race to the dying port.
+        device.unlink()
+        first.close()  # the port vanishes
         assert wait_until(lambda: link.stats.transport_errors >= 1)
         assert link.transport is None and not link.closed
         second = ScriptedPeer(PtyEndpoint(), system_id=9)  # plugged back in
@@ -219,6 +222,61 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
         link.close()
         if second is not None:
             second.close()
+
+
+def test_link_is_lost_while_the_port_is_down_and_up_again_only_on_a_fresh_heartbeat(
+    tmp_path, clock
+):
+    # The fake clock never moves, so the last HEARTBEAT stays "recent": only the port tells.
+    device = tmp_path / "ttyFC"
+    first = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(first.endpoint.path, device)
+    link = MavlinkLink.open(f"{device},115200", LinkConfig(**FAST), clock=clock)
+    second = None
+    try:
+        first.wait_for_messages("HEARTBEAT")
+        first.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+        first.close()  # unplugged
+        device.unlink()
+        assert wait_until(lambda: link.stats.transport_errors >= 1)
+        assert link.state is LinkState.LOST  # nothing can reach the autopilot now
+        second = ScriptedPeer(PtyEndpoint(), system_id=9)  # re-enumerated (maybe rebooted)
+        os.symlink(second.endpoint.path, device)
+        assert wait_until(lambda: link.stats.reconnects >= 1)
+        assert link.state is LinkState.LOST  # not a word from the autopilot on this port yet
+        second.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+    finally:
+        link.close()
+        if second is not None:
+            second.close()
+
+
+def test_default_reconnect_backoff_is_bounded_at_half_a_second(tmp_path):
+    # A USB serial adapter re-enumerates under its udev name: with the default config the link
+    # must try again at least every 0.5 s, or a port that came back would go unused for seconds.
+    device = tmp_path / "ttyFC"
+    peer = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(peer.endpoint.path, device)
+    spec = parse_url(f"{device},115200")
+    attempts: list[float] = []
+
+    def reopen():
+        attempts.append(time.monotonic())
+        return open_transport(spec)
+
+    link = MavlinkLink(reopen, LinkConfig())
+    link.start()
+    try:
+        device.unlink()
+        peer.close()  # unplugged, and it stays away
+        assert wait_until(lambda: len(attempts) >= 7, timeout_s=10.0)
+        gaps_s = [b - a for a, b in zip(attempts[1:], attempts[2:], strict=False)]
+        assert max(gaps_s) < 0.5 + 0.25, gaps_s  # 0.1, 0.2, 0.4, 0.5, 0.5 s (+ scheduling)
+        assert not link.closed
+    finally:
+        link.close()
 
 
 def test_defaults_match_the_issue():

@@ -1,7 +1,7 @@
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from firmware_interface.errors import ConfigurationError
+from firmware_interface.errors import ConfigurationError, SigningStateError
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.signing import (
     SIGNING_EPOCH_UNIX_S,
@@ -128,3 +128,24 @@ def test_signing_timestamp_survives_a_restart_with_a_clock_in_the_past(peer, tmp
         peer.wait_for_messages("HEARTBEAT", count=count + 2)
         assert link.signing_reserved_until > wall_to_ticks(NOW_UNIX_S)
     assert peer.bad_frames == []
+
+
+def test_a_signing_state_that_cannot_be_stored_stops_sending(peer, tmp_path):
+    """Signing beyond the stored reservation could reuse timestamps after a restart, so a state
+    file that can no longer be written refuses the send with a LinkError (not an OSError that
+    would kill the caller's thread)."""
+    state_dir = tmp_path / "state"
+    state_dir.mkdir()
+    signing = SigningConfig(KEY, state_path=state_dir / "signing.state", reservation_s=1e-5)
+    link = MavlinkLink.open(f"udpout:127.0.0.1:{peer.endpoint.port}",
+                            LinkConfig(heartbeat_rate_hz=20.0, signing=signing))
+    try:
+        link.send(link.mav.statustext_encode(6, b"stored"))
+        (state_dir / "signing.state").unlink()
+        state_dir.rmdir()  # the state directory vanished (unmounted, removed)
+        with pytest.raises(SigningStateError, match="cannot store the signing timestamp"):
+            link.send(link.mav.statustext_encode(6, b"not signed"))
+        assert not link.closed
+    finally:
+        link.close()
+    assert not any(m.text == "not signed" for m in peer.messages("STATUSTEXT"))

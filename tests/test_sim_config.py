@@ -53,6 +53,7 @@ def test_validation_names_value_and_range(kwargs, message):
     [
         (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
         (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
+        (FaultConfig, {"hangup_for_s": 1.0}, "hangup_for_s needs hangup_after_s"),
         (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
         (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
         (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
@@ -124,6 +125,8 @@ def test_flags_override_the_file():
             "0.2",
             "--hangup-after",
             "5",
+            "--hangup-for",
+            "1.5",
         ]
     )
     data, base = config_data(args)
@@ -131,4 +134,5 @@ def test_flags_override_the_file():
     assert config.flavour == "px4" and config.functions[9] == 33
     assert config.faults.drop_in == 0.25 and config.faults.withhold_all_acks
     assert config.faults.nack_outputs == {10} and config.faults.hangup_after_s == 5
+    assert config.faults.hangup_for_s == 1.5
     assert config.servo.slew_s_per_60deg == 0.2 and config.servo.deadband_us == 1.0

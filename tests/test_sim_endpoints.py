@@ -120,3 +120,43 @@ def test_parse_host_port_errors(text, message):
 def test_bind_failure_is_a_sim_error():
     with pytest.raises(SimIOError, match="cannot bind"):
         UdpEndpoint("192.0.2.1", 0)  # TEST-NET address not on this machine
+
+
+def test_pty_link_follows_the_device_through_a_hangup_and_reopen(tmp_path):
+    link = tmp_path / "ttyFC"
+    endpoint = PtyEndpoint(str(link))
+    try:
+        assert endpoint.url == f"{link},115200"
+        first = endpoint.path
+        assert os.readlink(link) == first
+        endpoint.close()  # unplugged: the stable name goes, as udev removes it
+        assert not os.path.lexists(link) and endpoint.closed
+        endpoint.reopen()  # re-enumerated: a new pty behind the same name
+        assert not endpoint.closed and os.readlink(link) == endpoint.path
+        assert endpoint.url == f"{link},115200"
+        fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
+        try:
+            os.write(fd, b"\xfd\x01")
+            assert pump(endpoint) == b"\xfd\x01"
+        finally:
+            os.close(fd)
+    finally:
+        endpoint.close()
+    assert not os.path.lexists(link)
+
+
+def test_pty_link_never_replaces_a_regular_file(tmp_path):
+    precious = tmp_path / "notes.txt"
+    precious.write_text("keep me")
+    with pytest.raises(SimIOError, match="exists and is not a symlink"):
+        PtyEndpoint(str(precious))
+    assert precious.read_text() == "keep me"
+
+
+def test_only_a_pty_reopens():
+    endpoint = UdpEndpoint("127.0.0.1", 0)
+    try:
+        with pytest.raises(SimIOError, match="cannot reopen"):
+            endpoint.reopen()
+    finally:
+        endpoint.close()

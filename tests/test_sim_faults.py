@@ -1,9 +1,11 @@
 """Seeded fault decisions."""
 
+import math
+
 import numpy as np
 
 from sim_servo.config import FaultConfig
-from sim_servo.faults import FaultInjector
+from sim_servo.faults import FaultInjector, HangupSchedule
 
 
 def test_off_by_default_and_rng_untouched():
@@ -45,3 +47,16 @@ def test_delay_within_latency_plus_minus_jitter_never_negative():
     faults = FaultInjector(FaultConfig(latency_ms=2, jitter_ms=5, seed=3))
     delays = [faults.delay_s() for _ in range(1000)]
     assert min(delays) == 0.0 and max(delays) <= 0.007
+
+
+def test_hangup_schedule_hangs_up_once_and_reopens_once():
+    schedule = HangupSchedule(100.0, hangup_after_s=2.0, hangup_for_s=3.0)
+    assert schedule.next_s() == 102.0 and schedule.due(101.9) == []
+    assert schedule.due(102.0) == [HangupSchedule.HANGUP]
+    assert schedule.next_s() == 105.0 and schedule.due(104.0) == []
+    assert schedule.due(110.0) == [HangupSchedule.REOPEN]
+    assert schedule.due(200.0) == [] and schedule.next_s() == math.inf
+    late = HangupSchedule(0.0, hangup_after_s=1.0, hangup_for_s=0.5)
+    assert late.due(9.0) == [HangupSchedule.HANGUP, HangupSchedule.REOPEN]  # in order
+    assert HangupSchedule(0.0, hangup_after_s=1.0).due(1e9) == [HangupSchedule.HANGUP]
+    assert HangupSchedule(0.0, None).next_s() == math.inf

@@ -383,6 +383,8 @@ def test_help_documents_every_fault_flag(capsys):
         "--withhold-ack",
         "--nack-output",
         "--hangup-after",
+        "--hangup-for",
+        "--pty-link",
         "--signing-key",
     ):
         assert flag in text
@@ -395,3 +397,7 @@ def test_bad_settings_exit_2_with_a_message(capsys, tmp_path):
     assert "NO_SUCH_COMMAND" in capsys.readouterr().err
     assert main(["--udp", "127.0.0.1:0", "--signing-key", str(tmp_path / "missing")]) == 2
     assert "cannot read signing key" in capsys.readouterr().err
+    assert main(["--udp", "127.0.0.1:0", "--hangup-after", "1", "--hangup-for", "1"]) == 2
+    assert "--hangup-for (hangup_for_s) needs --pty" in capsys.readouterr().err
+    assert main(["--udp", "127.0.0.1:0", "--pty-link", str(tmp_path / "tty")]) == 2
+    assert "--pty-link needs --pty" in capsys.readouterr().err
