@@ -347,18 +347,16 @@ class ArmDaemon:
                     self._internal_error(f"{request.kind} request", exc)
                     self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
             now = self.clock()
-            if now >= next_tick:
+            # A newly accepted target does not wait for the next tick: its first step goes out
+            # now (sized by the time since the last step, see _tick), and the ticks restart
+            # from here.
+            immediate = now < next_tick and bool(self._pending)
+            if now >= next_tick or immediate:
                 try:
                     self._tick(now, period)
                 except Exception as exc:
                     self._internal_error("control tick", exc)
-                next_tick = max(next_tick + period, now)
-            elif self._pending:
-                # A newly accepted target does not wait for the next tick: its first step goes
-                # out now (sized by the time since the last step, see _tick), and the ticks
-                # restart from here.
-                self._tick(now, period)
-                next_tick = now + period
+                next_tick = now + period if immediate else max(next_tick + period, now)
         for request in self._pending:
             request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
 
