@@ -329,11 +329,11 @@ class _BuggyDaemon(ArmDaemon):
 
     bugs = 1
 
-    def _goto(self, request, pose):
+    def _goto(self, request, pose, received_s):
         if self.bugs:
             self.bugs -= 1
             raise RuntimeError("a bug under the control thread")
-        return super()._goto(request, pose)
+        return super()._goto(request, pose, received_s)
 
 
 def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
