@@ -4,6 +4,8 @@
 * ``demo``: starts the simulated flight controller and the daemon on loopback, sends the arm
   through a few reachable poses, the papers' unreachable target G and a figure-eight, and
   prints per target: solve time, errors, PWM sent and the hand pose the simulator reports.
+  With matplotlib installed it also writes a PNG (``--plot PATH``, default
+  ``armbridge-demo.png`` in the current directory): targets against the simulator's hand.
 * ``goto X Y Z ROLL PITCH YAW``, ``status``, ``park``, ``stop``: clients of a running daemon's
   control socket.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK, no daemon.
@@ -16,6 +18,7 @@ configuration; 3 daemon not reachable.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import logging
 import math
@@ -96,6 +99,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from firmware_interface import LinkState
 
     config = load_config(args.config)  # ConfigError → exit 2, nothing opened or sent
+    # The start-up heap (numpy, numba, pymavlink: ~120k objects) never dies. Frozen, the
+    # collector's full passes skip it: one took ~55 ms here, long enough to stall the control
+    # thread past a 20 ms target slot; after the freeze it takes microseconds.
+    gc.freeze()
     stop = threading.Event()
     reload = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -188,6 +195,60 @@ def _wait(predicate: Callable[[], bool], timeout_s: float) -> bool:
     return True
 
 
+def write_demo_plot(
+    path: str | Path,
+    targets: Sequence[tuple[str, Pose, Pose | None]],
+    path_targets: Sequence[Pose],
+    path_hand: Sequence[Pose],
+) -> str:
+    """Draw the demo's targets against the simulator's hand and save a PNG at ``path``.
+
+    ``targets``: ``(name, target, hand pose reached or None if refused)``; ``path_targets``
+    and ``path_hand``: the figure-eight's points and the hand sampled while it ran. Returns a
+    one-line note for the user: where the plot went, or why it was skipped (no matplotlib)."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "plot skipped: matplotlib is not installed (pip install 'armbridge[plots]')"
+    fig, (side, eight) = plt.subplots(1, 2, figsize=(10, 4.2))
+    for k, (name, target, hand) in enumerate(targets):
+        colour = f"C{k}"
+        side.plot(target.x_cm, target.z_cm, "x", color=colour, markersize=9, label=f"{name}")
+        if hand is None:
+            side.annotate("refused", (target.x_cm, target.z_cm), fontsize=7, color=colour,
+                          xytext=(4, 4), textcoords="offset points")
+        else:
+            side.plot(hand.x_cm, hand.z_cm, "o", mfc="none", color=colour, markersize=9)
+            error_cm = math.dist(hand.position_cm, target.position_cm)
+            side.annotate(f"{error_cm:.2f} cm", (hand.x_cm, hand.z_cm), fontsize=7,
+                          color=colour, xytext=(6, -10), textcoords="offset points")
+    side.set_title("targets (x) and the simulator's hand (o), side view", fontsize=9)
+    side.set_xlabel("x (cm)")
+    side.set_ylabel("z (cm)")
+    side.legend(fontsize=7)
+    side.set_aspect("equal", adjustable="datalim")
+    side.grid(True, alpha=0.3)
+    if path_targets:
+        eight.plot([p.y_cm for p in path_targets], [p.z_cm for p in path_targets], "-",
+                   color="C0", label="figure-eight targets")
+    if path_hand:
+        eight.plot([p.y_cm for p in path_hand], [p.z_cm for p in path_hand], ".",
+                   color="C1", markersize=3, label="simulator's hand (sampled)")
+    eight.set_title("figure-eight, front view", fontsize=9)
+    eight.set_xlabel("y (cm)")
+    eight.set_ylabel("z (cm)")
+    eight.legend(fontsize=7)
+    eight.set_aspect("equal", adjustable="datalim")
+    eight.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return f"plot written to {path}"
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from companion.config import parse_config
     from companion.daemon import ArmDaemon, Outcome
@@ -228,6 +289,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             def settled() -> bool:
                 return not daemon.status()["moving"] and query(sim_sock, "state")["settled"]
 
+            plotted: list[tuple[str, Pose, Pose | None]] = []
+
             def report(name: str, target: Pose) -> None:
                 reply = daemon.submit("goto", target).result(10.0)
                 print(f"{name}: target {_fmt_pose(target)}")
@@ -239,6 +302,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                     )
                 if reply.outcome is not Outcome.ACCEPTED:
                     print(f"  {reply.outcome.value.upper()}: {reply.message}; nothing sent\n")
+                    plotted.append((name.split(" (")[0], target, None))
                     return
                 _wait(settled, 15.0)
                 status = daemon.status()
@@ -250,6 +314,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                     f"acked ({status['counters']['servo_updates']} updates so far)"
                 )
                 print(f"  sim hand {_fmt_pose(hand)}: {pos:.3f} cm / {ori:.2f} deg from target\n")
+                plotted.append((name, target, hand))
 
             for i, q in enumerate(DEMO_JOINTS_DEG, start=1):
                 report(f"pose {i}", config.arm.fk(q))
@@ -275,7 +340,13 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             before = daemon.status()["counters"]["servo_updates"]
             reply = daemon.submit("trajectory", points).result(10.0)
             print(f"figure-eight (10 x 5 cm, 4 s, {len(points)} points): {reply.message}")
-            _wait(lambda: daemon.status()["trajectory_points_left"] == 0 and settled(), 20.0)
+            hand_path: list[Pose] = []
+
+            def done_sampling() -> bool:
+                hand_path.append(Pose(**query(sim_sock, "state")["hand"]["pose"]))
+                return daemon.status()["trajectory_points_left"] == 0 and settled()
+
+            _wait(done_sampling, 20.0)
             status = daemon.status()
             hand = Pose(**query(sim_sock, "state")["hand"]["pose"])
             end = Pose(*points[-1][1])
@@ -284,6 +355,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
                 f"{math.dist(hand.position_cm, end.position_cm):.3f} cm from the last point"
             )
             print(f"\ncounters: {status['counters']}")
+            if args.plot:
+                path_targets = [Pose(*values) for _, values in points]
+                print(write_demo_plot(args.plot, plotted, path_targets, hand_path))
         finally:
             if daemon is not None:
                 daemon.close()
@@ -323,6 +397,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("demo", help="simulator + daemon on loopback, a tour of targets")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--plot",
+        default="armbridge-demo.png",
+        metavar="PATH",
+        help="PNG of targets against the simulator's hand, if matplotlib is installed "
+        "(default %(default)s; '' for none)",
+    )
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("check-config", help="validate a daemon config")

@@ -8,6 +8,8 @@ Threads and who owns what:
 * the **control thread** (this module) owns all arm state. It takes requests (validate →
   solve → accept or refuse), and on every tick at ``rate_hz`` moves the commanded joints
   towards the goal by at most ``joint_speed_deg_s / rate_hz`` and sends the servo commands.
+  An accepted target does not wait for the next tick: its first step goes out at once, at most
+  ``joint_speed_deg_s`` × the time since the previous step, and the ticks restart from there.
   It blocks only on its own ACKs, which the reader thread delivers.
 
 Safety rules, in this order:
@@ -90,14 +92,25 @@ MAV_RESULT = {
 
 @dataclass(frozen=True)
 class Reply:
-    """The answer to one request: an outcome, a one-line reason, the solve if there was one."""
+    """The answer to one request: an outcome, a one-line reason, the solve if there was one.
+
+    ``timing`` (targets only): daemon-clock seconds (``time.monotonic`` unless a clock was
+    injected; CLOCK_MONOTONIC is system-wide on Linux, so comparable across processes):
+    ``received_s`` (handed to the daemon by its input thread), ``solved_s`` (solve returned),
+    and once accepted ``first_out_s`` (its first servo update started) and ``acked_s`` (the
+    autopilot acknowledged all of that update). ``status()["last_target"]["timing"]`` has the
+    same for the newest target.
+    """
 
     outcome: Outcome
     message: str
     solve: ik.IKResult | None = None
+    timing: dict[str, float] | None = None
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}
+        if self.timing is not None:
+            out["timing"] = dict(self.timing)
         if self.solve is not None:
             out["solve"] = {
                 "q_deg": list(self.solve.q_deg),
@@ -114,6 +127,7 @@ class _Request:
     kind: str  # goto | trajectory | park | stop
     payload: Any
     direct: bool = False
+    received_s: float = 0.0  # daemon clock when submitted
     accepted: Reply | None = None  # the reply sent once its first servo commands are out
     future: Future = field(default_factory=Future)
 
@@ -136,6 +150,7 @@ class ArmDaemon:
         self._sender: CommandSender | None = None
         self._dialect = None
         self._last_tick = clock()
+        self._last_step_s = -math.inf  # when the last step was sent (for the speed limit)
         arm = config.arm
         start = config.park_deg or tuple(
             math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints
@@ -160,6 +175,8 @@ class ArmDaemon:
             "internal_errors": 0,
         }
         self._last_target: dict[str, Any] | None = None
+        # The newest accepted target's timing until its first servo update is out (see status).
+        self._timing_pending: dict[str, float] | None = None
 
     # -- life cycle -------------------------------------------------------------------------
 
@@ -252,7 +269,7 @@ class ArmDaemon:
         """
         if kind not in ("goto", "trajectory", "park", "stop"):
             raise ValueError(f"unknown request {kind!r}; valid: goto, trajectory, park, stop")
-        request = _Request(kind, payload, direct)
+        request = _Request(kind, payload, direct, received_s=self.clock())
         if self._stop.is_set():
             request.future.set_result(Reply(Outcome.TEMPORARILY_REJECTED, "daemon stopping"))
         else:
@@ -330,12 +347,16 @@ class ArmDaemon:
                     self._internal_error(f"{request.kind} request", exc)
                     self._finish(request, Reply(Outcome.FAILED, f"internal error: {exc!r}"))
             now = self.clock()
-            if now >= next_tick:
+            # A newly accepted target does not wait for the next tick: its first step goes out
+            # now (sized by the time since the last step, see _tick), and the ticks restart
+            # from here.
+            immediate = now < next_tick and bool(self._pending)
+            if now >= next_tick or immediate:
                 try:
                     self._tick(now, period)
                 except Exception as exc:
                     self._internal_error("control tick", exc)
-                next_tick = max(next_tick + period, now)
+                next_tick = now + period if immediate else max(next_tick + period, now)
         for request in self._pending:
             request.future.set_result(Reply(Outcome.FAILED, "daemon stopped before moving"))
 
@@ -393,7 +414,7 @@ class ArmDaemon:
             self._trajectory_t0 = self.clock()
             self._finish(request, Reply(Outcome.ACCEPTED, f"trajectory of {len(parsed)} points"))
         else:
-            self._goto(request, parsed)
+            self._goto(request, parsed, request.received_s)
 
     def _parse(self, request: _Request) -> Any:
         """The request's validated payload; ValueError says what is wrong with it."""
@@ -416,7 +437,7 @@ class ArmDaemon:
         except ValueError as exc:
             raise ValueError(f"invalid target: {exc}") from exc
 
-    def _goto(self, request: _Request | None, pose: Pose) -> bool:
+    def _goto(self, request: _Request | None, pose: Pose, received_s: float) -> bool:
         start = self._goal if self._goal is not None else self._current
         result = ik.solve(
             self.config.arm,
@@ -427,6 +448,7 @@ class ArmDaemon:
             tol_pos_cm=self.config.tol_pos_cm,
             tol_ori_deg=self.config.tol_ori_deg,
         )
+        timing = {"received_s": received_s, "solved_s": self.clock()}
         with self._lock:
             self._last_target = {
                 "pose": list(pose.as_tuple()),
@@ -434,6 +456,7 @@ class ArmDaemon:
                 "pos_err_cm": result.pos_err_cm,
                 "ori_err_deg": result.ori_err_deg,
                 "solve_ms": result.elapsed_ms,
+                "timing": timing,
             }
         if not result.converged:
             reply = Reply(
@@ -453,9 +476,10 @@ class ArmDaemon:
                 self._finish(request, Reply(Outcome.FAILED, f"calibration refused: {exc}", result))
             return False
         if request is not None:
-            self._accept(request, result.q_deg, "moving", result)
+            self._accept(request, result.q_deg, "moving", result, timing)
         else:
             self._set_goal(result.q_deg)
+        self._timing_pending = timing
         return True
 
     def _accept(
@@ -464,9 +488,10 @@ class ArmDaemon:
         goal: Sequence[float],
         message: str,
         result: ik.IKResult | None = None,
+        timing: dict[str, float] | None = None,
     ) -> None:
         self._set_goal(tuple(goal))
-        request.accepted = Reply(Outcome.ACCEPTED, message, result)
+        request.accepted = Reply(Outcome.ACCEPTED, message, result, timing)
         self._pending.append(request)
 
     def _set_goal(self, goal: Sequence[float] | None) -> None:
@@ -482,7 +507,7 @@ class ArmDaemon:
         if not due:
             return
         self._trajectory = self._trajectory[len(due) :]
-        if not self._goto(None, due[-1][1]):
+        if not self._goto(None, due[-1][1], now):
             log.warning("trajectory aborted: a point is out of reach")
             self._trajectory.clear()
 
@@ -502,7 +527,8 @@ class ArmDaemon:
                 self._holding = False
             if self._last_pwm is not None:
                 log.info("autopilot link back: re-sending current PWMs")
-                if not self._send(self._last_pwm):
+                # Everything, not only what changed: the autopilot may have restarted meanwhile.
+                if not self._send(self._last_pwm, skip_unchanged=False):
                     return
         if self._trajectory:
             self._due_trajectory_point(now)
@@ -511,24 +537,48 @@ class ArmDaemon:
             goal == self._current and self._last_pwm is not None and not self._pending
         ):
             return
-        step = limit_step(self._current, goal, self.config.joint_speed_deg_s * period)
+        # The speed limit holds whenever a step goes out: at most the joint speed times the
+        # time since the last step, and never more than one period's worth.
+        max_step_deg = self.config.joint_speed_deg_s * min(period, now - self._last_step_s)
+        if not max_step_deg > 0:
+            return
+        step = limit_step(self._current, goal, max_step_deg)
         try:
             pwm = self.config.calibration.angles_to_pwm_us(step)
         except CalibrationError as exc:  # unreachable by construction; refuse, never clamp
             log.error("calibration refused a step, holding: %s", exc)
             self._set_goal(None)
             return
+        first_out_s = self.clock()
         if self._send(pwm):
+            self._last_step_s = now
             self._set_current(step)
+            out = {"first_out_s": first_out_s, "acked_s": self.clock()}
+            self._record_first_out(out)
             for request in self._pending:
-                self._finish(request, request.accepted)
+                reply = request.accepted
+                if reply is not None and reply.timing is not None:
+                    reply = dataclasses.replace(reply, timing={**reply.timing, **out})
+                self._finish(request, reply)
                 self._count(Outcome.ACCEPTED)
             self._pending.clear()
 
-    def _send(self, pwm: dict[int, int]) -> bool:
+    def _record_first_out(self, out: dict[str, float]) -> None:
+        """Completes the timing of the newest target once its first servo update is acked."""
+        pending, self._timing_pending = self._timing_pending, None
+        if pending is None:
+            return
+        with self._lock:
+            last = self._last_target
+            if last is not None and last["timing"] is pending:
+                self._last_target = {**last, "timing": {**pending, **out}}
+
+    def _send(self, pwm: dict[int, int], *, skip_unchanged: bool = True) -> bool:
+        """Send a servo update (ardupilot: only the outputs whose PWM changed since the
+        autopilot acknowledged them, unless ``skip_unchanged`` is off); False if it failed."""
         assert self._dialect is not None
         try:
-            self._dialect.send_pwm(pwm)
+            self._dialect.send_pwm(pwm, skip_unchanged=skip_unchanged)
         except (LinkError, CalibrationError) as exc:
             with self._lock:
                 self._counters["servo_errors"] += 1

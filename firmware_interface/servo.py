@@ -7,12 +7,15 @@
   "ServoRelayEvent: Channel N is already in use" and ``MAV_RESULT_FAILED``
   (AP_ServoRelayEvents.cpp), which we raise as :class:`ServoOutputUnavailable`.
   ArduPilot does not clamp the PWM: :meth:`ArmCalibration.check_pwm_us` is the gate.
+  With ``skip_unchanged`` an update leaves out the outputs whose PWM the autopilot has already
+  acknowledged (ArduPilot holds a DO_SET_SERVO value until the next one): each output left out
+  saves a round trip, about 2.5 ms against a 400 Hz main loop.
 * ``px4``: one COMMAND_LONG ``MAV_CMD_DO_SET_ACTUATOR`` (187) with params 1–6 = the joints,
   in joint order, normalised to −1…1 over [pwm_min_us, pwm_max_us]; param7 = 0 (actuator set
   1–6). Joint k drives the output whose function is "Peripheral via Actuator Set k" (301…306).
   PX4 copies all six params at once (FunctionActuatorSet.hpp) and NaN turns an output off, so
   every joint must be commanded in each update; with fewer than six joints the spare slots are
-  NaN.
+  NaN. ``skip_unchanged`` changes nothing here.
 """
 
 from __future__ import annotations
@@ -48,18 +51,23 @@ class ServoDialect(abc.ABC):
         self.send_pwm(pwm_by_output)
         return pwm_by_output
 
-    def send_pwm(self, pwm_by_output: Mapping[int, int]) -> None:
+    def send_pwm(self, pwm_by_output: Mapping[int, int], *, skip_unchanged: bool = False) -> None:
         """Send ``{output: pwm_us}`` and wait until the autopilot acknowledged all of it.
-        Every value is checked against its output's range before anything is sent."""
+        Every value is checked against its output's range before anything is sent.
+
+        ``skip_unchanged``: where the dialect sends outputs one by one (ardupilot), leave out
+        those the autopilot already acknowledged at this PWM. Leave it off to re-send
+        everything, e.g. when the autopilot may have lost its state (link back after a loss).
+        """
         self.calibration.check_pwm_us(pwm_by_output)
-        self._send_checked(dict(pwm_by_output))
+        self._send_checked(dict(pwm_by_output), skip_unchanged)
 
     @abc.abstractmethod
     def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
         """The ``(MAV_CMD, params)`` pairs one update sends, in order (for sending and sizing)."""
 
     @abc.abstractmethod
-    def _send_checked(self, pwm_by_output: dict[int, int]) -> None: ...
+    def _send_checked(self, pwm_by_output: dict[int, int], skip_unchanged: bool) -> None: ...
 
 
 class ArduPilotServoDialect(ServoDialect):
@@ -67,15 +75,27 @@ class ArduPilotServoDialect(ServoDialect):
 
     name = "ardupilot"
 
+    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
+        super().__init__(commands, calibration)
+        self._acked_pwm_us: dict[int, int] = {}  # per output, the PWM last ACCEPTED
+
     def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
         return [
             (mavlink.MAV_CMD_DO_SET_SERVO, (float(output), float(pwm), 0.0, 0.0, 0.0, 0.0, 0.0))
             for output, pwm in pwm_by_output.items()
         ]
 
-    def _send_checked(self, pwm_by_output: dict[int, int]) -> None:
+    def _send_checked(self, pwm_by_output: dict[int, int], skip_unchanged: bool) -> None:
+        if skip_unchanged:
+            pwm_by_output = {
+                output: pwm
+                for output, pwm in pwm_by_output.items()
+                if self._acked_pwm_us.get(output) != pwm
+            }
         for command, params in self.command_params(pwm_by_output):
             output, pwm = int(params[0]), int(params[1])
+            # Unknown until acknowledged: a timeout may or may not have moved the servo.
+            self._acked_pwm_us.pop(output, None)
             try:
                 self.commands.command_long(command, params)
             except CommandRejected as exc:
@@ -88,6 +108,7 @@ class ArduPilotServoDialect(ServoDialect):
                     command=command, result=exc.result, result_name=exc.result_name,
                     output=output, statustext=exc.statustext,
                 ) from exc
+            self._acked_pwm_us[output] = pwm
 
 
 class Px4ServoDialect(ServoDialect):
@@ -113,7 +134,7 @@ class Px4ServoDialect(ServoDialect):
         values += [math.nan] * (PX4_ACTUATOR_SLOTS - len(values))
         return [(mavlink.MAV_CMD_DO_SET_ACTUATOR, (*values, 0.0))]
 
-    def _send_checked(self, pwm_by_output: dict[int, int]) -> None:
+    def _send_checked(self, pwm_by_output: dict[int, int], skip_unchanged: bool) -> None:
         for command, params in self.command_params(pwm_by_output):
             self.commands.command_long(command, params)
 

@@ -256,9 +256,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         server.stop()
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    # monotonic_s: t_s = 0 on CLOCK_MONOTONIC (system-wide), to line events up with other
+    # processes' time.monotonic() stamps.
     autopilot.emit(start_s, "start", url=endpoint.url, flavour=config.flavour,
                    system_id=config.system_id, functions=dict(config.functions),
-                   gcs_url=gcs.url if gcs is not None else None)
+                   gcs_url=gcs.url if gcs is not None else None, monotonic_s=start_s)
     print(endpoint.url, flush=True)
     if gcs is not None:
         print(f"gcs {gcs.url}", flush=True)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+import math
 import os
 import signal
 import socket
@@ -11,7 +13,8 @@ import time
 
 import pytest
 
-from companion.cli import main
+from companion.arm import Pose
+from companion.cli import PAPER_TARGET_G, main, write_demo_plot
 from companion.control import request
 from tests._mavlink_peer import wait_until
 
@@ -62,12 +65,40 @@ def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert "cannot reach the daemon" in capsys.readouterr().err
 
 
-def test_demo_runs_the_tour(capsys):
-    assert main(["demo"]) == 0
+def test_demo_runs_the_tour(capsys, tmp_path):
+    png = tmp_path / "demo.png"
+    assert main(["demo", "--plot", str(png)]) == 0
     out = capsys.readouterr().out
     assert out.count("ACCEPTED") == 3
     assert "FAILED: unreachable" in out and "nothing sent" in out
     assert "figure-eight" in out and "'servo_errors': 0" in out
+    # With matplotlib (the `plots` extra) a PNG; without it (CI) a note, and the demo still ran.
+    if importlib.util.find_spec("matplotlib") is not None:
+        assert f"plot written to {png}" in out and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    else:
+        assert "plot skipped: matplotlib is not installed" in out and not png.exists()
+
+
+DEMO_PLOT_ARGS = (
+    [("pose 1", Pose(40, 0, 40, 0, 0, 0), Pose(40.05, 0, 40, 0, 0, 0)),
+     ("G", PAPER_TARGET_G, None)],
+    [Pose(40, 5 * math.sin(k / 5), 40 + math.sin(k / 2.5), 0, 0, 0) for k in range(32)],
+    [Pose(40, 5 * math.sin(k / 4), 40 + math.sin(k / 2), 0, 0, 0) for k in range(10)],
+)  # fmt: skip
+
+
+def test_demo_plot_is_skipped_without_matplotlib(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # makes `import matplotlib` fail
+    note = write_demo_plot(tmp_path / "demo.png", *DEMO_PLOT_ARGS)
+    assert note.startswith("plot skipped: matplotlib is not installed")
+    assert not (tmp_path / "demo.png").exists()
+
+
+def test_demo_plot_is_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "demo.png"
+    assert write_demo_plot(png, *DEMO_PLOT_ARGS) == f"plot written to {png}"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_run_as_a_service_ready_goto_sigterm(tmp_path):

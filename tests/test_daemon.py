@@ -50,12 +50,12 @@ def sim(tmp_path):
         proc.stdout.close()
 
 
-def make_daemon(url, **arm):
+def make_daemon(url, rate_hz=50.0, **arm):
     cfg = parse_config(
         {
             "link": {"url": url, "loss_timeout_s": 1.0, "command_timeout_s": 0.3},
             "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 360.0, **arm},
-            "control": {"rate_hz": 50.0},
+            "control": {"rate_hz": rate_hz},
             "solver": {"seed": 1},
         }
     )
@@ -145,6 +145,48 @@ def test_link_loss_holds_and_recovery_resends(sim):
         # Back up: the current PWMs are sent again before anything else.
         assert wait_until(lambda: daemon.status()["counters"]["servo_updates"] > updates, WAIT_S)
         assert not daemon.status()["holding"]
+    finally:
+        daemon.close()
+
+
+def test_accepted_target_moves_at_once_and_reports_its_timing(sim):
+    # 1 Hz ticks: right after target A's first step, target B would wait about a second for
+    # the next tick. It does not: its first step goes out as soon as it is solved.
+    url, _ = sim()
+    daemon = make_daemon(url, rate_hz=1.0)
+    try:
+        arm = daemon.config.arm
+        a = daemon.submit("goto", arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()).result(WAIT_S)
+        b = daemon.submit("goto", arm.fk([-20, 100, -30, 10, 20, 30]).as_tuple()).result(WAIT_S)
+        assert a.outcome is Outcome.ACCEPTED and b.outcome is Outcome.ACCEPTED
+        t = b.timing
+        assert t["received_s"] <= t["solved_s"] <= t["first_out_s"] <= t["acked_s"]
+        assert t["first_out_s"] - t["received_s"] < 0.5
+        assert daemon.status()["last_target"]["timing"] == t
+        assert b.as_dict()["timing"] == t
+    finally:
+        daemon.close()
+
+
+def test_immediate_steps_keep_to_the_joint_speed_limit(sim):
+    # Two targets in quick succession: the second's immediate step may only move the joints
+    # as far as the joint speed allows in the time since the first step, not a whole period.
+    url, _ = sim()
+    speed_deg_s = 30.0
+    daemon = make_daemon(url, rate_hz=2.0, joint_speed_deg_s=speed_deg_s)
+    try:
+        arm = daemon.config.arm
+        a = daemon.submit("goto", arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()).result(WAIT_S)
+        after_a = daemon.status()["current_deg"]
+        b = daemon.submit("goto", arm.fk([-20, 100, -30, 10, 20, 30]).as_tuple()).result(WAIT_S)
+        after_b = daemon.status()["current_deg"]
+        assert a.outcome is Outcome.ACCEPTED and b.outcome is Outcome.ACCEPTED
+        # Both reads come long before the next 2 Hz tick, so they see exactly these steps.
+        assert b.timing["first_out_s"] - a.timing["first_out_s"] < 0.25
+        first = max(abs(x - p) for x, p in zip(after_a, [0, 90, 0, 0, 0, 0], strict=True))
+        assert first == pytest.approx(speed_deg_s / 2.0)  # a whole period's step from rest
+        second = max(abs(x - y) for x, y in zip(after_b, after_a, strict=True))
+        assert 0 < second <= speed_deg_s * (b.timing["first_out_s"] - a.timing["solved_s"])
     finally:
         daemon.close()
 
@@ -287,11 +329,11 @@ class _BuggyDaemon(ArmDaemon):
 
     bugs = 1
 
-    def _goto(self, request, pose):
+    def _goto(self, request, pose, received_s):
         if self.bugs:
             self.bugs -= 1
             raise RuntimeError("a bug under the control thread")
-        return super()._goto(request, pose)
+        return super()._goto(request, pose, received_s)
 
 
 def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):

@@ -76,6 +76,28 @@ def test_ardupilot_failed_names_the_output_and_the_statustext(udp, after_ack):
     assert [out for out, _ in servo_commands(peer)] == [9, 10, 11]  # stops at the failure
 
 
+def test_ardupilot_skip_unchanged_sends_only_what_the_autopilot_has_not_acked(udp):
+    peer, sender = udp
+    dialect = ArduPilotServoDialect(sender, default_calibration())
+    first = dict.fromkeys(range(9, 15), 1500)
+    dialect.send_pwm(first, skip_unchanged=True)  # nothing acknowledged yet: all six
+    assert servo_commands(peer) == list(first.items())
+    second = {**first, 10: 1600, 12: 1400}
+    dialect.send_pwm(second, skip_unchanged=True)
+    assert servo_commands(peer)[6:] == [(10, 1600), (12, 1400)]
+    dialect.send_pwm(second)  # the default re-sends everything (e.g. after a link loss)
+    assert servo_commands(peer)[8:] == list(second.items())
+    # A refused output is unknown afterwards, and so are the ones never reached: sent again.
+    peer.failed_outputs = {11: IN_USE}
+    third = {**second, 11: 1700, 13: 1300}
+    with pytest.raises(ServoOutputUnavailable):
+        dialect.send_pwm(third, skip_unchanged=True)
+    peer.failed_outputs = {}
+    sent_before = len(servo_commands(peer))
+    dialect.send_pwm(third, skip_unchanged=True)
+    assert servo_commands(peer)[sent_before:] == [(11, 1700), (13, 1300)]
+
+
 def test_out_of_range_values_are_never_sent(udp):
     peer, sender = udp
     dialect = ArduPilotServoDialect(sender, default_calibration())

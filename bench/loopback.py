@@ -1,0 +1,411 @@
+"""The real stack on loopback for the latency and sustained-load benches.
+
+``Stack`` starts the simulated flight controller (``python -m sim_servo``, UDP on 127.0.0.1,
+JSON-lines event log) and the daemon (``python -m companion.cli run --config F``) as two
+subprocesses, and waits until the daemon hears the autopilot. A target goes in through one
+small input class (``INPUTS``: a ground station over MAVLink through the simulated autopilot,
+the default, or the control socket); everything else in the benches is the same whatever the
+input.
+
+Clocks: the client, the daemon's per-target timing (``status()["last_target"]["timing"]``,
+``Reply.timing``) and the simulator's event log (``t_s`` + the start event's ``monotonic_s``)
+are all CLOCK_MONOTONIC, which is system-wide on Linux, so their stamps can be subtracted.
+
+Used by ``bench/latency.py`` and ``bench/sustained.py``; not a module of the package.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim_servo.eventlog import read_events
+
+SERVO_COMMANDS = {183: "DO_SET_SERVO", 187: "DO_SET_ACTUATOR"}
+WAIT_S = 30.0
+
+try:  # PNG plots when matplotlib is installed (the `plots` extra); the Markdown never needs it
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+except ImportError:  # pragma: no cover - depends on the environment
+    plt = None
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {what} within {timeout_s} s")
+        time.sleep(0.02)
+
+
+class ControlClient:
+    """One persistent connection to the daemon's control socket (JSON lines)."""
+
+    def __init__(self, path: str, timeout_s: float = 10.0) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.settimeout(timeout_s)
+        self.sock.connect(path)
+        self._buffer = b""
+
+    def request(self, obj: dict[str, Any]) -> dict[str, Any]:
+        self.sock.sendall((json.dumps(obj) + "\n").encode())
+        while b"\n" not in self._buffer:
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError("the daemon closed the control socket")
+            self._buffer += chunk
+        line, self._buffer = self._buffer.split(b"\n", 1)
+        return json.loads(line)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class ControlSocketInput:
+    """Targets as ``goto`` requests on the control socket; the reply is the client's ACK.
+
+    Requests may be sent without waiting (``send``), answers collected in order (``poll``).
+    """
+
+    name = "control socket"
+
+    def __init__(self, stack: Stack) -> None:
+        self.client = ControlClient(stack.control_path)
+        self._buffer = b""
+
+    def send(self, pose: Sequence[float]) -> float:
+        """Send one target; the monotonic time it left."""
+        line = (json.dumps({"cmd": "goto", "pose": list(pose)}) + "\n").encode()
+        sent_s = time.monotonic()
+        self.client.sock.sendall(line)
+        return sent_s
+
+    def poll(self, timeout_s: float) -> list[dict[str, Any]]:
+        """The answers that arrive within ``timeout_s`` (at least one read), in order:
+        ``answered_s``, ``outcome``, and the daemon's ``timing`` and ``solve_ms``."""
+        sock = self.client.sock
+        sock.settimeout(max(timeout_s, 1e-6))
+        try:
+            chunk = sock.recv(65536)
+        except TimeoutError:
+            return []
+        if not chunk:
+            raise ConnectionError("the daemon closed the control socket")
+        answered_s = time.monotonic()
+        self._buffer += chunk
+        answers = []
+        while b"\n" in self._buffer:
+            line, self._buffer = self._buffer.split(b"\n", 1)
+            reply = json.loads(line)
+            answers.append({
+                "answered_s": answered_s,
+                "outcome": reply.get("outcome", "error"),
+                "timing": reply.get("timing"),
+                "solve_ms": (reply.get("solve") or {}).get("elapsed_ms"),
+            })  # fmt: skip
+        return answers
+
+    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
+                    since_s: float) -> list[float]:
+        """Per answer: when the autopilot handled the last command of the target's first servo
+        update (inf if not accepted): the last servo command it handled between the daemon
+        starting that update (``timing.first_out_s``) and having all its ACKs
+        (``timing.acked_s``). An update with nothing to send (ardupilot, no PWM changed) ends
+        at ``acked_s``."""
+        sim_s = np.array([t for t, kind in _servo_and_acks(events, since_s) if kind == "servo"])
+        ends = []
+        for answer in answers:
+            timing = answer.get("timing") or {}
+            end = math.inf
+            if answer["outcome"] == "accepted" and "acked_s" in timing:
+                end = timing["acked_s"]
+                last = int(np.searchsorted(sim_s, timing["acked_s"])) - 1
+                if last >= 0 and sim_s[last] >= timing["first_out_s"]:
+                    end = float(sim_s[last])
+            ends.append(end)
+        return ends
+
+    def close(self) -> None:
+        self.client.close()
+
+
+class MavlinkInput:
+    """Targets as a ground station sends them: COMMAND_LONG ``MAV_CMD_USER_1`` to the
+    simulator's ground-station link, routed by the autopilot to the daemon; the COMMAND_ACK
+    routed back is the client's ACK. ``status`` (control socket) is asked for the daemon's
+    timing and solve time after each ACK, outside the timed path; they are kept when the
+    newest target is still the one acknowledged."""
+
+    name = "MAVLink (ground station → autopilot → daemon)"
+
+    def __init__(self, stack: Stack) -> None:
+        from sim_servo.gcs import GroundStation
+
+        self.gcs = GroundStation(stack.gcs_url)
+        if not self.gcs.connect(WAIT_S):
+            raise TimeoutError("no companion HEARTBEAT through the simulated autopilot")
+        self.status = stack.status
+        self._poses: list[list[float]] = []  # sent, not yet answered (ACKs come in order)
+
+    def send(self, pose: Sequence[float]) -> float:
+        """Send one target; the monotonic time it left."""
+        self._poses.append([float(v) for v in pose])
+        return self.gcs.send_target(pose)
+
+    def poll(self, timeout_s: float) -> list[dict[str, Any]]:
+        """As :meth:`ControlSocketInput.poll`."""
+        answers = []
+        for msg in self.gcs.receive(timeout_s):
+            if msg.get_type() != "COMMAND_ACK" or msg.command != mavlink.MAV_CMD_USER_1:
+                continue
+            answered_s = time.monotonic()
+            pose = self._poses.pop(0) if self._poses else None
+            last = self.status()["last_target"] or {}
+            mine = pose is not None and np.allclose(last.get("pose", ()), pose)
+            answers.append({
+                "answered_s": answered_s,
+                "outcome": _MAV_OUTCOME.get(msg.result, "failed"),
+                "timing": last.get("timing") if mine else None,
+                "solve_ms": last.get("solve_ms") if mine else None,
+            })  # fmt: skip
+        return answers
+
+    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
+                    since_s: float) -> list[float]:
+        """Per answer: when the autopilot handled the last servo command before it routed the
+        daemon's COMMAND_ACK for that target (the daemon answers right after the target's first
+        update is acknowledged, so in the autopilot's log that update ends just before the
+        ACK). An update with nothing to send (ardupilot, no PWM changed) ends at the ACK."""
+        ends, last_servo = [], None
+        for t_s, kind in _servo_and_acks(events, since_s):
+            if kind == "servo":
+                last_servo = t_s
+            else:
+                ends.append(t_s if last_servo is None else last_servo)
+                last_servo = None
+        ends += [math.inf] * (len(answers) - len(ends))
+        return [e if a["outcome"] == "accepted" else math.inf
+                for e, a in zip(ends, answers, strict=False)]
+
+    def close(self) -> None:
+        self.gcs.close()
+
+
+_MAV_OUTCOME = {
+    mavlink.MAV_RESULT_ACCEPTED: "accepted",
+    mavlink.MAV_RESULT_DENIED: "denied",
+    mavlink.MAV_RESULT_FAILED: "failed",
+    mavlink.MAV_RESULT_TEMPORARILY_REJECTED: "temporarily_rejected",
+}
+
+
+def answer_one(source: Any, pose: Sequence[float]) -> dict[str, Any]:
+    """Send one target and wait for its answer: ``sent_s`` plus the answer's fields."""
+    sent_s = source.send(pose)
+    deadline = time.monotonic() + WAIT_S
+    while (left := deadline - time.monotonic()) > 0:
+        answers = source.poll(left)
+        if answers:
+            return {"sent_s": sent_s, **answers[0]}
+    return {"sent_s": sent_s, "answered_s": math.inf, "outcome": "no answer", "timing": None,
+            "solve_ms": None}
+
+
+#: The target inputs by name (``--input``).
+INPUTS: dict[str, Callable[[Stack], Any]] = {
+    "mavlink": MavlinkInput,
+    "control": ControlSocketInput,
+}
+DEFAULT_INPUT = "mavlink"
+
+
+class Stack:
+    """The simulator and the daemon as subprocesses on UDP loopback (a context manager).
+
+    ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
+    ``sim_servo`` flags.
+    """
+
+    def __init__(self, *, dialect: str, daemon: dict[str, dict[str, Any]] | None = None,
+                 sim_args: Sequence[str] = ()) -> None:
+        self.dialect = dialect
+        self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
+        tmp = Path(self._tmp.name)
+        self.event_log = tmp / "sim.jsonl"
+        self.control_path = str(tmp / "control.sock")
+        self.daemon_log = tmp / "daemon.log"
+        flavour = "ardupilot" if dialect == "ardupilot" else "px4"
+        self.sim = subprocess.Popen(
+            [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--flavour", flavour,
+             "--gcs", "127.0.0.1:0", "--event-log", str(self.event_log), *sim_args],
+            stdout=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        self.daemon: subprocess.Popen | None = None
+        try:
+            url = self.sim.stdout.readline().strip()
+            kind, _, self.gcs_url = self.sim.stdout.readline().strip().partition(" ")
+            if not url.startswith("udpout:") or kind != "gcs":
+                raise RuntimeError(f"sim_servo did not start (first lines {url!r}, {kind!r})")
+            tables: dict[str, dict[str, Any]] = {
+                "link": {"url": url, "dialect": dialect},
+                "control": {"socket": self.control_path},
+            }
+            for name, values in (daemon or {}).items():
+                tables.setdefault(name, {}).update(values)
+            self.config_path = tmp / "armbridge.toml"
+            self.config_path.write_text(_toml(tables))
+            self._stderr = open(self.daemon_log, "w")  # noqa: SIM115 - closed in close()
+            self.daemon = subprocess.Popen(
+                [sys.executable, "-m", "companion.cli", "run", "--config",
+                 str(self.config_path)],
+                stderr=self._stderr,
+            )  # fmt: skip
+            wait_until(lambda: os.path.exists(self.control_path), WAIT_S, "control socket")
+            self._status_client = ControlClient(self.control_path)
+            wait_until(lambda: self.status()["link"] == "up", WAIT_S, "autopilot link")
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self) -> Stack:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def status(self) -> dict[str, Any]:
+        return self._status_client.request({"cmd": "status"})["status"]
+
+    @property
+    def daemon_pid(self) -> int:
+        assert self.daemon is not None
+        return self.daemon.pid
+
+    def stop(self) -> list[dict[str, Any]]:
+        """Stop both processes and return the simulator's events (its log is complete then)."""
+        client = getattr(self, "_status_client", None)
+        if client is not None:
+            client.close()
+            self._status_client = None
+        if self.daemon is not None and self.daemon.poll() is None:
+            self.daemon.send_signal(signal.SIGTERM)
+            self.daemon.wait(timeout=10)
+        if self.sim.poll() is None:
+            self.sim.send_signal(signal.SIGTERM)
+            self.sim.wait(timeout=10)
+        return read_events(self.event_log) if self.event_log.exists() else []
+
+    def close(self) -> None:
+        try:
+            self.stop()
+        finally:
+            for proc in (self.daemon, self.sim):
+                if proc is not None and proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+            if self.sim.stdout is not None:
+                self.sim.stdout.close()
+            stderr = getattr(self, "_stderr", None)
+            if stderr is not None:
+                stderr.close()
+            self._tmp.cleanup()
+
+
+def _toml(tables: dict[str, dict[str, Any]]) -> str:
+    lines = []
+    for name, values in tables.items():
+        lines.append(f"[{name}]")
+        for key, value in values.items():
+            lines.append(f"{key} = {json.dumps(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def _servo_and_acks(events: list[dict[str, Any]],
+                    since_s: float = -math.inf) -> list[tuple[float, str]]:
+    """In the simulator's log order, on CLOCK_MONOTONIC, from ``since_s`` on: ``(t, "servo")``
+    for each servo command it handled (DO_SET_SERVO or DO_SET_ACTUATOR) and ``(t, "ack")`` for
+    each COMMAND_ACK to a target command (USER_1) that it routed from the daemon."""
+    start = next(e for e in events if e["event"] == "start")
+    t0 = start["monotonic_s"]
+    out = []
+    for e in events:
+        if e["event"] != "rx" or t0 + e["t_s"] < since_s:
+            continue
+        if e["msg"] == "COMMAND_LONG" and e["fields"]["command"] in SERVO_COMMANDS:
+            out.append((t0 + e["t_s"], "servo"))
+        elif e["msg"] == "COMMAND_ACK" and e["fields"]["command"] == mavlink.MAV_CMD_USER_1:
+            out.append((t0 + e["t_s"], "ack"))
+    return out
+
+
+def servo_command_times(events: list[dict[str, Any]]) -> np.ndarray:
+    """Monotonic times at which the simulator handled each servo command, in order."""
+    return np.array([t for t, kind in _servo_and_acks(events) if kind == "servo"])
+
+
+# -- /proc ----------------------------------------------------------------------------------------
+
+
+def cpu_s(pid: int) -> float:
+    """User + system CPU seconds of process ``pid`` so far (all its threads)."""
+    with open(f"/proc/{pid}/stat") as handle:
+        fields = handle.read().rsplit(")", 1)[1].split()
+    # fields[0] is field 3 (state); utime and stime are fields 14 and 15.
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def rss_mb(pid: int) -> float:
+    """Resident set size (VmRSS) of process ``pid`` in MB."""
+    with open(f"/proc/{pid}/status") as handle:
+        for line in handle:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def load_average() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def machine() -> str:
+    return (f"{platform.machine()}, {os.cpu_count()} cores, Python "
+            f"{platform.python_version()}, {platform.system()} {platform.release()}")
+
+
+# -- tables -----------------------------------------------------------------------------------
+
+
+def percentiles_ms(values_s: Sequence[float]) -> tuple[float, float, float]:
+    """(p50, p99, max) in ms of durations in seconds; NaNs if empty."""
+    arr = np.asarray([v for v in values_s if v is not None and math.isfinite(v)]) * 1e3
+    if arr.size == 0:
+        return (math.nan, math.nan, math.nan)
+    return (float(np.percentile(arr, 50)), float(np.percentile(arr, 99)), float(arr.max()))
+
+
+def md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return "–" if math.isnan(v) else f"{v:.2f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return lines
