@@ -349,8 +349,10 @@ class ArmDaemon:
             now = self.clock()
             # A newly accepted target does not wait for the next tick: its first step goes out
             # now (sized by the time since the last step, see _tick), and the ticks restart
-            # from here.
-            immediate = now < next_tick and bool(self._pending)
+            # from here. Not within a period of the last step, though: servo updates never go
+            # out faster than rate_hz, however fast targets arrive (the link's bandwidth).
+            immediate = (now < next_tick and bool(self._pending)
+                         and now - self._last_step_s >= period)
             if now >= next_tick or immediate:
                 try:
                     self._tick(now, period)
