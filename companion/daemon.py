@@ -67,9 +67,6 @@ from firmware_interface import (
 log = logging.getLogger("armbridge")
 
 MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
-#: How much of a period early a new target's immediate first step may go out (the burst
-#: tolerance that keeps servo updates within rate_hz on average; see ArmDaemon._run).
-STEP_EARLY_FRACTION = 0.5
 #: An accepted motion survives this many servo updates in a row that went unanswered (each
 #: already retried by the CommandSender); then it is abandoned.
 UPDATE_ATTEMPTS = 3
@@ -154,7 +151,6 @@ class ArmDaemon:
         self._dialect = None
         self._last_tick = clock()
         self._last_step_s = -math.inf  # when the last step was sent (for the speed limit)
-        self._step_due_s = -math.inf  # when the next step is due at rate_hz on average
         arm = config.arm
         start = config.park_deg or tuple(
             math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints
@@ -353,11 +349,10 @@ class ArmDaemon:
             now = self.clock()
             # A newly accepted target does not wait for the next tick: its first step goes out
             # now (sized by the time since the last step, see _tick), and the ticks restart
-            # from here, as long as the updates stay within rate_hz on average (the link's
-            # bandwidth): a generic cell-rate check, so a stream at rate_hz whose targets come
-            # a little early or late still goes straight through, and a burst gets one update.
-            immediate = (now < next_tick and bool(self._pending)
-                         and now >= self._step_due_s - STEP_EARLY_FRACTION * period)
+            # from here. Unless more requests are already waiting: a burst is handled first
+            # and its latest goal gets one update, so a flood of targets cannot turn into a
+            # flood of servo updates (each update also waits for its ACKs: the link's pace).
+            immediate = now < next_tick and bool(self._pending) and self._queue.empty()
             if now >= next_tick or immediate:
                 try:
                     self._tick(now, period)
@@ -559,7 +554,6 @@ class ArmDaemon:
         first_out_s = self.clock()
         if self._send(pwm):
             self._last_step_s = now
-            self._step_due_s = max(self._step_due_s, now) + period
             self._set_current(step)
             out = {"first_out_s": first_out_s, "acked_s": self.clock()}
             self._record_first_out(out)
