@@ -96,7 +96,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from companion.control import ControlServer
     from companion.daemon import ArmDaemon
     from companion.systemd import Notifier
-    from firmware_interface import LinkState
+    from firmware_interface import LinkError, LinkState
 
     config = load_config(args.config)  # ConfigError → exit 2, nothing opened or sent
     # The start-up heap (numpy, numba, pymavlink: ~120k objects) never dies. Frozen, the
@@ -124,6 +124,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 ) from exc
         try:
             daemon.start()
+        except LinkError as exc:
+            # E.g. the serial device is not there (yet): say so in one line and fail, so
+            # systemd's Restart=on-failure tries again (RestartSec=2 in the shipped unit).
+            log.error("cannot open the autopilot link: %s", exc)
+            return 1
         except OSError as exc:
             # The link maps transport errors to its own; an OSError left is the signing state
             # file, the only file it writes (its directory may be missing or read-only).

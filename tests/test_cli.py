@@ -183,3 +183,17 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
         sim.wait(timeout=5)
         sim.stdout.close()
         notify.close()
+
+
+def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
+    """The flight controller's port is missing (unplugged, not enumerated yet): one clear line
+    and exit 1, so systemd's Restart=on-failure tries again; no traceback."""
+    config = tmp_path / "armbridge.toml"
+    config.write_text(f'[link]\nurl = "{tmp_path / "ttyACM9"},115200"\n')
+    done = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert done.returncode == 1
+    assert "cannot open the autopilot link" in done.stderr and "ttyACM9" in done.stderr
+    assert "Traceback" not in done.stderr
