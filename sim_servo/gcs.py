@@ -19,10 +19,9 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim_servo.autopilot import SIGNING_EPOCH_UNIX_S
 from sim_servo.errors import SimIOError
 
-#: MAVLink 2 signing timestamps count 10 µs ticks from 2015-01-01 00:00 UTC.
-SIGNING_EPOCH_UNIX_S = 1_420_070_400
 GCS_SYSTEM_ID = 255
 GCS_COMPONENT_ID = mavlink.MAV_COMP_ID_MISSIONPLANNER  # 190
 COMPANION_COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191

@@ -17,12 +17,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.arm import Pose
 from companion.config import parse_config
 from companion.daemon import ArmDaemon, Outcome
-from companion.kinematics import rotation_angle
 from sim_servo.query import query
 from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests._sim_process import hand_errors
 
 WAIT_S = 10.0
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
@@ -68,15 +67,6 @@ def make_daemon(url, rate_hz=50.0, **arm):
 
 def sim_hand(sock):
     return query(sock, "state")["hand"]
-
-
-def hand_errors(pose_values, hand):
-    """Position (cm) and orientation (deg, rotation angle) of the sim's hand against a target."""
-    target = Pose(*pose_values)
-    reached = Pose(**hand["pose"])
-    pos = float(np.linalg.norm(reached.position_cm - target.position_cm))
-    ori = math.degrees(float(rotation_angle(target.rotation, reached.rotation)))
-    return pos, ori
 
 
 def settled(daemon, sock):

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -27,14 +26,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.arm import Pose
 from companion.config import parse_config
 from companion.control import request
 from companion.daemon import ArmDaemon, Outcome
-from companion.kinematics import rotation_angle
-from sim_servo.eventlog import read_events
-from sim_servo.query import query
 from tests._mavlink_peer import wait_until
+from tests._sim_process import SimProcess, hand_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 WAIT_S = 10.0
@@ -44,55 +40,15 @@ QUANT_POS_CM = 0.2
 QUANT_ORI_DEG = 0.5
 
 
-class Sim:
-    """A ``python -m sim_servo`` subprocess with a query socket and an event log."""
-
-    def __init__(self, tmp_path: Path, *args: str) -> None:
-        self.query_path = str(tmp_path / "sim.sock")
-        self.log_path = tmp_path / "sim-events.jsonl"
-        command = [sys.executable, "-m", "sim_servo", *args, "--query-socket", self.query_path,
-                   "--event-log", str(self.log_path)]
-        self.proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
-        ready, _, _ = select.select([self.proc.stdout], [], [], WAIT_S)
-        self.url = self.proc.stdout.readline().strip() if ready else ""
-        if not self.url:
-            self.kill()
-            raise AssertionError(f"simulator did not start: {self.proc.stderr.read()}")
-        assert wait_until(lambda: os.path.exists(self.query_path), WAIT_S)
-
-    def state(self) -> dict:
-        return query(self.query_path, "state")
-
-    def events(self, event: str | None = None, **fields) -> list[dict]:
-        return [e for e in read_events(self.log_path)
-                if (event is None or e["event"] == event)
-                and all(e.get(k) == v for k, v in fields.items())]
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(WAIT_S)
-        finally:
-            self.kill()
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(WAIT_S)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            pipe.close()
-
-
 @pytest.fixture
 def sims(tmp_path):
     """Starts simulators (``sims(*flags)``); each is stopped at the end, asserting exit 0."""
-    started: list[Sim] = []
+    started: list[SimProcess] = []
 
-    def start(*args: str) -> Sim:
+    def start(*args: str) -> SimProcess:
         directory = tmp_path / f"sim{len(started)}"
         directory.mkdir()
-        sim = Sim(directory, *args)
+        sim = SimProcess(directory, *args)
         started.append(sim)
         return sim
 
@@ -135,20 +91,11 @@ def poses(daemon_config, count: int, seed: int) -> list[tuple[float, ...]]:
     return out
 
 
-def hand_errors(target, hand) -> tuple[float, float]:
-    """Position (cm) and orientation (deg, rotation angle) of the sim's hand from a target."""
-    goal = Pose(*target)
-    reached = Pose(**hand["pose"])
-    pos_cm = float(np.linalg.norm(reached.position_cm - goal.position_cm))
-    ori_deg = math.degrees(float(rotation_angle(goal.rotation, reached.rotation)))
-    return pos_cm, ori_deg
-
-
 def sim_pwm(state: dict, outputs) -> dict[int, int]:
     return {o: state["outputs"][str(o)]["pwm_us"] for o in outputs}
 
 
-def assert_pwm_within_calibration(sim: Sim, calibration) -> int:
+def assert_pwm_within_calibration(sim: SimProcess, calibration) -> int:
     """Every PWM the simulator was sent for, or applied to, an arm output is inside that
     joint's calibrated range, and no other output was touched. Returns how many were checked."""
     ranges = {j.output: j.pwm_range_us for j in calibration.joints}

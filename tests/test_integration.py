@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.arm import Arm, Pose
+from companion.arm import Arm
 from companion.control import request
 from companion.jacobian import geometric_jacobian
-from companion.kinematics import rotation_angle
 from firmware_interface.calibration import default_calibration
 from sim_servo.gcs import GroundStation
 from sim_servo.query import query
 from tests._mavlink_peer import wait_until
+from tests._sim_process import hand_errors
 
 WAIT_S = 15.0
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)  # the papers' target G: out of reach
@@ -132,15 +132,6 @@ def stop_all(procs: list[subprocess.Popen]) -> None:
             if stream is not None:
                 stream.close()
     assert all(code == 0 for code in codes), codes
-
-
-def hand_errors(pose_values, hand) -> tuple[float, float]:
-    """Position (cm) and orientation (deg, rotation angle) of the sim's hand from a target."""
-    target = Pose(*pose_values)
-    reached = Pose(**hand["pose"])
-    pos = float(np.linalg.norm(reached.position_cm - target.position_cm))
-    ori = math.degrees(float(rotation_angle(target.rotation, reached.rotation)))
-    return pos, ori
 
 
 def quantisation_bound(q_deg, slack_us: float) -> tuple[float, float]:

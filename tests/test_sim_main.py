@@ -8,10 +8,7 @@ on conditions with a bound, and stops the process with SIGTERM, asserting a clea
 from __future__ import annotations
 
 import select
-import signal
 import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -20,61 +17,11 @@ import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.__main__ import build_parser, main
-from sim_servo.eventlog import read_events
-from sim_servo.query import query
+from tests._mavlink_peer import wait_until
+from tests._sim_process import SimProcess
 
 WAIT_S = 10.0
 ROOT = Path(__file__).resolve().parents[1]
-
-
-class Sim:
-    """A running simulator process."""
-
-    def __init__(self, *args: str, tmp_path: Path) -> None:
-        self.query_path = str(tmp_path / "sim.sock")
-        self.log_path = tmp_path / "events.jsonl"
-        command = [
-            sys.executable,
-            "-m",
-            "sim_servo",
-            *args,
-            "--query-socket",
-            self.query_path,
-            "--event-log",
-            str(self.log_path),
-        ]
-        self.proc = subprocess.Popen(
-            command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE
-        )
-        ready, _, _ = select.select([self.proc.stdout], [], [], WAIT_S)
-        if not ready:
-            self.kill()
-            raise AssertionError("simulator printed no URL")
-        self.url = self.proc.stdout.readline().decode().strip()
-        if not self.url:
-            err = self.proc.stderr.read().decode()
-            self.kill()
-            raise AssertionError(f"simulator failed to start: {err}")
-
-    def state(self) -> dict:
-        return query(self.query_path, "state")
-
-    def events(self) -> list[dict]:
-        return read_events(self.log_path)
-
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(WAIT_S)
-        finally:
-            self.kill()
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(WAIT_S)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            pipe.close()
 
 
 class UdpClient:
@@ -134,23 +81,13 @@ def ack_for(command: int):
     return lambda m: m.get_type() == "COMMAND_ACK" and m.command == command
 
 
-def wait_until(condition, timeout_s: float = WAIT_S, what: str = "condition"):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"{what} not met within {timeout_s} s")
-
-
 @pytest.fixture
 def udp_sim(tmp_path):
-    sims: list[Sim] = []
+    sims: list[SimProcess] = []
     clients: list[UdpClient] = []
 
-    def start(*args: str, signing_key: bytes | None = None) -> tuple[Sim, UdpClient]:
-        sim = Sim("--udp", "127.0.0.1:0", *args, tmp_path=tmp_path)
+    def start(*args: str, signing_key: bytes | None = None) -> tuple[SimProcess, UdpClient]:
+        sim = SimProcess(tmp_path, "--udp", "127.0.0.1:0", *args)
         sims.append(sim)
         client = UdpClient(sim.url, signing_key)
         clients.append(client)
@@ -218,7 +155,7 @@ def test_udp_slew_timing_and_hand_at_target(udp_sim):
     sent = time.monotonic()
     state = sim.state()
     assert state["outputs"]["9"]["moving"]
-    settled = wait_until(lambda: sim.state()["settled"], what="servo settled")
+    settled = wait_until(lambda: sim.state()["settled"])
     elapsed = time.monotonic() - sent
     travel_s = 500 * 0.18 / (60 / 0.6)  # 500 µs × 0.18 °/µs at 100 °/s = 0.9 s
     assert travel_s * 0.8 < elapsed < travel_s + 3.0  # loose: shared machine
@@ -240,7 +177,7 @@ def test_udp_signing_required(udp_sim, tmp_path):
     key_file.write_text(key.hex() + "\n")
     sim, unsigned = udp_sim("--signing-key", str(key_file))
     unsigned.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
-    wait_until(lambda: sim.state()["stats"]["rejected_signature"] >= 2, what="rejections")
+    assert wait_until(lambda: sim.state()["stats"]["rejected_signature"] >= 2)
     assert sim.state()["outputs"]["9"]["pwm_us"] == 0
     signed = UdpClient(sim.url, signing_key=key)
     try:
@@ -259,7 +196,7 @@ def test_udp_faults_withhold_nack_heartbeat_pause(udp_sim):
     client.command(mavlink.MAV_CMD_NAV_TAKEOFF)
     client.wait_for(ack_for(22))  # the link works...
     client.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
-    wait_until(lambda: sim.state()["outputs"]["9"]["pwm_us"] == 1600, what="servo applied")
+    assert wait_until(lambda: sim.state()["outputs"]["9"]["pwm_us"] == 1600)
     deadline = time.monotonic() + 1.5
     while time.monotonic() < deadline:
         client.read(0.05)
@@ -280,14 +217,14 @@ def test_udp_drop_and_latency(udp_sim):
 
     sim, client = udp_sim("--drop-out", "1", "--seed", "1")
     client.command(mavlink.MAV_CMD_NAV_TAKEOFF)
-    wait_until(lambda: sim.state()["stats"]["dropped_out"] >= 2, what="drops")
+    assert wait_until(lambda: sim.state()["stats"]["dropped_out"] >= 2)
     client.read(0.3)
     assert client.log == []
     assert sim.stop() == 0
 
 
 def test_tcp_link(tmp_path):
-    sim = Sim("--tcp", "127.0.0.1:0", tmp_path=tmp_path)
+    sim = SimProcess(tmp_path, "--tcp", "127.0.0.1:0")
     try:
         _, host, port = sim.url.split(":")
         with socket.create_connection((host, int(port)), timeout=WAIT_S) as sock:
@@ -316,7 +253,7 @@ def _pty_exchange(port: serial.Serial, mav, dec, msg, want, timeout_s=WAIT_S):
 
 
 def test_pty_link_and_hangup(tmp_path):
-    sim = Sim("--pty", "--hangup-after", "2.5", tmp_path=tmp_path)
+    sim = SimProcess(tmp_path, "--pty", "--hangup-after", "2.5")
     try:
         device, _, baud = sim.url.rpartition(",")
         assert device.startswith("/dev/") and baud == "115200"
@@ -338,7 +275,7 @@ def test_pty_link_and_hangup(tmp_path):
                 port, mav, dec, mav.heartbeat_encode(18, 8, 0, 0, 0), is_type("STATUSTEXT")
             )
             assert text.text == "ServoRelayEvent: Channel 3 is already in use"
-            wait_until(lambda: sim.state()["link"]["closed"], what="hang-up")
+            assert wait_until(lambda: sim.state()["link"]["closed"])
 
             def read_fails() -> bool:
                 try:
@@ -347,7 +284,7 @@ def test_pty_link_and_hangup(tmp_path):
                     return True
                 return False
 
-            wait_until(read_fails, what="reads to fail after the hang-up")
+            assert wait_until(read_fails)
         assert any(e.get("fault") == "hangup" for e in sim.events())
         assert sim.stop() == 0
     finally:
