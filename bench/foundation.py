@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.arm import Arm, Pose
-from companion.objective import IKObjective
-from companion.solvers.de import differential_evolution
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.objective import IKObjective
+from companion.papers.de import differential_evolution
 
 
 def time_per_call(fn, repeats: int = 5) -> float:

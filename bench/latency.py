@@ -57,7 +57,7 @@ from loopback import (
     servo_command_times,
 )
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
 SEGMENTS = ("input", "solve", "queue", "tick wait", "first frame", "rest of update", "ACK back")

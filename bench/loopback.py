@@ -1,7 +1,7 @@
 """The real stack on loopback for the latency and sustained-load benches.
 
 ``Stack`` starts the simulated flight controller (``python -m sim_servo``, UDP on 127.0.0.1,
-JSON-lines event log) and the daemon (``python -m companion.cli run --config F``) as two
+JSON-lines event log) and the daemon (``python -m companion.daemon.cli run --config F``) as two
 subprocesses, and waits until the daemon hears the autopilot. A target goes in through one
 small input class (``INPUTS``: a ground station over MAVLink through the simulated autopilot,
 the default, or the control socket); everything else in the benches is the same whatever the
@@ -273,7 +273,7 @@ class Stack:
             self.config_path.write_text(_toml(tables))
             self._stderr = open(self.daemon_log, "w")  # noqa: SIM115 - closed in close()
             self.daemon = subprocess.Popen(
-                [sys.executable, "-m", "companion.cli", "run", "--config",
+                [sys.executable, "-m", "companion.daemon.cli", "run", "--config",
                  str(self.config_path)],
                 stderr=self._stderr,
             )  # fmt: skip

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.arm import Arm, Pose
-from companion.inverse_acceleration import (
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.inverse_acceleration import (
     DEFAULT_FIT_ITERATIONS,
     PAPER_CASE4_CLAIMED_LINKS_M,
     PAPER_CASES_QDD,
@@ -38,11 +38,11 @@ from companion.inverse_acceleration import (
     planar_3r,
     recovery_error,
 )
-from companion.objective import IKObjective
-from companion.solvers import hs
-from companion.solvers.base import SolverResult
-from companion.solvers.de import differential_evolution
-from companion.solvers.msfla import shuffled_frog_leaping
+from companion.papers.objective import IKObjective
+from companion.papers import hs
+from companion.papers.base import SolverResult
+from companion.papers.de import differential_evolution
+from companion.papers.msfla import shuffled_frog_leaping
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -175,7 +175,7 @@ def pose_str(arm: Arm, q_rad: np.ndarray) -> str:
 
 def wide_arm(arm: Arm) -> Arm:
     """The same DH table with every joint limited to ±180° (the papers' apparent setting)."""
-    data = tomllib.loads((resources.files("companion") / "arms" / "paper_arm.toml").read_text())
+    data = tomllib.loads((resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text())
     for joint in data["joint"]:
         joint["min_deg"], joint["max_deg"] = -180.0, 180.0
     data["name"] = arm.name + "-no-limits"
@@ -232,7 +232,7 @@ def section_hs(seeds: int, figs: list, stats: dict) -> list[str]:
     lines = ["## 1. Harmony search for inverse acceleration (paper 004)", ""]
     lines += [
         "Model: planar 3R, links 1, 1, 1 m, at rest at q = 0, q̈ constant, ẍ = J(q)q̈ + J̇q̇, "
-        "103 samples from 0 to 5 s (`companion.inverse_acceleration.planar_3r`, checked against "
+        "103 samples from 0 to 5 s (`companion.papers.inverse_acceleration.planar_3r`, checked against "
         "the generic DH-Jacobian model of the same arm in the tests). Search box q̈ ∈ [−1, 1]³.",
         "",
         "### 1.1 Forward model against the papers' “original trajectory” columns",

@@ -47,12 +47,12 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion import cli
-from companion import config as config_module
-from companion.arm import Arm
-from companion.config import parse_config
-from companion.control import request as control_request
-from companion.daemon import ArmDaemon, Outcome
+from companion.daemon import cli
+from companion.daemon import config as config_module
+from companion.kinematics.arm import Arm
+from companion.daemon.config import parse_config
+from companion.daemon.control_socket import request as control_request
+from companion.daemon.service import ArmDaemon, Outcome
 from firmware_interface import ArmCalibration
 from sim_servo.query import query
 from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
@@ -626,7 +626,7 @@ def run_mavlink_fuzz(
     started = time.perf_counter()
     with open(stderr_path, "wb") as stderr:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(config_path)],
+            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config_path)],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
         )
     reachable = Arm.default().fk([20, 70, 50, 20, 30, 10]).as_tuple()
@@ -737,9 +737,9 @@ def _status(control: Path) -> dict[str, Any] | None:
 # 3. Config fuzz
 # ---------------------------------------------------------------------------------------------
 
-EXAMPLE_TEXT = (resources.files("companion") / "examples" / "armbridge.toml").read_text()
+EXAMPLE_TEXT = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
 ARM_DOF = 6
-#: (section, keys) as companion.config declares them; [[joint]] rows are repeated per joint.
+#: (section, keys) as companion.daemon.config declares them; [[joint]] rows are repeated per joint.
 SCHEMA_SECTIONS = {
     "link": config_module._LINK_KEYS,
     "arm": config_module._ARM_KEYS,
@@ -803,7 +803,7 @@ _NEEDS = {
 
 
 def schema_fields() -> list[str]:
-    """Every dotted field the config accepts, from companion.config's own key lists."""
+    """Every dotted field the config accepts, from companion.daemon.config's own key lists."""
     return [f"{section}.{key}" for section, keys in SCHEMA_SECTIONS.items() for key in keys]
 
 
@@ -1051,7 +1051,7 @@ def run_rejects_config(directory: Path, text: str) -> tuple[int, str, int]:
     path.write_text(text.replace("udpout:127.0.0.1:14550", f"udpout:127.0.0.1:{port}"))
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(path)],
+            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(path)],
             capture_output=True, text=True, timeout=60,
         )
         # The process has exited: anything it sent is already queued on our socket.

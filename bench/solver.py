@@ -36,11 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 from companion.ik import SolverSettings, kernel_arrays, solve
-from companion.objective import IKObjective
-from companion.solvers import memetic
-from companion.solvers.de import differential_evolution
+from companion.papers.objective import IKObjective
+from companion.ik import kernels
+from companion.papers.de import differential_evolution
 
 TOL_POS_CM = 1e-3
 TOL_ORI_DEG = 1e-3
@@ -98,10 +98,10 @@ def multistart_lm(arm: Arm, budget_ms: float) -> Solver:
     """Ablation: the solver's LM (20 steps) from uniform random starts until the tolerances
     are met or the budget is spent: what DE adds is the difference to this row."""
     k = kernel_arrays(arm)
-    fp = np.zeros(memetic.N_FPARAMS)
-    fp[memetic.F_TOL_POS] = TOL_POS_CM
-    fp[memetic.F_TOL_ORI] = TOL_ORI_DEG
-    fp[memetic.F_LM_LAMBDA0] = SolverSettings().lm_lambda0
+    fp = np.zeros(kernels.N_FPARAMS)
+    fp[kernels.F_TOL_POS] = TOL_POS_CM
+    fp[kernels.F_TOL_ORI] = TOL_ORI_DEG
+    fp[kernels.F_LM_LAMBDA0] = SolverSettings().lm_lambda0
     out = np.empty(3)
 
     def run(target: Pose, seed: int) -> np.ndarray:
@@ -111,7 +111,7 @@ def multistart_lm(arm: Arm, budget_ms: float) -> Solver:
         best, best_cost = None, math.inf
         while time.perf_counter() - started < budget_ms / 1e3:
             q = k.lower + rng.random(arm.dof) * (k.upper - k.lower)
-            memetic.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 20, out)
+            kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 20, out)
             if out[0] < best_cost:
                 best, best_cost = q, out[0]
             if out[1] <= TOL_POS_CM and out[2] <= TOL_ORI_DEG:
@@ -285,7 +285,7 @@ def first_call(cache_dir: str | None) -> dict:
     """Import + first solve in a fresh interpreter; ``cache_dir`` forces numba's cache there."""
     code = (
         "import time; t0 = time.perf_counter()\n"
-        "from companion.arm import Arm\n"
+        "from companion.kinematics.arm import Arm\n"
         "from companion import ik\n"
         "t1 = time.perf_counter(); arm = Arm.default(); target = arm.fk([10, 80, 20, 10, 20, 30])\n"
         "t1 = time.perf_counter(); r = ik.solve(arm, target, seed=0)\n"

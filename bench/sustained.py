@@ -54,7 +54,7 @@ from loopback import (
     rss_mb,
 )
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
 SLOT_S = 0.02  # 50 Hz

@@ -14,7 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 from firmware_interface.calibration import ArmCalibration, calibration_from_ranges
 from firmware_interface.errors import CalibrationError, ConfigurationError
 from sim_servo.config import ArmConfig

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.arm import Pose
+from companion.kinematics.arm import Pose
 from companion.kinematics import rotation_angle
 from sim_servo.eventlog import read_events
 from sim_servo.query import query

@@ -8,11 +8,11 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 from companion.errors import ArmConfigError, JointLimitError
 from companion.kinematics import DHConvention
 
-PAPER_TOML = (resources.files("companion") / "arms" / "paper_arm.toml").read_text()
+PAPER_TOML = (resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text()
 
 
 def test_default_arm_is_the_papers_table():

@@ -13,9 +13,10 @@ import time
 
 import pytest
 
-from companion.arm import Pose
-from companion.cli import PAPER_TARGET_G, main, write_demo_plot
-from companion.control import request
+from companion.kinematics.arm import Pose
+from companion.daemon.cli import main
+from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
+from companion.daemon.control_socket import request
 from tests._mavlink_peer import wait_until
 
 WAIT_S = 15.0
@@ -122,7 +123,7 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
     )
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "2000000"}
     daemon = subprocess.Popen(
-        [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
         env=env,
         stderr=subprocess.PIPE,
         text=True,
@@ -191,7 +192,7 @@ def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
     config = tmp_path / "armbridge.toml"
     config.write_text(f'[link]\nurl = "{tmp_path / "ttyACM9"},115200"\n')
     done = subprocess.run(
-        [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
         capture_output=True, text=True, timeout=60,
     )
     assert done.returncode == 1

@@ -6,10 +6,10 @@ from importlib import resources
 
 import pytest
 
-from companion.config import load_config
+from companion.daemon.config import load_config
 from companion.errors import ConfigError
 
-EXAMPLE = (resources.files("companion") / "examples" / "armbridge.toml").read_text()
+EXAMPLE = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
 
 
 def write(tmp_path, text, name="armbridge.toml"):

@@ -3,7 +3,7 @@ knows, makes ``armbridge check-config`` exit 2 with a message naming the file an
 ``armbridge run`` on a bad config exits 2 and sends nothing to a listening autopilot.
 
 The cases come from ``bench/reliability.py`` (``config_cases``), which enumerates the fields
-from ``companion.config``'s own key lists: a new field without a fuzz entry fails here.
+from ``companion.daemon.config``'s own key lists: a new field without a fuzz entry fails here.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from bench.reliability import (
     run_rejects_config,
     schema_fields,
 )
-from companion.config import load_config
+from companion.daemon.config import load_config
 from companion.errors import ConfigError
 
 SEED = 8

@@ -7,9 +7,9 @@ import socket
 
 import pytest
 
-from companion.config import parse_config
-from companion.control import ControlServer, request
-from companion.daemon import ArmDaemon
+from companion.daemon.config import parse_config
+from companion.daemon.control_socket import ControlServer, request
+from companion.daemon.service import ArmDaemon
 
 
 @pytest.fixture

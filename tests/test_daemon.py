@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.config import parse_config
-from companion.daemon import ArmDaemon, Outcome
+from companion.daemon.config import parse_config
+from companion.daemon.service import ArmDaemon, Outcome
 from sim_servo.query import query
 from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
 from tests._sim_process import hand_errors

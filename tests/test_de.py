@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.arm import Arm, Pose
-from companion.objective import IKObjective, OrientationMetric
-from companion.solvers.base import StopReason
-from companion.solvers.de import (
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.objective import IKObjective, OrientationMetric
+from companion.papers.base import StopReason
+from companion.papers.de import (
     CROSSOVERS,
     MUTATIONS,
     DEParams,

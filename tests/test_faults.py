@@ -26,9 +26,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.config import parse_config
-from companion.control import request
-from companion.daemon import ArmDaemon, Outcome
+from companion.daemon.config import parse_config
+from companion.daemon.control_socket import request
+from companion.daemon.service import ArmDaemon, Outcome
 from tests._mavlink_peer import wait_until
 from tests._sim_process import SimProcess, hand_errors
 
@@ -176,7 +176,7 @@ def test_every_accepted_target_reaches_the_servos_through_10_percent_loss_and_ji
 
 
 class DaemonProcess:
-    """``python -m companion.cli run --config FILE`` with a control socket; logs to a file."""
+    """``python -m companion.daemon.cli run --config FILE`` with a control socket; logs to a file."""
 
     def __init__(self, tmp_path: Path, url: str, **sections) -> None:
         self.socket = str(tmp_path / "control.sock")
@@ -190,7 +190,7 @@ class DaemonProcess:
         self.log_path = tmp_path / "daemon.log"
         self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(path)],
+            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(path)],
             cwd=ROOT, stdout=self._log, stderr=subprocess.STDOUT)
         assert wait_until(lambda: os.path.exists(self.socket) or self.proc.poll() is not None,
                           30.0)

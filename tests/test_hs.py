@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.solvers.base import StopReason
-from companion.solvers.hs import HarmonySearch, harmony_search
+from companion.papers.base import StopReason
+from companion.papers.hs import HarmonySearch, harmony_search
 
 
 class Sphere:

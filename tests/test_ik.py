@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 from companion.ik import SolverSettings, solve
-from companion.objective import IKObjective
-from companion.solvers.base import StopReason
+from companion.papers.objective import IKObjective
+from companion.ik import StopReason
 
 ARM = Arm.default()
 G = Pose(-20, 3, 40, 0, 10, 15)  # the papers' target: unreachable within the Table 2 limits

@@ -2,7 +2,7 @@
 daemon.
 
 ``python -m sim_servo`` runs with a ground-station link (``--gcs``) and routes between it and
-the daemon's link as ArduPilot does. ``python -m companion.cli run`` is the daemon, on UDP or on
+the daemon's link as ArduPilot does. ``python -m companion.daemon.cli run`` is the daemon, on UDP or on
 the simulator's pseudo-terminal. A pymavlink ground station (:class:`sim_servo.gcs.GroundStation`)
 sends ``MAV_CMD_USER_1`` targets through the autopilot and reads the daemon's COMMAND_ACKs. The
 daemon's state comes from its control socket, the servos' and the hand's from the simulator's
@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.arm import Arm
-from companion.control import request
-from companion.jacobian import geometric_jacobian
+from companion.kinematics.arm import Arm
+from companion.daemon.control_socket import request
+from companion.kinematics.jacobian import geometric_jacobian
 from firmware_interface.calibration import default_calibration
 from sim_servo.gcs import GroundStation
 from sim_servo.query import query
@@ -63,7 +63,7 @@ class Chain:
             f'[solver]\nseed = 1\n[control]\nrate_hz = 50.0\nsocket = "{self.control}"\n'
         )
         self.daemon = self._spawn(
-            [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
             stderr=subprocess.PIPE)
         assert wait_until(lambda: os.path.exists(self.control), WAIT_S), self._stderr()
         assert wait_until(lambda: self.status()["link"] == "up", WAIT_S)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.arm import Arm
-from companion.inverse_acceleration import (
+from companion.kinematics.arm import Arm
+from companion.papers.inverse_acceleration import (
     PAPER_CASE4_CLAIMED_LINKS_M,
     PAPER_CASES_QDD,
     PAPER_T_S,

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.arm import Arm
-from companion.inverse_acceleration import planar_3r_arm
-from companion.jacobian import geometric_jacobian, hand_acceleration, jacobian_and_derivative
+from companion.kinematics.arm import Arm
+from companion.papers.inverse_acceleration import planar_3r_arm
+from companion.kinematics.jacobian import geometric_jacobian, hand_acceleration, jacobian_and_derivative
 
 ARMS = {
     "standard": Arm.default(),

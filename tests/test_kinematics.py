@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.arm import Arm
+from companion.kinematics.arm import Arm
 from companion.kinematics import (
     DHConvention,
     matrix_to_rpy,
@@ -71,7 +71,7 @@ def _rz3(deg):
     return np.array([[math.cos(g), -math.sin(g), 0], [math.sin(g), math.cos(g), 0], [0, 0, 1]])
 
 
-# Golden values derived by hand, frame by frame, from the tables in companion/arms/:
+# Golden values derived by hand, frame by frame, from the tables in companion/kinematics/arms/:
 # * standard, q = 0: the chain stands straight up; x: 6.4 (a1) + 2 (−d6 along −x) = 8.4,
 #   z: 30.2 + 23.5 + 5.3 + 5.6 = 64.6; hand axes x6 = z0, y6 = y0, z6 = −x0, i.e. Ry(−90°).
 # * standard, q1 = 90°: the same rotated by Rz(90°) about the base axis.

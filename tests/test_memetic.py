@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from companion.arm import Arm
+from companion.kinematics.arm import Arm
 from companion.ik import kernel_arrays
 from companion.kinematics import rotation_angle, rpy_to_matrix
-from companion.solvers import memetic
+from companion.ik import kernels
 
 PAPER = Arm.default()
 MODIFIED = Arm.from_package_file("paper_arm_modified.toml")
@@ -32,7 +32,7 @@ def kernel_fk(arm, q, want_axes=False):
     k = kernel_arrays(arm)
     rot, pos = np.empty((3, 3)), np.empty(3)
     axes, points = np.empty((arm.dof, 3)), np.empty((arm.dof, 3))
-    memetic.fk_frames(q, k.dh, k.modified, k.tool, rot, pos, axes, points, want_axes)
+    kernels.fk_frames(q, k.dh, k.modified, k.tool, rot, pos, axes, points, want_axes)
     return rot, pos, axes, points
 
 
@@ -76,7 +76,7 @@ def test_pose_residual_is_position_and_rotation_vector():
         goal[:3, :3] = turn @ rot
         goal[:3, 3] = pos + [0.0, 3.0, 4.0]
         res = np.empty(6)
-        pos_err, ori_err = memetic.pose_residual(rot, pos, goal, res)
+        pos_err, ori_err = kernels.pose_residual(rot, pos, goal, res)
         assert pos_err == pytest.approx(5.0)
         np.testing.assert_allclose(res[:3], [0.0, 3.0, 4.0])
         assert ori_err == pytest.approx(math.degrees(angle), abs=1e-9)
@@ -87,10 +87,10 @@ def test_pose_residual_is_position_and_rotation_vector():
 
 def _lm_inputs(arm, seed):
     k = kernel_arrays(arm)
-    fp = np.zeros(memetic.N_FPARAMS)
-    fp[memetic.F_TOL_POS] = 1e-9
-    fp[memetic.F_TOL_ORI] = 1e-9
-    fp[memetic.F_LM_LAMBDA0] = 1e-3
+    fp = np.zeros(kernels.N_FPARAMS)
+    fp[kernels.F_TOL_POS] = 1e-9
+    fp[kernels.F_TOL_ORI] = 1e-9
+    fp[kernels.F_LM_LAMBDA0] = 1e-3
     q_true = arm.random_q_rad(np.random.default_rng(seed), 1)[0]
     return k, fp, q_true, arm.fk_matrix(q_true)
 
@@ -99,7 +99,7 @@ def test_lm_converges_from_nearby_and_stays_in_limits():
     k, fp, q_true, goal = _lm_inputs(PAPER, 5)
     q = np.clip(q_true + 0.1, k.lower, k.upper)
     out = np.empty(3)
-    steps = memetic.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 30, out)
+    steps = kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 30, out)
     assert 0 < steps <= 30
     assert out[1] < 1e-9 and out[2] < 1e-9
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
@@ -111,7 +111,7 @@ def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
     goal = PAPER.fk_matrix(q_outside)
     q = np.radians([0.0, 10.0, 0.0, 0.0, 0.0, 0.0])
     out = np.empty(3)
-    memetic.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 50, out)
+    kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 50, out)
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
@@ -120,26 +120,26 @@ def test_lm_with_zero_iterations_leaves_q_alone():
     q = q_true * 0.5
     before = q.copy()
     out = np.empty(3)
-    assert memetic.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 0, out) == 0
+    assert kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 0, out) == 0
     np.testing.assert_array_equal(q, before)
 
 
 def test_rng_stream_is_uniform_and_repeatable():
     a = np.array([42], dtype=np.uint64)
     b = np.array([42], dtype=np.uint64)
-    xs = np.array([memetic._rand(a) for _ in range(20000)])
-    ys = np.array([memetic._rand(b) for _ in range(20000)])
+    xs = np.array([kernels._rand(a) for _ in range(20000)])
+    ys = np.array([kernels._rand(b) for _ in range(20000)])
     np.testing.assert_array_equal(xs, ys)
     assert xs.min() >= 0.0 and xs.max() < 1.0
     assert abs(xs.mean() - 0.5) < 0.01
-    counts = np.bincount([memetic._randint(a, 7) for _ in range(70000)], minlength=7)
+    counts = np.bincount([kernels._randint(a, 7) for _ in range(70000)], minlength=7)
     assert counts.min() > 9000 and counts.max() < 11000
 
 
 def test_goal_matrix_equals_pose_as_matrix():
-    from companion.arm import Pose
+    from companion.kinematics.arm import Pose
 
     pose = Pose(-20.0, 3.0, 40.0, 25.0, -80.0, 170.0)
     goal = np.empty((4, 4))
-    memetic.goal_matrix(*pose.as_tuple()[:3], *np.radians(pose.as_tuple()[3:]), goal)
+    kernels.goal_matrix(*pose.as_tuple()[:3], *np.radians(pose.as_tuple()[3:]), goal)
     np.testing.assert_allclose(goal, pose.as_matrix(), atol=1e-15)

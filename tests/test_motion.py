@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.motion import limit_step
+from companion.daemon.motion import limit_step
 
 angles = st.lists(st.floats(-180, 180), min_size=6, max_size=6)
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.arm import Arm, Pose
-from companion.objective import IKObjective
-from companion.solvers.base import StopReason
-from companion.solvers.msfla import ShuffledFrogLeaping, shuffled_frog_leaping
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.objective import IKObjective
+from companion.papers.base import StopReason
+from companion.papers.msfla import ShuffledFrogLeaping, shuffled_frog_leaping
 
 
 class Sphere:

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from companion.arm import Arm, Pose
-from companion.objective import IKObjective, OrientationMetric
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.objective import IKObjective, OrientationMetric
 
 ARM = Arm.default()
 Q = np.radians([[10.0, 60.0, -20.0, 30.0, 15.0, -5.0]])

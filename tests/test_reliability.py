@@ -26,10 +26,10 @@ from bench.reliability import (
     start_sim,
     target_daemon_config,
 )
-from companion.arm import Arm
-from companion.config import parse_config
-from companion.control import request
-from companion.daemon import ArmDaemon, Outcome
+from companion.kinematics.arm import Arm
+from companion.daemon.config import parse_config
+from companion.daemon.control_socket import request
+from companion.daemon.service import ArmDaemon, Outcome
 from tests._mavlink_peer import wait_until
 
 SEED = 8
@@ -182,7 +182,7 @@ def test_control_socket_survives_an_integer_too_big_for_a_float(tmp_path):
     config = tmp_path / "armbridge.toml"
     config.write_text(f'[link]\nurl = "{sim.url}"\n[control]\nsocket = "{control}"\n')
     proc = subprocess.Popen(
-        [sys.executable, "-m", "companion.cli", "run", "--config", str(config)],
+        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:

@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from companion.arm import Arm
+from companion.kinematics.arm import Arm
 from firmware_interface.calibration import default_calibration
 from sim_servo.config import ArmConfig
 from sim_servo.errors import SimConfigError

@@ -161,7 +161,7 @@ def test_udp_slew_timing_and_hand_at_target(udp_sim):
     assert travel_s * 0.8 < elapsed < travel_s + 3.0  # loose: shared machine
     hand = sim.state()["hand"]
     assert settled and hand["angles_deg"]["theta1"] == pytest.approx(-90.0)
-    from companion.arm import Arm
+    from companion.kinematics.arm import Arm
 
     expected = Arm.default().fk([-90.0, 90.0, 0.0, 0.0, 0.0, 10.0])
     assert hand["pose"]["y_cm"] == pytest.approx(expected.y_cm, abs=1e-6)

@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 
-from companion.systemd import Notifier
+from companion.daemon.systemd import Notifier
 
 
 @pytest.fixture

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from companion.kinematics import FloatArray
-from companion.solvers.base import (
+from companion.papers.base import (
     DEFAULT_CLOCK,
     Clock,
     PopulationSolver,

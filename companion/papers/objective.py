@@ -23,7 +23,7 @@ from enum import Enum
 
 import numpy as np
 
-from companion.arm import Arm, Pose
+from companion.kinematics.arm import Arm, Pose
 from companion.kinematics import FloatArray, matrix_to_rpy, rotation_angle, wrap_angle
 
 

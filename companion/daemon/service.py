@@ -4,7 +4,7 @@ Threads and who owns what:
 
 * the link's reader thread (firmware_interface) only *enqueues*: a MAVLink COMMAND_LONG
   ``MAV_CMD_USER_1`` addressed to us becomes a request on the control queue;
-* the control socket's thread (:mod:`companion.control`) only enqueues too;
+* the control socket's thread (:mod:`companion.daemon.control_socket`) only enqueues too;
 * the **control thread** (this module) owns all arm state. It takes requests (validate →
   solve → accept or refuse), and on every tick at ``rate_hz`` moves the commanded joints
   towards the goal by at most ``joint_speed_deg_s / rate_hz`` and sends the servo commands.
@@ -50,9 +50,9 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion import ik
-from companion.arm import Pose
-from companion.config import DaemonConfig
-from companion.motion import limit_step
+from companion.kinematics.arm import Pose
+from companion.daemon.config import DaemonConfig
+from companion.daemon.motion import limit_step
 from firmware_interface import (
     CalibrationError,
     CommandSender,

@@ -2,7 +2,7 @@
 
 An arm is read from a TOML file (schema in the README, "Arm files")::
 
-    from companion.arm import Arm, Pose
+    from companion.kinematics.arm import Arm, Pose
     arm = Arm.default()                    # the papers' 6-DOF arm, standard DH + Table 2 limits
     arm = Arm.from_toml("my_arm.toml")
     pose = arm.fk([q1, ..., q6])           # joint angles in degrees -> Pose
@@ -26,14 +26,8 @@ from typing import Any
 import numpy as np
 
 from companion.errors import ArmConfigError, JointLimitError
-from companion.kinematics import (
-    DHConvention,
-    FloatArray,
-    chain,
-    link_transforms,
-    matrix_to_rpy,
-    rpy_to_matrix,
-)
+from companion.kinematics.dh import DHConvention, chain, link_transforms
+from companion.kinematics.rotations import FloatArray, matrix_to_rpy, rpy_to_matrix
 from companion.tomltable import Table, load_toml
 
 LENGTH_UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
@@ -145,8 +139,8 @@ class Arm:
 
     @classmethod
     def from_package_file(cls, name: str) -> Arm:
-        """Load one of the arm files shipped in ``companion/arms/``."""
-        ref = resources.files("companion") / "arms" / name
+        """Load one of the arm files shipped in ``companion/kinematics/arms/``."""
+        ref = resources.files("companion.kinematics") / "arms" / name
         return cls.from_dict(tomllib.loads(ref.read_text(encoding="utf-8")), source=name)
 
     @classmethod

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from companion.kinematics import FloatArray
-from companion.solvers.base import (
+from companion.papers.base import (
     DEFAULT_CLOCK,
     Clock,
     PopulationSolver,

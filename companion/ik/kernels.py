@@ -8,7 +8,7 @@ stagnation the population is re-drawn and the best found so far is kept aside ("
 
 Everything here is compiled with numba, eagerly (explicit signatures) and with the on-disk
 cache, so importing this module costs a cache load, and no solve ever pays a JIT compile. The
-kernels are pure: arrays in and out, no clocks. :mod:`companion.ik` owns the deadline loop.
+kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
 Units inside: radians and centimetres. The pose residual is ``(Δp in cm, rotation vector in
 degrees)``, so one degree of orientation error weighs like one centimetre of position error. The

@@ -4,7 +4,7 @@ Everything is checked at load time, before anything is opened or sent. An error 
 :class:`~companion.errors.ConfigError` that names the file, the field (``link.url``,
 ``joint[3].pwm_max_us``) and the allowed values; ``armbridge run`` and ``check-config`` turn it
 into exit code 2. The schema is documented in the README ("Daemon configuration") and in the
-example ``companion/examples/armbridge.toml``.
+example ``companion/daemon/examples/armbridge.toml``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion.arm import Arm
+from companion.kinematics.arm import Arm
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.tomltable import Table, load_toml
 from firmware_interface import (

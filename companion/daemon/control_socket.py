@@ -28,7 +28,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from companion.daemon import ArmDaemon, Outcome
+from companion.daemon.service import ArmDaemon, Outcome
 
 log = logging.getLogger("armbridge.control")
 

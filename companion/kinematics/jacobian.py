@@ -5,7 +5,7 @@ to the hand's twist ``(v, ω)`` expressed in the base frame:
 
 * rows 0–2, linear velocity of the hand point (the origin of the last frame, tool included):
   ``J_v,i = a_i × (p_e − p_i)``, in the arm's length unit per radian — **centimetres** for an
-  :class:`~companion.arm.Arm`, which keeps every length in cm;
+  :class:`~companion.kinematics.arm.Arm`, which keeps every length in cm;
 * rows 3–5, angular velocity: ``J_ω,i = a_i`` (rad/rad, dimensionless);
 
 where ``a_i`` is the unit axis of joint ``i`` and ``p_i`` a point on it, both in the base frame:
@@ -23,15 +23,16 @@ which turns with ``ω_{i−1} = Σ_{k<i} a_k q̇_k``:
 * ``J̇_v,i = ȧ_i × (p_e − p_i) + a_i × (ṗ_e − ṗ_i)``, ``J̇_ω,i = ȧ_i``.
 
 So the hand's linear acceleration is ``ẍ = J_v q̈ + J̇_v q̇`` (Siciliano et al., *Robotics*,
-§3.1 and eq. 3.107). Only revolute joints exist in :class:`~companion.arm.Arm`.
+§3.1 and eq. 3.107). Only revolute joints exist in :class:`~companion.kinematics.arm.Arm`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from companion.arm import Arm
-from companion.kinematics import DHConvention, FloatArray, link_transforms
+from companion.kinematics.arm import Arm
+from companion.kinematics.dh import DHConvention, link_transforms
+from companion.kinematics.rotations import FloatArray
 
 
 def joint_axes(arm: Arm, q_rad: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -1,7 +1,7 @@
 """Deadline-bounded, warm-startable inverse kinematics: :func:`solve`.
 
 This is where the time budget is enforced. The search itself is memetic differential evolution,
-compiled (:mod:`companion.solvers.memetic`): DE rand/1/bin is the global search, and
+compiled (:mod:`companion.ik.kernels`): DE rand/1/bin is the global search, and
 damped-least-squares steps refine its best individual. This module runs it one generation at a
 time, reading the clock between generations. It stops:
 
@@ -18,9 +18,10 @@ Warm start: ``q_start_deg`` (normally the previous command) seeds a third of the
 around it, and a minimal-movement term (``settings.movement_weight``) keeps consecutive
 solutions on the same elbow/wrist branch.
 
-The kernels are compiled when this module is imported: a disk-cache load after the first time,
-a few seconds before that. So no solve pays for compilation. :data:`IMPORT_WARMUP_S` records
-what the warm-up cost.
+Importing this module does no work: the kernels compile (the first time, a few seconds) or load
+from numba's disk cache (after that, a fraction of a second) on the first call, or when
+:func:`warm_up` asks for it. The daemon calls :func:`warm_up` before it reports READY, so no
+target pays for compilation.
 """
 
 from __future__ import annotations
@@ -28,17 +29,30 @@ from __future__ import annotations
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 
-from companion.arm import Arm, Pose
-from companion.kinematics import DHConvention, FloatArray
-from companion.solvers import memetic
-from companion.solvers.base import Clock, StopReason
+from companion.ik import kernels
+from companion.kinematics import Arm, DHConvention, FloatArray, Pose
+
+Clock = Callable[[], float]
+"""A monotonic clock in seconds (``time.perf_counter`` by default; tests pass a fake one)."""
 
 _MASK64 = (1 << 64) - 1
+
+
+class StopReason(Enum):
+    """Why :func:`solve` stopped. Not converging is a result, not an exception."""
+
+    CONVERGED = "converged"
+    """The hand is within both tolerances of the target."""
+    ITERATION_LIMIT = "iteration_limit"
+    """``settings.max_generations`` were run."""
+    DEADLINE = "deadline"
+    """Another generation would not have finished inside the budget."""
 
 
 @dataclass(frozen=True)
@@ -227,18 +241,18 @@ def solve(
         q_start = np.clip(q_start, k.lower, k.upper)
         has_prev = 1
 
-    fp = np.empty(memetic.N_FPARAMS)
-    fp[memetic.F_SCALE] = settings.F
-    fp[memetic.F_CR] = settings.Cr
-    fp[memetic.F_TOL_POS] = tol_pos
-    fp[memetic.F_TOL_ORI] = tol_ori
-    fp[memetic.F_MOVE_W] = settings.movement_weight
-    fp[memetic.F_LM_LAMBDA0] = settings.lm_lambda0
-    ip = np.empty(memetic.N_IPARAMS, dtype=np.int64)
-    ip[memetic.I_LM_ITERS] = settings.lm_iterations
-    ip[memetic.I_STALL_GENS] = settings.stall_generations
-    ip[memetic.I_HAS_PREV] = has_prev
-    st = np.zeros(memetic.N_STATE, dtype=np.int64)
+    fp = np.empty(kernels.N_FPARAMS)
+    fp[kernels.F_SCALE] = settings.F
+    fp[kernels.F_CR] = settings.Cr
+    fp[kernels.F_TOL_POS] = tol_pos
+    fp[kernels.F_TOL_ORI] = tol_ori
+    fp[kernels.F_MOVE_W] = settings.movement_weight
+    fp[kernels.F_LM_LAMBDA0] = settings.lm_lambda0
+    ip = np.empty(kernels.N_IPARAMS, dtype=np.int64)
+    ip[kernels.I_LM_ITERS] = settings.lm_iterations
+    ip[kernels.I_STALL_GENS] = settings.stall_generations
+    ip[kernels.I_HAS_PREV] = has_prev
+    st = np.zeros(kernels.N_STATE, dtype=np.int64)
     pop = np.empty((settings.pop_size, n))
     cost = np.empty(settings.pop_size)
     stuck = np.zeros(settings.pop_size, dtype=np.bool_)
@@ -249,7 +263,7 @@ def solve(
     record_q = q_start.copy() if has_prev else (k.lower + k.upper) / 2
     rng = _rng_state(seed)
     goal = np.empty((4, 4))
-    memetic.goal_matrix(
+    kernels.goal_matrix(
         pose.x_cm,
         pose.y_cm,
         pose.z_cm,
@@ -277,41 +291,42 @@ def solve(
         record_q,
     )
 
-    done = memetic.init_population(*args, q_start, math.radians(settings.warm_spread_deg))
+    done = kernels.init_population(*args, q_start, math.radians(settings.warm_spread_deg))
     slowest_s = 0.0
     while True:
         if done:
             reason = StopReason.CONVERGED
             break
-        if st[memetic.S_GENERATIONS] >= settings.max_generations:
+        if st[kernels.S_GENERATIONS] >= settings.max_generations:
             reason = StopReason.ITERATION_LIMIT
             break
         before = clock()
         if before - started + slowest_s > budget_s:
             reason = StopReason.DEADLINE
             break
-        done = memetic.generation(*args)
+        done = kernels.generation(*args)
         slowest_s = max(slowest_s, clock() - before)
 
     return IKResult(
         q_deg=tuple(float(v) for v in np.degrees(record_q)),
-        pos_err_cm=float(record[memetic.R_POS_CM]),
-        ori_err_deg=float(record[memetic.R_ORI_DEG]),
-        cost=float(record[memetic.R_COST]),
+        pos_err_cm=float(record[kernels.R_POS_CM]),
+        ori_err_deg=float(record[kernels.R_ORI_DEG]),
+        cost=float(record[kernels.R_COST]),
         converged=reason is StopReason.CONVERGED,
         elapsed_ms=(clock() - started) * 1e3,
-        generations=int(st[memetic.S_GENERATIONS]),
-        evaluations=int(st[memetic.S_EVALUATIONS]),
-        lm_iterations=int(st[memetic.S_LM_ITERATIONS]),
-        restarts=int(st[memetic.S_RESTARTS]),
+        generations=int(st[kernels.S_GENERATIONS]),
+        evaluations=int(st[kernels.S_EVALUATIONS]),
+        lm_iterations=int(st[kernels.S_LM_ITERATIONS]),
+        restarts=int(st[kernels.S_RESTARTS]),
         stop_reason=reason,
     )
 
 
-def _warm_up() -> float:
+def warm_up() -> float:
     """Compile (or load from the numba cache) every kernel :func:`solve` uses; returns seconds.
 
-    The target is the papers' G, which cannot converge, so both the initialisation and the
+    Call it once before the first time-critical solve (the daemon does, before READY). The
+    target is the papers' G, which cannot converge, so both the initialisation and the
     generation kernels run, cold and warm.
     """
     t = time.perf_counter()
@@ -321,7 +336,3 @@ def _warm_up() -> float:
     solve(arm, unreachable, budget_ms=1e4, seed=0, settings=few)
     solve(arm, unreachable, budget_ms=1e4, seed=0, q_start_deg=[0, 90, 0, 0, 0, 0], settings=few)
     return time.perf_counter() - t
-
-
-IMPORT_WARMUP_S = _warm_up()
-"""Seconds the import-time warm-up took (numba compile the first time, cache load after)."""

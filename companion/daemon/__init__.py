@@ -1,0 +1,10 @@
+"""The armbridge service: targets in, servo PWM out.
+
+Modules: :mod:`~companion.daemon.service` (``ArmDaemon``: requests, control loop, safety rules),
+:mod:`~companion.daemon.config` (the TOML config and its validation),
+:mod:`~companion.daemon.control_socket` (the JSON-lines control socket),
+:mod:`~companion.daemon.motion` (joint speed limit), :mod:`~companion.daemon.systemd`
+(sd_notify), :mod:`~companion.daemon.cli` (the ``armbridge`` command).
+
+Nothing is imported here, so that the command line starts without loading the solver.
+"""
