@@ -1,6 +1,6 @@
 """Foundation figures: forward-kinematics cost, and the papers' DE on reachable poses.
 
-    .venv/bin/python bench/foundation.py [--poses 200] [--seed 0] [--markdown FILE]
+    .venv/bin/python -m bench.foundation [--poses 200] [--seed 0] [--markdown FILE]
 
 Prints two tables:
 1. FK cost per pose: single-pose ``Arm.fk_matrix`` and batched ``Arm.fk_batch`` for several
@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from companion.kinematics.arm import Arm, Pose
-from companion.papers.objective import IKObjective
 from companion.papers.de import differential_evolution
+from companion.papers.objective import IKObjective
 
 
 def time_per_call(fn, repeats: int = 5) -> float:

@@ -1,6 +1,6 @@
 """End-to-end latency on UDP loopback: target in → servo commands at the flight controller → ACK.
 
-    python bench/latency.py [--targets 1000] [--dialects ardupilot px4] [--input mavlink|control]
+    python -m bench.latency [--targets 1000] [--dialects ardupilot px4] [--input mavlink|control]
                             [--budget-ms 20] [--rate-hz 20] [--gap-ms 50] [--seed 0]
                             [--markdown bench/results/latency.md] [--no-plot]
 
@@ -44,7 +44,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from loopback import (
+
+from bench.loopback import (
     DEFAULT_INPUT,
     INPUTS,
     Stack,
@@ -56,7 +57,6 @@ from loopback import (
     plt,
     servo_command_times,
 )
-
 from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -126,7 +126,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
     lines = [
         "# End-to-end latency on UDP loopback",
         "",
-        f"`{' '.join(['python bench/latency.py', *sys.argv[1:]])}` on {machine()}; "
+        f"`{' '.join(['python -m bench.latency', *sys.argv[1:]])}` on {machine()}; "
         f"load average (1, 5, 15 min) before: {load_before}, after: {load_average()}.",
         "",
         f"Daemon: shipped defaults (budget {args.budget_ms:g} ms, control {args.rate_hz:g} Hz) "
@@ -186,13 +186,15 @@ def plot(results: list[dict], path: Path) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--targets", type=int, default=1000)
-    parser.add_argument("--dialects", nargs="+", default=["ardupilot", "px4"],
-                        choices=["ardupilot", "px4"])
+    parser.add_argument(
+        "--dialects", nargs="+", default=["ardupilot", "px4"], choices=["ardupilot", "px4"]
+    )
     parser.add_argument("--input", choices=sorted(INPUTS), default=DEFAULT_INPUT)
     parser.add_argument("--budget-ms", type=float, default=20.0)
     parser.add_argument("--rate-hz", type=float, default=20.0)
-    parser.add_argument("--gap-ms", type=float, default=50.0,
-                        help="random pause 0..GAP before each target (seeded)")
+    parser.add_argument(
+        "--gap-ms", type=float, default=50.0, help="random pause 0..GAP before each target (seeded)"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/latency.md")
     parser.add_argument("--no-plot", action="store_true")

@@ -10,7 +10,7 @@ byte costs 10 bit times (8N1). Two bounds are printed per baud rate:
   command + ACK only; flight-controller processing (main loop, typically 2.5 ms at 400 Hz) and
   OS latency come on top, so real rates are lower.
 
-Usage: python bench/link_bytes.py [--baud 57600 115200 921600] [--joints 6]
+Usage: python -m bench.link_bytes [--baud 57600 115200 921600] [--joints 6]
 """
 
 from __future__ import annotations
@@ -63,8 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--joints", type=int, default=6)
     args = parser.parse_args(argv)
     print(f"Arm update of {args.joints} joints, MAVLink 2, 8N1 serial ({BITS_PER_BYTE} bit/byte)")
-    print(f"{'dialect':<10}{'signed':<8}{'frames':>7}{'out B':>7}{'ack B':>7}  "
-          + "".join(f"{f'{b} baud: bw / rtt Hz':>28}" for b in args.baud))
+    print(
+        f"{'dialect':<10}{'signed':<8}{'frames':>7}{'out B':>7}{'ack B':>7}  "
+        + "".join(f"{f'{b} baud: bw / rtt Hz':>28}" for b in args.baud)
+    )
     for dialect in SERVO_DIALECTS:
         for signed in (False, True):
             frames, out_b, ack_b = update_bytes(dialect, args.joints, signed)
@@ -74,10 +76,14 @@ def main(argv: list[str] | None = None) -> int:
                 bandwidth_hz = (bytes_per_s - heartbeat_bytes(signed)) / out_b
                 round_trip_hz = bytes_per_s / (out_b + ack_b)  # sequential: cmd then ack
                 cells.append(f"{bandwidth_hz:>17.1f} / {round_trip_hz:>7.1f}")
-            print(f"{dialect:<10}{'yes' if signed else 'no':<8}{frames:>7}{out_b:>7}{ack_b:>7}  "
-                  + "".join(f"{c:>28}" for c in cells))
-    print("bw: companion→FC bandwidth bound; rtt: bound from waiting for each ACK "
-          "(wire time only, no FC processing).")
+            print(
+                f"{dialect:<10}{'yes' if signed else 'no':<8}{frames:>7}{out_b:>7}{ack_b:>7}  "
+                + "".join(f"{c:>28}" for c in cells)
+            )
+    print(
+        "bw: companion→FC bandwidth bound; rtt: bound from waiting for each ACK "
+        "(wire time only, no FC processing)."
+    )
     return 0
 
 

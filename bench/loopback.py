@@ -122,8 +122,9 @@ class ControlSocketInput:
             })  # fmt: skip
         return answers
 
-    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
-                    since_s: float) -> list[float]:
+    def update_ends(
+        self, events: list[dict[str, Any]], answers: list[dict[str, Any]], since_s: float
+    ) -> list[float]:
         """Per answer: when the autopilot handled the last command of the target's first servo
         update (inf if not accepted): the last servo command it handled between the daemon
         starting that update (``timing.first_out_s``) and having all its ACKs
@@ -187,8 +188,9 @@ class MavlinkInput:
             })  # fmt: skip
         return answers
 
-    def update_ends(self, events: list[dict[str, Any]], answers: list[dict[str, Any]],
-                    since_s: float) -> list[float]:
+    def update_ends(
+        self, events: list[dict[str, Any]], answers: list[dict[str, Any]], since_s: float
+    ) -> list[float]:
         """Per answer: when the autopilot handled the last servo command before it routed the
         daemon's COMMAND_ACK for that target (the daemon answers right after the target's first
         update is acknowledged, so in the autopilot's log that update ends just before the
@@ -201,8 +203,10 @@ class MavlinkInput:
                 ends.append(t_s if last_servo is None else last_servo)
                 last_servo = None
         ends += [math.inf] * (len(answers) - len(ends))
-        return [e if a["outcome"] == "accepted" else math.inf
-                for e, a in zip(ends, answers, strict=False)]
+        return [
+            e if a["outcome"] == "accepted" else math.inf
+            for e, a in zip(ends, answers, strict=False)
+        ]
 
     def close(self) -> None:
         self.gcs.close()
@@ -224,8 +228,13 @@ def answer_one(source: Any, pose: Sequence[float]) -> dict[str, Any]:
         answers = source.poll(left)
         if answers:
             return {"sent_s": sent_s, **answers[0]}
-    return {"sent_s": sent_s, "answered_s": math.inf, "outcome": "no answer", "timing": None,
-            "solve_ms": None}
+    return {
+        "sent_s": sent_s,
+        "answered_s": math.inf,
+        "outcome": "no answer",
+        "timing": None,
+        "solve_ms": None,
+    }
 
 
 #: The target inputs by name (``--input``).
@@ -243,8 +252,13 @@ class Stack:
     ``sim_servo`` flags.
     """
 
-    def __init__(self, *, dialect: str, daemon: dict[str, dict[str, Any]] | None = None,
-                 sim_args: Sequence[str] = ()) -> None:
+    def __init__(
+        self,
+        *,
+        dialect: str,
+        daemon: dict[str, dict[str, Any]] | None = None,
+        sim_args: Sequence[str] = (),
+    ) -> None:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
         tmp = Path(self._tmp.name)
@@ -337,8 +351,9 @@ def _toml(tables: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _servo_and_acks(events: list[dict[str, Any]],
-                    since_s: float = -math.inf) -> list[tuple[float, str]]:
+def _servo_and_acks(
+    events: list[dict[str, Any]], since_s: float = -math.inf
+) -> list[tuple[float, str]]:
     """In the simulator's log order, on CLOCK_MONOTONIC, from ``since_s`` on: ``(t, "servo")``
     for each servo command it handled (DO_SET_SERVO or DO_SET_ACTUATOR) and ``(t, "ack")`` for
     each COMMAND_ACK to a target command (USER_1) that it routed from the daemon."""
@@ -385,8 +400,10 @@ def load_average() -> str:
 
 
 def machine() -> str:
-    return (f"{platform.machine()}, {os.cpu_count()} cores, Python "
-            f"{platform.python_version()}, {platform.system()} {platform.release()}")
+    return (
+        f"{platform.machine()}, {os.cpu_count()} cores, Python "
+        f"{platform.python_version()}, {platform.system()} {platform.release()}"
+    )
 
 
 # -- tables -----------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """Reproduce the papers' experiments beside ours and write a Markdown report.
 
-    python bench/papers.py                      # full run, writes docs/papers-report.md
-    python bench/papers.py --quick              # 2 seeds, MSFLA runs capped at 2 s, fewer poses
-    python bench/papers.py --seeds 3 --max-seconds 5 --out /tmp/report.md
+    python -m bench.papers                      # full run, writes docs/papers-report.md
+    python -m bench.papers --quick              # 2 seeds, MSFLA runs capped at 2 s, fewer poses
+    python -m bench.papers --seeds 3 --max-seconds 5 --out /tmp/report.md
 
 Sections: paper 004's harmony-search inverse acceleration (cases 1–4), the DE/MSFLA paper's
 Table 5 (DE, 14 settings) and Table 7 (MSFLA, 20 settings) for its target G, with the Table 2
@@ -26,6 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from companion.kinematics.arm import Arm, Pose
+from companion.papers import hs
+from companion.papers.base import SolverResult
+from companion.papers.de import differential_evolution
 from companion.papers.inverse_acceleration import (
     DEFAULT_FIT_ITERATIONS,
     PAPER_CASE4_CLAIMED_LINKS_M,
@@ -38,11 +41,8 @@ from companion.papers.inverse_acceleration import (
     planar_3r,
     recovery_error,
 )
-from companion.papers.objective import IKObjective
-from companion.papers import hs
-from companion.papers.base import SolverResult
-from companion.papers.de import differential_evolution
 from companion.papers.msfla import shuffled_frog_leaping
+from companion.papers.objective import IKObjective
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -175,7 +175,9 @@ def pose_str(arm: Arm, q_rad: np.ndarray) -> str:
 
 def wide_arm(arm: Arm) -> Arm:
     """The same DH table with every joint limited to ±180° (the papers' apparent setting)."""
-    data = tomllib.loads((resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text())
+    data = tomllib.loads(
+        (resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text()
+    )
     for joint in data["joint"]:
         joint["min_deg"], joint["max_deg"] = -180.0, 180.0
     data["name"] = arm.name + "-no-limits"
@@ -232,7 +234,7 @@ def section_hs(seeds: int, figs: list, stats: dict) -> list[str]:
     lines = ["## 1. Harmony search for inverse acceleration (paper 004)", ""]
     lines += [
         "Model: planar 3R, links 1, 1, 1 m, at rest at q = 0, q̈ constant, ẍ = J(q)q̈ + J̇q̇, "
-        "103 samples from 0 to 5 s (`companion.papers.inverse_acceleration.planar_3r`, checked against "
+        "103 samples from 0 to 5 s (`papers.inverse_acceleration.planar_3r`, checked against "
         "the generic DH-Jacobian model of the same arm in the tests). Search box q̈ ∈ [−1, 1]³.",
         "",
         "### 1.1 Forward model against the papers' “original trajectory” columns",
@@ -780,7 +782,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     body += reached_pose_plot(de_summary, ms_summary, fig_dir if plt is not None else None)
     elapsed = time.perf_counter() - started
     given = list(sys.argv[1:] if argv is None else argv)
-    command = " ".join(["python bench/papers.py", *given])
+    command = " ".join(["python -m bench.papers", *given])
     head = [
         "# The papers' experiments beside ours",
         "",

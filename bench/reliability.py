@@ -16,7 +16,7 @@ same functions at a smaller size; this script runs them longer and writes a Mark
    plus unknown keys, missing sections, broken TOML and unreadable files: ``check-config`` must
    exit 2 naming the field.
 
-Usage, from the repository root (it imports ``tests._mavlink_peer``)::
+Usage, from the repository root (it imports ``tests.support.mavlink_peer``)::
 
     python -m bench.reliability [--targets 300000] [--fuzz-rounds 20] [--seed 8]
                                 [--markdown bench/results/reliability.md]
@@ -49,13 +49,13 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon import cli
 from companion.daemon import config as config_module
-from companion.kinematics.arm import Arm
 from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request as control_request
 from companion.daemon.service import ArmDaemon, Outcome
+from companion.kinematics.arm import Arm
 from firmware_interface import ArmCalibration
 from sim_servo.query import query
-from tests._mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
 
 WAIT_S = 10.0
 OUR_COMPONENT = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191, the daemon's default
@@ -87,15 +87,23 @@ def start_sim(directory: Path, *extra: str) -> Sim:
     query_path = str(directory / "sim.sock")
     event_log = directory / "sim-events.jsonl"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--query-socket", query_path,
-         "--event-log", str(event_log), *extra],
+        [
+            sys.executable,
+            "-m",
+            "sim_servo",
+            "--udp",
+            "127.0.0.1:0",
+            "--query-socket",
+            query_path,
+            "--event-log",
+            str(event_log),
+            *extra,
+        ],
         stdout=subprocess.PIPE,
         text=True,
     )
     url = proc.stdout.readline().strip()
-    if not url.startswith("udpout:") or not wait_until(
-        lambda: os.path.exists(query_path), WAIT_S
-    ):
+    if not url.startswith("udpout:") or not wait_until(lambda: os.path.exists(query_path), WAIT_S):
         proc.kill()
         raise RuntimeError(f"sim_servo did not come up (first line {url!r})")
     return Sim(proc, url, query_path, event_log)
@@ -132,8 +140,21 @@ ALLOWED_OUTCOMES = {
 }
 
 _EXTREMES = (
-    1e308, -1e308, 1.7976931348623157e308, -1.7976931348623157e308, 5e-324, -5e-324,
-    2.2250738585072014e-308, 1e-310, -0.0, 0.0, 1e154, 1e155, -1e200, 3.4e38, 1e16,
+    1e308,
+    -1e308,
+    1.7976931348623157e308,
+    -1.7976931348623157e308,
+    5e-324,
+    -5e-324,
+    2.2250738585072014e-308,
+    1e-310,
+    -0.0,
+    0.0,
+    1e154,
+    1e155,
+    -1e200,
+    3.4e38,
+    1e16,
 )
 
 
@@ -181,9 +202,19 @@ def _bad_payload(rng: np.random.Generator) -> Any:
             values[int(slot)] = _bad_element(rng)
         return values if rng.integers(2) else tuple(values)
     whole = (
-        None, "1 2 3 4 5 6", "abcdef", b"\x00" * 6, bytearray(6), 42, 3.5, True,
-        {"x_cm": 1.0}, {1, 2, 3, 4, 5, 6}, [[1, 2, 3, 4, 5, 6]],
-        [[float(v)] for v in rng.normal(size=6)], _Opaque(),
+        None,
+        "1 2 3 4 5 6",
+        "abcdef",
+        b"\x00" * 6,
+        bytearray(6),
+        42,
+        3.5,
+        True,
+        {"x_cm": 1.0},
+        {1, 2, 3, 4, 5, 6},
+        [[1, 2, 3, 4, 5, 6]],
+        [[float(v)] for v in rng.normal(size=6)],
+        _Opaque(),
     )
     return whole[int(rng.integers(len(whole)))]
 
@@ -362,8 +393,9 @@ def run_targets(
     daemon = None
     started = time.perf_counter()
     try:
-        daemon = ArmDaemon(parse_config(target_daemon_config(sim.url, budget_ms=budget_ms,
-                                                             seed=seed)))
+        daemon = ArmDaemon(
+            parse_config(target_daemon_config(sim.url, budget_ms=budget_ms, seed=seed))
+        )
         daemon.start()
         if not daemon.wait_for_autopilot(WAIT_S):
             raise RuntimeError("the daemon did not hear the simulator")
@@ -396,7 +428,8 @@ def run_targets(
                     ):
                         report.dishonest.append(
                             f"{category}: {payload!r}: reported pos_err "
-                            f"{reply.solve.pos_err_cm} cm, at least {floor_cm} cm")
+                            f"{reply.solve.pos_err_cm} cm, at least {floor_cm} cm"
+                        )
                 if outcome not in ALLOWED_OUTCOMES[category] and len(report.unexpected) < 50:
                     report.unexpected.append(
                         f"{category}: {payload!r} -> {outcome.value}: {reply.message}"
@@ -439,10 +472,14 @@ def _await(future: Any, deadline: float, daemon: ArmDaemon) -> Any:
 # ---------------------------------------------------------------------------------------------
 
 _INT_RANGES = {
-    "int8_t": (-(2**7), 2**7 - 1), "uint8_t": (0, 2**8 - 1),
-    "int16_t": (-(2**15), 2**15 - 1), "uint16_t": (0, 2**16 - 1),
-    "int32_t": (-(2**31), 2**31 - 1), "uint32_t": (0, 2**32 - 1),
-    "int64_t": (-(2**63), 2**63 - 1), "uint64_t": (0, 2**64 - 1),
+    "int8_t": (-(2**7), 2**7 - 1),
+    "uint8_t": (0, 2**8 - 1),
+    "int16_t": (-(2**15), 2**15 - 1),
+    "uint16_t": (0, 2**16 - 1),
+    "int32_t": (-(2**31), 2**31 - 1),
+    "uint32_t": (0, 2**32 - 1),
+    "int64_t": (-(2**63), 2**63 - 1),
+    "uint64_t": (0, 2**64 - 1),
 }
 _SPECIAL_FLOATS = (math.nan, math.inf, -math.inf, -0.0, 5e-324, 3.4e38, -3.4e38, 1e-40)
 #: Message types whose fields steer the daemon; kept away from values that would be a target.
@@ -491,8 +528,9 @@ class FrameFactory:
         self.v1_classes = [c for c in self.classes if c.id < 256]  # MAVLink 1 ids are 8 bits
         self.user1_not_for_us = 0  # COMMAND_LONG USER_1 frames addressed elsewhere, sent whole
 
-    def pack(self, msg: mavlink.MAVLink_message, src: tuple[int, int] | None = None,
-             *, v1: bool = False) -> bytes:
+    def pack(
+        self, msg: mavlink.MAVLink_message, src: tuple[int, int] | None = None, *, v1: bool = False
+    ) -> bytes:
         if src is None:
             src = (int(self.rng.integers(0, 256)), int(self.rng.integers(0, 256)))
             if src == (AUTOPILOT_SYSTEM, 1) and msg.get_type() == "HEARTBEAT":
@@ -515,30 +553,47 @@ class FrameFactory:
         target = (int(self.rng.integers(0, 256)), int(self.rng.integers(0, 256)))
         if target == (AUTOPILOT_SYSTEM, OUR_COMPONENT):
             target = (AUTOPILOT_SYSTEM, OUR_COMPONENT + 1)
-        command = int(self.rng.choice([
-            int(self.rng.integers(0, 2**16)), mavlink.MAV_CMD_DO_SET_SERVO,
-            mavlink.MAV_CMD_DO_SET_ACTUATOR, mavlink.MAV_CMD_USER_1, mavlink.MAV_CMD_USER_2,
-        ]))
+        command = int(
+            self.rng.choice(
+                [
+                    int(self.rng.integers(0, 2**16)),
+                    mavlink.MAV_CMD_DO_SET_SERVO,
+                    mavlink.MAV_CMD_DO_SET_ACTUATOR,
+                    mavlink.MAV_CMD_USER_1,
+                    mavlink.MAV_CMD_USER_2,
+                ]
+            )
+        )
         params = [_random_scalar(self.rng, "float") for _ in range(7)]
         if self.rng.random() < 0.5:
             msg = mavlink.MAVLink_command_long_message(*target, command, 0, *params)
             self.user1_not_for_us += command == mavlink.MAV_CMD_USER_1
         else:
             msg = mavlink.MAVLink_command_int_message(
-                *target, 0, command, 0, 0, *params[:4],
-                _random_scalar(self.rng, "int32_t"), _random_scalar(self.rng, "int32_t"),
-                params[6])
+                *target,
+                0,
+                command,
+                0,
+                0,
+                *params[:4],
+                _random_scalar(self.rng, "int32_t"),
+                _random_scalar(self.rng, "int32_t"),
+                params[6],
+            )
         return self.pack(msg)
 
     def user1_elsewhere(self, reachable_pose: Sequence[float]) -> bytes:
         """MAV_CMD_USER_1 with a reachable pose, addressed to another system or component."""
         if self.rng.random() < 0.5:
-            target = (AUTOPILOT_SYSTEM, int(self.rng.choice(
-                [c for c in range(256) if c != OUR_COMPONENT])))
+            target = (
+                AUTOPILOT_SYSTEM,
+                int(self.rng.choice([c for c in range(256) if c != OUR_COMPONENT])),
+            )
         else:
             target = (int(self.rng.choice([0, *range(2, 256)])), OUR_COMPONENT)
         msg = mavlink.MAVLink_command_long_message(
-            *target, mavlink.MAV_CMD_USER_1, 0, *reachable_pose, 0.0)
+            *target, mavlink.MAV_CMD_USER_1, 0, *reachable_pose, 0.0
+        )
         self.user1_not_for_us += 1
         return self.pack(msg, src=(255, 190))
 
@@ -594,8 +649,8 @@ def _write_daemon_config(directory: Path, port: int) -> tuple[Path, Path]:
     path = directory / "armbridge.toml"
     path.write_text(
         f'[link]\nurl = "udpout:127.0.0.1:{port}"\nloss_timeout_s = 3.0\n'
-        f'[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\n'
-        f'[solver]\nbudget_ms = 2.0\nseed = 1\n'
+        f"[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\n"
+        f"[solver]\nbudget_ms = 2.0\nseed = 1\n"
         f'[control]\nrate_hz = 20.0\nsocket = "{control}"\n'
     )
     return path, control
@@ -627,7 +682,9 @@ def run_mavlink_fuzz(
     with open(stderr_path, "wb") as stderr:
         proc = subprocess.Popen(
             [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config_path)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=stderr,
         )
     reachable = Arm.default().fk([20, 70, 50, 20, 30, 10]).as_tuple()
     marker_gcs = mavlink.MAVLink(None, 254, 190)
@@ -635,8 +692,9 @@ def run_mavlink_fuzz(
         if not peer.wait_for(lambda: endpoint.peer is not None, 30.0):
             raise RuntimeError("the daemon sent nothing")
         peer.send_heartbeat()
-        if not wait_until(lambda: _status(control) is not None and
-                          _status(control)["link"] == "up", 30.0):
+        if not wait_until(
+            lambda: _status(control) is not None and _status(control)["link"] == "up", 30.0
+        ):
             raise RuntimeError("the daemon's link did not come up")
 
         def marker_acks() -> int:
@@ -652,8 +710,18 @@ def run_mavlink_fuzz(
                 # from them, not from the marker.
                 endpoint.write(bytes(300))
                 msg = marker_gcs.command_long_encode(
-                    AUTOPILOT_SYSTEM, OUR_COMPONENT, mavlink.MAV_CMD_USER_1, 0,
-                    math.nan, 0, 0, 0, 0, 0, 0)
+                    AUTOPILOT_SYSTEM,
+                    OUR_COMPONENT,
+                    mavlink.MAV_CMD_USER_1,
+                    0,
+                    math.nan,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                    0,
+                )
                 endpoint.write(msg.pack(marker_gcs))
                 if peer.wait_for(lambda: marker_acks() >= want, 2.0):
                     report.markers_answered = marker_acks()
@@ -695,8 +763,9 @@ def run_mavlink_fuzz(
             # The first sample is after the warm-up round: every code path has run once.
             report.rss_kb.append((sum(report.frames.values()), vm_rss_kb(proc.pid)))
             if progress:
-                progress(f"fuzz round {round_index + 1}/{rounds}: "
-                         f"{sum(report.frames.values())} frames")
+                progress(
+                    f"fuzz round {round_index + 1}/{rounds}: {sum(report.frames.values())} frames"
+                )
         report.message_types_sent = len(types_sent)
         report.user1_not_for_us_sent = factory.user1_not_for_us
         status = _status(control)
@@ -755,13 +824,32 @@ _WRONG_TYPES: dict[str, tuple[Any, ...]] = {
     "number": ("3", True, [1.0], {"a": 1}, _DATETIME, math.nan, math.inf, -math.inf),
     "integer": ("3", 2.5, True, [1], {"a": 1}, _DATETIME, math.nan),
     "bool": ("true", 1, 0.0, [True], {"a": 1}, _DATETIME),
-    "numbers": ("0, 90", 5, True, {"a": 1}, _DATETIME, [0, 90, 0, 0, 0, "0"],
-                [0, 90, 0, 0, 0, math.nan], [0, 90, 0, 0, 0, True], [[0], 90, 0, 0, 0, 0]),
+    "numbers": (
+        "0, 90",
+        5,
+        True,
+        {"a": 1},
+        _DATETIME,
+        [0, 90, 0, 0, 0, "0"],
+        [0, 90, 0, 0, 0, math.nan],
+        [0, 90, 0, 0, 0, True],
+        [[0], 90, 0, 0, 0, 0],
+    ),
 }
 #: Kind of every field, and values of the right type that are still out of range.
 FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
-    "link.url": ("string", ("carrier-pigeon:1", "udpout:127.0.0.1", "udpout:127.0.0.1:x",
-                            "udpout::14550", "/dev/ttyACM0,fast", "serial://", "tcp:host:99999")),
+    "link.url": (
+        "string",
+        (
+            "carrier-pigeon:1",
+            "udpout:127.0.0.1",
+            "udpout:127.0.0.1:x",
+            "udpout::14550",
+            "/dev/ttyACM0,fast",
+            "serial://",
+            "tcp:host:99999",
+        ),
+    ),
     "link.dialect": ("string", ("inav", "ArduPilot", "px5")),
     "link.system_id": ("integer", (0, 256, -1, 2**63 - 1)),
     "link.component_id": ("integer", (0, 256, -1)),
@@ -775,8 +863,10 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     # starts, so check-config cannot demand the directory (tests/test_config_fuzz.py runs it).
     "link.signing_state": ("string", ()),
     "arm.file": ("string", ("no-such-arm.toml", "broken-arm.toml", ".")),
-    "arm.park_deg": ("numbers", ([0, 90], [0, 90, 0, 0, 0, 0, 0], [], [0, -10, 0, 0, 0, 0],
-                                 [0, 90, 0, 0, 0, 1e308])),
+    "arm.park_deg": (
+        "numbers",
+        ([0, 90], [0, 90, 0, 0, 0, 0, 0], [], [0, -10, 0, 0, 0, 0], [0, 90, 0, 0, 0, 1e308]),
+    ),
     "arm.park_on_stop": ("bool", ()),
     "arm.joint_speed_deg_s": ("number", (0, -60.0)),
     "solver.budget_ms": ("number", (0, -1, 10_000.5, 1e308)),
@@ -833,9 +923,11 @@ def toml_value(value: Any) -> str:
 def toml_document(data: dict[str, Any]) -> str:
     lines = []
     for key, value in data.items():
-        if not isinstance(value, dict | list) or (
-            isinstance(value, list) and not all(isinstance(v, dict) for v in value)
-        ) or (isinstance(value, list) and not value):
+        if (
+            not isinstance(value, dict | list)
+            or (isinstance(value, list) and not all(isinstance(v, dict) for v in value))
+            or (isinstance(value, list) and not value)
+        ):
             lines.append(f"{key} = {toml_value(value)}")
     for key, value in data.items():
         if isinstance(value, dict):
@@ -864,9 +956,15 @@ def _base_config() -> dict[str, Any]:
     arm = Arm.default()
     for i, row in enumerate(data["joint"]):
         joint = arm.joints[i]
-        row.update(name=joint.name, pwm_min_us=1000, pwm_max_us=2000,
-                   angle_min_deg=math.degrees(joint.min_rad),
-                   angle_max_deg=math.degrees(joint.max_rad), reversed=False, trim_us=0)
+        row.update(
+            name=joint.name,
+            pwm_min_us=1000,
+            pwm_max_us=2000,
+            angle_min_deg=math.degrees(joint.min_rad),
+            angle_max_deg=math.degrees(joint.max_rad),
+            reversed=False,
+            trim_us=0,
+        )
     return data
 
 
@@ -908,12 +1006,18 @@ def config_cases(directory: Path, rng: np.random.Generator) -> list[ConfigCase]:
         rows = range(1, ARM_DOF + 1) if section == "joint" else [None]
         for joint_index in rows:
             named = f"joint[{joint_index}].{key}" if joint_index else dotted
-            for category, values in (("wrong_type", _WRONG_TYPES[kind]),
-                                     ("out_of_range", out_of_range)):
+            for category, values in (
+                ("wrong_type", _WRONG_TYPES[kind]),
+                ("out_of_range", out_of_range),
+            ):
                 for value in values:
                     shown = "datetime" if value is _DATETIME else repr(value)[:40]
-                    add(category, f"{named} = {shown}",
-                        toml_document(with_value(dotted, value, joint_index)), named)
+                    add(
+                        category,
+                        f"{named} = {shown}",
+                        toml_document(with_value(dotted, value, joint_index)),
+                        named,
+                    )
 
     # An unknown key in every section and every [[joint]] row.
     for section in SCHEMA_SECTIONS:
@@ -983,8 +1087,7 @@ def config_cases(directory: Path, rng: np.random.Generator) -> list[ConfigCase]:
         add("broken_toml", description, text, "<file>")
     add("broken_toml", "not UTF-8", good.encode() + b"# caf\xe9\n", "<file>")
     add("broken_toml", "UTF-16", good.encode("utf-16"), "<file>")
-    add("broken_toml", "random bytes", bytes(rng.integers(0, 256, 512, dtype=np.uint8)),
-        "<file>")
+    add("broken_toml", "random bytes", bytes(rng.integers(0, 256, 512, dtype=np.uint8)), "<file>")
     missing = directory / "does-not-exist.toml"
     cases.append(ConfigCase("unreadable", "missing file", missing, "<file>"))
     a_dir = directory / "a-directory.toml"
@@ -1052,7 +1155,9 @@ def run_rejects_config(directory: Path, text: str) -> tuple[int, str, int]:
     try:
         proc = subprocess.run(
             [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(path)],
-            capture_output=True, text=True, timeout=60,
+            capture_output=True,
+            text=True,
+            timeout=60,
         )
         # The process has exited: anything it sent is already queued on our socket.
         received = 0
@@ -1069,16 +1174,16 @@ def run_rejects_config(directory: Path, text: str) -> tuple[int, str, int]:
 # ---------------------------------------------------------------------------------------------
 
 
-def markdown(targets: TargetReport, fuzz: FuzzReport, configs: ConfigReport,
-             args: argparse.Namespace) -> str:
+def markdown(
+    targets: TargetReport, fuzz: FuzzReport, configs: ConfigReport, args: argparse.Namespace
+) -> str:
     lines = [
         "# Reliability campaign (inputs side)",
         "",
         f"`python -m bench.reliability --targets {args.targets} --fuzz-rounds "
         f"{args.fuzz_rounds} --seed {args.seed}` on {os.cpu_count()} cores.",
         "",
-        f"## 1. Adversarial targets through `ArmDaemon.submit(\"goto\")` "
-        f"({targets.elapsed_s:.1f} s)",
+        f'## 1. Adversarial targets through `ArmDaemon.submit("goto")` ({targets.elapsed_s:.1f} s)',
         "",
         "| category | inputs | accepted | denied | failed | temporarily rejected |",
         "|---|---:|---:|---:|---:|---:|",
@@ -1087,7 +1192,8 @@ def markdown(targets: TargetReport, fuzz: FuzzReport, configs: ConfigReport,
         per = targets.outcomes.get(category, Counter())
         lines.append(
             f"| {category} | {targets.inputs[category]} | {per['accepted']} | {per['denied']} | "
-            f"{per['failed']} | {per['temporarily_rejected']} |")
+            f"{per['failed']} | {per['temporarily_rejected']} |"
+        )
     total = targets.total_outcomes
     lines += [
         f"| **total** | {sum(targets.inputs.values())} | {total['accepted']} | "
@@ -1159,19 +1265,31 @@ def main(argv: Sequence[str] | None = None) -> int:
         root = Path(tmp)
         for sub in ("targets", "fuzz", "config"):
             (root / sub).mkdir()
-        targets = run_targets(root / "targets", args.targets, seed=args.seed,
-                              budget_ms=args.budget_ms, progress=progress)
-        fuzz = run_mavlink_fuzz(root / "fuzz", rounds=args.fuzz_rounds, seed=args.seed,
-                                progress=progress)
+        targets = run_targets(
+            root / "targets",
+            args.targets,
+            seed=args.seed,
+            budget_ms=args.budget_ms,
+            progress=progress,
+        )
+        fuzz = run_mavlink_fuzz(
+            root / "fuzz", rounds=args.fuzz_rounds, seed=args.seed, progress=progress
+        )
         configs = run_config_fuzz(root / "config", seed=args.seed)
     text = markdown(targets, fuzz, configs, args)
     print(text)
     if args.markdown:
         Path(args.markdown).parent.mkdir(parents=True, exist_ok=True)
         Path(args.markdown).write_text(text)
-    failed = (targets.pwm_violations or targets.unexpected or targets.unresolved
-              or not targets.control_thread_alive or fuzz.servo_commands
-              or not fuzz.daemon_alive or configs.failures)
+    failed = (
+        targets.pwm_violations
+        or targets.unexpected
+        or targets.unresolved
+        or not targets.control_thread_alive
+        or fuzz.servo_commands
+        or not fuzz.daemon_alive
+        or configs.failures
+    )
     return 1 if failed else 0
 
 

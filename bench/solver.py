@@ -1,6 +1,6 @@
 """IK solver benchmark: companion.ik.solve against the papers' DE and the IK libraries, one run.
 
-    .venv/bin/python bench/solver.py [--poses 10000] [--baseline-poses 1000] [--paper-poses 200]
+    .venv/bin/python -m bench.solver [--poses 10000] [--baseline-poses 1000] [--paper-poses 200]
                                      [--budget-ms 20] [--seed 0] [--markdown FILE]
 
 Targets are random reachable poses of the default arm: FK of joints drawn uniformly within the
@@ -36,11 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.ik import SolverSettings, kernel_arrays, kernels, solve
 from companion.kinematics.arm import Arm, Pose
-from companion.ik import SolverSettings, kernel_arrays, solve
-from companion.papers.objective import IKObjective
-from companion.ik import kernels
 from companion.papers.de import differential_evolution
+from companion.papers.objective import IKObjective
 
 TOL_POS_CM = 1e-3
 TOL_ORI_DEG = 1e-3

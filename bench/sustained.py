@@ -1,6 +1,6 @@
 """Sustained load on UDP loopback: a 50 Hz stream of hand targets for a while.
 
-    python bench/sustained.py [--duration-s 60] [--dialects ardupilot px4]
+    python -m bench.sustained [--duration-s 60] [--dialects ardupilot px4]
                               [--input mavlink|control] [--rate-hz 50] [--period-s 4]
                               [--budget-ms 20] [--drift-ppm 100] [--seed 0]
                               [--markdown bench/results/sustained.md] [--no-plot]
@@ -40,7 +40,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from loopback import (
+
+from bench.loopback import (
     DEFAULT_INPUT,
     INPUTS,
     Stack,
@@ -53,7 +54,6 @@ from loopback import (
     plt,
     rss_mb,
 )
-
 from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -145,7 +145,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
     lines = [
         "# Sustained 50 Hz target stream on UDP loopback",
         "",
-        f"`{' '.join(['python bench/sustained.py', *sys.argv[1:]])}` on {machine()}; "
+        f"`{' '.join(['python -m bench.sustained', *sys.argv[1:]])}` on {machine()}; "
         f"load average (1, 5, 15 min) before: {load_before}, after: {load_average()}.",
         "",
         f"Figure-eight of the hand (10 × 5 cm, {args.period_s:g} s a lap), one target every "
@@ -214,15 +214,20 @@ def plot(results: list[dict], path: Path) -> None:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--duration-s", type=float, default=60.0)
-    parser.add_argument("--dialects", nargs="+", default=["ardupilot", "px4"],
-                        choices=["ardupilot", "px4"])
+    parser.add_argument(
+        "--dialects", nargs="+", default=["ardupilot", "px4"], choices=["ardupilot", "px4"]
+    )
     parser.add_argument("--input", choices=sorted(INPUTS), default=DEFAULT_INPUT)
     parser.add_argument("--rate-hz", type=float, default=50.0, help="daemon control rate")
     parser.add_argument("--period-s", type=float, default=4.0, help="one figure-eight lap")
     parser.add_argument("--budget-ms", type=float, default=20.0)
-    parser.add_argument("--drift-ppm", type=float, default=100.0,
-                        help="the sender's clock error: the slots sweep the autopilot's loop "
-                        "phase (2.5 ms) every 2.5 ms / (20 ms × ppm) slots")
+    parser.add_argument(
+        "--drift-ppm",
+        type=float,
+        default=100.0,
+        help="the sender's clock error: the slots sweep the autopilot's loop "
+        "phase (2.5 ms) every 2.5 ms / (20 ms × ppm) slots",
+    )
     parser.add_argument("--seed", type=int, default=0, help="the daemon's solver seed")
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/sustained.md")
     parser.add_argument("--no-plot", action="store_true")

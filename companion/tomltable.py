@@ -27,8 +27,9 @@ def load_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
     except OSError as exc:
         raise error(str(path), "<file>", f"cannot read: {exc.strerror}") from exc
     except UnicodeDecodeError as exc:  # TOML is UTF-8
-        raise error(str(path), "<file>", f"not valid TOML: not UTF-8 ({exc.reason} at byte "
-                    f"{exc.start})") from exc
+        raise error(
+            str(path), "<file>", f"not valid TOML: not UTF-8 ({exc.reason} at byte {exc.start})"
+        ) from exc
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:

@@ -90,8 +90,10 @@ class JointCalibration:
             raise ConfigurationError(
                 f"output={self.output!r} outside [{OUTPUT_MIN}, {OUTPUT_MAX}] for {where}"
             )
-        for label, angle in (("angle_min_deg", self.angle_min_deg),
-                             ("angle_max_deg", self.angle_max_deg)):
+        for label, angle in (
+            ("angle_min_deg", self.angle_min_deg),
+            ("angle_max_deg", self.angle_max_deg),
+        ):
             if not _is_real(angle) or not -ANGLE_LIMIT_DEG <= angle <= ANGLE_LIMIT_DEG:
                 raise ConfigurationError(
                     f"{label}={angle!r} outside [{-ANGLE_LIMIT_DEG}, {ANGLE_LIMIT_DEG}] for {where}"
@@ -150,8 +152,10 @@ class JointCalibration:
 
     def check_pwm_us(self, pwm_us: float) -> None:
         """Raise :class:`PwmOutOfRange` unless ``pwm_us`` is finite and in the servo's range."""
-        if not _is_real(pwm_us) or not math.isfinite(float(pwm_us)) or not (
-            self.pwm_min_us <= pwm_us <= self.pwm_max_us
+        if (
+            not _is_real(pwm_us)
+            or not math.isfinite(float(pwm_us))
+            or not (self.pwm_min_us <= pwm_us <= self.pwm_max_us)
         ):
             raise PwmOutOfRange(
                 f"pwm_us={pwm_us!r} outside [{self.pwm_min_us}, {self.pwm_max_us}] "

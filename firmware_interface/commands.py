@@ -68,8 +68,15 @@ class CommandSender:
     (stopping as soon as one arrives) so the error can carry it.
     """
 
-    def __init__(self, link: MavlinkLink, *, timeout_s: float = 1.0, retries: int = 2,
-                 poll_s: float = 0.01, statustext_grace_s: float = 0.2) -> None:
+    def __init__(
+        self,
+        link: MavlinkLink,
+        *,
+        timeout_s: float = 1.0,
+        retries: int = 2,
+        poll_s: float = 0.01,
+        statustext_grace_s: float = 0.2,
+    ) -> None:
         if not timeout_s > 0:
             raise ConfigurationError(f"timeout_s={timeout_s!r} must be > 0")
         if not isinstance(retries, int) or not 0 <= retries <= 254:
@@ -99,7 +106,8 @@ class CommandSender:
                         pending.statustext_event.set()
             return
         if msg.target_system not in (0, self.link.system_id) or msg.target_component not in (
-            0, self.link.config.component_id
+            0,
+            self.link.config.component_id,
         ):
             return  # an ACK meant for another component (a GCS)
         key = (msg.get_srcSystem(), msg.get_srcComponent(), msg.command)
@@ -107,8 +115,13 @@ class CommandSender:
             pending = self._pending.get(key)
             if pending is None:
                 self.unmatched_acks += 1
-                log.info("unmatched COMMAND_ACK %s %s from %d/%d", command_name(msg.command),
-                         result_name(msg.result), key[0], key[1])
+                log.info(
+                    "unmatched COMMAND_ACK %s %s from %d/%d",
+                    command_name(msg.command),
+                    result_name(msg.result),
+                    key[0],
+                    key[1],
+                )
                 return
             if msg.result == mavlink.MAV_RESULT_IN_PROGRESS:
                 return
@@ -153,18 +166,27 @@ class CommandSender:
                     # The deadline is fixed before sending, so it covers the send itself and
                     # an answer can never arrive "before" the clock started.
                     deadline = clock() + timeout_s
-                    self.link.send(self.link.mav.command_long_encode(
-                        target[0], target[1], command, attempt, *values))
+                    self.link.send(
+                        self.link.mav.command_long_encode(
+                            target[0], target[1], command, attempt, *values
+                        )
+                    )
                     while not pending.event.wait(self._poll_s):
                         if self.link.closed:
-                            raise LinkClosed(f"link closed while waiting for {name} ACK") \
-                                from self.link.failure
+                            raise LinkClosed(
+                                f"link closed while waiting for {name} ACK"
+                            ) from self.link.failure
                         if clock() >= deadline:
                             break
                     if pending.event.is_set():
                         break
-                    log.info("no ACK for %s to %d/%d (attempt %d of %d)", name, *target,
-                             attempt + 1, retries + 1)
+                    log.info(
+                        "no ACK for %s to %d/%d (attempt %d of %d)",
+                        name,
+                        *target,
+                        attempt + 1,
+                        retries + 1,
+                    )
                 else:
                     raise LinkTimeout(
                         f"no COMMAND_ACK for {name} from {target[0]}/{target[1]} after "
@@ -183,8 +205,14 @@ class CommandSender:
             raise CommandRejected(
                 f"{name} to {target[0]}/{target[1]} rejected: {result_name(ack.result)}"
                 + (f" ({statustext!r})" if statustext else ""),
-                command=command, result=ack.result, result_name=result_name(ack.result),
+                command=command,
+                result=ack.result,
+                result_name=result_name(ack.result),
                 statustext=statustext,
             )
-        return CommandOutcome(command=command, target=target, attempts=pending.confirmation + 1,
-                              confirmation=pending.confirmation)
+        return CommandOutcome(
+            command=command,
+            target=target,
+            attempts=pending.confirmation + 1,
+            confirmation=pending.confirmation,
+        )

@@ -1,18 +1,18 @@
 """Exceptions raised by ``firmware_interface``: one base, layered by concern.
 
-    FirmwareInterfaceError
-    ├── CalibrationError          (also a ValueError: bad data, refused before anything is sent)
-    │   ├── NonFiniteAngle
-    │   ├── AngleOutOfRange
-    │   └── PwmOutOfRange
-    ├── ConfigurationError        (also a ValueError: bad settings, URL, key file …)
-    │   └── InvalidUrl
-    └── LinkError
-        ├── TransportError        (serial / socket failure; the OS error is the ``__cause__``)
-        ├── LinkClosed            (the link was closed, or ended on an error: see ``__cause__``)
-        ├── LinkTimeout           (no autopilot, no ACK within the bound)
-        └── CommandRejected       (COMMAND_ACK with a result other than ACCEPTED)
-            └── ServoOutputUnavailable  (DO_SET_SERVO FAILED: output in use; carries STATUSTEXT)
+FirmwareInterfaceError
+├── CalibrationError          (also a ValueError: bad data, refused before anything is sent)
+│   ├── NonFiniteAngle
+│   ├── AngleOutOfRange
+│   └── PwmOutOfRange
+├── ConfigurationError        (also a ValueError: bad settings, URL, key file …)
+│   └── InvalidUrl
+└── LinkError
+    ├── TransportError        (serial / socket failure; the OS error is the ``__cause__``)
+    ├── LinkClosed            (the link was closed, or ended on an error: see ``__cause__``)
+    ├── LinkTimeout           (no autopilot, no ACK within the bound)
+    └── CommandRejected       (COMMAND_ACK with a result other than ACCEPTED)
+        └── ServoOutputUnavailable  (DO_SET_SERVO FAILED: output in use; carries STATUSTEXT)
 """
 
 from __future__ import annotations
@@ -73,8 +73,15 @@ class CommandRejected(LinkError):
     ``statustext`` the last STATUSTEXT the target sent while the command was in flight (or None).
     """
 
-    def __init__(self, message: str, *, command: int, result: int, result_name: str,
-                 statustext: str | None = None) -> None:
+    def __init__(
+        self,
+        message: str,
+        *,
+        command: int,
+        result: int,
+        result_name: str,
+        statustext: str | None = None,
+    ) -> None:
         super().__init__(message)
         self.command = command
         self.result = result
@@ -99,6 +106,7 @@ class ServoOutputUnavailable(CommandRejected):
         output: int,
         statustext: str | None,
     ) -> None:
-        super().__init__(message, command=command, result=result, result_name=result_name,
-                         statustext=statustext)
+        super().__init__(
+            message, command=command, result=result, result_name=result_name, statustext=statustext
+        )
         self.output = output

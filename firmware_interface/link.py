@@ -132,8 +132,12 @@ class LinkConfig:
 class Subscription:
     """A registered message callback; :meth:`cancel` removes it."""
 
-    def __init__(self, link: MavlinkLink, callback: Callable[[MavMessage], None],
-                 types: frozenset[str] | None) -> None:
+    def __init__(
+        self,
+        link: MavlinkLink,
+        callback: Callable[[MavMessage], None],
+        types: frozenset[str] | None,
+    ) -> None:
         self._link = link
         self.callback = callback
         self.types = types
@@ -248,8 +252,17 @@ class MavlinkLink:
         self._last_heartbeat_at: float | None = None
         self._heard_on_transport = False  # an autopilot HEARTBEAT came in on this transport
         self._counts = dict.fromkeys(
-            ("rx_messages", "rx_bad_frames", "rejected_unsigned", "rejected_bad_signature",
-             "tx_messages", "reconnects", "transport_errors"), 0)
+            (
+                "rx_messages",
+                "rx_bad_frames",
+                "rejected_unsigned",
+                "rejected_bad_signature",
+                "tx_messages",
+                "reconnects",
+                "transport_errors",
+            ),
+            0,
+        )
         self._reader = threading.Thread(target=self._read_loop, name="mavlink-reader", daemon=True)
         self._heartbeat = threading.Thread(
             target=self._heartbeat_loop, name="mavlink-heartbeat", daemon=True
@@ -258,8 +271,9 @@ class MavlinkLink:
     # ----- life cycle ---------------------------------------------------------------------
 
     @classmethod
-    def open(cls, url: str, config: LinkConfig | None = None, *,
-             clock: Clock = time.monotonic) -> MavlinkLink:
+    def open(
+        cls, url: str, config: LinkConfig | None = None, *, clock: Clock = time.monotonic
+    ) -> MavlinkLink:
         """Open the transport ``url`` names and start the link. The first open must succeed
         (a wrong URL or missing device is reported at once); later failures are retried."""
         spec = parse_url(url)
@@ -442,8 +456,9 @@ class MavlinkLink:
 
     # ----- receiving ----------------------------------------------------------------------
 
-    def subscribe(self, callback: Callable[[MavMessage], None],
-                  types: Iterable[str] | None = None) -> Subscription:
+    def subscribe(
+        self, callback: Callable[[MavMessage], None], types: Iterable[str] | None = None
+    ) -> Subscription:
         """Call ``callback(msg)`` on the reader thread for every incoming message whose type
         name (``"COMMAND_LONG"``, ``"HEARTBEAT"`` …) is in ``types`` (all if None). Keep it
         short; an exception in it ends the link (see :attr:`failure`)."""
@@ -477,12 +492,19 @@ class MavlinkLink:
         reason = str(getattr(msg, "reason", ""))
         data = bytes(getattr(msg, "data", b""))
         if "signature" in reason.lower():
-            signed = len(data) > 2 and data[0] == mavlink.PROTOCOL_MARKER_V2 and (
-                data[2] & _MAVLINK_IFLAG_SIGNED)
+            signed = (
+                len(data) > 2
+                and data[0] == mavlink.PROTOCOL_MARKER_V2
+                and (data[2] & _MAVLINK_IFLAG_SIGNED)
+            )
             key = "rejected_bad_signature" if signed else "rejected_unsigned"
             self._counts[key] += 1
-            log.warning("%s: %s frame rejected (%d so far)", self.description,
-                        key.removeprefix("rejected_").replace("_", " "), self._counts[key])
+            log.warning(
+                "%s: %s frame rejected (%d so far)",
+                self.description,
+                key.removeprefix("rejected_").replace("_", " "),
+                self._counts[key],
+            )
         else:
             self._counts["rx_bad_frames"] += 1
             log.debug("%s: bad frame: %s", self.description, reason)
@@ -492,11 +514,13 @@ class MavlinkLink:
             return
         system, component = msg.get_srcSystem(), msg.get_srcComponent()
         wanted_system = self.config.target_system or (
-            self._autopilot.system_id if self._autopilot else None)
+            self._autopilot.system_id if self._autopilot else None
+        )
         if wanted_system is not None and system != wanted_system:
             return
         wanted_component = self.config.target_component or (
-            self._autopilot.component_id if self._autopilot else None)
+            self._autopilot.component_id if self._autopilot else None
+        )
         if wanted_component is not None and component != wanted_component:
             return
         if self._autopilot is None:
@@ -552,8 +576,12 @@ class MavlinkLink:
         except TransportError as exc:
             # Only the first failure of an outage is logged at INFO: at reconnect_max_s the
             # attempts would otherwise fill the journal.
-            log.log(logging.DEBUG if quiet else logging.INFO, "%s: reopen failed: %s",
-                    self.description, exc)
+            log.log(
+                logging.DEBUG if quiet else logging.INFO,
+                "%s: reopen failed: %s",
+                self.description,
+                exc,
+            )
             return False
         with self._write_lock:
             self._transport = transport
@@ -588,8 +616,9 @@ class MavlinkLink:
             codec.signing.secret_key = config.key
             codec.signing.link_id = config.link_id
             codec.signing.timestamp = self._keeper.initial_timestamp
-            codec.signing.allow_unsigned_callback = (
-                lambda _mav, msg_id, allowed=allowed: msg_id in allowed)
+            codec.signing.allow_unsigned_callback = lambda _mav, msg_id, allowed=allowed: (
+                msg_id in allowed
+            )
         self._encoder.signing.sign_outgoing = True
 
     @property

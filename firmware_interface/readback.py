@@ -28,22 +28,27 @@ class OutputReadback:
         self._cond = threading.Condition()
         self._pwm_us: dict[int, float] = {}
         self._subscription = link.subscribe(
-            self._on_message, ["SERVO_OUTPUT_RAW", "ACTUATOR_OUTPUT_STATUS"])
+            self._on_message, ["SERVO_OUTPUT_RAW", "ACTUATOR_OUTPUT_STATUS"]
+        )
 
     def close(self) -> None:
         self._subscription.cancel()
 
-    def request(self, commands: CommandSender, rate_hz: float = 10.0,
-                message: str = "SERVO_OUTPUT_RAW") -> CommandOutcome:
+    def request(
+        self, commands: CommandSender, rate_hz: float = 10.0, message: str = "SERVO_OUTPUT_RAW"
+    ) -> CommandOutcome:
         """Ask the autopilot to stream ``message`` at ``rate_hz``."""
-        ids = {"SERVO_OUTPUT_RAW": mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
-               "ACTUATOR_OUTPUT_STATUS": mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS}
+        ids = {
+            "SERVO_OUTPUT_RAW": mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
+            "ACTUATOR_OUTPUT_STATUS": mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS,
+        }
         if message not in ids:
             raise ConfigurationError(f"message={message!r}; valid: {sorted(ids)}")
         if not 0 < rate_hz <= 1000:
             raise ConfigurationError(f"rate_hz={rate_hz!r} outside (0, 1000]")
         return commands.command_long(
-            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (ids[message], 1e6 / rate_hz))
+            mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, (ids[message], 1e6 / rate_hz)
+        )
 
     def _on_message(self, msg: MavMessage) -> None:
         try:
@@ -69,23 +74,30 @@ class OutputReadback:
         with self._cond:
             return self._pwm_us.get(output)
 
-    def wait_for(self, expected_pwm_us: Mapping[int, int], timeout_s: float,
-                 tolerance_us: float = 0.0) -> None:
+    def wait_for(
+        self, expected_pwm_us: Mapping[int, int], timeout_s: float, tolerance_us: float = 0.0
+    ) -> None:
         """Wait until every output reports its expected PWM (± ``tolerance_us``), at most
         ``timeout_s`` by the link's clock; raises :class:`LinkTimeout` naming the mismatches."""
         clock = self.link.clock
         deadline = clock() + timeout_s
 
         def mismatches() -> dict[int, float | None]:
-            return {output: self._pwm_us.get(output) for output, want in expected_pwm_us.items()
-                    if self._pwm_us.get(output) is None
-                    or abs(self._pwm_us[output] - want) > tolerance_us}
+            return {
+                output: self._pwm_us.get(output)
+                for output, want in expected_pwm_us.items()
+                if self._pwm_us.get(output) is None
+                or abs(self._pwm_us[output] - want) > tolerance_us
+            }
 
         with self._cond:
-            while (bad := mismatches()):
+            while bad := mismatches():
                 if clock() >= deadline or self.link.closed:
-                    detail = ", ".join(f"output {o}: want {expected_pwm_us[o]}, got {v}"
-                                       for o, v in sorted(bad.items()))
-                    raise LinkTimeout(f"outputs not confirmed within timeout_s={timeout_s}: "
-                                      f"{detail}")
+                    detail = ", ".join(
+                        f"output {o}: want {expected_pwm_us[o]}, got {v}"
+                        for o, v in sorted(bad.items())
+                    )
+                    raise LinkTimeout(
+                        f"outputs not confirmed within timeout_s={timeout_s}: {detail}"
+                    )
                 self._cond.wait(0.01)

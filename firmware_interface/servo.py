@@ -105,8 +105,11 @@ class ArduPilotServoDialect(ServoDialect):
                     f"servo output {output} refused DO_SET_SERVO pwm_us={pwm} "
                     f"({exc.result_name}); autopilot said: {exc.statustext!r}. "
                     f"Set SERVO{output}_FUNCTION to 0 (disabled) on the flight controller.",
-                    command=command, result=exc.result, result_name=exc.result_name,
-                    output=output, statustext=exc.statustext,
+                    command=command,
+                    result=exc.result,
+                    result_name=exc.result_name,
+                    output=output,
+                    statustext=exc.statustext,
                 ) from exc
             self._acked_pwm_us[output] = pwm
 
@@ -146,8 +149,9 @@ SERVO_DIALECTS: dict[str, Callable[[CommandSender, ArmCalibration], ServoDialect
 }
 
 
-def make_servo_dialect(name: str, commands: CommandSender,
-                       calibration: ArmCalibration) -> ServoDialect:
+def make_servo_dialect(
+    name: str, commands: CommandSender, calibration: ArmCalibration
+) -> ServoDialect:
     """Build the dialect called ``name`` (``ardupilot`` or ``px4``)."""
     try:
         factory = SERVO_DIALECTS[name]

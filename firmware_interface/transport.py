@@ -272,8 +272,9 @@ class UdpOutTransport(_SocketTransport):
 class TcpTransport(_SocketTransport):
     """A TCP client connection (e.g. to SITL's ``tcp:127.0.0.1:5760``)."""
 
-    def __init__(self, host: str, port: int, *, connect_timeout_s: float = 5.0,
-                 send_timeout_s: float = 1.0) -> None:
+    def __init__(
+        self, host: str, port: int, *, connect_timeout_s: float = 5.0, send_timeout_s: float = 1.0
+    ) -> None:
         self.description = f"tcp:{host}:{port}"
         try:
             self._sock = socket.create_connection((host, port), timeout=connect_timeout_s)

@@ -76,87 +76,172 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m sim_servo",
         description="Simulated flight controller (ArduPilot or PX4 behaviour) with slew-limited "
-                    "servos and the arm's hand pose, over UDP, TCP or a pseudo-terminal. The "
-                    "first stdout line is the link URL for the daemon.")
+        "servos and the arm's hand pose, over UDP, TCP or a pseudo-terminal. The "
+        "first stdout line is the link URL for the daemon.",
+    )
     link = parser.add_argument_group("link (exactly one)")
     where = link.add_mutually_exclusive_group(required=True)
-    where.add_argument("--udp", metavar="HOST:PORT",
-                       help="serve MAVLink 2 on UDP (port 0: any free port); replies go to the "
-                            "last sender")
+    where.add_argument(
+        "--udp",
+        metavar="HOST:PORT",
+        help="serve MAVLink 2 on UDP (port 0: any free port); replies go to the last sender",
+    )
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on TCP for one client")
-    where.add_argument("--pty", action="store_true",
-                       help="serve on a new pseudo-terminal; its device path is printed")
-    link.add_argument("--pty-link", metavar="PATH",
-                      help="with --pty: keep a symlink at PATH to the current pty (a stable "
-                           "name, as udev gives a USB serial adapter) and print PATH,115200")
-    parser.add_argument("--gcs", metavar="HOST:PORT",
-                        help="also serve a ground station on UDP (port 0: any free port; the "
-                             "second stdout line is 'gcs udpout:HOST:PORT'); frames addressed "
-                             "to the companion, and broadcasts, are routed between the links")
+    where.add_argument(
+        "--pty",
+        action="store_true",
+        help="serve on a new pseudo-terminal; its device path is printed",
+    )
+    link.add_argument(
+        "--pty-link",
+        metavar="PATH",
+        help="with --pty: keep a symlink at PATH to the current pty (a stable "
+        "name, as udev gives a USB serial adapter) and print PATH,115200",
+    )
+    parser.add_argument(
+        "--gcs",
+        metavar="HOST:PORT",
+        help="also serve a ground station on UDP (port 0: any free port; the "
+        "second stdout line is 'gcs udpout:HOST:PORT'); frames addressed "
+        "to the companion, and broadcasts, are routed between the links",
+    )
 
     vehicle = parser.add_argument_group("vehicle")
-    vehicle.add_argument("--config", metavar="TOML",
-                         help="settings file (see sim_servo/examples/quad_arm.toml); flags win")
-    vehicle.add_argument("--flavour", choices=FLAVOURS, help="autopilot behaviour "
-                         "(default ardupilot)")
+    vehicle.add_argument(
+        "--config",
+        metavar="TOML",
+        help="settings file (see sim_servo/examples/quad_arm.toml); flags win",
+    )
+    vehicle.add_argument(
+        "--flavour", choices=FLAVOURS, help="autopilot behaviour (default ardupilot)"
+    )
     vehicle.add_argument("--system-id", type=int, help="MAVLink system id (default 1)")
-    vehicle.add_argument("--function", type=_function, action="append", default=[],
-                         metavar="OUTPUT=FUNCTION",
-                         help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
-                              "default: outputs 1-4 motors, others free (px4: arm outputs "
-                              "301-306)")
-    vehicle.add_argument("--servo-output-rate-hz", type=_non_negative,
-                         help="SERVO_OUTPUT_RAW rate before any SET_MESSAGE_INTERVAL (default 0: "
-                              "off)")
+    vehicle.add_argument(
+        "--function",
+        type=_function,
+        action="append",
+        default=[],
+        metavar="OUTPUT=FUNCTION",
+        help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
+        "default: outputs 1-4 motors, others free (px4: arm outputs "
+        "301-306)",
+    )
+    vehicle.add_argument(
+        "--servo-output-rate-hz",
+        type=_non_negative,
+        help="SERVO_OUTPUT_RAW rate before any SET_MESSAGE_INTERVAL (default 0: off)",
+    )
 
-    vehicle.add_argument("--loop-rate-hz", type=_non_negative,
-                         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
-                              "sent, on loop passes (default 400, as ArduCopter)")
+    vehicle.add_argument(
+        "--loop-rate-hz",
+        type=_non_negative,
+        help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
+        "sent, on loop passes (default 400, as ArduCopter)",
+    )
 
     servo = parser.add_argument_group("servos and arm")
-    servo.add_argument("--slew-s-per-60deg", type=_non_negative,
-                       help="servo speed (default 0.12 s per 60 degrees; 0: instant)")
+    servo.add_argument(
+        "--slew-s-per-60deg",
+        type=_non_negative,
+        help="servo speed (default 0.12 s per 60 degrees; 0: instant)",
+    )
     servo.add_argument("--deadband-us", type=_non_negative, help="servo deadband (default 1 us)")
     servo.add_argument("--arm", metavar="TOML", help="arm file (default: the paper arm)")
-    servo.add_argument("--arm-outputs", type=_outputs, metavar="N,N,...",
-                       help="outputs of the arm's joints in order (default 9,10,11,12,13,14)")
+    servo.add_argument(
+        "--arm-outputs",
+        type=_outputs,
+        metavar="N,N,...",
+        help="outputs of the arm's joints in order (default 9,10,11,12,13,14)",
+    )
 
     report = parser.add_argument_group("observation")
     report.add_argument("--event-log", metavar="PATH", help="append JSON-lines events here")
-    report.add_argument("--query-socket", metavar="PATH",
-                        help="answer 'state' / 'events' / 'ping' lines on this Unix socket")
+    report.add_argument(
+        "--query-socket",
+        metavar="PATH",
+        help="answer 'state' / 'events' / 'ping' lines on this Unix socket",
+    )
     report.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
 
     faults = parser.add_argument_group("fault injection")
     faults.add_argument("--seed", type=int, help="seed for every random fault (default 0)")
-    faults.add_argument("--drop-in", type=_probability, metavar="P",
-                        help="drop each incoming frame with probability P")
-    faults.add_argument("--drop-out", type=_probability, metavar="P",
-                        help="drop each outgoing frame with probability P")
-    faults.add_argument("--corrupt-in", type=_probability, metavar="P",
-                        help="flip a byte of each incoming read with probability P")
-    faults.add_argument("--corrupt-out", type=_probability, metavar="P",
-                        help="flip a byte of each outgoing frame with probability P")
+    faults.add_argument(
+        "--drop-in",
+        type=_probability,
+        metavar="P",
+        help="drop each incoming frame with probability P",
+    )
+    faults.add_argument(
+        "--drop-out",
+        type=_probability,
+        metavar="P",
+        help="drop each outgoing frame with probability P",
+    )
+    faults.add_argument(
+        "--corrupt-in",
+        type=_probability,
+        metavar="P",
+        help="flip a byte of each incoming read with probability P",
+    )
+    faults.add_argument(
+        "--corrupt-out",
+        type=_probability,
+        metavar="P",
+        help="flip a byte of each outgoing frame with probability P",
+    )
     faults.add_argument("--latency-ms", type=_non_negative, help="delay every outgoing frame")
-    faults.add_argument("--jitter-ms", type=_non_negative,
-                        help="add uniform +-jitter to the delay (frames may reorder)")
-    faults.add_argument("--heartbeat-pause-after", type=_non_negative, metavar="S",
-                        help="stop sending HEARTBEAT S seconds after start")
-    faults.add_argument("--heartbeat-pause-for", type=_non_negative, metavar="S",
-                        help="... for S seconds (default: for ever)")
-    faults.add_argument("--withhold-ack", action="append", default=[], metavar="CMD",
-                        help="execute but never acknowledge command CMD (id, name such as "
-                             "DO_SET_SERVO, or 'all'); repeatable")
-    faults.add_argument("--nack-output", type=int, action="append", default=[], metavar="N",
-                        help="answer FAILED (no STATUSTEXT) to commands for output N; repeatable")
-    faults.add_argument("--hangup-after", type=_non_negative, metavar="S",
-                        help="close the port (pty, socket) S seconds after start")
-    faults.add_argument("--hangup-for", type=_non_negative, metavar="S",
-                        help="with --pty: open a new pty S seconds after the hang-up and point "
-                             "--pty-link at it (default: the port never comes back)")
-    faults.add_argument("--signing-key", metavar="PATH",
-                        help="require MAVLink 2 signing with this key (32 bytes or 64 hex "
-                             "digits); unsigned frames are ignored, ours are signed")
+    faults.add_argument(
+        "--jitter-ms",
+        type=_non_negative,
+        help="add uniform +-jitter to the delay (frames may reorder)",
+    )
+    faults.add_argument(
+        "--heartbeat-pause-after",
+        type=_non_negative,
+        metavar="S",
+        help="stop sending HEARTBEAT S seconds after start",
+    )
+    faults.add_argument(
+        "--heartbeat-pause-for",
+        type=_non_negative,
+        metavar="S",
+        help="... for S seconds (default: for ever)",
+    )
+    faults.add_argument(
+        "--withhold-ack",
+        action="append",
+        default=[],
+        metavar="CMD",
+        help="execute but never acknowledge command CMD (id, name such as "
+        "DO_SET_SERVO, or 'all'); repeatable",
+    )
+    faults.add_argument(
+        "--nack-output",
+        type=int,
+        action="append",
+        default=[],
+        metavar="N",
+        help="answer FAILED (no STATUSTEXT) to commands for output N; repeatable",
+    )
+    faults.add_argument(
+        "--hangup-after",
+        type=_non_negative,
+        metavar="S",
+        help="close the port (pty, socket) S seconds after start",
+    )
+    faults.add_argument(
+        "--hangup-for",
+        type=_non_negative,
+        metavar="S",
+        help="with --pty: open a new pty S seconds after the hang-up and point "
+        "--pty-link at it (default: the port never comes back)",
+    )
+    faults.add_argument(
+        "--signing-key",
+        metavar="PATH",
+        help="require MAVLink 2 signing with this key (32 bytes or 64 hex "
+        "digits); unsigned frames are ignored, ours are signed",
+    )
     return parser
 
 
@@ -167,9 +252,12 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
     if args.config:
         data = load_toml(args.config)
         base_dir = Path(args.config).resolve().parent
-    for key, value in (("flavour", args.flavour), ("system_id", args.system_id),
-                       ("servo_output_rate_hz", args.servo_output_rate_hz),
-                       ("loop_rate_hz", args.loop_rate_hz)):
+    for key, value in (
+        ("flavour", args.flavour),
+        ("system_id", args.system_id),
+        ("servo_output_rate_hz", args.servo_output_rate_hz),
+        ("loop_rate_hz", args.loop_rate_hz),
+    ):
         if value is not None:
             data[key] = value
     if args.function:
@@ -177,8 +265,10 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         outputs.update({str(o): f for o, f in args.function})
         data["outputs"] = outputs
     servo = dict(data.get("servo", {}))
-    for key, value in (("slew_s_per_60deg", args.slew_s_per_60deg),
-                       ("deadband_us", args.deadband_us)):
+    for key, value in (
+        ("slew_s_per_60deg", args.slew_s_per_60deg),
+        ("deadband_us", args.deadband_us),
+    ):
         if value is not None:
             servo[key] = value
     data["servo"] = servo
@@ -189,14 +279,23 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         arm["outputs"] = list(args.arm_outputs)
     data["arm"] = arm
     faults = dict(data.get("faults", {}))
-    for key in ("seed", "drop_in", "drop_out", "corrupt_in", "corrupt_out", "latency_ms",
-                "jitter_ms"):
+    for key in (
+        "seed",
+        "drop_in",
+        "drop_out",
+        "corrupt_in",
+        "corrupt_out",
+        "latency_ms",
+        "jitter_ms",
+    ):
         if getattr(args, key) is not None:
             faults[key] = getattr(args, key)
-    for key, value in (("heartbeat_pause_after_s", args.heartbeat_pause_after),
-                       ("heartbeat_pause_for_s", args.heartbeat_pause_for),
-                       ("hangup_after_s", args.hangup_after),
-                       ("hangup_for_s", args.hangup_for)):
+    for key, value in (
+        ("heartbeat_pause_after_s", args.heartbeat_pause_after),
+        ("heartbeat_pause_for_s", args.heartbeat_pause_for),
+        ("hangup_after_s", args.hangup_after),
+        ("hangup_for_s", args.hangup_for),
+    ):
         if value is not None:
             faults[key] = value
     if args.withhold_ack:
@@ -210,8 +309,11 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        stream=sys.stderr, format="%(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        stream=sys.stderr,
+        format="%(name)s: %(message)s",
+    )
     events: EventLog | None = None
     endpoint = None
     gcs = None
@@ -224,6 +326,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = config_from_mapping(data, source=args.config or "<flags>", base_dir=base_dir)
         if args.signing_key:
             from dataclasses import replace
+
             config = replace(config, signing_key=load_key(args.signing_key))
         if config.faults.hangup_for_s is not None and not args.pty:
             raise SimConfigError("--hangup-for (hangup_for_s) needs --pty: only a pty comes back")
@@ -238,11 +341,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             endpoint = PtyEndpoint(args.pty_link)
         start_s = time.monotonic()
-        autopilot = SimAutopilot(config, now_s=start_s, emit=events, hand=hand,
-                                 faults=FaultInjector(config.faults))
-        server = SimServer(autopilot, endpoint, events, gcs=gcs, query_path=args.query_socket,
-                           hangup_after_s=config.faults.hangup_after_s,
-                           hangup_for_s=config.faults.hangup_for_s, start_s=start_s)
+        autopilot = SimAutopilot(
+            config, now_s=start_s, emit=events, hand=hand, faults=FaultInjector(config.faults)
+        )
+        server = SimServer(
+            autopilot,
+            endpoint,
+            events,
+            gcs=gcs,
+            query_path=args.query_socket,
+            hangup_after_s=config.faults.hangup_after_s,
+            hangup_for_s=config.faults.hangup_for_s,
+            start_s=start_s,
+        )
     except SimError as exc:
         for link in (endpoint, gcs):
             if link is not None:
@@ -258,9 +369,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     # monotonic_s: t_s = 0 on CLOCK_MONOTONIC (system-wide), to line events up with other
     # processes' time.monotonic() stamps.
-    autopilot.emit(start_s, "start", url=endpoint.url, flavour=config.flavour,
-                   system_id=config.system_id, functions=dict(config.functions),
-                   gcs_url=gcs.url if gcs is not None else None, monotonic_s=start_s)
+    autopilot.emit(
+        start_s,
+        "start",
+        url=endpoint.url,
+        flavour=config.flavour,
+        system_id=config.system_id,
+        functions=dict(config.functions),
+        gcs_url=gcs.url if gcs is not None else None,
+        monotonic_s=start_s,
+    )
     print(endpoint.url, flush=True)
     if gcs is not None:
         print(f"gcs {gcs.url}", flush=True)

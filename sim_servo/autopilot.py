@@ -98,17 +98,25 @@ class Command:
 class SimAutopilot:
     """A simulated ArduPilot (or PX4) flight controller with 16 servo outputs."""
 
-    def __init__(self, config: SimConfig, *, now_s: float, emit: Emit | None = None,
-                 hand: HandModel | None = None, faults: FaultInjector | None = None,
-                 wall_clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        config: SimConfig,
+        *,
+        now_s: float,
+        emit: Emit | None = None,
+        hand: HandModel | None = None,
+        faults: FaultInjector | None = None,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
         self.config = config
         self.hand = hand
         self.faults = faults or FaultInjector(config.faults)
         self._emit_sink = emit or (lambda event: None)
         self._start_s = now_s
         self._loop_s = 1.0 / config.loop_rate_hz
-        self._enc = mavlink.MAVLink(None, srcSystem=config.system_id,
-                                    srcComponent=config.component_id)
+        self._enc = mavlink.MAVLink(
+            None, srcSystem=config.system_id, srcComponent=config.component_id
+        )
         # One decoder per link: a serial stream's partial frame must not meet another link's.
         self._decoders: dict[int, mavlink.MAVLink] = {}
         if config.signing_key is not None:
@@ -116,7 +124,8 @@ class SimAutopilot:
             self._enc.signing.sign_outgoing = True
             self._enc.signing.link_id = 0
             self._enc.signing.timestamp = max(
-                1, int((wall_clock() - SIGNING_EPOCH_UNIX_S) * 100_000))
+                1, int((wall_clock() - SIGNING_EPOCH_UNIX_S) * 100_000)
+            )
         #: (system, component) → the link it was last heard on (ArduPilot's routing table).
         self.routes: dict[tuple[int, int], int] = {}
         self._forwarded: list[tuple[int, bytes]] = []
@@ -128,30 +137,48 @@ class SimAutopilot:
         self._param_names = list(self.params)
         self.pwm_us: dict[int, int] = {
             output: 0 if self._function(output) == 0 else IDLE_ASSIGNED_PWM_US
-            for output in range(1, OUTPUT_COUNT + 1)}
+            for output in range(1, OUTPUT_COUNT + 1)
+        }
         self.servos: dict[int, Servo] = {}
         for output in range(1, OUTPUT_COUNT + 1):
             deg_per_us = config.servo.deg_per_us
             if hand is not None and output in hand.outputs:
                 deg_per_us = hand.deg_per_us(output)
-            params = ServoParams(slew_s_per_60deg=config.servo.slew_s_per_60deg,
-                                 deg_per_us=deg_per_us, deadband_us=config.servo.deadband_us,
-                                 travel_min_us=config.servo.travel_min_us,
-                                 travel_max_us=config.servo.travel_max_us)
+            params = ServoParams(
+                slew_s_per_60deg=config.servo.slew_s_per_60deg,
+                deg_per_us=deg_per_us,
+                deadband_us=config.servo.deadband_us,
+                travel_min_us=config.servo.travel_min_us,
+                travel_max_us=config.servo.travel_max_us,
+            )
             self.servos[output] = Servo(params, config.servo.initial_us, now_s)
         self._stream_msgs = self._streamable()
-        self._interval_ms: dict[int, int] = {msg_id: self._default_interval_ms(msg_id)
-                                             for msg_id in self._stream_msgs}
+        self._interval_ms: dict[int, int] = {
+            msg_id: self._default_interval_ms(msg_id) for msg_id in self._stream_msgs
+        }
         self._next_due_s: dict[int, float | None] = {
-            msg_id: now_s if self._interval_ms[msg_id] > 0 else None
-            for msg_id in self._stream_msgs}
+            msg_id: now_s if self._interval_ms[msg_id] > 0 else None for msg_id in self._stream_msgs
+        }
         self._heartbeat_paused = False
         self._moving = False
         self.peer: tuple[int, int] | None = None
         self._peers_seen: set[tuple[int, int]] = set()
         self.stats = dict.fromkeys(
-            ("rx", "tx", "bad_frames", "rejected_signature", "dropped_in", "dropped_out",
-             "corrupted_in", "corrupted_out", "acks", "acks_withheld", "routed"), 0)
+            (
+                "rx",
+                "tx",
+                "bad_frames",
+                "rejected_signature",
+                "dropped_in",
+                "dropped_out",
+                "corrupted_in",
+                "corrupted_out",
+                "acks",
+                "acks_withheld",
+                "routed",
+            ),
+            0,
+        )
         self._commands: dict[int, Callable[[Command, float], int]] = {
             mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,
             mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: self._cmd_get_message_interval,
@@ -178,32 +205,44 @@ class SimAutopilot:
         if self.config.flavour == "ardupilot":
             int16 = mavlink.MAV_PARAM_TYPE_INT16
             for n in range(1, OUTPUT_COUNT + 1):
-                for suffix, value in (("FUNCTION", functions[n]), ("MIN", ARDUPILOT_PWM_MIN_US),
-                                      ("MAX", ARDUPILOT_PWM_MAX_US),
-                                      ("TRIM", ARDUPILOT_PWM_TRIM_US)):
+                for suffix, value in (
+                    ("FUNCTION", functions[n]),
+                    ("MIN", ARDUPILOT_PWM_MIN_US),
+                    ("MAX", ARDUPILOT_PWM_MAX_US),
+                    ("TRIM", ARDUPILOT_PWM_TRIM_US),
+                ):
                     name = f"SERVO{n}_{suffix}"
                     params[name] = Param(name, value, int16, -32768, 32767)
         else:
             int32 = mavlink.MAV_PARAM_TYPE_INT32
             for n in range(1, OUTPUT_COUNT + 1):
-                for prefix, value in (("PWM_MAIN_FUNC", functions[n]),
-                                      ("PWM_MAIN_MIN", PX4_PWM_MIN_US),
-                                      ("PWM_MAIN_MAX", PX4_PWM_MAX_US)):
+                for prefix, value in (
+                    ("PWM_MAIN_FUNC", functions[n]),
+                    ("PWM_MAIN_MIN", PX4_PWM_MIN_US),
+                    ("PWM_MAIN_MAX", PX4_PWM_MAX_US),
+                ):
                     name = f"{prefix}{n}"
                     params[name] = Param(name, value, int32, -(2**31), 2**31 - 1)
         return params
 
     def _function(self, output: int) -> int:
-        key = f"SERVO{output}_FUNCTION" if self.config.flavour == "ardupilot" \
+        key = (
+            f"SERVO{output}_FUNCTION"
+            if self.config.flavour == "ardupilot"
             else f"PWM_MAIN_FUNC{output}"
+        )
         return self.params[key].value
 
     def _pwm_limits(self, output: int) -> tuple[int, int]:
         if self.config.flavour == "ardupilot":
-            return (self.params[f"SERVO{output}_MIN"].value,
-                    self.params[f"SERVO{output}_MAX"].value)
-        return (self.params[f"PWM_MAIN_MIN{output}"].value,
-                self.params[f"PWM_MAIN_MAX{output}"].value)
+            return (
+                self.params[f"SERVO{output}_MIN"].value,
+                self.params[f"SERVO{output}_MAX"].value,
+            )
+        return (
+            self.params[f"PWM_MAIN_MIN{output}"].value,
+            self.params[f"PWM_MAIN_MAX{output}"].value,
+        )
 
     def _encode_param_value(self, param: Param) -> float:
         if self.config.flavour == "px4":
@@ -303,11 +342,18 @@ class SimAutopilot:
             self._send(self._heartbeat(), now_s)
 
     def _heartbeat(self) -> mavlink.MAVLink_message:
-        autopilot = (mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA if self.config.flavour == "ardupilot"
-                     else mavlink.MAV_AUTOPILOT_PX4)
+        autopilot = (
+            mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+            if self.config.flavour == "ardupilot"
+            else mavlink.MAV_AUTOPILOT_PX4
+        )
         return self._enc.heartbeat_encode(
-            mavlink.MAV_TYPE_QUADROTOR, autopilot, mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-            0, mavlink.MAV_STATE_STANDBY)
+            mavlink.MAV_TYPE_QUADROTOR,
+            autopilot,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            0,
+            mavlink.MAV_STATE_STANDBY,
+        )
 
     def _advance(self, msg_id: int, now_s: float) -> None:
         interval_ms = self._interval_ms[msg_id]
@@ -345,11 +391,13 @@ class SimAutopilot:
         if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW:
             values = [self.pwm_us[o] & 0xFFFF for o in range(1, OUTPUT_COUNT + 1)]
             return self._enc.servo_output_raw_encode(
-                self._time_boot_us(now_s) & 0xFFFFFFFF, 0, *values)
+                self._time_boot_us(now_s) & 0xFFFFFFFF, 0, *values
+            )
         if msg_id == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
             values = [float(self.pwm_us[o]) for o in range(1, OUTPUT_COUNT + 1)]
             return self._enc.actuator_output_status_encode(
-                self._time_boot_us(now_s), OUTPUT_COUNT, values + [0.0] * (32 - OUTPUT_COUNT))
+                self._time_boot_us(now_s), OUTPUT_COUNT, values + [0.0] * (32 - OUTPUT_COUNT)
+            )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()
         raise AssertionError(f"message id {msg_id} is not streamable")  # _streamable() guards
@@ -377,8 +425,9 @@ class SimAutopilot:
             decoder.robust_parsing = True
             if self.config.signing_key is not None:
                 decoder.signing.secret_key = self.config.signing_key
-                decoder.signing.allow_unsigned_callback = (
-                    lambda _mav, msg_id: msg_id in UNSIGNED_ALLOWED_IDS)
+                decoder.signing.allow_unsigned_callback = lambda _mav, msg_id: (
+                    msg_id in UNSIGNED_ALLOWED_IDS
+                )
             self._decoders[channel] = decoder
         return decoder
 
@@ -417,8 +466,13 @@ class SimAutopilot:
             self.emit(now_s, "fault", fault="drop_in", msg=kind)
             return
         self.stats["rx"] += 1
-        self.emit(now_s, "rx", msg=kind, src=[msg.get_srcSystem(), msg.get_srcComponent()],
-                  fields=_fields(msg))
+        self.emit(
+            now_s,
+            "rx",
+            msg=kind,
+            src=[msg.get_srcSystem(), msg.get_srcComponent()],
+            fields=_fields(msg),
+        )
         if not self._route(msg, channel, now_s):
             return
         handler = self._handlers.get(kind)
@@ -444,21 +498,33 @@ class SimAutopilot:
         if for_us and target_system != 0 and target_component != 0:
             return True
         links = {
-            link for (system, component), link in self.routes.items()
-            if link != channel and (target_system == 0 or (
-                system == target_system and target_component in (0, component)))
+            link
+            for (system, component), link in self.routes.items()
+            if link != channel
+            and (
+                target_system == 0
+                or (system == target_system and target_component in (0, component))
+            )
         }
         for link in sorted(links):
             self._forwarded.append((link, bytes(msg.get_msgbuf())))
             self.stats["routed"] += 1
         if links and not for_us:
-            self.emit(now_s, "routed", msg=msg.get_type(), src=list(source),
-                      to=[target_system, target_component], links=sorted(links))
+            self.emit(
+                now_s,
+                "routed",
+                msg=msg.get_type(),
+                src=list(source),
+                to=[target_system, target_component],
+                links=sorted(links),
+            )
         return for_us
 
     def _for_us(self, msg: Any) -> bool:
-        return (msg.target_system in (0, self.config.system_id)
-                and msg.target_component in (0, self.config.component_id))
+        return msg.target_system in (0, self.config.system_id) and msg.target_component in (
+            0,
+            self.config.component_id,
+        )
 
     def _on_heartbeat(self, msg: Any, now_s: float) -> None:
         source = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -470,34 +536,50 @@ class SimAutopilot:
     def _on_command_long(self, msg: Any, now_s: float) -> None:
         if not self._for_us(msg):
             return
-        params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6,
-                  msg.param7)
-        self._run_command(Command(msg.command, params,
-                                  (msg.get_srcSystem(), msg.get_srcComponent())), now_s)
+        params = (
+            msg.param1,
+            msg.param2,
+            msg.param3,
+            msg.param4,
+            msg.param5,
+            msg.param6,
+            msg.param7,
+        )
+        self._run_command(
+            Command(msg.command, params, (msg.get_srcSystem(), msg.get_srcComponent())), now_s
+        )
 
     def _on_command_int(self, msg: Any, now_s: float) -> None:
         if not self._for_us(msg):
             return
-        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y),
-                  msg.z)
-        self._run_command(Command(msg.command, params,
-                                  (msg.get_srcSystem(), msg.get_srcComponent())), now_s)
+        params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
+        self._run_command(
+            Command(msg.command, params, (msg.get_srcSystem(), msg.get_srcComponent())), now_s
+        )
 
     def _run_command(self, command: Command, now_s: float) -> None:
         handler = self._commands.get(command.command)
-        result = handler(command, now_s) if handler is not None \
-            else mavlink.MAV_RESULT_UNSUPPORTED
-        withheld = (self.config.faults.withhold_all_acks
-                    or command.command in self.config.faults.withhold_ack_commands)
-        self.emit(now_s, "ack", command=command.command,
-                  command_name=_command_name(command.command),
-                  result=result, result_name=_result_name(result), withheld=withheld)
+        result = handler(command, now_s) if handler is not None else mavlink.MAV_RESULT_UNSUPPORTED
+        withheld = (
+            self.config.faults.withhold_all_acks
+            or command.command in self.config.faults.withhold_ack_commands
+        )
+        self.emit(
+            now_s,
+            "ack",
+            command=command.command,
+            command_name=_command_name(command.command),
+            result=result,
+            result_name=_result_name(result),
+            withheld=withheld,
+        )
         if withheld:
             self.stats["acks_withheld"] += 1
             return
         self.stats["acks"] += 1
-        self._send(self._enc.command_ack_encode(command.command, result, 0, 0, *command.source),
-                   now_s)
+        self._send(
+            self._enc.command_ack_encode(command.command, result, 0, 0, *command.source), now_s
+        )
 
     def _statustext(self, severity: int, text: str, now_s: float) -> None:
         self.emit(now_s, "statustext", severity=severity, text=text)
@@ -517,8 +599,9 @@ class SimAutopilot:
             self.emit(now_s, "fault", fault="nack_output", output=output, pwm_us=pwm)
             return mavlink.MAV_RESULT_FAILED
         if self._function(output) not in ARDUPILOT_FREE_FUNCTIONS:
-            self._statustext(mavlink.MAV_SEVERITY_INFO, STATUSTEXT_IN_USE.format(output=output),
-                             now_s)
+            self._statustext(
+                mavlink.MAV_SEVERITY_INFO, STATUSTEXT_IN_USE.format(output=output), now_s
+            )
             return mavlink.MAV_RESULT_FAILED
         self._apply(output, pwm, now_s)
         return mavlink.MAV_RESULT_ACCEPTED
@@ -548,20 +631,30 @@ class SimAutopilot:
         servo = self.servos[output]
         servo.command(pwm, now_s)
         self._moving = True
-        self.emit(now_s, "servo", output=output, pwm_us=pwm,
-                  position_us=round(servo.position_us(now_s), 3),
-                  target_us=round(servo.target_us, 3),
-                  arrival_t_s=self._t(servo.arrival_s()),
-                  **{k: (None if isinstance(v, float) and math.isnan(v) else v)
-                     for k, v in extra.items()})
+        self.emit(
+            now_s,
+            "servo",
+            output=output,
+            pwm_us=pwm,
+            position_us=round(servo.position_us(now_s), 3),
+            target_us=round(servo.target_us, 3),
+            arrival_t_s=self._t(servo.arrival_s()),
+            **{
+                k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in extra.items()
+            },
+        )
 
     def _check_settled(self, now_s: float) -> None:
         if not self._moving or any(servo.moving(now_s) for servo in self.servos.values()):
             return
         self._moving = False
         arrival = max(servo.arrival_s() for servo in self.servos.values())
-        self.emit(arrival, "settled", positions_us=self._positions(now_s),
-                  hand=self.hand.state(self._positions(now_s)).as_dict() if self.hand else None)
+        self.emit(
+            arrival,
+            "settled",
+            positions_us=self._positions(now_s),
+            hand=self.hand.state(self._positions(now_s)).as_dict() if self.hand else None,
+        )
 
     def _positions(self, now_s: float) -> dict[int, float]:
         return {o: round(s.position_us(now_s), 3) for o, s in self.servos.items()}
@@ -595,8 +688,7 @@ class SimAutopilot:
             interval_us = interval_ms * 1000 if interval_ms > 0 else -1
         else:
             interval_us = 0  # not available
-        self._defer(self._enc.message_interval_encode(max(0, msg_id) & 0xFFFF, interval_us),
-                    now_s)
+        self._defer(self._enc.message_interval_encode(max(0, msg_id) & 0xFFFF, interval_us), now_s)
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _cmd_request_message(self, command: Command, now_s: float) -> int:
@@ -610,8 +702,13 @@ class SimAutopilot:
 
     def _param_value(self, param: Param, index: int) -> mavlink.MAVLink_message:
         # param_index is a uint16_t on the wire: ArduPilot's -1 arrives as 65535.
-        return self._enc.param_value_encode(param.name.encode(), self._encode_param_value(param),
-                                            param.param_type, len(self.params), index & 0xFFFF)
+        return self._enc.param_value_encode(
+            param.name.encode(),
+            self._encode_param_value(param),
+            param.param_type,
+            len(self.params),
+            index & 0xFFFF,
+        )
 
     def _on_param_set(self, msg: Any, now_s: float) -> None:
         if msg.target_system not in (0, self.config.system_id):
@@ -659,17 +756,24 @@ class SimAutopilot:
         """Everything a test may assert on, as JSON-ready data."""
         positions = self._positions(now_s)
         outputs = {
-            str(o): {"function": self._function(o), "pwm_us": self.pwm_us[o],
-                     "position_us": positions[o], "target_us": round(s.target_us, 3),
-                     "moving": s.moving(now_s)}
-            for o, s in self.servos.items()}
+            str(o): {
+                "function": self._function(o),
+                "pwm_us": self.pwm_us[o],
+                "position_us": positions[o],
+                "target_us": round(s.target_us, 3),
+                "moving": s.moving(now_s),
+            }
+            for o, s in self.servos.items()
+        }
         return {
             "t_s": self._t(now_s),
             "flavour": self.config.flavour,
             "system_id": self.config.system_id,
             "peer": list(self.peer) if self.peer else None,
-            "routes": [[system, component, link]
-                       for (system, component), link in sorted(self.routes.items())],
+            "routes": [
+                [system, component, link]
+                for (system, component), link in sorted(self.routes.items())
+            ],
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
             "hand": self.hand.state(positions).as_dict() if self.hand else None,

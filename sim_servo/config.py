@@ -61,8 +61,9 @@ def _int(value: Any, name: str, low: int, high: int, source: str = "") -> int:
     return value
 
 
-def _optional_real(value: Any, name: str, low: float, high: float,
-                   source: str = "") -> float | None:
+def _optional_real(
+    value: Any, name: str, low: float, high: float, source: str = ""
+) -> float | None:
     return None if value is None else _real(value, name, low, high, source)
 
 
@@ -94,7 +95,8 @@ class ServoConfig:
         if not self.travel_min_us < self.travel_max_us:
             raise SimConfigError(
                 f"travel_min_us={self.travel_min_us} must be below "
-                f"travel_max_us={self.travel_max_us}")
+                f"travel_max_us={self.travel_max_us}"
+            )
         _real(self.initial_us, "initial_us", self.travel_min_us, self.travel_max_us)
 
 
@@ -230,14 +232,38 @@ def load_key(path: str | Path) -> bytes:
             pass
     raise SimConfigError(
         f"signing key file {str(path)!r} holds {len(data)} bytes; expected 32 raw bytes or 64 hex "
-        "digits")
+        "digits"
+    )
 
 
-_TOP_KEYS = {"flavour", "system_id", "component_id", "servo_output_rate_hz", "heartbeat_rate_hz",
-             "loop_rate_hz", "signing_key_file", "outputs", "servo", "arm", "faults"}
-_FAULT_KEYS = {"drop_in", "drop_out", "corrupt_in", "corrupt_out", "latency_ms", "jitter_ms",
-               "heartbeat_pause_after_s", "heartbeat_pause_for_s", "withhold_ack", "nack_outputs",
-               "hangup_after_s", "hangup_for_s", "seed"}
+_TOP_KEYS = {
+    "flavour",
+    "system_id",
+    "component_id",
+    "servo_output_rate_hz",
+    "heartbeat_rate_hz",
+    "loop_rate_hz",
+    "signing_key_file",
+    "outputs",
+    "servo",
+    "arm",
+    "faults",
+}
+_FAULT_KEYS = {
+    "drop_in",
+    "drop_out",
+    "corrupt_in",
+    "corrupt_out",
+    "latency_ms",
+    "jitter_ms",
+    "heartbeat_pause_after_s",
+    "heartbeat_pause_for_s",
+    "withhold_ack",
+    "nack_outputs",
+    "hangup_after_s",
+    "hangup_for_s",
+    "seed",
+}
 _ARM_KEYS = {"file", "outputs", "pwm_min_us", "pwm_max_us", "reversed", "trims_us"}
 
 
@@ -274,18 +300,26 @@ def parse_withhold(values: list[Any] | str, source: str = "") -> tuple[frozenset
         if not isinstance(number, int):
             raise SimConfigError(
                 f"{_where(source, 'withhold_ack')}={value!r} is not a command id, MAV_CMD name "
-                "or 'all'")
+                "or 'all'"
+            )
         commands.add(number)
     return frozenset(commands), False
 
 
-def config_from_mapping(data: Mapping[str, Any], source: str = "<dict>",
-                        base_dir: Path | None = None) -> SimConfig:
+def config_from_mapping(
+    data: Mapping[str, Any], source: str = "<dict>", base_dir: Path | None = None
+) -> SimConfig:
     """Build a :class:`SimConfig` from the TOML structure; paths are relative to ``base_dir``."""
     _reject_unknown(data, _TOP_KEYS, source)
     kwargs: dict[str, Any] = {}
-    for key in ("flavour", "system_id", "component_id", "servo_output_rate_hz",
-                "heartbeat_rate_hz", "loop_rate_hz"):
+    for key in (
+        "flavour",
+        "system_id",
+        "component_id",
+        "servo_output_rate_hz",
+        "heartbeat_rate_hz",
+        "loop_rate_hz",
+    ):
         if key in data:
             kwargs[key] = data[key]
     if "signing_key_file" in data:
@@ -296,8 +330,9 @@ def config_from_mapping(data: Mapping[str, Any], source: str = "<dict>",
         try:
             output = int(key)
         except ValueError:
-            raise SimConfigError(f"[outputs] key {key!r} in {source} is not an output number") \
-                from None
+            raise SimConfigError(
+                f"[outputs] key {key!r} in {source} is not an output number"
+            ) from None
         functions[output] = _int(function, f"outputs.{key}", 0, 65535, source)
     kwargs["functions"] = functions
     servo = _table(data, "servo", source)

@@ -190,8 +190,7 @@ class PtyEndpoint(Endpoint):
 
     def __init__(self, link_path: str | None = None) -> None:
         self.link_path = link_path
-        if link_path is not None and os.path.lexists(link_path) \
-                and not os.path.islink(link_path):
+        if link_path is not None and os.path.lexists(link_path) and not os.path.islink(link_path):
             raise SimIOError(f"--pty-link {link_path!r} exists and is not a symlink")
         self._open = False
         self._open_pty()
@@ -216,7 +215,8 @@ class PtyEndpoint(Endpoint):
             except OSError as exc:
                 self.close()
                 raise SimIOError(
-                    f"cannot point --pty-link {self.link_path!r} at {self.path}: {exc}") from exc
+                    f"cannot point --pty-link {self.link_path!r} at {self.path}: {exc}"
+                ) from exc
 
     def reopen(self) -> None:
         """A new pty (a new ``/dev/pts/N``), with the link pointing at it."""

@@ -1,8 +1,8 @@
 """Exceptions raised by ``sim_servo``: one base, layered by concern.
 
-    SimError
-    ├── SimConfigError     (also a ValueError: a bad flag, TOML field or value)
-    └── SimIOError         (a socket / pty failure; the OS error is the ``__cause__``)
+SimError
+├── SimConfigError     (also a ValueError: a bad flag, TOML field or value)
+└── SimIOError         (a socket / pty failure; the OS error is the ``__cause__``)
 """
 
 from __future__ import annotations

@@ -67,8 +67,9 @@ class HangupSchedule:
     HANGUP = "hangup"
     REOPEN = "reopen"
 
-    def __init__(self, start_s: float, hangup_after_s: float | None,
-                 hangup_for_s: float | None = None) -> None:
+    def __init__(
+        self, start_s: float, hangup_after_s: float | None, hangup_for_s: float | None = None
+    ) -> None:
         self._due: list[tuple[float, str]] = []
         if hangup_after_s is not None:
             hangup_at_s = start_s + hangup_after_s
@@ -83,5 +84,5 @@ class HangupSchedule:
     def due(self, now_s: float) -> list[str]:
         """The faults due by ``now_s``, in order (``HANGUP``, ``REOPEN``); each only once."""
         faults = [fault for at_s, fault in self._due if at_s <= now_s]
-        self._due = self._due[len(faults):]
+        self._due = self._due[len(faults) :]
         return faults

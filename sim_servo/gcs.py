@@ -47,9 +47,16 @@ class GroundStation:
     (32 bytes) signs every frame, as a ground station sharing the vehicle's key does.
     """
 
-    def __init__(self, url: str, *, system_id: int = GCS_SYSTEM_ID,
-                 component_id: int = GCS_COMPONENT_ID, signing_key: bytes | None = None,
-                 link_id: int = 1, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        url: str,
+        *,
+        system_id: int = GCS_SYSTEM_ID,
+        component_id: int = GCS_COMPONENT_ID,
+        signing_key: bytes | None = None,
+        link_id: int = 1,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         scheme, _, address = url.partition(":")
         host, _, port_text = address.rpartition(":")
         if scheme != "udpout" or not host or not port_text.isdigit():
@@ -88,15 +95,34 @@ class GroundStation:
         self._sock.send(frame)
 
     def heartbeat(self) -> None:
-        self.send(self.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID,
-                                            0, 0, mavlink.MAV_STATE_ACTIVE))
+        self.send(
+            self.mav.heartbeat_encode(
+                mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+            )
+        )
 
-    def target_message(self, pose: Sequence[float], *, system_id: int = 1,
-                       component_id: int = COMPANION_COMPONENT_ID) -> Any:
+    def target_message(
+        self,
+        pose: Sequence[float],
+        *,
+        system_id: int = 1,
+        component_id: int = COMPANION_COMPONENT_ID,
+    ) -> Any:
         """COMMAND_LONG MAV_CMD_USER_1 with params 1–6 = x_cm, y_cm, z_cm, roll, pitch, yaw."""
         x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg = pose
-        return self.mav.command_long_encode(system_id, component_id, mavlink.MAV_CMD_USER_1, 0,
-                                            x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, 0)
+        return self.mav.command_long_encode(
+            system_id,
+            component_id,
+            mavlink.MAV_CMD_USER_1,
+            0,
+            x_cm,
+            y_cm,
+            z_cm,
+            roll_deg,
+            pitch_deg,
+            yaw_deg,
+            0,
+        )
 
     def send_target(self, pose: Sequence[float], **ids: int) -> float:
         """Send a target; the monotonic time it left."""
@@ -147,8 +173,9 @@ class GroundStation:
         while self.clock() < deadline:
             self.heartbeat()
             msg = self.wait_for(
-                lambda m: m.get_type() == "HEARTBEAT"
-                and m.get_srcComponent() == COMPANION_COMPONENT_ID,
+                lambda m: (
+                    m.get_type() == "HEARTBEAT" and m.get_srcComponent() == COMPANION_COMPONENT_ID
+                ),
                 min(0.5, max(0.0, deadline - self.clock())),
             )
             if msg is not None:

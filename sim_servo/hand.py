@@ -32,10 +32,15 @@ class HandState:
     def as_dict(self) -> dict[str, Any]:
         pose = None
         if self.pose is not None:
-            pose = {name: getattr(self.pose, name) for name in
-                    ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg")}
-        return {"angles_deg": dict(self.angles_deg) if self.angles_deg is not None else None,
-                "pose": pose, "error": self.error}
+            pose = {
+                name: getattr(self.pose, name)
+                for name in ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg")
+            }
+        return {
+            "angles_deg": dict(self.angles_deg) if self.angles_deg is not None else None,
+            "pose": pose,
+            "error": self.error,
+        }
 
 
 class HandModel:
@@ -44,7 +49,8 @@ class HandModel:
     def __init__(self, arm: Arm, calibration: ArmCalibration) -> None:
         if len(calibration) != arm.dof:
             raise SimConfigError(
-                f"calibration has {len(calibration)} joints, arm {arm.name!r} has {arm.dof}")
+                f"calibration has {len(calibration)} joints, arm {arm.name!r} has {arm.dof}"
+            )
         self.arm = arm
         self.calibration = calibration
 
@@ -58,13 +64,18 @@ class HandModel:
         if len(config.outputs) != arm.dof:
             raise SimConfigError(
                 f"arm outputs={list(config.outputs)} name {len(config.outputs)} outputs; "
-                f"arm {arm.name!r} has {arm.dof} joints")
+                f"arm {arm.name!r} has {arm.dof} joints"
+            )
         ranges = [(math.degrees(j.min_rad), math.degrees(j.max_rad)) for j in arm.joints]
         try:
             calibration = calibration_from_ranges(
-                ranges, outputs=config.outputs, pwm_min_us=config.pwm_min_us,
-                pwm_max_us=config.pwm_max_us, reversed_joints=config.reversed_joints,
-                trims_us=config.trims_us)
+                ranges,
+                outputs=config.outputs,
+                pwm_min_us=config.pwm_min_us,
+                pwm_max_us=config.pwm_max_us,
+                reversed_joints=config.reversed_joints,
+                trims_us=config.trims_us,
+            )
         except ConfigurationError as exc:
             raise SimConfigError(f"arm calibration: {exc}") from exc
         return cls(arm, calibration)
@@ -82,7 +93,8 @@ class HandModel:
         """The hand for horn positions ``{output: µs}`` (every calibrated output needed)."""
         try:
             angles = self.calibration.pwm_us_to_angles_deg(
-                {output: position_us[output] for output in self.outputs})
+                {output: position_us[output] for output in self.outputs}
+            )
         except CalibrationError as exc:
             return HandState(angles_deg=None, pose=None, error=str(exc))
         ordered = [angles[joint.name] for joint in self.calibration.joints]

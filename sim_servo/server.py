@@ -33,12 +33,19 @@ MAX_WAIT_S = 0.1
 class SimServer:
     """Runs ``autopilot`` over ``endpoint`` until :meth:`stop` (or a signal via ``wakeup_fd``)."""
 
-    def __init__(self, autopilot: SimAutopilot, endpoint: Endpoint, events: EventLog, *,
-                 gcs: Endpoint | None = None,
-                 query_path: str | None = None, hangup_after_s: float | None = None,
-                 hangup_for_s: float | None = None,
-                 clock: Callable[[], float] = time.monotonic, start_s: float | None = None
-                 ) -> None:
+    def __init__(
+        self,
+        autopilot: SimAutopilot,
+        endpoint: Endpoint,
+        events: EventLog,
+        *,
+        gcs: Endpoint | None = None,
+        query_path: str | None = None,
+        hangup_after_s: float | None = None,
+        hangup_for_s: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        start_s: float | None = None,
+    ) -> None:
         self.autopilot = autopilot
         self.endpoint = endpoint
         self.gcs = gcs
@@ -70,11 +77,17 @@ class SimServer:
     def _respond(self, request: str) -> dict[str, Any]:
         if request == "state":
             state = self.autopilot.snapshot(self.clock())
-            state["link"] = {"url": self.endpoint.url, "closed": self.endpoint.closed,
-                             "dropped_writes": self.endpoint.dropped_writes}
+            state["link"] = {
+                "url": self.endpoint.url,
+                "closed": self.endpoint.closed,
+                "dropped_writes": self.endpoint.dropped_writes,
+            }
             if self.gcs is not None:
-                state["gcs_link"] = {"url": self.gcs.url, "closed": self.gcs.closed,
-                                     "dropped_writes": self.gcs.dropped_writes}
+                state["gcs_link"] = {
+                    "url": self.gcs.url,
+                    "closed": self.gcs.closed,
+                    "dropped_writes": self.gcs.dropped_writes,
+                }
             return state
         if request == "events":
             return {"events": list(self.events.recent)}
@@ -100,8 +113,9 @@ class SimServer:
         wait_s = min(wait_s, self._hangup.next_s() - now)
         link_fds = {fd: channel for channel, link in enumerate(self.links) for fd in link.fds()}
         query_fds = self.query.fds() if self.query else []
-        readable, _, _ = select.select([self._wake_r, *link_fds, *query_fds], [], [],
-                                       max(0.0, wait_s))
+        readable, _, _ = select.select(
+            [self._wake_r, *link_fds, *query_fds], [], [], max(0.0, wait_s)
+        )
         now = self.clock()
         for fd in readable:
             if fd == self._wake_r:

@@ -14,8 +14,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from companion.kinematics.arm import Arm
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
+from companion.kinematics.arm import Arm
 from companion.tomltable import Table, load_toml
 from firmware_interface import (
     SERVO_DIALECTS,
@@ -147,8 +147,10 @@ def _socket_path(t: Table) -> str:
     path = t.string("socket")
     size = len(os.fsencode(path))
     if size > SOCKET_PATH_MAX_BYTES:
-        raise t.fail("socket", f"path is {size} bytes, a Unix socket path takes at most "
-                     f"{SOCKET_PATH_MAX_BYTES}")
+        raise t.fail(
+            "socket",
+            f"path is {size} bytes, a Unix socket path takes at most {SOCKET_PATH_MAX_BYTES}",
+        )
     return path
 
 

@@ -93,13 +93,25 @@ def write_demo_plot(
         colour = f"C{k}"
         side.plot(target.x_cm, target.z_cm, "x", color=colour, markersize=9, label=f"{name}")
         if hand is None:
-            side.annotate("refused", (target.x_cm, target.z_cm), fontsize=7, color=colour,
-                          xytext=(4, 4), textcoords="offset points")
+            side.annotate(
+                "refused",
+                (target.x_cm, target.z_cm),
+                fontsize=7,
+                color=colour,
+                xytext=(4, 4),
+                textcoords="offset points",
+            )
         else:
             side.plot(hand.x_cm, hand.z_cm, "o", mfc="none", color=colour, markersize=9)
             error_cm = math.dist(hand.position_cm, target.position_cm)
-            side.annotate(f"{error_cm:.2f} cm", (hand.x_cm, hand.z_cm), fontsize=7,
-                          color=colour, xytext=(6, -10), textcoords="offset points")
+            side.annotate(
+                f"{error_cm:.2f} cm",
+                (hand.x_cm, hand.z_cm),
+                fontsize=7,
+                color=colour,
+                xytext=(6, -10),
+                textcoords="offset points",
+            )
     side.set_title("targets (x) and the simulator's hand (o), side view", fontsize=9)
     side.set_xlabel("x (cm)")
     side.set_ylabel("z (cm)")
@@ -107,11 +119,22 @@ def write_demo_plot(
     side.set_aspect("equal", adjustable="datalim")
     side.grid(True, alpha=0.3)
     if path_targets:
-        eight.plot([p.y_cm for p in path_targets], [p.z_cm for p in path_targets], "-",
-                   color="C0", label="figure-eight targets")
+        eight.plot(
+            [p.y_cm for p in path_targets],
+            [p.z_cm for p in path_targets],
+            "-",
+            color="C0",
+            label="figure-eight targets",
+        )
     if path_hand:
-        eight.plot([p.y_cm for p in path_hand], [p.z_cm for p in path_hand], ".",
-                   color="C1", markersize=3, label="simulator's hand (sampled)")
+        eight.plot(
+            [p.y_cm for p in path_hand],
+            [p.z_cm for p in path_hand],
+            ".",
+            color="C1",
+            markersize=3,
+            label="simulator's hand (sampled)",
+        )
     eight.set_title("figure-eight, front view", fontsize=9)
     eight.set_xlabel("y (cm)")
     eight.set_ylabel("z (cm)")

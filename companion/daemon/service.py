@@ -50,9 +50,9 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion import ik
-from companion.kinematics.arm import Pose
 from companion.daemon.config import DaemonConfig
 from companion.daemon.motion import limit_step
+from companion.kinematics.arm import Pose
 from firmware_interface import (
     CalibrationError,
     CommandSender,
@@ -585,12 +585,19 @@ class ArmDaemon:
             with self._lock:
                 self._counters["servo_errors"] += 1
             self._unanswered_updates += 1
-            if (isinstance(exc, LinkTimeout) and not self._pending
-                    and self._unanswered_updates < UPDATE_ATTEMPTS):
+            if (
+                isinstance(exc, LinkTimeout)
+                and not self._pending
+                and self._unanswered_updates < UPDATE_ATTEMPTS
+            ):
                 # An accepted motion is not abandoned for one lost answer: the next tick sends
                 # the update again (a rejection, or a refused PWM, stops at once).
-                log.warning("servo update unanswered (%d of %d), trying again: %s",
-                            self._unanswered_updates, UPDATE_ATTEMPTS, exc)
+                log.warning(
+                    "servo update unanswered (%d of %d), trying again: %s",
+                    self._unanswered_updates,
+                    UPDATE_ATTEMPTS,
+                    exc,
+                )
                 return False
             self._unanswered_updates = 0
             log.error("servo command failed, stopping motion: %s", exc)

@@ -4,7 +4,7 @@ Everything here is pure: arrays in, arrays out, no I/O and no clocks. Joint vect
 population of shape ``(S, n)`` and transforms go out as ``(S, 4, 4)``, so a whole solver
 generation is evaluated in one call.
 
-Lengths are in whatever unit the DH parameters are in (the :class:`~companion.kinematics.arm.Arm` keeps
+Lengths are in whatever unit the DH parameters are in (the :class:`~companion.kinematics.Arm` keeps
 them in centimetres, the papers' unit).
 """
 

@@ -1,7 +1,7 @@
 """Inverse acceleration (paper 004): constant joint accelerations from a hand-acceleration record.
 
 **Units: SI throughout this module** — metres, seconds, radians; accelerations in m/s² and
-rad/s². A DH :class:`~companion.kinematics.arm.Arm` keeps lengths in cm inside, so :class:`DHChainModel`
+rad/s². A DH :class:`~companion.kinematics.Arm` keeps lengths in cm inside, so :class:`DHChainModel`
 converts its output to m/s² at this boundary.
 
 Forward model (paper 004 eqs. 10–16): with constant joint accelerations ``q̈`` and the initial
@@ -14,7 +14,7 @@ Two ready models implement :class:`AccelerationModel`:
 * :class:`PlanarChain` — a planar chain of revolute joints about parallel z axes (all α = 0,
   d = 0), written in closed form as in paper 004 eqs. 8–30; :func:`planar_3r` is the paper's
   arm (links 1, 1, 1 m). Output: ``(ẍ, ÿ)``.
-* :class:`DHChainModel` — any :class:`~companion.kinematics.arm.Arm`, through the geometric Jacobian of
+* :class:`DHChainModel` — any :class:`~companion.kinematics.Arm`, through the geometric Jacobian of
   :mod:`companion.kinematics.jacobian`. Output: the hand point's ``(ẍ, ÿ, z̈)``.
 
 **Uniqueness.** The full-vector fit is unique only up to the symmetries of the arm: a planar
@@ -39,9 +39,9 @@ from typing import Protocol
 
 import numpy as np
 
+from companion.kinematics import FloatArray
 from companion.kinematics.arm import Arm
 from companion.kinematics.jacobian import hand_acceleration
-from companion.kinematics import FloatArray
 from companion.papers import hs
 from companion.papers.base import Clock, SolverResult, run
 
@@ -140,7 +140,7 @@ def planar_3r(link_lengths_m: Sequence[float] = (1.0, 1.0, 1.0)) -> PlanarChain:
 
 
 def planar_3r_arm(link_lengths_m: Sequence[float] = (1.0, 1.0, 1.0)) -> Arm:
-    """The same arm as a DH :class:`~companion.kinematics.arm.Arm` (``length_unit = "m"``, ±180° limits,
+    """The same arm as a DH :class:`~companion.kinematics.Arm` (``length_unit = "m"``, ±180° limits,
     which inverse acceleration does not use)."""
     return Arm.from_dict(
         {
@@ -158,8 +158,8 @@ def planar_3r_arm(link_lengths_m: Sequence[float] = (1.0, 1.0, 1.0)) -> Arm:
 
 @dataclass(frozen=True)
 class DHChainModel:
-    """Any :class:`~companion.kinematics.arm.Arm` through its geometric Jacobian; output ``(ẍ, ÿ, z̈)`` of
-    the hand point in m/s² (the arm's cm are converted here)."""
+    """Any :class:`~companion.kinematics.Arm` through its geometric Jacobian; output
+    ``(ẍ, ÿ, z̈)`` of the hand point in m/s² (the arm's cm are converted here)."""
 
     arm: Arm
     q0_rad: tuple[float, ...] | None = None

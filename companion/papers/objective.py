@@ -23,8 +23,8 @@ from enum import Enum
 
 import numpy as np
 
-from companion.kinematics.arm import Arm, Pose
 from companion.kinematics import FloatArray, matrix_to_rpy, rotation_angle, wrap_angle
+from companion.kinematics.arm import Arm, Pose
 
 
 class OrientationMetric(Enum):

@@ -1,0 +1,202 @@
+"""The ``armbridge`` command line: in-process for the quick commands, a subprocess for ``run``."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from companion.daemon.cli import main
+from companion.daemon.control_socket import request
+from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
+from companion.kinematics.arm import Pose
+from tests.support.mavlink_peer import wait_until
+
+WAIT_S = 15.0
+
+
+def test_solve_reachable_and_unreachable(capsys):
+    assert main(["solve", "71", "0", "-2", "0", "0", "0"]) == 0
+    assert "REACHED" in capsys.readouterr().out
+    assert main(["solve", "-20", "3", "40", "0", "10", "15", "--budget-ms", "5"]) == 1
+    assert "NOT REACHED" in capsys.readouterr().out
+
+
+def test_solve_nan_is_a_clear_error(capsys):
+    assert main(["solve", "1", "2", "nan", "0", "0", "0"]) == 2
+    assert "Pose.z_cm=nan must be finite" in capsys.readouterr().err
+
+
+def test_check_config(tmp_path, capsys):
+    good = tmp_path / "good.toml"
+    good.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n')
+    assert main(["check-config", str(good)]) == 0
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n[solver]\nbudget_ms = -1\n')
+    assert main(["check-config", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert str(bad) in err and "solver.budget_ms" in err
+
+
+def test_run_with_broken_config_exits_2_and_sends_nothing(tmp_path, capsys):
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.settimeout(0.3)
+    port = listener.getsockname()[1]
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[link]\nurl = "udpout:127.0.0.1:{port}"\ndialect = "inav"\n')
+    try:
+        assert main(["run", "--config", str(bad)]) == 2
+        assert "link.dialect" in capsys.readouterr().err
+        with pytest.raises(TimeoutError):
+            listener.recv(4096)  # not even a heartbeat went out
+    finally:
+        listener.close()
+
+
+def test_client_without_daemon_exits_3(tmp_path, capsys):
+    assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
+    assert "cannot reach the daemon" in capsys.readouterr().err
+
+
+def test_demo_runs_the_tour(capsys, tmp_path):
+    png = tmp_path / "demo.png"
+    assert main(["demo", "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("ACCEPTED") == 3
+    assert "FAILED: unreachable" in out and "nothing sent" in out
+    assert "figure-eight" in out and "'servo_errors': 0" in out
+    # With matplotlib (the `plots` extra) a PNG; without it (CI) a note, and the demo still ran.
+    if importlib.util.find_spec("matplotlib") is not None:
+        assert f"plot written to {png}" in out and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    else:
+        assert "plot skipped: matplotlib is not installed" in out and not png.exists()
+
+
+DEMO_PLOT_ARGS = (
+    [("pose 1", Pose(40, 0, 40, 0, 0, 0), Pose(40.05, 0, 40, 0, 0, 0)),
+     ("G", PAPER_TARGET_G, None)],
+    [Pose(40, 5 * math.sin(k / 5), 40 + math.sin(k / 2.5), 0, 0, 0) for k in range(32)],
+    [Pose(40, 5 * math.sin(k / 4), 40 + math.sin(k / 2), 0, 0, 0) for k in range(10)],
+)  # fmt: skip
+
+
+def test_demo_plot_is_skipped_without_matplotlib(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # makes `import matplotlib` fail
+    note = write_demo_plot(tmp_path / "demo.png", *DEMO_PLOT_ARGS)
+    assert note.startswith("plot skipped: matplotlib is not installed")
+    assert not (tmp_path / "demo.png").exists()
+
+
+def test_demo_plot_is_a_png(tmp_path):
+    pytest.importorskip("matplotlib")
+    png = tmp_path / "demo.png"
+    assert write_demo_plot(png, *DEMO_PLOT_ARGS) == f"plot written to {png}"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_run_as_a_service_ready_goto_sigterm(tmp_path):
+    """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
+    control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
+    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    notify.bind(str(tmp_path / "notify.sock"))
+    notify.settimeout(WAIT_S)
+    sim_sock = str(tmp_path / "sim.sock")
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--query-socket", sim_sock],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    control = str(tmp_path / "control.sock")
+    config = tmp_path / "armbridge.toml"
+    config.write_text(
+        f'[link]\nurl = "{sim.stdout.readline().strip()}"\n'
+        "[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\npark_on_stop = true\n"
+        f'[control]\nsocket = "{control}"\n'
+    )
+    env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "2000000"}
+    daemon = subprocess.Popen(
+        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        messages = []
+        while not any(m.startswith(b"READY=1") for m in messages):
+            messages.append(notify.recv(4096))
+        assert wait_until(lambda: os.path.exists(control), WAIT_S)
+        reply = request(
+            control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
+        )
+        assert reply["ok"] and reply["outcome"] == "accepted", reply
+        assert (
+            request(control, {"cmd": "goto", "pose": [-20, 3, 40, 0, 10, 15]})["outcome"]
+            == "failed"
+        )
+        status = request(control, {"cmd": "status"})["status"]
+        assert status["link"] == "up" and status["counters"]["failed"] == 1
+        notify.settimeout(3.0)
+        assert any(notify.recv(4096) == b"WATCHDOG=1" for _ in range(20))
+        # SIGHUP: a new budget applies at once; a new link URL needs a restart and is kept.
+        config.write_text(
+            config.read_text()
+            .replace("[arm]", "[solver]\nbudget_ms = 5.0\n[arm]")
+            .replace("udpout:127.0.0.1:", "udpout:127.0.0.2:")
+        )
+        daemon.send_signal(signal.SIGHUP)
+        seen = []
+        while not (
+            b"RELOADING=1" in seen
+            and any(m.startswith(b"READY=1") for m in seen[seen.index(b"RELOADING=1") :])
+        ):
+            seen.append(notify.recv(4096))  # each recv bounded by the socket timeout
+        assert request(control, {"cmd": "status"})["status"]["link"] == "up"
+        started = time.monotonic()
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(timeout=5) == 0
+        assert time.monotonic() - started < 1.5
+        rest = []
+        notify.settimeout(0.5)
+        try:
+            while True:
+                rest.append(notify.recv(4096))
+        except TimeoutError:
+            pass
+        assert any(m.startswith(b"STOPPING=1") for m in rest)
+        log = daemon.stderr.read()
+        assert "stopping (parking)" in log
+        assert "reload: link changed: restart the daemon to apply it" in log
+        assert "reloaded" in log
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        daemon.stderr.close()
+        sim.terminate()
+        sim.wait(timeout=5)
+        sim.stdout.close()
+        notify.close()
+
+
+def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
+    """The flight controller's port is missing (unplugged, not enumerated yet): one clear line
+    and exit 1, so systemd's Restart=on-failure tries again; no traceback."""
+    config = tmp_path / "armbridge.toml"
+    config.write_text(f'[link]\nurl = "{tmp_path / "ttyACM9"},115200"\n')
+    done = subprocess.run(
+        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert done.returncode == 1
+    assert "cannot open the autopilot link" in done.stderr and "ttyACM9" in done.stderr
+    assert "Traceback" not in done.stderr

@@ -1,0 +1,393 @@
+"""The daemon in-process against the simulated flight controller, a real subprocess.
+
+Targets go in through ``ArmDaemon.submit`` (the path the control socket uses) and, for the
+MAVLink input, as COMMAND_LONG frames from a scripted autopilot that routes a ground station's
+command, the way a real autopilot forwards it to its companion.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.config import parse_config
+from companion.daemon.service import ArmDaemon, Outcome
+from sim_servo.query import query
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests.support.sim_process import hand_errors
+
+WAIT_S = 10.0
+G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
+
+
+@pytest.fixture
+def sim(tmp_path):
+    """Starts simulated ArduPilots (UDP by default, or a pty); each start returns
+    (link url, query socket path)."""
+    procs = []
+
+    def start(*extra, transport=("--udp", "127.0.0.1:0")):
+        sock = str(tmp_path / f"sim{len(procs)}.sock")
+        cmd = [sys.executable, "-m", "sim_servo", *transport, "--query-socket", sock, *extra]
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+        procs.append(proc)
+        url = proc.stdout.readline().strip()
+        assert url.startswith(("udpout:", "/dev/")), url
+        assert wait_until(lambda: os.path.exists(sock), WAIT_S)
+        return url, sock
+
+    yield start
+    for proc in procs:
+        proc.terminate()
+        assert proc.wait(timeout=5) == 0
+        proc.stdout.close()
+
+
+def make_daemon(url, rate_hz=50.0, **arm):
+    cfg = parse_config(
+        {
+            "link": {"url": url, "loss_timeout_s": 1.0, "command_timeout_s": 0.3},
+            "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 360.0, **arm},
+            "control": {"rate_hz": rate_hz},
+            "solver": {"seed": 1},
+        }
+    )
+    daemon = ArmDaemon(cfg)
+    daemon.start()
+    assert daemon.wait_for_autopilot(WAIT_S)
+    return daemon
+
+
+def sim_hand(sock):
+    return query(sock, "state")["hand"]
+
+
+def settled(daemon, sock):
+    return not daemon.status()["moving"] and query(sock, "state")["settled"]
+
+
+@pytest.mark.parametrize("transport", [("--udp", "127.0.0.1:0"), ("--pty",)], ids=["udp", "pty"])
+def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
+    # Over UDP, and over a pseudo-terminal opened exactly like the flight controller's serial port.
+    url, sock = sim(transport=transport)
+    daemon = make_daemon(url)
+    try:
+        target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.ACCEPTED, reply.message
+        assert wait_until(lambda: settled(daemon, sock), WAIT_S)
+        pos, ori = hand_errors(target, sim_hand(sock))
+        # 1 µs of PWM is 0.18° on a 180° joint: the hand is as close as the servos can put it.
+        assert pos < 0.2 and ori < 0.5
+        counters = daemon.status()["counters"]
+        assert counters["accepted"] == 1 and counters["servo_errors"] == 0
+    finally:
+        daemon.close()
+
+
+def test_unreachable_g_is_refused_and_nothing_moves(sim):
+    url, sock = sim()
+    daemon = make_daemon(url)
+    try:
+        before = query(sock, "state")["outputs"]
+        reply = daemon.submit("goto", G).result(WAIT_S)
+        assert reply.outcome is Outcome.FAILED
+        assert "unreachable" in reply.message and reply.solve is not None
+        assert not reply.solve.converged
+        assert daemon.status()["counters"]["servo_updates"] == 0
+        assert query(sock, "state")["outputs"] == before
+    finally:
+        daemon.close()
+
+
+@pytest.mark.parametrize(
+    "bad", [(1, 2, math.nan, 0, 0, 0), (1, 2, 3, math.inf, 0, 0), (1, 2, 3), "x"]
+)
+def test_invalid_target_is_denied(sim, bad):
+    url, _ = sim()
+    daemon = make_daemon(url)
+    try:
+        assert daemon.submit("goto", bad).result(WAIT_S).outcome is Outcome.DENIED
+        assert daemon.status()["counters"]["denied"] == 1
+    finally:
+        daemon.close()
+
+
+def test_link_loss_holds_and_recovery_resends(sim):
+    # The sim stops its heartbeat from 1.5 s to 4 s: the daemon (1 s loss timeout) holds.
+    url, sock = sim("--heartbeat-pause-after", "1.5", "--heartbeat-pause-for", "2.5")
+    daemon = make_daemon(url)
+    try:
+        target = daemon.config.arm.fk([10, 80, 20, 10, 20, 30]).as_tuple()
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: daemon.status()["link"] == "lost", WAIT_S)
+        assert wait_until(lambda: daemon.status()["holding"], WAIT_S)  # on its next control tick
+        reply = daemon.submit("goto", daemon.config.arm.fk([0, 90, 0, 0, 0, 0]).as_tuple())
+        assert reply.result(WAIT_S).outcome is Outcome.TEMPORARILY_REJECTED
+        updates = daemon.status()["counters"]["servo_updates"]
+        assert wait_until(lambda: daemon.status()["link"] == "up", WAIT_S)
+        # Back up: the current PWMs are sent again before anything else.
+        assert wait_until(lambda: daemon.status()["counters"]["servo_updates"] > updates, WAIT_S)
+        assert not daemon.status()["holding"]
+    finally:
+        daemon.close()
+
+
+def test_accepted_target_moves_at_once_and_reports_its_timing(sim):
+    # 1 Hz ticks: right after target A's first step, target B would wait about a second for
+    # the next tick. It does not: its first step goes out as soon as it is solved.
+    url, _ = sim()
+    daemon = make_daemon(url, rate_hz=1.0)
+    try:
+        arm = daemon.config.arm
+        a = daemon.submit("goto", arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()).result(WAIT_S)
+        b = daemon.submit("goto", arm.fk([-20, 100, -30, 10, 20, 30]).as_tuple()).result(WAIT_S)
+        assert a.outcome is Outcome.ACCEPTED and b.outcome is Outcome.ACCEPTED
+        t = b.timing
+        assert t["received_s"] <= t["solved_s"] <= t["first_out_s"] <= t["acked_s"]
+        assert t["first_out_s"] - t["received_s"] < 0.5
+        assert daemon.status()["last_target"]["timing"] == t
+        assert b.as_dict()["timing"] == t
+    finally:
+        daemon.close()
+
+
+def test_immediate_steps_keep_to_the_joint_speed_limit(sim):
+    # Two targets in quick succession: the second's immediate step may only move the joints
+    # as far as the joint speed allows in the time since the first step, not a whole period.
+    url, _ = sim()
+    speed_deg_s = 30.0
+    daemon = make_daemon(url, rate_hz=2.0, joint_speed_deg_s=speed_deg_s)
+    try:
+        arm = daemon.config.arm
+        a = daemon.submit("goto", arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()).result(WAIT_S)
+        after_a = daemon.status()["current_deg"]
+        b = daemon.submit("goto", arm.fk([-20, 100, -30, 10, 20, 30]).as_tuple()).result(WAIT_S)
+        after_b = daemon.status()["current_deg"]
+        assert a.outcome is Outcome.ACCEPTED and b.outcome is Outcome.ACCEPTED
+        # Both reads come long before the next 2 Hz tick, so they see exactly these steps.
+        assert b.timing["first_out_s"] - a.timing["first_out_s"] < 0.25
+        first = max(abs(x - p) for x, p in zip(after_a, [0, 90, 0, 0, 0, 0], strict=True))
+        assert first == pytest.approx(speed_deg_s / 2.0)  # a whole period's step from rest
+        second = max(abs(x - y) for x, y in zip(after_b, after_a, strict=True))
+        assert 0 < second <= speed_deg_s * (b.timing["first_out_s"] - a.timing["solved_s"])
+    finally:
+        daemon.close()
+
+
+def test_park_and_stop(sim):
+    url, sock = sim()
+    daemon = make_daemon(url)
+    try:
+        assert daemon.submit("park").result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: settled(daemon, sock), WAIT_S)
+        assert daemon.status()["current_deg"] == [0, 90, 0, 0, 0, 0]
+        assert daemon.submit("stop").result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert daemon.status()["goal_deg"] is None
+    finally:
+        daemon.close()
+
+
+@pytest.fixture
+def autopilot():
+    """A scripted autopilot on UDP (accepts every servo command) and its endpoint."""
+    endpoint = UdpEndpoint()
+    peer = ScriptedPeer(endpoint)
+    yield endpoint, peer
+    peer.close()
+
+
+def gcs_command(endpoint, params, *, target=(1, 191)):
+    """A ground station's COMMAND_LONG USER_1 as the autopilot forwards it (source 255/190)."""
+    gcs = mavlink.MAVLink(None, 255, 190)
+    msg = gcs.command_long_encode(target[0], target[1], mavlink.MAV_CMD_USER_1, 0, *params, 0)
+    endpoint.write(msg.pack(gcs))
+
+
+def acks_to_gcs(peer):
+    return [m for m in peer.messages("COMMAND_ACK") if m.target_system == 255]
+
+
+@pytest.mark.parametrize(
+    ("params", "result"),
+    [
+        ((45.0, 10.0, 20.0, 0.0, 45.0, 0.0), None),
+        ((1.0, 2.0, math.nan, 0.0, 0.0, 0.0), mavlink.MAV_RESULT_DENIED),
+        (G, mavlink.MAV_RESULT_FAILED),
+    ],
+    ids=["reachable", "nan", "unreachable-G"],
+)
+def test_mavlink_user_1_target_is_answered(autopilot, params, result):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {"url": f"udpout:127.0.0.1:{endpoint.port}"},
+                "arm": {"park_deg": [0, 90, 0, 0, 0, 0]},
+            }
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        if result is None:  # a reachable pose: pick one from the arm itself
+            params = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+            result = mavlink.MAV_RESULT_ACCEPTED
+        gcs_command(endpoint, params)
+        assert peer.wait_for(lambda: acks_to_gcs(peer))
+        ack = acks_to_gcs(peer)[0]
+        assert (ack.command, ack.result, ack.target_component) == (
+            mavlink.MAV_CMD_USER_1,
+            result,
+            190,
+        )
+        texts = [m.text for m in peer.messages("STATUSTEXT")]
+        if result == mavlink.MAV_RESULT_FAILED:
+            assert any("unreachable" in t for t in texts)
+        servo = [
+            m for m in peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_SERVO
+        ]
+        assert bool(servo) == (result == mavlink.MAV_RESULT_ACCEPTED)
+        assert all(1000 <= m.param2 <= 2000 for m in servo)
+    finally:
+        daemon.close()
+
+
+def test_mavlink_target_for_another_component_is_ignored(autopilot):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}"}}))
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        gcs_command(endpoint, (45.0, 10.0, 20.0, 0.0, 45.0, 0.0), target=(1, 100))
+        assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1, WAIT_S)
+        assert acks_to_gcs(peer) == []
+    finally:
+        daemon.close()
+
+
+def test_an_accepted_motion_survives_an_unanswered_update(autopilot):
+    """One servo update of a moving arm gets no ACK (after the sender's retries): the next tick
+    sends it again and the arm still reaches the target; a second failure in a row does not
+    happen here, so the motion is not abandoned."""
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {
+                    "url": f"udpout:127.0.0.1:{endpoint.port}",
+                    "loss_timeout_s": 30.0,
+                    "command_timeout_s": 0.1,
+                    "command_retries": 0,
+                },
+                "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 100.0},
+                "control": {"rate_hz": 50.0},
+            }
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        target = daemon.config.arm.fk([20, 70, 20, 0, 10, 0]).as_tuple()  # ≥ 20° away: 10 ticks
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.ACCEPTED
+        peer.drop_acks = 1  # the next DO_SET_SERVO goes unanswered
+        assert wait_until(lambda: daemon.status()["counters"]["servo_errors"] == 1, WAIT_S)
+        assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
+        status = daemon.status()
+        assert status["goal_deg"] == pytest.approx(list(reply.solve.q_deg))
+        assert status["current_deg"] == status["goal_deg"]
+        assert status["counters"]["servo_errors"] == 1
+    finally:
+        daemon.close()
+
+
+class _BuggyDaemon(ArmDaemon):
+    """Its first solve raises, as a bug anywhere under the control thread would."""
+
+    bugs = 1
+
+    def _goto(self, request, pose, received_s):
+        if self.bugs:
+            self.bugs -= 1
+            raise RuntimeError("a bug under the control thread")
+        return super()._goto(request, pose, received_s)
+
+
+def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
+    endpoint, peer = autopilot
+    daemon = _BuggyDaemon(
+        parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}", "loss_timeout_s": 30.0}})
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        target = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+        reply = daemon.submit("goto", target).result(WAIT_S)
+        assert reply.outcome is Outcome.FAILED and "internal error" in reply.message
+        assert daemon.healthy and daemon.status()["counters"]["internal_errors"] == 1
+        assert peer.messages("COMMAND_LONG") == []  # nothing was sent for it
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+    finally:
+        daemon.close()
+
+
+def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
+    """Targets that arrive while an update is under way are all answered, but only the latest
+    goal is sent, in one update: a flood of targets never becomes a flood of servo updates."""
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {"url": f"udpout:127.0.0.1:{endpoint.port}", "loss_timeout_s": 30.0},
+                "arm": {"joint_speed_deg_s": 36_000.0},
+                "control": {"rate_hz": 0.2},  # no regular tick during the test
+            }
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        rng = np.random.default_rng(4)
+        arm = daemon.config.arm
+        lows = np.array([math.degrees(j.min_rad) for j in arm.joints])
+        highs = np.array([math.degrees(j.max_rad) for j in arm.joints])
+        targets = [arm.fk(rng.uniform(lows, highs)).as_tuple() for _ in range(40)]
+        first_command, burst_queued = threading.Event(), threading.Event()
+
+        def answer_once_the_burst_is_queued(_cmd):
+            first_command.set()
+            burst_queued.wait(WAIT_S)
+
+        peer.on_command = answer_once_the_burst_is_queued
+        futures = [daemon.submit("goto", targets[0])]
+        assert first_command.wait(WAIT_S)  # the first target's update is under way ...
+        futures += [daemon.submit("goto", t) for t in targets[1:]]  # ... when the rest arrive
+        burst_queued.set()
+        replies = [f.result(WAIT_S) for f in futures]
+        assert sum(r.outcome is Outcome.ACCEPTED for r in replies) >= 30
+        status = daemon.status()
+        assert status["counters"]["servo_updates"] == 2, status["counters"]
+        # The latest goal is the one followed (the step towards it may be cut short by the
+        # speed limit when the two updates come close together; the ticks finish it).
+        last_accepted = [r for r in replies if r.outcome is Outcome.ACCEPTED][-1]
+        assert status["goal_deg"] == pytest.approx(list(last_accepted.solve.q_deg))
+    finally:
+        daemon.close()

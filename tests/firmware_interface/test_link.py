@@ -1,0 +1,306 @@
+import os
+import socket
+import time
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
+from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
+from firmware_interface.transport import open_transport, parse_url
+from tests.support.mavlink_peer import (
+    FakeClock,
+    PtyEndpoint,
+    ScriptedPeer,
+    TcpEndpoint,
+    UdpEndpoint,
+    wait_until,
+)
+
+FAST = dict(heartbeat_rate_hz=20.0, reconnect_initial_s=0.02, reconnect_max_s=0.2)
+
+
+@pytest.fixture
+def udp_peer():
+    peer = ScriptedPeer(UdpEndpoint(), system_id=42)
+    yield peer
+    peer.close()
+
+
+@pytest.fixture
+def clock():
+    return FakeClock()
+
+
+@pytest.fixture
+def udp_link(udp_peer, clock):
+    link = MavlinkLink.open(
+        f"udpout:127.0.0.1:{udp_peer.endpoint.port}", LinkConfig(**FAST), clock=clock
+    )
+    yield link
+    link.close()
+
+
+def test_heartbeat_from_start_up_as_onboard_controller(udp_peer, udp_link):
+    beat = udp_peer.wait_for_messages("HEARTBEAT")[0]
+    assert beat.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
+    assert beat.autopilot == mavlink.MAV_AUTOPILOT_INVALID
+    assert beat.get_srcComponent() == 191
+    assert beat.get_srcSystem() == 1  # provisional until the vehicle's id is known
+    assert udp_link.state is LinkState.WAITING
+    assert udp_peer.bad_frames == []
+
+
+def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
+    udp_peer.wait_for_messages("HEARTBEAT")
+    # A GCS heartbeat must not be mistaken for the autopilot.
+    udp_peer.send_heartbeat(
+        autopilot=mavlink.MAV_AUTOPILOT_INVALID, vehicle_type=mavlink.MAV_TYPE_GCS
+    )
+    udp_peer.send_heartbeat()
+    info = udp_link.wait_for_autopilot(timeout_s=5.0)
+    assert (info.system_id, info.component_id) == (42, 1)
+    assert info.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert udp_link.target == (42, 1)
+    assert udp_link.system_id == 42
+    assert udp_link.state is LinkState.UP
+    assert udp_peer.wait_for(
+        lambda: any(m.get_srcSystem() == 42 for m in udp_peer.messages("HEARTBEAT"))
+    )
+
+
+def test_configured_target_ignores_other_systems(udp_peer, clock):
+    config = LinkConfig(target_system=7, system_id=7, **FAST)
+    url = f"udpout:127.0.0.1:{udp_peer.endpoint.port}"
+    with MavlinkLink.open(url, config, clock=clock) as link:
+        udp_peer.wait_for_messages("HEARTBEAT")
+        udp_peer.send_heartbeat()  # from system 42
+        with pytest.raises(LinkTimeout, match="no autopilot HEARTBEAT within timeout_s=0.2"):
+            link.wait_for_autopilot(timeout_s=0.2)
+        assert link.autopilot is None
+        assert link.target == (7, 1)
+
+
+def test_link_lost_and_recovered_by_the_fake_clock(udp_peer, udp_link, clock):
+    changes = []
+    udp_link.on_state_change(changes.append)
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.send_heartbeat()
+    udp_link.wait_for_autopilot(timeout_s=5.0)
+    assert udp_link.poll_state() is LinkState.UP
+    clock.advance(2.9)
+    assert udp_link.poll_state() is LinkState.UP
+    clock.advance(0.2)  # 3.1 s without a heartbeat: default loss timeout is 3 s
+    assert udp_link.poll_state() is LinkState.LOST
+    udp_peer.send_heartbeat()
+    assert wait_until(lambda: udp_link.state is LinkState.UP)
+    assert changes == [LinkState.UP, LinkState.LOST, LinkState.UP]
+
+
+def test_incoming_commands_queue_and_arbitrary_replies(udp_peer, udp_link):
+    udp_peer.wait_for_messages("HEARTBEAT")
+    with udp_link.messages(["COMMAND_LONG"]) as inbox:
+        udp_peer.send(
+            udp_peer.mav.command_long_encode(
+                1, 191, mavlink.MAV_CMD_USER_1, 0, 1.5, 0, 0, 0, 0, 0, 0
+            )
+        )
+        cmd = inbox.get(timeout_s=5.0)
+        assert cmd.command == mavlink.MAV_CMD_USER_1 and cmd.param1 == 1.5
+        assert inbox.get_nowait() is None
+    buf = udp_link.send(
+        udp_link.mav.command_ack_encode(
+            mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 42, 1
+        )
+    )
+    assert buf[0] == 0xFD  # MAVLink 2 framing
+    ack = udp_peer.wait_for_messages("COMMAND_ACK")[0]
+    assert (ack.command, ack.result, ack.target_system) == (mavlink.MAV_CMD_USER_1, 0, 42)
+
+
+def test_queue_get_times_out(udp_link):
+    with udp_link.messages(["COMMAND_LONG"]) as inbox, pytest.raises(LinkTimeout):
+        inbox.get(timeout_s=0.01)
+
+
+def test_garbage_is_counted_not_fatal(udp_peer, udp_link):
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.endpoint.write(b"\x00\x01garbage")
+    udp_peer.send_heartbeat()
+    udp_link.wait_for_autopilot(timeout_s=5.0)
+    assert udp_link.stats.rx_bad_frames >= 1
+    assert not udp_link.closed
+
+
+def test_an_error_in_a_subscriber_ends_the_link_and_is_kept(udp_peer, udp_link):
+    def broken(msg):
+        raise RuntimeError("bug in handler")
+
+    udp_link.subscribe(broken, ["HEARTBEAT"])
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.send_heartbeat()
+    assert wait_until(lambda: udp_link.closed)
+    assert isinstance(udp_link.failure, RuntimeError)
+    assert udp_link.state is LinkState.CLOSED
+    with pytest.raises(LinkClosed) as info:
+        udp_link.send(udp_link.mav.heartbeat_encode(18, 8, 0, 0, 4))
+    assert info.value.__cause__ is udp_link.failure
+
+
+def test_cancelled_subscription_gets_nothing_more(udp_peer, udp_link):
+    seen = []
+    sub = udp_link.subscribe(seen.append, ["STATUSTEXT"])
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.send_statustext("one")
+    assert wait_until(lambda: len(seen) == 1)
+    sub.cancel()
+    udp_peer.send_statustext("two")
+    udp_peer.send_heartbeat()
+    udp_link.wait_for_autopilot(timeout_s=5.0)  # ordered after "two" on the same socket
+    assert [m.text for m in seen] == ["one"]
+
+
+def test_udpin_replies_to_whoever_spoke_first():
+    with MavlinkLink.open("udpin:127.0.0.1:0", LinkConfig(**FAST)) as link:
+        port = link.transport.local_address[1]
+        endpoint = UdpEndpoint()
+        endpoint.peer = ("127.0.0.1", port)
+        peer = ScriptedPeer(endpoint, system_id=3)
+        try:
+            peer.send_heartbeat()
+            assert link.wait_for_autopilot(timeout_s=5.0).system_id == 3
+            beat = peer.wait_for_messages("HEARTBEAT")[0]
+            assert beat.get_srcSystem() == 3
+        finally:
+            peer.close()
+
+
+def test_bad_url_and_config_are_refused_before_any_thread_starts():
+    with pytest.raises(InvalidUrl, match="unknown scheme 'ftp'"):
+        MavlinkLink.open("ftp:host:1")
+    with pytest.raises(ConfigurationError, match=r"component_id=0 outside \[1, 255\]"):
+        LinkConfig(component_id=0)
+    with pytest.raises(ConfigurationError, match="loss_timeout_s=nan"):
+        LinkConfig(loss_timeout_s=float("nan"))
+
+
+# --- serial over a real pty --------------------------------------------------------------
+
+
+def test_heartbeat_and_discovery_over_a_pty():
+    peer = ScriptedPeer(PtyEndpoint(), system_id=9)
+    try:
+        with MavlinkLink.open(f"{peer.endpoint.path},115200", LinkConfig(**FAST)) as link:
+            peer.wait_for_messages("HEARTBEAT")
+            peer.send_heartbeat()
+            assert link.wait_for_autopilot(timeout_s=5.0).system_id == 9
+            assert peer.bad_frames == []
+    finally:
+        peer.close()
+
+
+def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
+    device = tmp_path / "ttyFC"
+    first = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(first.endpoint.path, device)
+    link = MavlinkLink.open(f"serial://{device}?baud=921600", LinkConfig(**FAST))
+    second = None
+    try:
+        first.wait_for_messages("HEARTBEAT")
+        # The device node goes first, so no reopen can race to the dying port.
+        device.unlink()
+        first.close()  # the port vanishes
+        assert wait_until(lambda: link.stats.transport_errors >= 1)
+        assert link.transport is None and not link.closed
+        second = ScriptedPeer(PtyEndpoint(), system_id=9)  # plugged back in
+        os.symlink(second.endpoint.path, device)
+        second.wait_for_messages("HEARTBEAT")
+        second.send_heartbeat()
+        assert link.wait_for_autopilot(timeout_s=5.0).system_id == 9
+        assert link.stats.reconnects >= 1
+    finally:
+        link.close()
+        if second is not None:
+            second.close()
+
+
+def test_link_is_lost_while_the_port_is_down_and_up_again_only_on_a_fresh_heartbeat(
+    tmp_path, clock
+):
+    # The fake clock never moves, so the last HEARTBEAT stays "recent": only the port tells.
+    device = tmp_path / "ttyFC"
+    first = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(first.endpoint.path, device)
+    link = MavlinkLink.open(f"{device},115200", LinkConfig(**FAST), clock=clock)
+    second = None
+    try:
+        first.wait_for_messages("HEARTBEAT")
+        first.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+        first.close()  # unplugged
+        device.unlink()
+        assert wait_until(lambda: link.stats.transport_errors >= 1)
+        assert link.state is LinkState.LOST  # nothing can reach the autopilot now
+        second = ScriptedPeer(PtyEndpoint(), system_id=9)  # re-enumerated (maybe rebooted)
+        os.symlink(second.endpoint.path, device)
+        assert wait_until(lambda: link.stats.reconnects >= 1)
+        assert link.state is LinkState.LOST  # not a word from the autopilot on this port yet
+        second.send_heartbeat()
+        assert wait_until(lambda: link.state is LinkState.UP)
+    finally:
+        link.close()
+        if second is not None:
+            second.close()
+
+
+def test_default_reconnect_backoff_is_bounded_at_half_a_second(tmp_path):
+    # A USB serial adapter re-enumerates under its udev name: with the default config the link
+    # must try again at least every 0.5 s, or a port that came back would go unused for seconds.
+    device = tmp_path / "ttyFC"
+    peer = ScriptedPeer(PtyEndpoint(), system_id=9)
+    os.symlink(peer.endpoint.path, device)
+    spec = parse_url(f"{device},115200")
+    attempts: list[float] = []
+
+    def reopen():
+        attempts.append(time.monotonic())
+        return open_transport(spec)
+
+    link = MavlinkLink(reopen, LinkConfig())
+    link.start()
+    try:
+        device.unlink()
+        peer.close()  # unplugged, and it stays away
+        assert wait_until(lambda: len(attempts) >= 7, timeout_s=10.0)
+        gaps_s = [b - a for a, b in zip(attempts[1:], attempts[2:], strict=False)]
+        assert max(gaps_s) < 0.5 + 0.25, gaps_s  # 0.1, 0.2, 0.4, 0.5, 0.5 s (+ scheduling)
+        assert not link.closed
+    finally:
+        link.close()
+
+
+def test_defaults_match_the_issue():
+    config = LinkConfig()
+    assert (config.component_id, config.heartbeat_rate_hz, config.loss_timeout_s) == (191, 1.0, 3.0)
+    assert config.system_id is None and config.target_system is None and config.signing is None
+
+
+def test_tcp_peer_closing_is_survived_by_reconnecting():
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port = listener.getsockname()[1]
+        listener.settimeout(5.0)
+        link = MavlinkLink.open(f"tcp:127.0.0.1:{port}", LinkConfig(**FAST))
+        second = None
+        try:
+            first = ScriptedPeer(TcpEndpoint(listener), system_id=5)
+            first.wait_for_messages("HEARTBEAT")
+            first.close()  # SITL restarted: the connection drops
+            second = ScriptedPeer(TcpEndpoint(listener), system_id=5)  # the link dials again
+            second.wait_for_messages("HEARTBEAT")
+            second.send_heartbeat()
+            assert link.wait_for_autopilot(timeout_s=5.0).system_id == 5
+            assert link.stats.reconnects >= 1 and link.stats.transport_errors >= 1
+        finally:
+            link.close()
+            if second is not None:
+                second.close()

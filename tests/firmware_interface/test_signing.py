@@ -1,0 +1,153 @@
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from firmware_interface.errors import ConfigurationError, SigningStateError
+from firmware_interface.link import LinkConfig, MavlinkLink
+from firmware_interface.signing import (
+    SIGNING_EPOCH_UNIX_S,
+    TICKS_PER_S,
+    SigningConfig,
+    TimestampKeeper,
+    load_key,
+    wall_to_ticks,
+)
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+
+KEY = bytes(range(32))
+WRONG_KEY = bytes(32)
+NOW_UNIX_S = 1_790_000_000.0  # late 2026
+
+
+def test_load_key_raw_and_hex(tmp_path):
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(KEY)
+    hexed = tmp_path / "hex.key"
+    hexed.write_text(KEY.hex() + "\n")
+    assert load_key(raw) == KEY and load_key(hexed) == KEY
+
+
+def test_load_key_refuses_wrong_sizes_and_missing_files(tmp_path):
+    short = tmp_path / "short.key"
+    short.write_bytes(b"x" * 31)
+    with pytest.raises(ConfigurationError, match="holds 31 bytes; expected 32 raw bytes or 64 hex"):
+        load_key(short)
+    with pytest.raises(ConfigurationError, match="cannot read signing key file") as info:
+        load_key(tmp_path / "absent.key")
+    assert isinstance(info.value.__cause__, OSError)
+    with pytest.raises(ConfigurationError, match=r"link_id=256 outside \[0, 255\]"):
+        SigningConfig(key=KEY, link_id=256)
+
+
+def test_wall_clock_ticks_from_2015():
+    assert wall_to_ticks(SIGNING_EPOCH_UNIX_S + 1.5) == 150_000
+    assert wall_to_ticks(0.0) == 0  # a companion without RTC booting in 1970
+
+
+def test_timestamps_stay_monotonic_across_restart_when_the_wall_clock_goes_back(tmp_path):
+    state = tmp_path / "signing.state"
+    first = TimestampKeeper(SigningConfig(KEY, state_path=state, wall_clock=lambda: NOW_UNIX_S))
+    start = first.initial_timestamp
+    assert start == wall_to_ticks(NOW_UNIX_S)
+    assert int(state.read_text()) == first.reserved_until == start + 60 * TICKS_PER_S
+    last = start
+    for step in range(1, 200):  # use up more than half the reservation: it is renewed
+        last = first.next_timestamp(start + step * 200_000)
+        assert last < int(state.read_text())
+    assert int(state.read_text()) > start + 60 * TICKS_PER_S
+    # Restart with the clock back in 1970: we still continue above everything sent.
+    second = TimestampKeeper(SigningConfig(KEY, state_path=state, wall_clock=lambda: 0.0))
+    assert second.initial_timestamp > last
+
+
+def test_unreadable_state_file_is_refused(tmp_path):
+    state = tmp_path / "signing.state"
+    state.write_text("not a number")
+    with pytest.raises(ConfigurationError, match="signing state file"):
+        TimestampKeeper(SigningConfig(KEY, state_path=state))
+
+
+@pytest.fixture
+def peer():
+    peer = ScriptedPeer(UdpEndpoint(), system_id=42, signing_key=KEY)
+    yield peer
+    peer.close()
+
+
+def open_signed(peer, tmp_path, wall_s=NOW_UNIX_S):
+    signing = SigningConfig(
+        KEY, link_id=3, state_path=tmp_path / "signing.state", wall_clock=lambda: wall_s
+    )
+    return MavlinkLink.open(
+        f"udpout:127.0.0.1:{peer.endpoint.port}",
+        LinkConfig(heartbeat_rate_hz=20.0, signing=signing),
+    )
+
+
+def rogue_frame(peer, key, msg, timestamp=None, link_id=7):
+    """A frame from the peer's own system/component, unsigned (key None) or signed with key."""
+    codec = mavlink.MAVLink(None, 42, 1)
+    codec.seq = 200
+    if key is not None:
+        codec.signing.secret_key = key
+        codec.signing.link_id = link_id
+        codec.signing.sign_outgoing = True
+        codec.signing.timestamp = timestamp or peer.mav.signing.timestamp + 1
+    return msg.pack(codec)
+
+
+def test_signed_link_accepts_signed_and_rejects_unsigned_or_forged(peer, tmp_path):
+    with open_signed(peer, tmp_path) as link:
+        beat = peer.wait_for_messages("HEARTBEAT")[0]
+        assert beat.get_signed() and beat.get_link_id() == 3
+        assert peer.bad_frames == []  # the peer checked every signature with the shared key
+
+        received = []
+        link.subscribe(received.append, ["COMMAND_LONG", "STATUSTEXT"])
+        peer.send_heartbeat()  # signed by the peer
+        link.wait_for_autopilot(timeout_s=5.0)
+
+        cmd = peer.mav.command_long_encode(42, 191, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0)
+        peer.endpoint.write(rogue_frame(peer, None, cmd))  # unsigned
+        peer.endpoint.write(rogue_frame(peer, WRONG_KEY, cmd))  # wrong key
+        # wrong key with a far-future timestamp must not poison the genuine stream (link id 7)
+        peer.endpoint.write(rogue_frame(peer, WRONG_KEY, cmd, timestamp=2**47))
+        peer.send_statustext("genuine")  # signed, sent after the forgeries
+        assert wait_until(lambda: any(m.get_type() == "STATUSTEXT" for m in received))
+        assert [m.get_type() for m in received] == ["STATUSTEXT"]
+        assert received[0].text == "genuine"
+        stats = link.stats
+        assert (stats.rejected_unsigned, stats.rejected_bad_signature) == (1, 2)
+
+
+def test_signing_timestamp_survives_a_restart_with_a_clock_in_the_past(peer, tmp_path):
+    with open_signed(peer, tmp_path) as link:
+        peer.wait_for_messages("HEARTBEAT", count=2)
+    count = len(peer.messages("HEARTBEAT"))
+    # Same peer keeps its per-stream timestamps and rejects anything not newer.
+    with open_signed(peer, tmp_path, wall_s=0.0) as link:
+        peer.wait_for_messages("HEARTBEAT", count=count + 2)
+        assert link.signing_reserved_until > wall_to_ticks(NOW_UNIX_S)
+    assert peer.bad_frames == []
+
+
+def test_a_signing_state_that_cannot_be_stored_stops_sending(peer, tmp_path):
+    """Signing beyond the stored reservation could reuse timestamps after a restart, so a state
+    file that can no longer be written refuses the send with a LinkError (not an OSError that
+    would kill the caller's thread)."""
+    state_dir = tmp_path / "state"
+    state_dir.mkdir()
+    signing = SigningConfig(KEY, state_path=state_dir / "signing.state", reservation_s=1e-5)
+    link = MavlinkLink.open(
+        f"udpout:127.0.0.1:{peer.endpoint.port}",
+        LinkConfig(heartbeat_rate_hz=20.0, signing=signing),
+    )
+    try:
+        link.send(link.mav.statustext_encode(6, b"stored"))
+        (state_dir / "signing.state").unlink()
+        state_dir.rmdir()  # the state directory vanished (unmounted, removed)
+        with pytest.raises(SigningStateError, match="cannot store the signing timestamp"):
+            link.send(link.mav.statustext_encode(6, b"not signed"))
+        assert not link.closed
+    finally:
+        link.close()
+    assert not any(m.text == "not signed" for m in peer.messages("STATUSTEXT"))

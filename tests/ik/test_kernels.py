@@ -1,0 +1,144 @@
+"""The compiled kernels, checked against the numpy implementation and finite differences."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.ik import kernel_arrays, kernels
+from companion.kinematics import rotation_angle, rpy_to_matrix
+from companion.kinematics.arm import Arm
+
+PAPER = Arm.default()
+MODIFIED = Arm.from_package_file("paper_arm_modified.toml")
+TOOLED = Arm.from_dict(
+    {
+        "convention": "standard",
+        "joint": [
+            {"alpha_deg": 90, "a": 2, "d": 3, "offset_deg": 10, "min_deg": -90, "max_deg": 90},
+            {"alpha_deg": 0, "a": 20, "d": 0, "min_deg": -90, "max_deg": 90},
+            {"alpha_deg": -90, "a": 1, "d": 5, "min_deg": -90, "max_deg": 90},
+        ],
+        "tool": {"xyz": [1, 2, 3], "rpy_deg": [10, 20, 30]},
+    }
+)
+ARMS = pytest.mark.parametrize("arm", [PAPER, MODIFIED, TOOLED], ids=["std", "modified", "tool"])
+
+
+def kernel_fk(arm, q, want_axes=False):
+    k = kernel_arrays(arm)
+    rot, pos = np.empty((3, 3)), np.empty(3)
+    axes, points = np.empty((arm.dof, 3)), np.empty((arm.dof, 3))
+    kernels.fk_frames(q, k.dh, k.modified, k.tool, rot, pos, axes, points, want_axes)
+    return rot, pos, axes, points
+
+
+@ARMS
+def test_compiled_fk_equals_numpy_fk(arm):
+    q = np.random.default_rng(1).uniform(-np.pi, np.pi, (100, arm.dof))
+    expected = arm.fk_batch(q)
+    for qi, ti in zip(q, expected, strict=True):
+        rot, pos, _, _ = kernel_fk(arm, qi)
+        np.testing.assert_allclose(rot, ti[:3, :3], atol=1e-12)
+        np.testing.assert_allclose(pos, ti[:3, 3], atol=1e-10)
+
+
+@ARMS
+def test_joint_axes_give_the_geometric_jacobian(arm):
+    # Velocity of the hand for a small turn of joint j equals z_j × (p − p_j); the hand's
+    # rotation turns about z_j. Checked against central differences of the numpy FK.
+    q = np.random.default_rng(2).uniform(-1.0, 1.0, arm.dof)
+    _, pos, axes, points = kernel_fk(arm, q, want_axes=True)
+    h = 1e-6
+    for j in range(arm.dof):
+        dq = np.zeros(arm.dof)
+        dq[j] = h
+        t_plus, t_minus = arm.fk_matrix(q + dq), arm.fk_matrix(q - dq)
+        v = (t_plus[:3, 3] - t_minus[:3, 3]) / (2 * h)
+        np.testing.assert_allclose(np.cross(axes[j], pos - points[j]), v, atol=1e-6)
+        omega_hat = (t_plus[:3, :3] - t_minus[:3, :3]) / (2 * h) @ arm.fk_matrix(q)[:3, :3].T
+        omega = np.array([omega_hat[2, 1], omega_hat[0, 2], omega_hat[1, 0]])
+        np.testing.assert_allclose(omega, axes[j], atol=1e-6)
+
+
+def test_pose_residual_is_position_and_rotation_vector():
+    rot = rpy_to_matrix(0.3, -0.2, 1.0)
+    pos = np.array([1.0, 2.0, 3.0])
+    for angle in (0.0, 1e-7, 0.4, 3.0, math.pi):
+        axis = np.array([1.0, -2.0, 0.5]) / np.linalg.norm([1.0, -2.0, 0.5])
+        turn = rpy_to_matrix(0, 0, 0)
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        turn = turn + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k  # Rodrigues
+        goal = np.eye(4)
+        goal[:3, :3] = turn @ rot
+        goal[:3, 3] = pos + [0.0, 3.0, 4.0]
+        res = np.empty(6)
+        pos_err, ori_err = kernels.pose_residual(rot, pos, goal, res)
+        assert pos_err == pytest.approx(5.0)
+        np.testing.assert_allclose(res[:3], [0.0, 3.0, 4.0])
+        assert ori_err == pytest.approx(math.degrees(angle), abs=1e-9)
+        assert ori_err == pytest.approx(math.degrees(rotation_angle(goal[:3, :3], rot)), abs=1e-9)
+        # The rotation vector is the angle about ±axis (at half a turn the sign is free).
+        np.testing.assert_allclose(np.abs(res[3:]), np.abs(math.degrees(angle) * axis), atol=1e-6)
+
+
+def _lm_inputs(arm, seed):
+    k = kernel_arrays(arm)
+    fp = np.zeros(kernels.N_FPARAMS)
+    fp[kernels.F_TOL_POS] = 1e-9
+    fp[kernels.F_TOL_ORI] = 1e-9
+    fp[kernels.F_LM_LAMBDA0] = 1e-3
+    q_true = arm.random_q_rad(np.random.default_rng(seed), 1)[0]
+    return k, fp, q_true, arm.fk_matrix(q_true)
+
+
+def test_lm_converges_from_nearby_and_stays_in_limits():
+    k, fp, q_true, goal = _lm_inputs(PAPER, 5)
+    q = np.clip(q_true + 0.1, k.lower, k.upper)
+    out = np.empty(3)
+    steps = kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 30, out)
+    assert 0 < steps <= 30
+    assert out[1] < 1e-9 and out[2] < 1e-9
+    assert np.all(q >= k.lower) and np.all(q <= k.upper)
+
+
+def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
+    k, fp, _, _ = _lm_inputs(PAPER, 6)
+    q_outside = np.radians([0.0, -40.0, 0.0, 0.0, 0.0, 0.0])  # q2 below its 0° limit
+    goal = PAPER.fk_matrix(q_outside)
+    q = np.radians([0.0, 10.0, 0.0, 0.0, 0.0, 0.0])
+    out = np.empty(3)
+    kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 50, out)
+    assert np.all(q >= k.lower) and np.all(q <= k.upper)
+
+
+def test_lm_with_zero_iterations_leaves_q_alone():
+    k, fp, q_true, goal = _lm_inputs(PAPER, 7)
+    q = q_true * 0.5
+    before = q.copy()
+    out = np.empty(3)
+    assert kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 0, out) == 0
+    np.testing.assert_array_equal(q, before)
+
+
+def test_rng_stream_is_uniform_and_repeatable():
+    a = np.array([42], dtype=np.uint64)
+    b = np.array([42], dtype=np.uint64)
+    xs = np.array([kernels._rand(a) for _ in range(20000)])
+    ys = np.array([kernels._rand(b) for _ in range(20000)])
+    np.testing.assert_array_equal(xs, ys)
+    assert xs.min() >= 0.0 and xs.max() < 1.0
+    assert abs(xs.mean() - 0.5) < 0.01
+    counts = np.bincount([kernels._randint(a, 7) for _ in range(70000)], minlength=7)
+    assert counts.min() > 9000 and counts.max() < 11000
+
+
+def test_goal_matrix_equals_pose_as_matrix():
+    from companion.kinematics.arm import Pose
+
+    pose = Pose(-20.0, 3.0, 40.0, 25.0, -80.0, 170.0)
+    goal = np.empty((4, 4))
+    kernels.goal_matrix(*pose.as_tuple()[:3], *np.radians(pose.as_tuple()[3:]), goal)
+    np.testing.assert_allclose(goal, pose.as_matrix(), atol=1e-15)

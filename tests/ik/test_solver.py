@@ -1,0 +1,229 @@
+"""companion.ik.solve: deadline, early exit, warm-start continuity, unreachable G, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.ik import SolverSettings, StopReason, solve
+from companion.kinematics.arm import Arm, Pose
+from companion.papers.objective import IKObjective
+
+ARM = Arm.default()
+G = Pose(-20, 3, 40, 0, 10, 15)  # the papers' target: unreachable within the Table 2 limits
+
+
+def reachable(seed: int) -> Pose:
+    q = ARM.random_q_rad(np.random.default_rng(seed), 1)[0]
+    return Pose.from_matrix(ARM.fk_matrix(q))
+
+
+def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
+    """Errors recomputed with the numpy FK, not the compiled kernel."""
+    e = IKObjective(arm, target).errors(np.radians(q_deg))
+    return float(e.pos_err_cm[0]), float(e.ori_err_deg[0])
+
+
+class TickClock:
+    """A fake clock: every reading advances time by ``tick_s``."""
+
+    def __init__(self, tick_s: float) -> None:
+        self.now = 0.0
+        self.tick_s = tick_s
+
+    def __call__(self) -> float:
+        value = self.now
+        self.now += self.tick_s
+        return value
+
+
+def test_deadline_on_a_fake_clock():
+    # Each clock reading advances 1 ms; a generation is read before and after, so each costs
+    # 1 ms and the loop starts one only if it is predicted to end by 10.5 ms: the fifth starts
+    # at 9 ms, the sixth would start at 11 ms.
+    clock = TickClock(1e-3)
+    res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock)
+    assert res.stop_reason is StopReason.DEADLINE and not res.converged
+    assert res.generations == 5
+    assert res.elapsed_ms == pytest.approx(12.0)
+
+
+def test_a_generation_predicted_to_overrun_is_not_started():
+    # Readings: start 0; first generation from 0.1 ms to 5.0 ms (slowest 4.9 ms); the next
+    # reading is 6 ms: 6 + 4.9 > 10, so the loop stops although 4 ms remain.
+    readings = iter([0.0, 1e-4, 5e-3, 6e-3, 6.5e-3])
+    res = solve(ARM, G, budget_ms=10.0, seed=1, clock=lambda: next(readings))
+    assert res.stop_reason is StopReason.DEADLINE
+    assert res.generations == 1
+    assert res.elapsed_ms == pytest.approx(6.5)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_reachable_poses_converge_early_within_tolerance(seed):
+    target = reachable(seed)
+    res = solve(ARM, target, seed=seed, budget_ms=1000.0)
+    assert res.converged and res.stop_reason is StopReason.CONVERGED
+    assert res.pos_err_cm <= 1e-3 and res.ori_err_deg <= 1e-3
+    pos, ori = independent_errors(ARM, res.q_deg, target)
+    assert pos == pytest.approx(res.pos_err_cm, abs=1e-9)
+    assert ori == pytest.approx(res.ori_err_deg, abs=1e-6)
+    assert ARM.within_limits(res.q_rad)
+
+
+def test_tighter_tolerances_are_honoured():
+    res = solve(ARM, reachable(3), seed=0, tol_pos_cm=1e-6, tol_ori_deg=1e-6, budget_ms=1000.0)
+    assert res.converged and res.pos_err_cm <= 1e-6 and res.ori_err_deg <= 1e-6
+
+
+def test_modified_convention_arm_solves_too():
+    arm = Arm.from_package_file("paper_arm_modified.toml")
+    q = arm.random_q_rad(np.random.default_rng(4), 1)[0]
+    target = Pose.from_matrix(arm.fk_matrix(q))
+    res = solve(arm, target, seed=0, budget_ms=1000.0)
+    assert res.converged
+    pos, ori = independent_errors(arm, res.q_deg, target)
+    assert pos <= 1e-3 and ori <= 1e-3
+
+
+def test_unreachable_target_is_reported_not_converged_with_both_errors():
+    res = solve(ARM, G, seed=0, budget_ms=5.0)
+    assert not res.converged and res.stop_reason is StopReason.DEADLINE
+    pos, ori = independent_errors(ARM, res.q_deg, G)
+    assert pos == pytest.approx(res.pos_err_cm, abs=1e-9)
+    assert ori == pytest.approx(res.ori_err_deg, abs=1e-6)
+    # The spec page: no configuration within limits comes closer than ~48° in orientation
+    # while on target; whatever compromise is returned, it is far from tolerance.
+    assert res.pos_err_cm > 1e-3 or res.ori_err_deg > 1.0
+    assert ARM.within_limits(res.q_rad)
+
+
+def test_iteration_limit():
+    res = solve(ARM, G, seed=0, budget_ms=1e4, settings=SolverSettings(max_generations=7))
+    assert res.stop_reason is StopReason.ITERATION_LIMIT and res.generations == 7
+
+
+def test_same_seed_same_result():
+    few = SolverSettings(max_generations=40)
+    a = solve(ARM, G, seed=123, budget_ms=1e4, settings=few)
+    b = solve(ARM, G, seed=123, budget_ms=1e4, settings=few)
+    c = solve(ARM, G, seed=124, budget_ms=1e4, settings=few)
+    assert a.q_deg == b.q_deg and a.evaluations == b.evaluations
+    assert a.q_deg != c.q_deg
+
+
+def test_generator_seed_is_accepted_and_repeatable():
+    a = solve(ARM, reachable(8), seed=np.random.default_rng(5), budget_ms=1e3)
+    b = solve(ARM, reachable(8), seed=np.random.default_rng(5), budget_ms=1e3)
+    assert a.q_deg == b.q_deg
+
+
+CIRCLE_CENTRE_DEG = [20, 70, 50, 20, 30, 10]  # elbow bent: the whole circle is reachable
+
+
+def circle_path(samples: int, radius_cm: float) -> list[Pose]:
+    """Hand circle in a plane, orientation fixed; centred on a comfortable pose."""
+    centre = ARM.fk(CIRCLE_CENTRE_DEG)
+    return [
+        Pose(
+            centre.x_cm,
+            centre.y_cm + radius_cm * math.cos(2 * math.pi * k / samples),
+            centre.z_cm + radius_cm * math.sin(2 * math.pi * k / samples),
+            centre.roll_deg,
+            centre.pitch_deg,
+            centre.yaw_deg,
+        )
+        for k in range(samples + 1)
+    ]
+
+
+def test_warm_start_follows_a_path_without_branch_flips():
+    # 5 cm circle in 200 samples (about 0.16 cm per sample, a 100 Hz path at 16 cm/s).
+    path = circle_path(200, 5.0)
+    first = solve(ARM, path[0], seed=0, q_start_deg=CIRCLE_CENTRE_DEG, budget_ms=1e3)
+    assert first.converged
+    q_prev = np.array(first.q_deg)
+    steps = []
+    for k, pose in enumerate(path[1:], start=1):
+        res = solve(ARM, pose, seed=k, q_start_deg=q_prev, budget_ms=1e3)
+        assert res.converged, k
+        steps.append(np.abs(np.array(res.q_deg) - q_prev).max())
+        q_prev = np.array(res.q_deg)
+    # No elbow or wrist flip: every joint moves only a little between samples.
+    assert max(steps) < 1.0
+
+
+def test_cold_solves_along_the_same_path_do_jump_branches():
+    # Why the warm start matters: independent cold solves pick different branches.
+    path = circle_path(40, 5.0)
+    q = [np.array(solve(ARM, pose, seed=k, budget_ms=1e3).q_deg) for k, pose in enumerate(path)]
+    jumps = [np.abs(b - a).max() for a, b in zip(q, q[1:], strict=False)]
+    assert max(jumps) > 20.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "name"),
+    [
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": 0.0}, "budget_ms"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": math.nan}, "budget_ms"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": -5}, "budget_ms"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "tol_pos_cm": 0}, "tol_pos_cm"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "tol_ori_deg": math.inf}, "tol_ori_deg"),
+        ({"target": [1, 2, 3, 4, 5]}, "6 values"),
+        ({"target": [1, 2, math.nan, 4, 5, 6]}, "Pose.z_cm"),
+        ({"target": [1, 2, math.inf, 4, 5, 6]}, "Pose.z_cm"),
+        ({"target": 7}, "target"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "q_start_deg": [0] * 5}, "q_start_deg"),
+        (
+            {"target": Pose(0, 0, 50, 0, 0, 0), "q_start_deg": [0, 90, 0, 0, math.nan, 0]},
+            "q_start_deg",
+        ),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "seed": "abc"}, "seed"),
+    ],
+)
+def test_bad_input_raises_value_error_naming_the_argument(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        solve(ARM, **kwargs)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.tuples(*[st.floats(-200, 200)] * 3, *[st.floats(-720, 720)] * 3),
+    st.integers(0, 2**64 - 1),
+)
+def test_result_is_always_within_limits_whatever_the_target(values, seed):
+    res = solve(ARM, Pose(*values), seed=seed, budget_ms=1.0)
+    assert ARM.within_limits(res.q_rad, tol_rad=0.0)
+    assert math.isfinite(res.pos_err_cm) and math.isfinite(res.ori_err_deg)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_de_only_converged_result_is_within_both_tolerances(seed):
+    # Without least-squares steps DE ends just inside the tolerances; the returned joints must
+    # be the ones that met both, not an earlier record with a lower cm² + deg² sum.
+    target = reachable(100 + seed)
+    de_only = SolverSettings(lm_iterations=0, pop_size=20, stall_generations=100)
+    res = solve(
+        ARM, target, seed=seed, budget_ms=1e4, settings=de_only, tol_pos_cm=1e-2, tol_ori_deg=1e-2
+    )
+    assert res.converged
+    pos, ori = independent_errors(ARM, res.q_deg, target)
+    assert pos <= 1e-2 and ori <= 1e-2
+
+
+def test_target_beyond_float_range_reports_infinite_errors_and_an_in_limit_start():
+    # |p| beyond ~1e154 cm: every cost overflows to inf and no configuration becomes the
+    # record. The result used to be whatever np.empty held: another solve's errors and joints.
+    solve(ARM, G, budget_ms=1.0, seed=0)  # leave a finished solve's arrays behind
+    start = (10.0, 80.0, 20.0, 10.0, 20.0, 30.0)
+    far = Pose(1e308, -1e308, 1e200, 0, 0, 0)
+    res = solve(ARM, far, budget_ms=1.0, seed=0, q_start_deg=start)
+    assert not res.converged and res.stop_reason is StopReason.DEADLINE
+    assert res.pos_err_cm == math.inf and res.ori_err_deg == math.inf
+    assert res.q_deg == pytest.approx(start)
+    cold = solve(ARM, Pose(1e155, 0, 0, 0, 0, 0), budget_ms=1.0, seed=0)
+    assert cold.pos_err_cm == math.inf and not cold.converged
+    assert ARM.within_limits(np.radians(cold.q_deg))

@@ -1,0 +1,286 @@
+"""The whole chain in real processes on loopback: a ground station, the simulated autopilot, the
+daemon.
+
+``python -m sim_servo`` runs with a ground-station link (``--gcs``) and routes between it and
+the daemon's link as ArduPilot does. ``armbridge run`` (as
+``python -m companion.daemon.cli``) is the daemon, on UDP or on
+the simulator's pseudo-terminal. A pymavlink ground station (:class:`sim_servo.gcs.GroundStation`)
+sends ``MAV_CMD_USER_1`` targets through the autopilot and reads the daemon's COMMAND_ACKs. The
+daemon's state comes from its control socket, the servos' and the hand's from the simulator's
+query socket. Every wait is bounded and waits on a condition.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.control_socket import request
+from companion.kinematics.arm import Arm
+from companion.kinematics.jacobian import geometric_jacobian
+from firmware_interface.calibration import default_calibration
+from sim_servo.gcs import GroundStation
+from sim_servo.query import query
+from tests.support.mavlink_peer import wait_until
+from tests.support.sim_process import hand_errors
+
+WAIT_S = 15.0
+G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)  # the papers' target G: out of reach
+KEY = bytes(range(100, 132))
+ARM = Arm.default()
+CALIBRATION = default_calibration()  # what the daemon uses without [[joint]] tables
+
+
+class Chain:
+    """A simulator and a daemon as subprocesses, and a ground station, in ``tmp_path``."""
+
+    def __init__(
+        self,
+        tmp_path: Path,
+        procs: list[subprocess.Popen],
+        *,
+        sim_args=(),
+        pty=False,
+        dialect="ardupilot",
+        link_extra="",
+        gcs_key: bytes | None = None,
+    ) -> None:
+        self.tmp = tmp_path
+        self.sim_sock = str(tmp_path / "sim.sock")
+        self.control = str(tmp_path / "control.sock")
+        self.procs = procs
+        self.spawned_s = time.monotonic()  # the simulator's clock starts about here
+        transport = ["--pty"] if pty else ["--udp", "127.0.0.1:0"]
+        sim = self._spawn(
+            [
+                sys.executable,
+                "-m",
+                "sim_servo",
+                *transport,
+                "--gcs",
+                "127.0.0.1:0",
+                "--query-socket",
+                self.sim_sock,
+                *sim_args,
+            ],
+            stdout=subprocess.PIPE,
+        )
+        self.sim = sim
+        url = sim.stdout.readline().strip()
+        kind, gcs_url = sim.stdout.readline().split()
+        assert kind == "gcs", kind
+        config = tmp_path / "armbridge.toml"
+        config.write_text(
+            f'[link]\nurl = "{url}"\ndialect = "{dialect}"\nloss_timeout_s = 1.0\n'
+            f"command_timeout_s = 0.3\n{link_extra}"
+            "[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\njoint_speed_deg_s = 720.0\n"
+            f'[solver]\nseed = 1\n[control]\nrate_hz = 50.0\nsocket = "{self.control}"\n'
+        )
+        self.daemon = self._spawn(
+            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
+            stderr=subprocess.PIPE,
+        )
+        assert wait_until(lambda: os.path.exists(self.control), WAIT_S), self._stderr()
+        assert wait_until(lambda: self.status()["link"] == "up", WAIT_S)
+        self.gcs_url = gcs_url
+        self.gcs = GroundStation(gcs_url, signing_key=gcs_key)
+        if not self.gcs.connect(WAIT_S):
+            self.gcs.close()
+            raise AssertionError("no companion HEARTBEAT through the autopilot")
+
+    def _spawn(self, cmd, **kwargs) -> subprocess.Popen:
+        proc = subprocess.Popen(cmd, text=True, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def _stderr(self) -> str:
+        if self.daemon.poll() is None:
+            return "daemon still running"
+        return self.daemon.stderr.read()
+
+    def status(self) -> dict:
+        return request(self.control, {"cmd": "status"})["status"]
+
+    def sim_state(self) -> dict:
+        return query(self.sim_sock, "state")
+
+    def target(self, pose, **ids):
+        """Send a target from the ground station; its ACK (or None)."""
+        sent_s = self.gcs.send_target(pose, **ids)
+        return self.gcs.wait_ack(WAIT_S, since_s=sent_s)
+
+    def settled(self) -> bool:
+        return not self.status()["moving"] and self.sim_state()["settled"]
+
+
+@pytest.fixture
+def chain(tmp_path):
+    made = []
+
+    def start(**kwargs) -> Chain:
+        procs: list[subprocess.Popen] = []
+        made.append((procs, []))  # owned here, so a chain that fails to start is still stopped
+        chain = Chain(tmp_path, procs, **kwargs)
+        made[-1][1].append(chain)
+        return chain
+
+    yield start
+    for procs, chains in made:
+        for chain in chains:
+            chain.gcs.close()
+        stop_all(procs)
+
+
+def stop_all(procs: list[subprocess.Popen]) -> None:
+    """SIGTERM each (daemon first), wait, and check they all exited cleanly."""
+    for proc in reversed(procs):
+        proc.terminate()
+    codes = []
+    for proc in procs:
+        try:
+            codes.append(proc.wait(timeout=5))
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            codes.append(proc.wait())
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+    assert all(code == 0 for code in codes), codes
+
+
+def quantisation_bound(q_deg, slack_us: float) -> tuple[float, float]:
+    """The largest hand error (cm, deg) that each joint's PWM being off by ``slack_us`` can
+    cause at ``q_deg``: first order, summed over joints (a bound), plus 10 %."""
+    deg_per_us = np.array(
+        [
+            (j.angle_max_deg - j.angle_min_deg) / (j.pwm_max_us - j.pwm_min_us)
+            for j in CALIBRATION.joints
+        ]
+    )
+    dq_rad = np.radians(slack_us * deg_per_us)
+    jac = geometric_jacobian(ARM, np.radians([q_deg]))[0]
+    pos_cm = float(np.sum(np.linalg.norm(jac[:3], axis=0) * dq_rad))
+    ori_deg = math.degrees(float(np.sum(np.linalg.norm(jac[3:], axis=0) * dq_rad)))
+    return 1.1 * pos_cm, 1.1 * ori_deg
+
+
+def assert_within_quantisation(c: Chain, pose, slack_us: float) -> tuple[float, float]:
+    """The sim's hand is at ``pose`` as nearly as PWM off by ``slack_us`` allows (rounding to
+    whole µs: 0.5; plus the servos' dead band); the errors."""
+    pos, ori = hand_errors(pose, c.sim_state()["hand"])
+    bound_pos, bound_ori = quantisation_bound(c.status()["current_deg"], slack_us)
+    assert pos <= bound_pos and ori <= bound_ori, (pos, bound_pos, ori, bound_ori)
+    return pos, ori
+
+
+@pytest.mark.parametrize("dialect", ["ardupilot", "px4"])
+@pytest.mark.parametrize("pty", [False, True], ids=["udp", "pty"])
+def test_ground_station_targets_end_to_end(chain, pty, dialect):
+    """USER_1 from a ground station moves the simulated hand; G is FAILED with a STATUSTEXT and
+    nothing moves; NaN is DENIED; a target for another component gets no answer from us."""
+    c = chain(pty=pty, dialect=dialect, sim_args=["--flavour", dialect])
+    target = ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+    ack = c.target(target)
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
+    assert wait_until(c.settled, WAIT_S)
+    assert_within_quantisation(c, target, slack_us=1.5)  # rounding + the 1 µs dead band
+
+    before = c.sim_state()["outputs"]
+    ack = c.target(G)
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_FAILED
+    assert any(t.startswith("unreachable: pos") for t in ack.statustexts), ack.statustexts
+    ack = c.target((1.0, 2.0, math.nan, 0.0, 0.0, 0.0))
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_DENIED
+    assert any("must be finite" in t for t in ack.statustexts), ack.statustexts
+    assert c.sim_state()["outputs"] == before
+
+    # Addressed to component 192: the autopilot has no route to it and nobody answers.
+    c.gcs.send_target(target, component_id=192)
+    status = c.status()
+    assert c.gcs.wait_ack(0.5) is None
+    counters = status["counters"]
+    assert (counters["targets"], counters["accepted"], counters["failed"], counters["denied"]) == (
+        3,
+        1,
+        1,
+        1,
+    )
+    assert counters["servo_errors"] == 0
+
+
+def test_streamed_trajectory_the_hand_follows_each_sample(chain):
+    """A ground station streams a circle of the hand; after each ACK the hand is at that sample
+    (instant servos without a dead band: what the sim reports is what the daemon commanded)."""
+    c = chain(sim_args=["--slew-s-per-60deg", "0", "--deadband-us", "0"])
+    centre = ARM.fk([10, 80, 40, 10, 20, 0])
+    samples = []
+    for k in range(12):
+        angle = 2 * math.pi * k / 12
+        samples.append(
+            (
+                centre.x_cm + 3 * math.cos(angle),
+                centre.y_cm + 3 * math.sin(angle),
+                centre.z_cm,
+                centre.roll_deg,
+                centre.pitch_deg,
+                centre.yaw_deg,
+            )
+        )
+    for sample in samples:
+        ack = c.target(sample)
+        assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, sample
+        assert wait_until(c.settled, WAIT_S)
+        assert_within_quantisation(c, sample, slack_us=0.5)
+    assert c.status()["counters"]["accepted"] == len(samples)
+
+
+def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
+    """Vehicle, ground station and daemon share a key: a signed target moves the arm; the same
+    target unsigned or signed with another key goes nowhere (the autopilot drops it)."""
+    key_file = tmp_path / "signing.key"
+    key_file.write_bytes(KEY)
+    c = chain(
+        sim_args=["--signing-key", str(key_file)],
+        link_extra=f'signing_key = "{key_file}"\nsigning_state = "{tmp_path / "state"}"\n',
+        gcs_key=KEY,
+    )
+    target = ARM.fk([30, 60, 40, 0, 20, 10]).as_tuple()
+    for name, key in (("unsigned", None), ("forged", bytes(32))):
+        rogue = GroundStation(c.gcs_url, signing_key=key, system_id=254)
+        try:
+            rogue.heartbeat()
+            rogue.send_target(target)
+            assert rogue.wait_ack(0.5) is None, name
+        finally:
+            rogue.close()
+    assert c.status()["counters"]["targets"] == 0
+    assert c.sim_state()["stats"]["rejected_signature"] >= 4  # 2 heartbeats, 2 targets
+    ack = c.target(target)
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert wait_until(c.settled, WAIT_S)
+    assert_within_quantisation(c, target, slack_us=1.5)
+
+
+def test_link_loss_rejects_targets_temporarily_then_recovers(chain):
+    """Heartbeats stop for 3 s: the daemon holds and answers TEMPORARILY_REJECTED through the
+    autopilot (which still routes); when they return, targets are accepted again."""
+    pause_after_s = 6.0  # room for the three processes to start on a loaded machine
+    c = chain(
+        sim_args=["--heartbeat-pause-after", str(pause_after_s), "--heartbeat-pause-for", "3"]
+    )
+    started_in_s = time.monotonic() - c.spawned_s
+    assert started_in_s < pause_after_s - 1.0, f"the chain took {started_in_s:.1f} s to start"
+    assert wait_until(lambda: c.status()["link"] != "up", WAIT_S)
+    ack = c.target(ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple())
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert wait_until(lambda: c.status()["link"] == "up", WAIT_S)
+    ack = c.target(ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple())
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED

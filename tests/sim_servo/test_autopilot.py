@@ -1,0 +1,688 @@
+"""The simulated autopilot's MAVLink behaviour, driven frame by frame on a fake clock.
+
+A plain pymavlink codec plays the daemon; nothing here sleeps. ``Harness.run_until`` jumps from
+one scheduled event of the autopilot to the next, so stream rates and delays are exact.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim_servo.autopilot import SimAutopilot
+from sim_servo.config import FaultConfig, SimConfig
+from sim_servo.hand import HandModel
+
+KEY = bytes(range(32))
+START_S = 100.0
+SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
+
+
+class Harness:
+    def __init__(
+        self, config: SimConfig | None = None, *, signing_key: bytes | None = None
+    ) -> None:
+        self.config = config or SimConfig()
+        self.now = START_S
+        self.events: list[dict] = []
+        self.hand = HandModel.from_config(self.config.arm)
+        self.ap = SimAutopilot(
+            self.config,
+            now_s=self.now,
+            emit=self.events.append,
+            hand=self.hand,
+            wall_clock=lambda: 1.7e9,
+        )
+        self.gcs = mavlink.MAVLink(None, 255, 190)
+        self.dec = mavlink.MAVLink(None)
+        self.dec.robust_parsing = True
+        if signing_key is not None:
+            self.gcs.signing.secret_key = signing_key
+            self.gcs.signing.sign_outgoing = True
+            self.gcs.signing.link_id = 3
+            self.gcs.signing.timestamp = 1
+            self.dec.signing.secret_key = signing_key
+        self.received: list[tuple[float, mavlink.MAVLink_message]] = []
+
+    def send(self, msg) -> None:
+        self.ap.receive(msg.pack(self.gcs), self.now)
+
+    def command(self, command: int, *params: float, target=(1, 1)) -> None:
+        values = list(params) + [0.0] * (7 - len(params))
+        self.send(self.gcs.command_long_encode(*target, command, 0, *values))
+
+    def _collect(self) -> None:
+        for frame in self.ap.poll(self.now):
+            for msg in self.dec.parse_buffer(frame) or []:
+                self.received.append((self.now, msg))
+
+    def run_until(self, end_s: float) -> list:
+        """Advance to ``end_s`` through every scheduled event; the messages received meanwhile."""
+        first = len(self.received)
+        self._collect()
+        while True:
+            due = self.ap.next_event_s(self.now)
+            if due > end_s:
+                break
+            self.now = max(due, self.now + 1e-9) if due <= self.now else due
+            self._collect()
+        self.now = end_s
+        self._collect()
+        return [msg for _, msg in self.received[first:]]
+
+    def run_for(self, seconds: float) -> list:
+        return self.run_until(self.now + seconds)
+
+    def of_type(self, kind: str, msgs=None) -> list:
+        msgs = msgs if msgs is not None else [m for _, m in self.received]
+        return [m for m in msgs if m.get_type() == kind]
+
+
+def acks(msgs):
+    return [m for m in msgs if m.get_type() == "COMMAND_ACK"]
+
+
+# -- heartbeat ------------------------------------------------------------------------------
+
+
+def test_heartbeat_identity_and_rate():
+    h = Harness()
+    msgs = h.run_for(3.5)
+    beats = h.of_type("HEARTBEAT", msgs)
+    assert len(beats) == 4  # t = 0, 1, 2, 3
+    beat = beats[0]
+    assert (beat.get_srcSystem(), beat.get_srcComponent()) == (1, 1)
+    assert beat.type == mavlink.MAV_TYPE_QUADROTOR
+    assert beat.autopilot == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    assert beat.system_status == mavlink.MAV_STATE_STANDBY
+    times = [t for t, m in h.received if m.get_type() == "HEARTBEAT"]
+    assert [round(b - a, 6) for a, b in zip(times, times[1:], strict=False)] == [1.0, 1.0, 1.0]
+
+
+def test_system_id_is_configurable():
+    h = Harness(SimConfig(system_id=42))
+    beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
+    assert beat.get_srcSystem() == 42
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)  # addressed to system 1: not ours
+    assert acks(h.run_for(0.1)) == []
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(42, 1))
+    assert len(acks(h.run_for(0.1))) == 1
+
+
+# -- DO_SET_SERVO ---------------------------------------------------------------------------
+
+
+def test_do_set_servo_on_free_output_is_accepted_and_reported():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 100_000)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1700)
+    msgs = h.run_for(0.25)
+    ack = acks(msgs)[-1]
+    assert (ack.command, ack.result) == (mavlink.MAV_CMD_DO_SET_SERVO, mavlink.MAV_RESULT_ACCEPTED)
+    assert (ack.target_system, ack.target_component) == (255, 190)
+    raw = h.of_type("SERVO_OUTPUT_RAW", msgs)[-1]
+    assert raw.port == 0 and raw.servo9_raw == 1700
+    assert [raw.servo1_raw, raw.servo10_raw] == [1000, 0]  # disarmed motor, untouched output
+    assert h.of_type("STATUSTEXT", msgs) == []
+
+
+@pytest.mark.parametrize("output", [1, 2, 3, 4])
+def test_do_set_servo_on_motor_fails_with_exact_statustext_after_the_ack(output):
+    h = Harness()
+    h.run_for(0.0)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, output, 1500)
+    sent_at = h.now
+    msgs = h.run_for(0.1)
+    ack = acks(msgs)[0]
+    assert ack.result == mavlink.MAV_RESULT_FAILED
+    text = h.of_type("STATUSTEXT", msgs)[0]
+    assert text.text == f"ServoRelayEvent: Channel {output} is already in use"
+    assert text.severity == mavlink.MAV_SEVERITY_INFO
+    times = {
+        m.get_type(): t for t, m in h.received if m.get_type() in ("COMMAND_ACK", "STATUSTEXT")
+    }
+    assert times["COMMAND_ACK"] == sent_at
+    assert times["STATUSTEXT"] == pytest.approx(sent_at + 1 / 400)  # next main-loop pass
+    assert h.ap.pwm_us[output] == 1000
+
+
+def test_frames_are_handled_on_the_next_main_loop_pass():
+    h = Harness()
+    h.run_until(START_S + 0.001)
+    h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    h.run_for(0.01)
+    ack_time = [t for t, m in h.received if m.get_type() == "COMMAND_ACK"][0]
+    assert ack_time == pytest.approx(START_S + 0.0025)  # 400 Hz loop
+
+
+@pytest.mark.parametrize("pwm", [2500, 800, 0, 65535])
+def test_pwm_applied_as_given_without_clamping(pwm):
+    h = Harness()
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 100_000)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, pwm)
+    msgs = h.run_for(0.15)
+    assert acks(msgs)[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert h.of_type("SERVO_OUTPUT_RAW", msgs)[-1].servo9_raw == pwm
+    servo_events = [e for e in h.events if e["event"] == "servo"]
+    assert servo_events[-1]["pwm_us"] == pwm
+
+
+def test_out_of_range_pwm_shows_in_the_hand_state():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 2200)
+    h.run_for(1.0)
+    hand = h.ap.snapshot(h.now)["hand"]
+    assert hand["pose"] is None
+    assert "pwm_us=2200" in hand["error"] and "[1000, 2000]" in hand["error"]
+
+
+@pytest.mark.parametrize("output", [0, 17, 255, -1, math.nan])
+def test_do_set_servo_on_nonexistent_output_fails_silently(output):
+    h = Harness()
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, output, 1500)
+    msgs = h.run_for(0.1)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_FAILED
+    assert h.of_type("STATUSTEXT", msgs) == []
+
+
+@pytest.mark.parametrize("function", [1, 51, 66])
+def test_passthrough_functions_also_accept(function):
+    h = Harness(SimConfig(functions={9: function}))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    assert acks(h.run_for(0.1))[0].result == mavlink.MAV_RESULT_ACCEPTED
+
+
+def test_do_set_servo_over_command_int():
+    h = Harness()
+    h.send(
+        h.gcs.command_int_encode(
+            1, 1, 0, mavlink.MAV_CMD_DO_SET_SERVO, 0, 0, 10, 1234, 0, 0, 0, 0, 0
+        )
+    )
+    assert acks(h.run_for(0.1))[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert h.ap.pwm_us[10] == 1234
+
+
+@pytest.mark.parametrize(
+    "command", [mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_DO_SET_ACTUATOR, 31999]
+)
+def test_unknown_commands_are_unsupported(command):
+    h = Harness()
+    h.command(command, 1, 2, 3)
+    ack = acks(h.run_for(0.1))[0]
+    assert (ack.command, ack.result) == (command, mavlink.MAV_RESULT_UNSUPPORTED)
+
+
+def test_commands_for_another_component_are_ignored():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(1, 154))
+    assert acks(h.run_for(0.1)) == []
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(0, 0))  # broadcast
+    assert len(acks(h.run_for(0.1))) == 1
+
+
+# -- streams --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("rate_hz", [4, 20, 50])
+def test_servo_output_raw_runs_at_the_requested_rate(rate_hz):
+    h = Harness()
+    assert h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0)) == []  # off until asked
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 1e6 / rate_hz)
+    msgs = h.run_for(2.0 - 1e-6)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    raws = h.of_type("SERVO_OUTPUT_RAW", msgs)
+    assert len(raws) == 2 * rate_hz
+    stamps = [m.time_usec for m in raws]
+    assert all(b - a == 1_000_000 // rate_hz for a, b in zip(stamps, stamps[1:], strict=False))
+
+
+def test_message_interval_special_values():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 500)  # < 1 ms → 1 ms
+    h.run_for(0.01)
+    assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 1
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 1e9)  # > 60 s → 60 s
+    h.run_for(0.01)
+    assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 60_000
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 33_333)  # whole ms
+    h.run_for(0.01)
+    assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 33
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, -1)  # stop
+    h.run_for(0.01)
+    assert h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0)) == []
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000)
+    assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_FAILED
+
+
+def test_default_servo_output_rate_from_config():
+    h = Harness(SimConfig(servo_output_rate_hz=10))
+    assert len(h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0 - 1e-6))) == 10
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 0)  # back to default
+    h.run_for(0.001)
+    assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 100
+
+
+def test_get_message_interval_and_request_message():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW)
+    msgs = h.run_for(0.01)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    interval = h.of_type("MESSAGE_INTERVAL", msgs)[0]
+    assert (interval.message_id, interval.interval_us) == (SERVO_OUTPUT_RAW, -1)
+    h.command(mavlink.MAV_CMD_REQUEST_MESSAGE, SERVO_OUTPUT_RAW)
+    msgs = h.run_for(0.01)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    assert len(h.of_type("SERVO_OUTPUT_RAW", msgs)) == 1
+
+
+# -- parameters -----------------------------------------------------------------------------
+
+
+def param_values(msgs):
+    return [m for m in msgs if m.get_type() == "PARAM_VALUE"]
+
+
+def test_param_request_read_by_name_and_index():
+    h = Harness()
+    h.send(h.gcs.param_request_read_encode(1, 1, b"SERVO3_FUNCTION", -1))
+    value = param_values(h.run_for(0.01))[0]
+    assert (value.param_id, value.param_value) == ("SERVO3_FUNCTION", 35.0)
+    assert value.param_type == mavlink.MAV_PARAM_TYPE_INT16
+    assert (value.param_index, value.param_count) == (65535, 64)  # -1 as uint16
+    h.send(h.gcs.param_request_read_encode(1, 1, b"", 1))
+    value = param_values(h.run_for(0.01))[0]
+    assert (value.param_id, value.param_value, value.param_index) == ("SERVO1_MIN", 1100.0, 1)
+    h.send(h.gcs.param_request_read_encode(1, 1, b"NO_SUCH_PARAM", -1))
+    assert param_values(h.run_for(0.1)) == []
+
+
+def test_param_set_changes_what_do_set_servo_accepts():
+    h = Harness()
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO9_FUNCTION", 32.999, mavlink.MAV_PARAM_TYPE_INT16))
+    value = param_values(h.run_for(0.01))[0]
+    assert (value.param_id, value.param_value) == ("SERVO9_FUNCTION", 33.0)
+    assert value.param_index == 65535
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
+    msgs = h.run_for(0.01)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_FAILED
+    assert h.of_type("STATUSTEXT", msgs)[0].text == "ServoRelayEvent: Channel 9 is already in use"
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO3_FUNCTION", 0, mavlink.MAV_PARAM_TYPE_INT16))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 3, 1500)
+    assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_ACCEPTED
+
+
+def test_param_set_min_max_does_not_clamp_do_set_servo():
+    h = Harness()
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO9_MAX", 1600, mavlink.MAV_PARAM_TYPE_INT16))
+    assert param_values(h.run_for(0.01))[0].param_value == 1600
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1900)
+    h.run_for(0.01)
+    assert h.ap.pwm_us[9] == 1900
+
+
+def test_param_set_unknown_or_nan_gets_no_reply():
+    h = Harness()
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO99_MIN", 1000, mavlink.MAV_PARAM_TYPE_INT16))
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO9_MIN", math.nan, mavlink.MAV_PARAM_TYPE_INT16))
+    assert param_values(h.run_for(0.1)) == []
+    assert h.ap.params["SERVO9_MIN"].value == 1100
+
+
+def test_param_request_list_sends_every_parameter():
+    h = Harness()
+    h.send(h.gcs.param_request_list_encode(1, 1))
+    values = param_values(h.run_for(0.01))
+    assert len(values) == 64
+    assert [v.param_index for v in values] == list(range(64))
+
+
+# -- servo motion and the hand ---------------------------------------------------------------
+
+
+def test_slew_timing_in_the_snapshot_and_settled_event():
+    h = Harness()
+    h.run_for(0.0)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 2000)  # theta1: +90°, 0.18 °/µs
+    start = h.now
+    rate_us_per_s = (60 / 0.12) / 0.18
+    h.run_for(0.05)
+    out9 = h.ap.snapshot(h.now)["outputs"]["9"]
+    assert out9["moving"] and out9["position_us"] == pytest.approx(
+        1500 + rate_us_per_s * 0.05, abs=1e-3
+    )
+    h.run_for(1.0)
+    settled = [e for e in h.events if e["event"] == "settled"][-1]
+    assert settled["t_s"] == pytest.approx(start - START_S + 500 / rate_us_per_s, abs=1e-6)
+    assert settled["hand"]["angles_deg"]["theta1"] == pytest.approx(90.0)
+
+
+def test_hand_reaches_the_commanded_pose():
+    h = Harness()
+    q_deg = [30.0, 120.0, -45.0, 20.0, -10.0, 45.0]
+    pwm = h.hand.calibration.angles_to_pwm_us(q_deg)
+    for output, value in pwm.items():
+        h.command(mavlink.MAV_CMD_DO_SET_SERVO, output, value)
+    assert all(a.result == mavlink.MAV_RESULT_ACCEPTED for a in acks(h.run_for(2.0)))
+    state = h.ap.snapshot(h.now)
+    assert state["settled"]
+    expected = h.hand.arm.fk(q_deg)
+    pose = state["hand"]["pose"]
+    # Rounding to whole µs costs at most 0.09° per joint.
+    for name in ("x_cm", "y_cm", "z_cm"):
+        assert pose[name] == pytest.approx(getattr(expected, name), abs=0.5)
+    for name, q in zip(
+        ("theta1", "theta2", "theta3", "theta4", "theta5", "theta6"), q_deg, strict=True
+    ):
+        assert state["hand"]["angles_deg"][name] == pytest.approx(q, abs=0.1)
+
+
+# -- PX4 flavour ----------------------------------------------------------------------------
+
+
+def test_px4_heartbeat_and_do_set_actuator():
+    h = Harness(SimConfig(flavour="px4"))
+    beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
+    assert beat.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    h.command(
+        mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS, 100_000
+    )
+    h.command(mavlink.MAV_CMD_DO_SET_ACTUATOR, -1.0, 0.0, 1.0, 0.5, 2.0, math.nan, 0)
+    msgs = h.run_for(0.2)
+    assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 2
+    status = h.of_type("ACTUATOR_OUTPUT_STATUS", msgs)[-1]
+    assert status.active == 16
+    assert status.actuator[8:14] == [1000.0, 1500.0, 2000.0, 1750.0, 2000.0, 0.0]
+    assert status.actuator[0] == 1000.0  # motor 1, disarmed
+
+
+def test_px4_refuses_do_set_servo_as_unsupported_and_params_are_bytewise():
+    h = Harness(SimConfig(flavour="px4"))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
+    assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_UNSUPPORTED
+    h.send(h.gcs.param_request_read_encode(1, 1, b"PWM_MAIN_FUNC9", -1))
+    value = param_values(h.run_for(0.01))[0]
+    assert value.param_type == mavlink.MAV_PARAM_TYPE_INT32
+    import struct
+
+    assert struct.unpack("<i", struct.pack("<f", value.param_value))[0] == 301
+
+
+# -- faults ---------------------------------------------------------------------------------
+
+
+def faulty(**faults) -> Harness:
+    return Harness(SimConfig(faults=FaultConfig(**faults)))
+
+
+def test_withheld_ack_still_executes():
+    h = faulty(withhold_ack_commands=frozenset({mavlink.MAV_CMD_DO_SET_SERVO}))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    msgs = h.run_for(0.5)
+    assert [a.command for a in acks(msgs)] == [mavlink.MAV_CMD_NAV_TAKEOFF]
+    assert h.ap.pwm_us[9] == 1600
+    assert any(e["event"] == "ack" and e["withheld"] for e in h.events)
+
+
+def test_withhold_all_acks():
+    h = faulty(withhold_all_acks=True)
+    h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    assert acks(h.run_for(0.5)) == []
+
+
+def test_nack_output_fails_without_statustext():
+    h = faulty(nack_outputs=frozenset({10}))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1600)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 11, 1600)
+    msgs = h.run_for(0.1)
+    assert [a.result for a in acks(msgs)] == [
+        mavlink.MAV_RESULT_FAILED,
+        mavlink.MAV_RESULT_ACCEPTED,
+    ]
+    assert h.of_type("STATUSTEXT", msgs) == []
+    assert h.ap.pwm_us[10] == 0 and h.ap.pwm_us[11] == 1600
+
+
+def test_heartbeat_pause_after_and_for():
+    h = faulty(heartbeat_pause_after_s=2.0, heartbeat_pause_for_s=3.0)
+    h.run_for(8.5)
+    times = [round(t - START_S, 6) for t, m in h.received if m.get_type() == "HEARTBEAT"]
+    assert times == [0.0, 1.0, 5.0, 6.0, 7.0, 8.0]
+    kinds = [e["fault"] for e in h.events if e["event"] == "fault"]
+    assert kinds == ["heartbeat_paused", "heartbeat_resumed"]
+
+
+def test_drop_out_everything():
+    h = faulty(drop_out=1.0)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    assert h.run_for(2.0) == []
+    assert h.ap.stats["dropped_out"] >= 3 and h.ap.pwm_us[9] == 1600
+
+
+def test_drop_in_everything():
+    h = faulty(drop_in=1.0)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    assert acks(h.run_for(0.1)) == []
+    assert h.ap.pwm_us[9] == 0 and h.ap.stats["dropped_in"] == 1
+
+
+def _drop_pattern(seed: int) -> list[bool]:
+    h = faulty(drop_in=0.5, seed=seed)
+    pattern = []
+    for _ in range(40):
+        before = h.ap.stats["dropped_in"]
+        h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+        h.run_for(0.003)
+        pattern.append(h.ap.stats["dropped_in"] > before)
+    return pattern
+
+
+def test_drops_are_reproducible_from_the_seed():
+    first = _drop_pattern(7)
+    assert first == _drop_pattern(7)
+    assert first != _drop_pattern(8)
+    assert 5 < sum(first) < 35
+
+
+def test_corrupt_out_makes_every_frame_fail_its_check():
+    h = faulty(corrupt_out=1.0)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    msgs = h.run_for(0.1)
+    assert acks(msgs) == [] and h.of_type("HEARTBEAT", msgs) == []
+    assert h.ap.stats["corrupted_out"] >= 2
+
+
+def test_corrupt_in_is_reported_as_bad_frames():
+    h = faulty(corrupt_in=1.0)
+    for _ in range(10):
+        h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+    assert h.ap.stats["corrupted_in"] == 10
+    assert h.ap.stats["rx"] < 10 or h.ap.stats["bad_frames"] > 0
+
+
+def test_latency_and_jitter_delay_replies():
+    h = faulty(latency_ms=50, jitter_ms=20, seed=3)
+    h.run_for(0.0)
+    delays = []
+    for _ in range(20):
+        h.command(mavlink.MAV_CMD_NAV_TAKEOFF)
+        sent = h.now
+        h.run_for(0.2)
+        ack_times = [t for t, m in h.received if m.get_type() == "COMMAND_ACK"]
+        delays.append(ack_times[-1] - sent)
+    assert all(0.030 - 1e-9 <= d <= 0.070 + 1e-9 for d in delays)
+    assert max(delays) - min(delays) > 0.01
+
+
+# -- signing --------------------------------------------------------------------------------
+
+
+def test_signing_required_rejects_unsigned_and_signs_replies():
+    config = SimConfig(signing_key=KEY)
+    unsigned = Harness(config)
+    unsigned.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    assert acks(unsigned.run_for(0.1)) == []
+    assert unsigned.ap.stats["rejected_signature"] == 1 and unsigned.ap.pwm_us[9] == 0
+
+    signed = Harness(config, signing_key=KEY)
+    signed.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    ack = acks(signed.run_for(0.1))[0]
+    assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+    assert ack.get_signed() and signed.dec.signing.goodsig_count >= 1
+
+    wrong = Harness(config, signing_key=bytes(32))
+    wrong.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    assert acks(wrong.run_for(0.1)) == []
+
+
+# -- event log content ----------------------------------------------------------------------
+
+
+def test_every_command_is_logged_with_its_fields():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1600)
+    h.run_for(0.1)
+    rx = [e for e in h.events if e["event"] == "rx" and e["msg"] == "COMMAND_LONG"][0]
+    assert rx["src"] == [255, 190]
+    assert rx["fields"]["command"] == mavlink.MAV_CMD_DO_SET_SERVO
+    assert rx["fields"]["param1"] == 9 and rx["fields"]["param2"] == 1600
+    ack = [e for e in h.events if e["event"] == "ack"][0]
+    assert ack["result_name"] == "MAV_RESULT_ACCEPTED"
+
+
+def test_replace_keeps_config_valid():
+    config = replace(SimConfig(), system_id=3)
+    assert config.functions[1] == 33
+
+
+# -- routing between links (ArduPilot's MAVLink_routing) ------------------------------------
+
+COMPANION = (1, 191)
+
+
+def routing_harness(signing_key: bytes | None = None):
+    """Link 0: the companion (1/191); link 1: a ground station (255/190). Both heard once."""
+    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key)
+    companion = mavlink.MAVLink(None, *COMPANION)
+    if signing_key is not None:
+        companion.signing.secret_key = signing_key
+        companion.signing.sign_outgoing = True
+        companion.signing.timestamp = 1
+    hb = companion.heartbeat_encode(
+        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+    )
+    h.ap.receive(hb.pack(companion), h.now, 0)
+    gcs_hb = h.gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+    h.ap.receive(gcs_hb.pack(h.gcs), h.now, 1)
+    h.run_for(0.01)
+    h.ap.forwarded()  # the heartbeats' own forwarding is checked in its own test
+    return h, companion
+
+
+def test_heartbeats_are_forwarded_to_the_other_link_and_routes_learned():
+    h = Harness()
+    companion = mavlink.MAVLink(None, *COMPANION)
+    frame = companion.heartbeat_encode(
+        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
+    ).pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []  # nobody heard on another link yet: nowhere to forward
+    gcs_frame = h.gcs.heartbeat_encode(6, 8, 0, 0, 0).pack(h.gcs)
+    h.ap.receive(gcs_frame, h.now, 1)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, gcs_frame), (1, frame)]
+    assert h.ap.snapshot(h.now)["routes"] == [[1, 191, 0], [255, 190, 1]]
+
+
+def test_target_for_the_companion_is_forwarded_unchanged_and_not_handled_here():
+    h, _ = routing_harness()
+    routed = h.ap.stats["routed"]
+    msg = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, 1, 2, 3, 4, 5, 6, 0)
+    frame = msg.pack(h.gcs)
+    h.ap.receive(frame, h.now, 1)
+    replies = h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, frame)]
+    assert h.of_type("COMMAND_ACK", replies) == []  # the companion answers, not the autopilot
+    assert h.ap.stats["routed"] == routed + 1
+
+
+def test_commands_for_the_autopilot_are_handled_and_not_forwarded():
+    h, _ = routing_harness()
+    h.ap.receive(
+        h.gcs.command_long_encode(
+            1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 9, 1500, 0, 0, 0, 0, 0
+        ).pack(h.gcs),
+        h.now,
+        1,
+    )
+    replies = h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    assert [a.result for a in h.of_type("COMMAND_ACK", replies)] == [mavlink.MAV_RESULT_ACCEPTED]
+
+
+def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
+    h, companion = routing_harness()
+    h.ap.receive(
+        h.gcs.command_long_encode(7, 191, mavlink.MAV_CMD_USER_1, 0, *[0] * 7).pack(h.gcs), h.now, 1
+    )
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
+    frame = ack.pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(1, frame)]
+
+
+def test_statustext_is_a_broadcast_and_is_also_handled_here():
+    h, companion = routing_harness()
+    frame = companion.statustext_encode(4, b"unreachable").pack(companion)
+    h.ap.receive(frame, h.now, 0)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(1, frame)]
+
+
+def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped():
+    h, _ = routing_harness(signing_key=KEY)
+    signed = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7)
+    frame = signed.pack(h.gcs)
+    assert frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
+    h.ap.receive(frame, h.now, 1)
+    h.run_for(0.01)
+    assert h.ap.forwarded() == [(0, frame)]
+    plain = mavlink.MAVLink(None, 255, 190)
+    h.ap.receive(
+        plain.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7).pack(plain),
+        h.now,
+        1,
+    )
+    forger = mavlink.MAVLink(None, 255, 190)
+    forger.signing.secret_key = bytes(32)
+    forger.signing.sign_outgoing = True
+    forger.signing.timestamp = 10**12
+    h.ap.receive(
+        forger.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7).pack(forger),
+        h.now,
+        1,
+    )
+    h.run_for(0.01)
+    assert h.ap.forwarded() == []
+    assert h.ap.stats["rejected_signature"] == 2
+
+
+def test_a_stream_split_across_reads_on_one_link_survives_frames_on_another():
+    h, companion = routing_harness()
+    frame = h.gcs.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[2] * 7).pack(h.gcs)
+    other = companion.statustext_encode(6, b"hello").pack(companion)
+    h.ap.receive(frame[:10], h.now, 1)
+    h.ap.receive(other, h.now, 0)
+    h.ap.receive(frame[10:], h.now, 1)
+    h.run_for(0.01)
+    assert sorted(h.ap.forwarded()) == [(0, frame), (1, other)]
+    assert h.ap.stats["bad_frames"] == 0

@@ -1,0 +1,138 @@
+"""Simulator settings: defaults, validation messages, TOML file, flag layering."""
+
+from pathlib import Path
+
+import pytest
+
+from sim_servo.__main__ import build_parser, config_data
+from sim_servo.config import (
+    ArmConfig,
+    FaultConfig,
+    ServoConfig,
+    SimConfig,
+    config_from_mapping,
+    load_key,
+    load_toml,
+    parse_withhold,
+)
+from sim_servo.errors import SimConfigError
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "sim_servo" / "examples" / "quad_arm.toml"
+
+
+def test_ardupilot_defaults_motors_on_1_to_4():
+    config = SimConfig()
+    assert [config.functions[o] for o in (1, 2, 3, 4)] == [33, 34, 35, 36]
+    assert all(config.functions[o] == 0 for o in range(5, 17))
+
+
+def test_px4_defaults_actuator_set_on_arm_outputs():
+    config = SimConfig(flavour="px4", arm=ArmConfig(outputs=(5, 6, 7, 8, 9, 10)))
+    assert [config.functions[o] for o in (1, 2, 3, 4)] == [101, 102, 103, 104]
+    assert [config.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"flavour": "inav"}, "flavour='inav'; valid: ['ardupilot', 'px4']"),
+        ({"system_id": 0}, "system_id=0 outside [1, 255]"),
+        ({"functions": {17: 0}}, "output=17 outside [1, 16]"),
+        ({"servo_output_rate_hz": -1}, "servo_output_rate_hz=-1 outside [0.0, 1000.0]"),
+        ({"signing_key": b"short"}, "signing_key must be 32 bytes"),
+    ],
+)
+def test_validation_names_value_and_range(kwargs, message):
+    with pytest.raises(SimConfigError) as info:
+        SimConfig(**kwargs)
+    assert message in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("cls", "kwargs", "message"),
+    [
+        (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
+        (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
+        (FaultConfig, {"hangup_for_s": 1.0}, "hangup_for_s needs hangup_after_s"),
+        (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
+        (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
+        (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
+    ],
+)
+def test_part_validation(cls, kwargs, message):
+    with pytest.raises(SimConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        cls(**kwargs)
+
+
+def test_example_file_loads():
+    config = config_from_mapping(load_toml(EXAMPLE), str(EXAMPLE), EXAMPLE.parent)
+    assert config.flavour == "ardupilot" and config.functions[9] == 0
+    assert config.servo.slew_s_per_60deg == 0.12
+
+
+def test_unknown_keys_are_refused():
+    with pytest.raises(SimConfigError, match=r"unknown keys \['colour'\]"):
+        config_from_mapping({"colour": "red"}, "x.toml")
+    with pytest.raises(SimConfigError, match=r"\[faults\]"):
+        config_from_mapping({"faults": {"drop": 0.1}}, "x.toml")
+
+
+def test_bad_toml_names_the_file(tmp_path):
+    path = tmp_path / "bad.toml"
+    path.write_text("flavour = \n")
+    with pytest.raises(SimConfigError, match="bad.toml"):
+        load_toml(path)
+
+
+def test_withhold_names_ids_and_all():
+    assert parse_withhold(["DO_SET_SERVO", "511"]) == (frozenset({183, 511}), False)
+    assert parse_withhold(["MAV_CMD_DO_SET_SERVO"]) == (frozenset({183}), False)
+    assert parse_withhold(["all"]) == (frozenset(), True)
+    with pytest.raises(SimConfigError, match="NOPE"):
+        parse_withhold(["NOPE"])
+
+
+def test_key_file_forms(tmp_path):
+    raw = tmp_path / "raw"
+    raw.write_bytes(bytes(range(32)))
+    hexed = tmp_path / "hex"
+    hexed.write_text(bytes(range(32)).hex() + "\n")
+    assert load_key(raw) == load_key(hexed) == bytes(range(32))
+    bad = tmp_path / "bad"
+    bad.write_text("abc")
+    with pytest.raises(SimConfigError, match="expected 32 raw bytes or 64 hex digits"):
+        load_key(bad)
+
+
+def test_flags_override_the_file():
+    args = build_parser().parse_args(
+        [
+            "--udp",
+            "127.0.0.1:0",
+            "--config",
+            str(EXAMPLE),
+            "--flavour",
+            "px4",
+            "--function",
+            "9=33",
+            "--drop-in",
+            "0.25",
+            "--withhold-ack",
+            "all",
+            "--nack-output",
+            "10",
+            "--slew-s-per-60deg",
+            "0.2",
+            "--hangup-after",
+            "5",
+            "--hangup-for",
+            "1.5",
+        ]
+    )
+    data, base = config_data(args)
+    config = config_from_mapping(data, "flags", base)
+    assert config.flavour == "px4" and config.functions[9] == 33
+    assert config.faults.drop_in == 0.25 and config.faults.withhold_all_acks
+    assert config.faults.nack_outputs == {10} and config.faults.hangup_after_s == 5
+    assert config.faults.hangup_for_s == 1.5
+    assert config.servo.slew_s_per_60deg == 0.2 and config.servo.deadband_us == 1.0

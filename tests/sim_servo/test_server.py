@@ -1,0 +1,116 @@
+"""The I/O loop in-process: one exchange over UDP, routing between the companion's and the ground
+station's links, stop(), and a protocol failure ending it."""
+
+import socket
+import threading
+import time
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from sim_servo.autopilot import SimAutopilot
+from sim_servo.config import SimConfig
+from sim_servo.endpoints import UdpEndpoint
+from sim_servo.eventlog import EventLog
+from sim_servo.query import query
+from sim_servo.server import SimServer
+
+
+def start(tmp_path, autopilot_cls=SimAutopilot, gcs=None):
+    events = EventLog(None)
+    endpoint = UdpEndpoint("127.0.0.1", 0)
+    now = time.monotonic()
+    autopilot = autopilot_cls(SimConfig(), now_s=now, emit=events)
+    server = SimServer(
+        autopilot, endpoint, events, gcs=gcs, query_path=str(tmp_path / "q.sock"), start_s=now
+    )
+    result = {}
+    thread = threading.Thread(target=lambda: result.setdefault("rc", server.run()), daemon=True)
+    thread.start()
+    return server, endpoint, events, thread, result
+
+
+def test_exchange_query_and_stop(tmp_path):
+    server, endpoint, _, thread, result = start(tmp_path)
+    _, host, port = endpoint.url.split(":")
+    mav, dec = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
+        client.settimeout(5)
+        client.sendto(
+            mav.command_long_encode(1, 1, 183, 0, 9, 1234, 0, 0, 0, 0, 0).pack(mav),
+            (host, int(port)),
+        )
+        got = []
+        while not any(m.get_type() == "COMMAND_ACK" for m in got):
+            got += dec.parse_buffer(client.recvfrom(4096)[0]) or []
+    state = query(tmp_path / "q.sock", "state")
+    assert state["outputs"]["9"]["pwm_us"] == 1234 and state["link"]["closed"] is False
+    assert any(e["event"] == "ack" for e in query(tmp_path / "q.sock", "events")["events"])
+    server.stop()
+    thread.join(5)
+    assert result["rc"] == 0 and endpoint.closed
+    assert not (tmp_path / "q.sock").exists()
+
+
+def address(endpoint):
+    _, host, port = endpoint.url.split(":")
+    return host, int(port)
+
+
+def receive_until(sock, dec, predicate, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for msg in dec.parse_buffer(sock.recvfrom(4096)[0]) or []:
+            if predicate(msg):
+                return msg
+    raise AssertionError("no matching message within the timeout")
+
+
+def test_frames_are_routed_between_the_companion_and_the_ground_station(tmp_path):
+    gcs_endpoint = UdpEndpoint("127.0.0.1", 0)
+    server, endpoint, _, thread, result = start(tmp_path, gcs=gcs_endpoint)
+    gcs, companion = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None, 1, 191)
+    dec_gcs, dec_companion = mavlink.MAVLink(None), mavlink.MAVLink(None)
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as c_sock,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as g_sock,
+    ):
+        for sock in (c_sock, g_sock):
+            sock.settimeout(5)
+        g_sock.sendto(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs), address(gcs_endpoint))
+        # The autopilot's heartbeat tells us it has heard (and routes to) the ground station.
+        receive_until(g_sock, dec_gcs, lambda m: m.get_type() == "HEARTBEAT")
+        c_sock.sendto(companion.heartbeat_encode(18, 8, 0, 0, 4).pack(companion), address(endpoint))
+        receive_until(g_sock, dec_gcs, lambda m: m.get_srcComponent() == 191)
+        target = gcs.command_long_encode(1, 191, mavlink.MAV_CMD_USER_1, 0, 1, 2, 3, 4, 5, 6, 0)
+        g_sock.sendto(target.pack(gcs), address(gcs_endpoint))
+        got = receive_until(c_sock, dec_companion, lambda m: m.get_type() == "COMMAND_LONG")
+        assert got.get_srcSystem() == 255 and (got.param1, got.param6) == (1.0, 6.0)
+        ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
+        c_sock.sendto(ack.pack(companion), address(endpoint))
+        got = receive_until(
+            g_sock,
+            dec_gcs,
+            lambda m: m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_USER_1,
+        )
+        assert got.get_srcComponent() == 191
+    state = query(tmp_path / "q.sock", "state")
+    assert state["stats"]["routed"] >= 3 and state["gcs_link"]["closed"] is False
+    server.stop()
+    thread.join(5)
+    assert result["rc"] == 0 and endpoint.closed and gcs_endpoint.closed
+
+
+class Broken(SimAutopilot):
+    def receive(self, data, now_s, channel=0):
+        raise RuntimeError("protocol bug")
+
+
+def test_protocol_exception_ends_the_loop_with_status_1(tmp_path):
+    server, endpoint, events, thread, result = start(tmp_path, Broken)
+    _, host, port = endpoint.url.split(":")
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
+        client.sendto(b"\xfd\x00", (host, int(port)))
+    thread.join(5)
+    assert result["rc"] == 1
+    error = [e for e in events.recent if e["event"] == "error"][0]
+    assert "protocol bug" in error["error"]
