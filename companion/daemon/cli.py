@@ -31,6 +31,8 @@ from companion.errors import ConfigError
 # socket clients must start in a blink, so the solver (numba) and pymavlink are imported by the
 # subcommands that need them.
 
+POSE_FIELDS = ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg")
+
 DEFAULT_SOCKET = os.environ.get("ARMBRIDGE_SOCKET", "/run/armbridge/control.sock")
 
 
@@ -43,7 +45,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     from companion.kinematics import Arm, Pose
 
     arm = Arm.from_toml(args.arm) if args.arm else Arm.default()
-    target = Pose.from_sequence(args.pose)
+    target = Pose.from_sequence(_pose(args))
     res = ik.solve(
         arm,
         target,
@@ -79,7 +81,7 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace, obj: dict) -> int:
-    from companion.daemon.control_socket import request
+    from companion.daemon.client import request
 
     try:
         reply = request(args.socket, obj, timeout_s=args.timeout_s)
@@ -102,6 +104,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return demo(seed=args.seed, plot=args.plot)
 
 
+def _pose(args: argparse.Namespace) -> list[float]:
+    return [getattr(args, name) for name in POSE_FIELDS]
+
+
 # -- parser -------------------------------------------------------------------------------------
 
 
@@ -112,12 +118,10 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def pose_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument(
-            "pose",
-            nargs=6,
-            type=float,
-            metavar=("X_CM", "Y_CM", "Z_CM", "ROLL_DEG", "PITCH_DEG", "YAW_DEG"),
-        )
+        # Six named positionals rather than nargs=6 with a tuple metavar, which argparse cannot
+        # format in --help (ValueError: too many values to unpack).
+        for name, unit in zip(POSE_FIELDS, ("cm", "cm", "cm", "deg", "deg", "deg"), strict=True):
+            p.add_argument(name, type=float, help=f"{name.split('_')[0]} of the hand, {unit}")
 
     def client_args(p: argparse.ArgumentParser) -> None:
         p.add_argument(
@@ -158,7 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("goto", help="send the hand to a pose (running daemon)")
     pose_args(p)
     client_args(p)
-    p.set_defaults(func=lambda a: _client(a, {"cmd": "goto", "pose": a.pose}))
+    p.set_defaults(func=lambda a: _client(a, {"cmd": "goto", "pose": _pose(a)}))
     for name in ("status", "park", "stop"):
         p = sub.add_parser(name, help=f"{name} (running daemon)")
         client_args(p)

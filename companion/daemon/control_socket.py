@@ -28,9 +28,12 @@ import threading
 from pathlib import Path
 from typing import Any
 
+from companion.daemon.client import request  # the client half, re-exported
 from companion.daemon.service import ArmDaemon, Outcome
 
 log = logging.getLogger("armbridge.control")
+
+__all__ = ["ControlServer", "request"]
 
 MAX_LINE = 1 << 20  # a request line longer than this is refused
 
@@ -157,18 +160,3 @@ def _json_safe(value: Any) -> Any:
 
 def _line(obj: dict[str, Any]) -> bytes:
     return (json.dumps(_json_safe(obj), allow_nan=False, default=str) + "\n").encode()
-
-
-def request(path: str | Path, obj: dict[str, Any], *, timeout_s: float = 10.0) -> dict[str, Any]:
-    """Client: send one request to the daemon at ``path`` and return its reply."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout_s)
-        sock.connect(str(path))
-        sock.sendall((json.dumps(obj) + "\n").encode())
-        buffer = b""
-        while b"\n" not in buffer:
-            chunk = sock.recv(65536)
-            if not chunk:
-                raise ConnectionError(f"daemon at {path} closed the connection without a reply")
-            buffer += chunk
-    return json.loads(buffer.split(b"\n", 1)[0])

@@ -9,10 +9,8 @@ simulator reports. With matplotlib installed it also writes a PNG (``--plot PATH
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from companion import ik
+from companion.daemon.client import json_line_request
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.kinematics import Pose, rotation_angle
@@ -45,17 +44,7 @@ def _fmt_pose(p: Pose | Sequence[float]) -> str:
 
 def query_sim(path: str, what: str, timeout_s: float = 5.0) -> dict[str, Any]:
     """One request to the simulator's query socket (``{"query": what}``) and its JSON reply."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(timeout_s)
-        sock.connect(path)
-        sock.sendall(json.dumps({"query": what}).encode() + b"\n")
-        buf = b""
-        while not buf.endswith(b"\n"):
-            chunk = sock.recv(65536)
-            if not chunk:
-                break
-            buf += chunk
-    reply = json.loads(buf)
+    reply = json_line_request(path, {"query": what}, timeout_s=timeout_s)
     if not isinstance(reply, dict) or "error" in reply:
         raise RuntimeError(f"simulator query {what!r} failed: {reply!r}")
     return reply

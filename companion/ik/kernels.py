@@ -6,9 +6,12 @@ refine the best individual that is not yet known to be stuck. The result is clam
 limits, accepted only if the pose error drops, and written back into the population. On
 stagnation the population is re-drawn and the best found so far is kept aside ("record").
 
-Everything here is compiled with numba, eagerly (explicit signatures) and with the on-disk
-cache, so importing this module costs a cache load, and no solve ever pays a JIT compile. The
-kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
+Everything here is compiled with numba on first use, with the on-disk cache: the first call
+after an install compiles (a few seconds), later processes load the cache. The daemon calls
+:func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
+writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the kernels still work,
+compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
+out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
 Units inside: radians and centimetres. The pose residual is ``(Δp in cm, rotation vector in
 degrees)``, so one degree of orientation error weighs like one centimetre of position error. The
@@ -21,10 +24,36 @@ costs about 6 µs per call, more than a whole generation.
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numba as nb
 import numpy as np
+
+log = logging.getLogger(__name__)
+
+
+def _caching_available() -> bool:
+    """Whether numba can cache this module's functions: a writable ``NUMBA_CACHE_DIR``, the
+    package's ``__pycache__`` or the user's cache directory. Without one, ``cache=True`` raises
+    ``RuntimeError: cannot cache function`` at decoration, i.e. at import."""
+
+    def probe() -> int:
+        return 0
+
+    try:
+        nb.njit(cache=True)(probe)
+    except RuntimeError:
+        return False
+    return True
+
+
+CACHE = _caching_available()
+if not CACHE:
+    log.warning(
+        "no writable numba cache directory: the IK kernels compile at every start (a few "
+        "seconds); set NUMBA_CACHE_DIR to a directory this user can write"
+    )
 
 DEG_PER_RAD = 180.0 / math.pi
 
@@ -43,7 +72,7 @@ R_COST, R_POS_CM, R_ORI_DEG = range(3)
 _U64 = nb.types.uint64
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=CACHE, inline="always")
 def _next_u64(rng):
     z = rng[0] + _U64(0x9E3779B97F4A7C15)
     rng[0] = z
@@ -52,18 +81,18 @@ def _next_u64(rng):
     return z ^ (z >> _U64(31))
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=CACHE, inline="always")
 def _rand(rng):
     """Uniform in [0, 1) with 53 random bits."""
     return float(_next_u64(rng) >> _U64(11)) * (1.0 / 9007199254740992.0)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=CACHE, inline="always")
 def _randint(rng, n):
     return min(int(_rand(rng) * n), n - 1)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def fk_frames(q, dh, modified, tool, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
@@ -120,7 +149,7 @@ def fk_frames(q, dh, modified, tool, rot, pos, axes, points, want_axes):
             rot[k, c] = r0 * tool[0, c] + r1 * tool[1, c] + r2 * tool[2, c]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
     """Fill ``goal`` (4×4) with the pose: translation in cm, ``R = Rz(yaw)·Ry(pitch)·Rx(roll)``."""
     cr, sr = math.cos(roll_rad), math.sin(roll_rad)
@@ -144,7 +173,7 @@ def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
     goal[3, 3] = 1.0
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def pose_residual(rot, pos, goal, res):
     """Fill ``res`` (6,) with ``(p_goal − p [cm], rotvec(R_goal·Rᵀ) [deg])``.
 
@@ -189,7 +218,7 @@ def pose_residual(rot, pos, goal, res):
     return pos_err, theta * DEG_PER_RAD
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _movement(q, q_prev):
     m = 0.0
     for j in range(q.shape[0]):
@@ -197,7 +226,7 @@ def _movement(q, q_prev):
     return m
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def candidate_cost(q, dh, modified, tool, goal, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
     fk_frames(q, dh, modified, tool, rot, pos, rot, rot, False)  # no axes wanted
@@ -208,7 +237,7 @@ def candidate_cost(q, dh, modified, tool, goal, q_prev, move_w, rot, pos, res):
     return cost
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _cholesky_solve(a, b, n):
     """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``."""
     for j in range(n):
@@ -236,7 +265,7 @@ def _cholesky_solve(a, b, n):
     return True
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
     """Damped least squares on the pose residual from ``q`` (modified in place).
 
@@ -317,7 +346,7 @@ def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
     return steps
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w):
     rot = np.empty((3, 3))
     pos = np.empty(3)
@@ -326,14 +355,14 @@ def _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w):
         cost[i] = candidate_cost(pop[i], dh, modified, tool, goal, q_prev, move_w, rot, pos, res)
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _draw_population(pop, lo, hi, rng, first):
     for i in range(first, pop.shape[0]):
         for j in range(pop.shape[1]):
             pop[i, j] = lo[j] + _rand(rng) * (hi[j] - lo[j])
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q):
     # A configuration within both tolerances always wins: a lower cm² + deg² sum is no use if
     # one of the two errors is outside its tolerance.
@@ -345,7 +374,7 @@ def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
             record_q[j] = q[j]
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def _refine_best(
     pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
 ):
@@ -376,7 +405,7 @@ def _refine_best(
     return within_tol
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def init_population(
     pop,
     cost,
@@ -422,7 +451,7 @@ def init_population(
     )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=CACHE)
 def generation(
     pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng, st, record, record_q
 ):

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -142,3 +145,26 @@ def test_goal_matrix_equals_pose_as_matrix():
     goal = np.empty((4, 4))
     kernels.goal_matrix(*pose.as_tuple()[:3], *np.radians(pose.as_tuple()[3:]), goal)
     np.testing.assert_allclose(goal, pose.as_matrix(), atol=1e-15)
+
+
+@pytest.mark.slow
+def test_kernels_work_without_a_writable_cache_location():
+    """numba raises "cannot cache function" at import where no cache directory is writable (a
+    read-only install, no home). Here no locator is allowed at all: the kernels must still
+    import, compile and solve, uncached."""
+    env = dict(os.environ, NUMBA_CACHE_LOCATOR_CLASSES="UserProvidedCacheLocator")
+    env.pop("NUMBA_CACHE_DIR", None)
+    code = (
+        "from companion import ik\n"
+        "from companion.ik import kernels\n"
+        "from companion.kinematics import Arm\n"
+        "arm = Arm.default()\n"
+        "res = ik.solve(arm, arm.fk([10, 80, 10, 10, 10, 10]), budget_ms=1e4, seed=0)\n"
+        "print(kernels.CACHE, res.converged)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "True"]
+    assert "NUMBA_CACHE_DIR" in out.stderr  # the warning says how to fix it

@@ -1,0 +1,66 @@
+"""The quick commands start without the solver: no numba (nor its compile) for ``--help``,
+``--version``, the socket clients and ``check-config``; timing figures are for bench/, the
+import set is checked here."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+HEAVY = ("numba", "llvmlite", "companion.ik")
+
+PROBE = """
+import sys
+from companion.daemon.cli import main
+try:
+    rc = main(sys.argv[1:])
+except SystemExit as exc:
+    rc = exc.code
+print("loaded:", *[m for m in {heavy!r} if m in sys.modules])
+print("rc:", rc)
+"""
+
+
+def run_cli(*argv: str) -> tuple[list[str], str]:
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE.format(heavy=HEAVY), *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    lines = out.stdout.splitlines()
+    loaded = next(line for line in lines if line.startswith("loaded:")).split()[1:]
+    rc = next(line for line in lines if line.startswith("rc:")).split()[1]
+    return loaded, rc
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ("--help",),
+        ("--version",),
+        ("goto", "--help"),
+        ("status", "--socket", "/nonexistent/armbridge.sock"),
+        ("park", "--socket", "/nonexistent/armbridge.sock"),
+        ("goto", "1", "2", "3", "0", "0", "0", "--socket", "/nonexistent/armbridge.sock"),
+    ],
+)
+def test_quick_commands_do_not_load_the_solver(argv):
+    loaded, rc = run_cli(*argv)
+    assert loaded == []
+    assert rc in ("0", "3")  # 3: no daemon at that socket
+
+
+def test_check_config_does_not_load_the_solver(tmp_path):
+    config = tmp_path / "armbridge.toml"
+    config.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n')
+    loaded, rc = run_cli("check-config", str(config))
+    assert (loaded, rc) == ([], "0")
+
+
+def test_the_probe_would_see_the_solver():
+    """The check above can fail: ``solve`` does load it."""
+    loaded, rc = run_cli("solve", "30", "10", "20", "0", "45", "0", "--budget-ms", "50")
+    assert "numba" in loaded and "companion.ik" in loaded
