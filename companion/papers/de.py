@@ -31,6 +31,7 @@ from companion.papers.base import (
     SolverResult,
     run,
 )
+from companion.papers.constants import DE_CR, DE_F, DE_GENERATIONS, DE_POP_SIZE
 
 IntArray = NDArray[np.intp]
 
@@ -44,8 +45,8 @@ class DEParams:
     usual ``p_f = 0.5`` and ``K = 0.5·(F + 1)``.
     """
 
-    F: float = 0.9
-    Cr: float = 0.95
+    F: float = DE_F
+    Cr: float = DE_CR
     p_f: float = 0.5
     K: float | None = None
 
@@ -193,10 +194,10 @@ class DifferentialEvolution(PopulationSolver):
 def differential_evolution(
     problem: Problem,
     *,
-    pop_size: int = 12,
-    generations: int = 400,
-    F: float = 0.9,
-    Cr: float = 0.95,
+    pop_size: int = DE_POP_SIZE,
+    generations: int = DE_GENERATIONS,
+    F: float = DE_F,
+    Cr: float = DE_CR,
     mutation: str = "rand/1",
     crossover: str = "binomial",
     p_f: float = 0.5,

@@ -30,6 +30,7 @@ from companion.papers.base import (
     check_bounds,
     run,
 )
+from companion.papers.constants import MSFLA_LEAP_FACTOR, MSFLA_MEMEPLEXES
 
 
 class ShuffledFrogLeaping(PopulationSolver):
@@ -40,9 +41,9 @@ class ShuffledFrogLeaping(PopulationSolver):
         problem: Problem,
         *,
         pop_size: int = 30,
-        n_memeplexes: int = 3,
+        n_memeplexes: int = MSFLA_MEMEPLEXES,
         local_iterations: int = 40,
-        leap_factor: float = 1.3,
+        leap_factor: float = MSFLA_LEAP_FACTOR,
         max_leap: FloatArray | float | None = None,
         rng: np.random.Generator | int | None = None,
         initial: FloatArray | None = None,
@@ -118,10 +119,10 @@ def shuffled_frog_leaping(
     problem: Problem,
     *,
     pop_size: int = 30,
-    n_memeplexes: int = 3,
+    n_memeplexes: int = MSFLA_MEMEPLEXES,
     shuffles: int = 90,
     local_iterations: int = 40,
-    leap_factor: float = 1.3,
+    leap_factor: float = MSFLA_LEAP_FACTOR,
     max_leap: FloatArray | float | None = None,
     seed: int | np.random.Generator | None = None,
     tol: float | None = None,

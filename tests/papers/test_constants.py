@@ -1,0 +1,37 @@
+"""The papers' numbers are defined once in companion.papers.constants; the copies that other
+packages must keep (they may not import papers) are checked against it here."""
+
+from __future__ import annotations
+
+import math
+
+from companion.daemon.demo import PAPER_TARGET_G
+from companion.kinematics import Arm
+from companion.papers import constants
+from firmware_interface.calibration import TABLE2_RANGES_DEG, default_calibration
+
+
+def test_default_arm_file_has_the_table2_ranges():
+    arm = Arm.default()
+    ranges = [(math.degrees(j.min_rad), math.degrees(j.max_rad)) for j in arm.joints]
+    assert ranges == [tuple(r) for r in constants.TABLE2_RANGES_DEG]
+
+
+def test_default_calibration_has_the_table2_ranges():
+    assert tuple(TABLE2_RANGES_DEG) == constants.TABLE2_RANGES_DEG
+    cal = default_calibration()
+    assert [(j.angle_min_deg, j.angle_max_deg) for j in cal.joints] == list(
+        constants.TABLE2_RANGES_DEG
+    )
+
+
+def test_the_demo_refuses_the_papers_target_g():
+    assert PAPER_TARGET_G == constants.TARGET_G
+
+
+def test_table5_and_table7_rows_are_complete_and_in_order():
+    assert [row[0] for row in constants.TABLE5_DE] == list(range(1, 15))
+    assert [row[0] for row in constants.TABLE7_MSFLA] == list(range(1, 21))
+    # Table 5 test 9 is the authors' pick, the DE defaults.
+    test9 = constants.TABLE5_DE[8]
+    assert (test9[1], test9[2]) == (constants.DE_POP_SIZE, constants.DE_GENERATIONS)
