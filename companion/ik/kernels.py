@@ -13,6 +13,18 @@ writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the kernels sti
 compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
 out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
+Twins: compiled code cannot call numpy's vectorised helpers, so some kernels re-implement a
+numpy function of :mod:`companion.kinematics`. Each twin and the test that keeps the two equal
+(in ``tests/ik/test_kernels.py``):
+
+* :func:`fk_frames` ↔ ``Arm.fk_batch`` (``dh.link_transforms`` + ``dh.chain`` + the tool), both
+  DH conventions: ``test_compiled_fk_equals_numpy_fk``; its joint axes ↔ central differences of
+  ``Arm.fk_matrix``: ``test_joint_axes_give_the_geometric_jacobian``;
+* :func:`goal_matrix` ↔ ``Pose.as_matrix`` (``rotations.rpy_to_matrix``):
+  ``test_goal_matrix_equals_pose_as_matrix``;
+* :func:`pose_residual`'s orientation error ↔ ``rotations.rotation_angle``:
+  ``test_pose_residual_is_position_and_rotation_vector``.
+
 Units inside: radians and centimetres. The pose residual is ``(Δp in cm, rotation vector in
 degrees)``, so one degree of orientation error weighs like one centimetre of position error. The
 cost minimised is ``‖Δp‖² + θ_deg² + movement_weight·‖q − q_prev‖²`` (rad² for the last term).
