@@ -19,9 +19,9 @@ around it, and a minimal-movement term (``settings.movement_weight``) keeps cons
 solutions on the same elbow/wrist branch.
 
 Importing this module does no work: the kernels compile (the first time, a few seconds) or load
-from numba's disk cache (after that, a fraction of a second) on the first call, or when
-:func:`warm_up` asks for it. The daemon calls :func:`warm_up` before it reports READY, so no
-target pays for compilation.
+from numba's disk cache (after that, a fraction of a second) when :func:`warm_up` runs. The
+daemon calls it before it reports READY; a first :func:`solve` without it calls it before its
+clock starts. So no budget ever pays for compilation.
 """
 
 from __future__ import annotations
@@ -138,6 +138,9 @@ class _ArmArrays:
 # a reader in another thread never sees one arm paired with another's arrays.
 _last_arm: tuple[Arm | None, _ArmArrays | None] = (None, None)
 
+# Set once warm_up() has started (its own solves must not recurse into it).
+_warmed_up = False
+
 
 def kernel_arrays(arm: Arm) -> _ArmArrays:
     """The arm's DH table, tool and limits as the compiled kernels take them."""
@@ -222,7 +225,12 @@ def solve(
     command), or None for a cold start. ``seed`` makes the search repeatable (same seed, same
     inputs → same result, as long as the budget doesn't cut it short). Bad input raises
     ``ValueError`` naming the argument.
+
+    The first call in a process that has not run :func:`warm_up` runs it first, before the
+    clock starts: the budget is for the search, never for numba's compiler.
     """
+    if not _warmed_up:
+        warm_up()
     started = clock()
     pose = _as_pose(target)
     budget_s = _positive("budget_ms", budget_ms) / 1e3
@@ -329,6 +337,8 @@ def warm_up() -> float:
     target is the papers' G, which cannot converge, so both the initialisation and the
     generation kernels run, cold and warm.
     """
+    global _warmed_up
+    _warmed_up = True
     t = time.perf_counter()
     arm = Arm.default()
     unreachable = Pose(-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
