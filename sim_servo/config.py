@@ -33,8 +33,14 @@ ARDUPILOT_PWM_TRIM_US = 1500
 #: PX4 PWM_MAIN_MINn / MAXn defaults.
 PX4_PWM_MIN_US = 1000
 PX4_PWM_MAX_US = 2000
-#: The arm's outputs by default (same as firmware_interface.calibration.DEFAULT_OUTPUTS).
+#: The arm's outputs by default: the six after a quad's motors (the daemon's default too).
 DEFAULT_ARM_OUTPUTS = (9, 10, 11, 12, 13, 14)
+#: The PWM range (µs) each arm joint sweeps by default.
+DEFAULT_ARM_PWM_MIN_US = 1000
+DEFAULT_ARM_PWM_MAX_US = 2000
+#: Bounds for an arm joint's PWM range (µs): hobby servos live well inside them.
+ARM_PWM_LIMIT_MIN_US = 500
+ARM_PWM_LIMIT_MAX_US = 2500
 ARDUPILOT_MOTOR_FUNCTIONS = {1: 33, 2: 34, 3: 35, 4: 36}
 PX4_MOTOR_FUNCTIONS = {1: 101, 2: 102, 3: 103, 4: 104}
 PX4_ACTUATOR_SET_FIRST_FUNCTION = 301
@@ -73,9 +79,9 @@ class ServoConfig:
 
     ``slew_s_per_60deg`` is the datasheet speed (0.12 s/60° for a typical hobby servo);
     ``deadband_us`` the command change the servo ignores; ``deg_per_us`` how far the horn turns
-    per µs on outputs the arm calibration does not cover (calibrated outputs use the
-    calibration's span); the horn stops at ``[travel_min_us, travel_max_us]``; it starts at
-    ``initial_us``.
+    per µs on outputs that drive no arm joint (arm outputs use their joint's angle span over
+    its PWM span, see :class:`ArmConfig`); the horn stops at ``[travel_min_us, travel_max_us]``;
+    it starts at ``initial_us``.
     """
 
     slew_s_per_60deg: float = 0.12
@@ -141,16 +147,21 @@ class FaultConfig:
 
 @dataclass(frozen=True)
 class ArmConfig:
-    """Which arm the servos move and how its joints map onto outputs (the daemon's calibration).
+    """Which arm the servos move and how its joints map onto outputs (the simulator's servo model).
 
-    ``arm_file`` None is the default paper arm. The calibration maps each joint's limits onto
-    ``[pwm_min_us, pwm_max_us]`` of its output, as ``firmware_interface.calibration`` does.
+    ``arm_file`` None is the default paper arm. Joint ``theta1``, ``theta2``, … (arm order) is on
+    ``outputs[0]``, ``outputs[1]``, …; its servo sweeps the joint's limits (degrees, from the arm)
+    linearly over ``[pwm_min_us, pwm_max_us]`` (µs, integers in [500, 2500]), from the upper limit
+    down for a joint named in ``reversed_joints``. ``trims_us`` (joint name → integer µs, at most
+    half the PWM span either way) shifts a joint's sweep along the pulse axis. A horn outside
+    ``[pwm_min_us, pwm_max_us]`` gives no angle. :mod:`sim_servo.hand` implements it; joint names
+    are checked against the arm there.
     """
 
     arm_file: Path | None = None
     outputs: tuple[int, ...] = DEFAULT_ARM_OUTPUTS
-    pwm_min_us: int = 1000
-    pwm_max_us: int = 2000
+    pwm_min_us: int = DEFAULT_ARM_PWM_MIN_US
+    pwm_max_us: int = DEFAULT_ARM_PWM_MAX_US
     reversed_joints: tuple[str, ...] = ()
     trims_us: Mapping[str, int] = field(default_factory=dict)
 
@@ -161,7 +172,31 @@ class ArmConfig:
         if len(set(outputs)) != len(outputs):
             raise SimConfigError(f"arm outputs={list(outputs)} repeat an output")
         object.__setattr__(self, "outputs", outputs)
+        for name in ("pwm_min_us", "pwm_max_us"):
+            _int(getattr(self, name), f"arm {name}", ARM_PWM_LIMIT_MIN_US, ARM_PWM_LIMIT_MAX_US)
+        if not self.pwm_min_us < self.pwm_max_us:
+            raise SimConfigError(
+                f"arm pwm_min_us={self.pwm_min_us} must be below arm pwm_max_us={self.pwm_max_us}"
+            )
+        # A bare string would otherwise be taken as a list of one-letter joint names.
+        if not isinstance(self.reversed_joints, list | tuple | set | frozenset):
+            raise SimConfigError(
+                f"arm reversed={self.reversed_joints!r} must be a list of joint names"
+            )
+        for name in self.reversed_joints:
+            if not isinstance(name, str):
+                raise SimConfigError(f"arm reversed joint {name!r} is not a joint name")
         object.__setattr__(self, "reversed_joints", tuple(self.reversed_joints))
+        if not isinstance(self.trims_us, Mapping):
+            raise SimConfigError(
+                f"arm trims_us={self.trims_us!r} must be a table of joint name = trim in µs"
+            )
+        # Beyond half the span the joint's mid-range (its neutral) would leave the PWM range.
+        half_span_us = (self.pwm_max_us - self.pwm_min_us) // 2
+        for name, trim_us in self.trims_us.items():
+            if not isinstance(name, str):
+                raise SimConfigError(f"arm trims_us key {name!r} is not a joint name")
+            _int(trim_us, f"arm trims_us.{name}", -half_span_us, half_span_us)
         object.__setattr__(self, "trims_us", dict(self.trims_us))
 
 
@@ -343,10 +378,10 @@ def config_from_mapping(
     kwargs["arm"] = ArmConfig(
         arm_file=_resolve(arm["file"], base_dir) if "file" in arm else None,
         outputs=tuple(arm.get("outputs", DEFAULT_ARM_OUTPUTS)),
-        pwm_min_us=arm.get("pwm_min_us", 1000),
-        pwm_max_us=arm.get("pwm_max_us", 2000),
-        reversed_joints=tuple(arm.get("reversed", ())),
-        trims_us=dict(arm.get("trims_us", {})),
+        pwm_min_us=arm.get("pwm_min_us", DEFAULT_ARM_PWM_MIN_US),
+        pwm_max_us=arm.get("pwm_max_us", DEFAULT_ARM_PWM_MAX_US),
+        reversed_joints=arm.get("reversed", ()),
+        trims_us=arm.get("trims_us", {}),
     )
     faults = dict(_table(data, "faults", source))
     _reject_unknown(faults, _FAULT_KEYS, f"[faults] in {source}")

@@ -7,8 +7,8 @@ the ``--hangup-after`` fault). A pty can also come back (:meth:`Endpoint.reopen`
 block: a frame that cannot be written now is dropped and counted, as bytes sent to an unread
 serial port are lost.
 
-``url`` is what the daemon should be given to reach us (the form ``firmware_interface``'s
-``parse_url`` accepts): ``udpout:HOST:PORT``, ``tcp:HOST:PORT``, ``/dev/pts/N,115200`` or, with
+``url`` is what the daemon should be given to reach us (a link URL in the form the daemon's
+``link.url`` setting takes): ``udpout:HOST:PORT``, ``tcp:HOST:PORT``, ``/dev/pts/N,115200`` or, with
 a stable link name (``--pty-link``), ``PATH,115200``.
 """
 

@@ -2,6 +2,7 @@
 
 SimError
 ├── SimConfigError     (also a ValueError: a bad flag, TOML field or value)
+├── ServoPwmOutOfRange (also a ValueError: a horn position outside its joint's PWM range)
 └── SimIOError         (a socket / pty failure; the OS error is the ``__cause__``)
 """
 
@@ -14,6 +15,10 @@ class SimError(Exception):
 
 class SimConfigError(SimError, ValueError):
     """A setting is invalid; the message names the value and the allowed range."""
+
+
+class ServoPwmOutOfRange(SimError, ValueError):
+    """A servo's pulse width (µs) is outside its joint's PWM range: the joint has no angle."""
 
 
 class SimIOError(SimError):

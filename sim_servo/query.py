@@ -5,7 +5,7 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
 ``"query"`` key:
 
 * ``state``  – outputs (function, PWM, horn position, target, moving), ``settled``, the hand
-  (joint angles, pose in cm / degrees, or the calibration's error), streams, counters;
+  (joint angles, pose in cm / degrees, or why they are unknown), streams, counters;
 * ``events`` – the events kept in memory (``{"events": [...]}``);
 * ``ping``   – ``{"ok": true}``.
 

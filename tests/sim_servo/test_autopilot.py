@@ -12,6 +12,7 @@ from dataclasses import replace
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_interface.calibration import default_calibration
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import FaultConfig, SimConfig
 from sim_servo.hand import HandModel
@@ -363,7 +364,8 @@ def test_slew_timing_in_the_snapshot_and_settled_event():
 def test_hand_reaches_the_commanded_pose():
     h = Harness()
     q_deg = [30.0, 120.0, -45.0, 20.0, -10.0, 45.0]
-    pwm = h.hand.calibration.angles_to_pwm_us(q_deg)
+    # The PWM the daemon would send for q_deg (the simulator has no angle → PWM of its own).
+    pwm = default_calibration().angles_to_pwm_us(q_deg)
     for output, value in pwm.items():
         h.command(mavlink.MAV_CMD_DO_SET_SERVO, output, value)
     assert all(a.result == mavlink.MAV_RESULT_ACCEPTED for a in acks(h.run_for(2.0)))

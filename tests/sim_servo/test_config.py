@@ -57,11 +57,36 @@ def test_validation_names_value_and_range(kwargs, message):
         (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
         (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
         (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
+        (ArmConfig, {"pwm_min_us": 499}, "arm pwm_min_us=499 outside [500, 2500]"),
+        (ArmConfig, {"pwm_max_us": 2501}, "arm pwm_max_us=2501 outside [500, 2500]"),
+        (ArmConfig, {"pwm_min_us": 1000.5}, "arm pwm_min_us=1000.5 is not an integer"),
+        (ArmConfig, {"pwm_min_us": 2000}, "arm pwm_min_us=2000 must be below arm pwm_max_us=2000"),
+        (ArmConfig, {"reversed_joints": "theta1"}, "arm reversed='theta1' must be a list of"),
+        (ArmConfig, {"reversed_joints": (1,)}, "arm reversed joint 1 is not a joint name"),
+        (ArmConfig, {"trims_us": ["theta1"]}, "arm trims_us=['theta1'] must be a table"),
+        (ArmConfig, {"trims_us": {"theta1": 501}}, "arm trims_us.theta1=501 outside [-500, 500]"),
+        (
+            ArmConfig,
+            {"pwm_min_us": 1100, "pwm_max_us": 1901, "trims_us": {"theta2": -401}},
+            "arm trims_us.theta2=-401 outside [-400, 400]",
+        ),
+        (ArmConfig, {"trims_us": {"theta1": 1.5}}, "arm trims_us.theta1=1.5 is not an integer"),
     ],
 )
 def test_part_validation(cls, kwargs, message):
     with pytest.raises(SimConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         cls(**kwargs)
+
+
+def test_arm_table_from_toml():
+    config = config_from_mapping(
+        {"arm": {"pwm_min_us": 1100, "reversed": ["theta2"], "trims_us": {"theta3": -15}}}
+    )
+    assert config.arm.pwm_min_us == 1100 and config.arm.pwm_max_us == 2000
+    assert config.arm.reversed_joints == ("theta2",)
+    assert config.arm.trims_us == {"theta3": -15}
+    with pytest.raises(SimConfigError, match="arm reversed='theta2' must be a list"):
+        config_from_mapping({"arm": {"reversed": "theta2"}})
 
 
 def test_example_file_loads():
