@@ -106,7 +106,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="armbridge", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="armbridge", description=(__doc__ or "").split("\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("--version", action="version", version=f"armbridge {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
