@@ -211,7 +211,8 @@ class ArmCalibration:
                 raise ConfigurationError(f"{joint!r} is not a JointCalibration")
         outputs = [j.output for j in joints]
         names = [j.name for j in joints]
-        for label, values in (("output", outputs), ("name", names)):
+        unique: tuple[tuple[str, Sequence[object]], ...] = (("output", outputs), ("name", names))
+        for label, values in unique:
             duplicates = sorted({v for v in values if values.count(v) > 1}, key=str)
             if duplicates:
                 raise ConfigurationError(f"joint {label}s must be unique, repeated: {duplicates}")

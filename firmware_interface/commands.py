@@ -100,10 +100,10 @@ class CommandSender:
     def _on_message(self, msg: MavMessage) -> None:
         if msg.get_type() == "STATUSTEXT":
             with self._lock:
-                for pending in self._pending.values():
-                    if pending.target_system == msg.get_srcSystem():
-                        pending.statustexts.append(msg.text)
-                        pending.statustext_event.set()
+                for waiting in self._pending.values():
+                    if waiting.target_system == msg.get_srcSystem():
+                        waiting.statustexts.append(msg.text)
+                        waiting.statustext_event.set()
             return
         if msg.target_system not in (0, self.link.system_id) or msg.target_component not in (
             0,

@@ -30,7 +30,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
@@ -48,7 +48,19 @@ from firmware_interface.transport import Transport, open_transport, parse_url
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
-MavMessage = mavlink.MAVLink_message
+
+
+class MavMessage(Protocol):
+    """What the link and its users rely on in a pymavlink message (``MAVLink_message``, which
+    has no type information). Its fields (``msg.command``, ``msg.param1`` …) depend on the message
+    type and are read through ``__getattr__``, so they are ``Any``."""
+
+    def get_type(self) -> str: ...
+    def get_srcSystem(self) -> int: ...
+    def get_srcComponent(self) -> int: ...
+    def pack(self, mav: Any, force_mavlink1: bool = False) -> bytes: ...
+    def __getattr__(self, name: str) -> Any: ...
+
 
 #: Our HEARTBEAT identity (issue 5).
 DEFAULT_COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
@@ -118,15 +130,15 @@ class LinkConfig:
         ):
             if value is not None and (not isinstance(value, int) or not low <= value <= high):
                 raise ConfigurationError(f"{label}={value!r} outside [{low}, {high}]")
-        for label, value in (
+        for label, number in (
             ("heartbeat_rate_hz", self.heartbeat_rate_hz),
             ("loss_timeout_s", self.loss_timeout_s),
             ("read_timeout_s", self.read_timeout_s),
             ("reconnect_initial_s", self.reconnect_initial_s),
             ("reconnect_max_s", self.reconnect_max_s),
         ):
-            if not isinstance(value, (int, float)) or not 0 < value < float("inf"):
-                raise ConfigurationError(f"{label}={value!r} must be a positive finite number")
+            if not isinstance(number, (int, float)) or not 0 < number < float("inf"):
+                raise ConfigurationError(f"{label}={number!r} must be a positive finite number")
 
 
 class Subscription:

@@ -28,7 +28,7 @@ from sim_servo.config import (
     load_toml,
     parse_withhold,
 )
-from sim_servo.endpoints import PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
+from sim_servo.endpoints import Endpoint, PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
 from sim_servo.errors import SimConfigError, SimError
 from sim_servo.eventlog import EventLog
 from sim_servo.faults import FaultInjector
@@ -315,8 +315,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(name)s: %(message)s",
     )
     events: EventLog | None = None
-    endpoint = None
-    gcs = None
+    endpoint: Endpoint | None = None
+    gcs: UdpEndpoint | None = None
     try:
         data, base_dir = config_data(args)
         if args.withhold_ack:

@@ -360,7 +360,9 @@ class SimAutopilot:
         if interval_ms <= 0:
             self._next_due_s[msg_id] = None
             return
-        due = self._next_due_s[msg_id] + interval_ms / 1000.0
+        previous = self._next_due_s[msg_id]
+        assert previous is not None  # both callers advance only a stream that was due
+        due = previous + interval_ms / 1000.0
         # Behind by more than a period (a stalled loop): restart the cadence from now.
         self._next_due_s[msg_id] = due if due > now_s else now_s + interval_ms / 1000.0
 
@@ -394,9 +396,9 @@ class SimAutopilot:
                 self._time_boot_us(now_s) & 0xFFFFFFFF, 0, *values
             )
         if msg_id == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
-            values = [float(self.pwm_us[o]) for o in range(1, OUTPUT_COUNT + 1)]
+            actuators = [float(self.pwm_us[o]) for o in range(1, OUTPUT_COUNT + 1)]
             return self._enc.actuator_output_status_encode(
-                self._time_boot_us(now_s), OUTPUT_COUNT, values + [0.0] * (32 - OUTPUT_COUNT)
+                self._time_boot_us(now_s), OUTPUT_COUNT, actuators + [0.0] * (32 - OUTPUT_COUNT)
             )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()

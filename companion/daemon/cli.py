@@ -112,7 +112,7 @@ def _pose(args: argparse.Namespace) -> list[float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="armbridge", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="armbridge", description=(__doc__ or "").split("\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     parser.add_argument("--version", action="version", version=f"armbridge {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)

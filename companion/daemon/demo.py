@@ -146,9 +146,11 @@ def demo(seed: int = 0, plot: str = "") -> int:
             stdout=subprocess.PIPE,
             text=True,
         )
+        sim_out = sim.stdout
+        assert sim_out is not None  # stdout=PIPE
         daemon = None
         try:
-            url = sim.stdout.readline().strip()
+            url = sim_out.readline().strip()
             print(f"simulated flight controller (ArduPilot behaviour) at {url}")
             config = parse_config(
                 {
@@ -247,5 +249,5 @@ def demo(seed: int = 0, plot: str = "") -> int:
                 daemon.close()
             sim.terminate()
             sim.wait(timeout=5)
-            sim.stdout.close()
+            sim_out.close()
     return 0

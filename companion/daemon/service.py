@@ -61,6 +61,7 @@ from firmware_interface import (
     LinkState,
     LinkTimeout,
     MavlinkLink,
+    ServoDialect,
     make_servo_dialect,
 )
 
@@ -148,7 +149,7 @@ class ArmDaemon:
         self._thread: threading.Thread | None = None
         self.link: MavlinkLink | None = None
         self._sender: CommandSender | None = None
-        self._dialect = None
+        self._dialect: ServoDialect | None = None
         self._last_tick = clock()
         self._last_step_s = -math.inf  # when the last step was sent (for the speed limit)
         arm = config.arm
@@ -559,7 +560,8 @@ class ArmDaemon:
             self._record_first_out(out)
             for request in self._pending:
                 reply = request.accepted
-                if reply is not None and reply.timing is not None:
+                assert reply is not None  # set by _accept before the request joins _pending
+                if reply.timing is not None:
                     reply = dataclasses.replace(reply, timing={**reply.timing, **out})
                 self._finish(request, reply)
                 self._count(Outcome.ACCEPTED)

@@ -136,7 +136,7 @@ class _ArmArrays:
 
 # The daemon solves for one arm over and over: remember the last one. A tuple swapped whole, so
 # a reader in another thread never sees one arm paired with another's arrays.
-_last_arm: tuple[Arm | None, _ArmArrays | None] = (None, None)
+_last_arm: tuple[Arm, _ArmArrays] | None = None
 
 # Set once warm_up() has started (its own solves must not recurse into it).
 _warmed_up = False
@@ -146,7 +146,7 @@ def kernel_arrays(arm: Arm) -> _ArmArrays:
     """The arm's DH table, tool and limits as the compiled kernels take them."""
     global _last_arm
     last = _last_arm
-    if last[0] is arm:
+    if last is not None and last[0] is arm:
         return last[1]
     arrays = _build_kernel_arrays(arm)
     _last_arm = (arm, arrays)

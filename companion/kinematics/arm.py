@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from companion.errors import ArmConfigError, JointLimitError
 from companion.kinematics.dh import DHConvention, chain, link_transforms
@@ -209,7 +210,9 @@ class Arm:
             raise ValueError(f"q_deg must have {self.dof} values, got shape {q.shape}")
         return Pose.from_matrix(self.fk_matrix(np.radians(q)))
 
-    def within_limits(self, q_rad: FloatArray, tol_rad: float = 1e-9) -> np.ndarray:
+    def within_limits(
+        self, q_rad: FloatArray, tol_rad: float = 1e-9
+    ) -> NDArray[np.bool_] | np.bool_:
         """Per row of ``q_rad`` ``(S, dof)`` (a scalar for ``(dof,)``) with every joint in range."""
         q = np.asarray(q_rad, float)
         ok = (q >= self.lower_rad - tol_rad) & (q <= self.upper_rad + tol_rad)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,6 +35,7 @@ from companion.papers.base import (
 from companion.papers.constants import DE_CR, DE_F, DE_GENERATIONS, DE_POP_SIZE
 
 IntArray = NDArray[np.intp]
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,7 @@ def _either_or(pop: FloatArray, i_best: int, r: IntArray, a: FloatArray, p: DEPa
     # if a < p_f: DE/rand/1; else v = Θ_r1 + K·(Θ_r2 − Θ_r1 + Θ_r3 − Θ_r1)
     x1, x2, x3 = pop[r[:, 0]], pop[r[:, 1]], pop[r[:, 2]]
     rand_1 = x1 + p.F * (x2 - x3)
+    assert p.K is not None  # DEParams.__post_init__ sets it
     recombined = x1 + p.K * (x2 - x1 + x3 - x1)
     return np.where((a < p.p_f)[:, None], rand_1, recombined)
 
@@ -136,7 +139,7 @@ def distinct_indices(rng: np.random.Generator, pop_size: int, k: int) -> IntArra
     return picks + (picks >= np.arange(pop_size)[:, None])
 
 
-def _lookup(registry: dict, kind: str, name: str):  # type: ignore[no-untyped-def]
+def _lookup(registry: dict[str, _T], kind: str, name: str) -> _T:
     try:
         return registry[name]
     except KeyError:
@@ -183,7 +186,7 @@ class DifferentialEvolution(PopulationSolver):
         self.iteration += 1
 
     def step(self) -> None:
-        pop_size, n = self.pop.shape
+        pop_size, n = map(int, self.pop.shape)
         r = distinct_indices(self.rng, pop_size, self.mutation.n_random)
         a = self.rng.random(pop_size)
         u = self.rng.random((pop_size, n))

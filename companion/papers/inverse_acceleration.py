@@ -78,8 +78,8 @@ class AccelerationModel(Protocol):
 def joint_state(
     qdd_rad_s2: FloatArray,
     t_s: FloatArray,
-    q0_rad: FloatArray | None = None,
-    qd0_rad_s: FloatArray | None = None,
+    q0_rad: Sequence[float] | FloatArray | None = None,
+    qd0_rad_s: Sequence[float] | FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Joint angles and rates ``(S, T, n)`` under constant accelerations (eqs. 11–16)."""
     qdd = np.asarray(qdd_rad_s2, float)
@@ -455,8 +455,8 @@ def equivalent_accelerations(
     phi_dd = np.cumsum(qdd)
     reference = chain.acc_m_s2(qdd[None, :], t_s)[0]
     found = [qdd]
-    for perm in itertools.permutations(range(qdd.size)):
-        perm = list(perm)
+    for order in itertools.permutations(range(qdd.size)):
+        perm = list(order)
         if perm == sorted(perm) or not np.array_equal(links[perm], links):
             continue
         candidate = np.diff(phi_dd[perm], prepend=0.0)

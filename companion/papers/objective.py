@@ -59,6 +59,10 @@ class IKObjective:
     limit_penalty_per_rad: float = 100.0
     movement_weight: float = 0.0
     q_prev_rad: FloatArray | None = field(default=None, compare=False)
+    # Derived from ``target`` in __post_init__.
+    _goal_pos: FloatArray = field(init=False, repr=False, compare=False)
+    _goal_rot: FloatArray = field(init=False, repr=False, compare=False)
+    _goal_rpy: FloatArray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         for name in ("sigma", "epsilon", "limit_penalty_per_rad", "movement_weight"):
