@@ -43,8 +43,6 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -52,6 +50,16 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion import ik
 from companion.daemon.config import DaemonConfig
 from companion.daemon.motion import limit_step
+from companion.daemon.requests import (
+    MAV_CMD_USER_1,
+    MAV_RESULT,
+    STATUSTEXT_MAX,
+    Outcome,
+    Reply,
+    Request,
+    as_pose,
+    parse_trajectory,
+)
 from companion.kinematics.arm import Pose
 from firmware_interface import (
     CalibrationError,
@@ -65,72 +73,13 @@ from firmware_interface import (
     make_servo_dialect,
 )
 
+__all__ = ["ArmDaemon", "Outcome", "Reply"]
+
 log = logging.getLogger("armbridge")
 
-MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
 #: An accepted motion survives this many servo updates in a row that went unanswered (each
 #: already retried by the CommandSender); then it is abandoned.
 UPDATE_ATTEMPTS = 3
-STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
-
-
-class Outcome(Enum):
-    """How a target request ended; maps onto MAV_RESULT for MAVLink clients."""
-
-    ACCEPTED = "accepted"
-    DENIED = "denied"
-    FAILED = "failed"
-    TEMPORARILY_REJECTED = "temporarily_rejected"
-
-
-MAV_RESULT = {
-    Outcome.ACCEPTED: mavlink.MAV_RESULT_ACCEPTED,
-    Outcome.DENIED: mavlink.MAV_RESULT_DENIED,
-    Outcome.FAILED: mavlink.MAV_RESULT_FAILED,
-    Outcome.TEMPORARILY_REJECTED: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
-}
-
-
-@dataclass(frozen=True)
-class Reply:
-    """The answer to one request: an outcome, a one-line reason, the solve if there was one.
-
-    ``timing`` (targets only): daemon-clock seconds (``time.monotonic`` unless a clock was
-    injected; CLOCK_MONOTONIC is system-wide on Linux, so comparable across processes):
-    ``received_s`` (handed to the daemon by its input thread), ``solved_s`` (solve returned),
-    and once accepted ``first_out_s`` (its first servo update started) and ``acked_s`` (the
-    autopilot acknowledged all of that update). ``status()["last_target"]["timing"]`` has the
-    same for the newest target.
-    """
-
-    outcome: Outcome
-    message: str
-    solve: ik.IKResult | None = None
-    timing: dict[str, float] | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}
-        if self.timing is not None:
-            out["timing"] = dict(self.timing)
-        if self.solve is not None:
-            out["solve"] = {
-                "q_deg": list(self.solve.q_deg),
-                "pos_err_cm": self.solve.pos_err_cm,
-                "ori_err_deg": self.solve.ori_err_deg,
-                "elapsed_ms": self.solve.elapsed_ms,
-                "converged": self.solve.converged,
-            }
-        return out
-
-
-@dataclass
-class _Request:
-    kind: str  # goto | trajectory | park | stop
-    payload: Any
-    direct: bool = False
-    received_s: float = 0.0  # daemon clock when submitted
-    accepted: Reply | None = None  # the reply sent once its first servo commands are out
-    future: Future = field(default_factory=Future)
 
 
 class ArmDaemon:
@@ -143,7 +92,7 @@ class ArmDaemon:
     def __init__(self, config: DaemonConfig, *, clock: Callable[[], float] = time.monotonic):
         self.config = config
         self.clock = clock
-        self._queue: queue.Queue[_Request | None] = queue.Queue()
+        self._queue: queue.Queue[Request | None] = queue.Queue()
         self._lock = threading.Lock()  # guards _status
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -158,7 +107,7 @@ class ArmDaemon:
         )
         self._current: tuple[float, ...] = tuple(start)
         self._goal: tuple[float, ...] | None = None
-        self._pending: list[_Request] = []  # accepted, waiting for their first servo commands
+        self._pending: list[Request] = []  # accepted, waiting for their first servo commands
         self._trajectory: list[tuple[float, Pose]] = []
         self._trajectory_t0 = 0.0
         self._last_pwm: dict[int, int] | None = None
@@ -270,7 +219,7 @@ class ArmDaemon:
         """
         if kind not in ("goto", "trajectory", "park", "stop"):
             raise ValueError(f"unknown request {kind!r}; valid: goto, trajectory, park, stop")
-        request = _Request(kind, payload, direct, received_s=self.clock())
+        request = Request(kind, payload, direct, received_s=self.clock())
         if self._stop.is_set():
             request.future.set_result(Reply(Outcome.TEMPORARILY_REJECTED, "daemon stopping"))
         else:
@@ -379,7 +328,7 @@ class ArmDaemon:
         with self._lock:
             self._counters[outcome.value] += 1
 
-    def _finish(self, request: _Request, reply: Reply) -> None:
+    def _finish(self, request: Request, reply: Reply) -> None:
         if reply.outcome is not Outcome.ACCEPTED:
             self._count(reply.outcome)
             log.info("%s refused (%s): %s", request.kind, reply.outcome.value, reply.message)
@@ -389,7 +338,7 @@ class ArmDaemon:
     def _link_up(self) -> bool:
         return self.link is not None and self.link.poll_state() is LinkState.UP
 
-    def _handle(self, request: _Request) -> None:
+    def _handle(self, request: Request) -> None:
         if request.kind == "stop":
             self._trajectory.clear()
             self._set_goal(None)
@@ -419,28 +368,20 @@ class ArmDaemon:
         else:
             self._goto(request, parsed, request.received_s)
 
-    def _parse(self, request: _Request) -> Any:
+    def _parse(self, request: Request) -> Any:
         """The request's validated payload; ValueError says what is wrong with it."""
         if request.kind == "park":
             if self.config.park_deg is None:
                 raise ValueError("no park_deg configured")
             return self.config.park_deg
         if request.kind == "trajectory":
-            try:
-                points = sorted(
-                    ((float(t), _as_pose(p)) for t, p in request.payload), key=lambda tp: tp[0]
-                )
-            except (TypeError, ValueError, OverflowError) as exc:
-                raise ValueError(f"bad trajectory: {exc}") from exc
-            if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
-                raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
-            return points
+            return parse_trajectory(request.payload)
         try:
-            return _as_pose(request.payload)
+            return as_pose(request.payload)
         except ValueError as exc:
             raise ValueError(f"invalid target: {exc}") from exc
 
-    def _goto(self, request: _Request | None, pose: Pose, received_s: float) -> bool:
+    def _goto(self, request: Request | None, pose: Pose, received_s: float) -> bool:
         start = self._goal if self._goal is not None else self._current
         result = ik.solve(
             self.config.arm,
@@ -487,7 +428,7 @@ class ArmDaemon:
 
     def _accept(
         self,
-        request: _Request,
+        request: Request,
         goal: Sequence[float],
         message: str,
         result: ik.IKResult | None = None,
@@ -613,13 +554,3 @@ class ArmDaemon:
             self._last_pwm = dict(pwm)
             self._counters["servo_updates"] += 1
         return True
-
-
-def _as_pose(value: Any) -> Pose:
-    if isinstance(value, Pose):
-        return value
-    if isinstance(value, str | bytes | bytearray) or not isinstance(value, Sequence):
-        raise ValueError(
-            f"a pose is 6 numbers (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), got {value!r}"
-        )
-    return Pose.from_sequence(value)

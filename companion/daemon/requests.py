@@ -1,0 +1,108 @@
+"""What the daemon is asked and what it answers: requests, outcomes, replies, and the parsing
+of their payloads (a pose, a trajectory). No I/O and no state: :mod:`companion.daemon.service`
+queues :class:`Request` objects from every input (MAVLink ``MAV_CMD_USER_1``, the control socket,
+the CLI) and answers each with exactly one :class:`Reply`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import TYPE_CHECKING, Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.kinematics import Pose
+
+if TYPE_CHECKING:  # the solver (numba) is not needed to parse or answer a request
+    from companion import ik
+
+MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
+STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
+
+
+class Outcome(Enum):
+    """How a target request ended; maps onto MAV_RESULT for MAVLink clients."""
+
+    ACCEPTED = "accepted"
+    DENIED = "denied"
+    FAILED = "failed"
+    TEMPORARILY_REJECTED = "temporarily_rejected"
+
+
+MAV_RESULT = {
+    Outcome.ACCEPTED: mavlink.MAV_RESULT_ACCEPTED,
+    Outcome.DENIED: mavlink.MAV_RESULT_DENIED,
+    Outcome.FAILED: mavlink.MAV_RESULT_FAILED,
+    Outcome.TEMPORARILY_REJECTED: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+}
+
+
+@dataclass(frozen=True)
+class Reply:
+    """The answer to one request: an outcome, a one-line reason, the solve if there was one.
+
+    ``timing`` (targets only): daemon-clock seconds (``time.monotonic`` unless a clock was
+    injected; CLOCK_MONOTONIC is system-wide on Linux, so comparable across processes):
+    ``received_s`` (handed to the daemon by its input thread), ``solved_s`` (solve returned),
+    and once accepted ``first_out_s`` (its first servo update started) and ``acked_s`` (the
+    autopilot acknowledged all of that update). ``status()["last_target"]["timing"]`` has the
+    same for the newest target.
+    """
+
+    outcome: Outcome
+    message: str
+    solve: ik.IKResult | None = None
+    timing: dict[str, float] | None = None
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}
+        if self.timing is not None:
+            out["timing"] = dict(self.timing)
+        if self.solve is not None:
+            out["solve"] = {
+                "q_deg": list(self.solve.q_deg),
+                "pos_err_cm": self.solve.pos_err_cm,
+                "ori_err_deg": self.solve.ori_err_deg,
+                "elapsed_ms": self.solve.elapsed_ms,
+                "converged": self.solve.converged,
+            }
+        return out
+
+
+@dataclass
+class Request:
+    """One request on the control queue, with the future its :class:`Reply` is set on."""
+
+    kind: str  # goto | trajectory | park | stop
+    payload: Any
+    direct: bool = False
+    received_s: float = 0.0  # daemon clock when submitted
+    accepted: Reply | None = None  # the reply sent once its first servo commands are out
+    future: Future = field(default_factory=Future)
+
+
+def as_pose(value: Any) -> Pose:
+    """A :class:`Pose` from a Pose or six numbers; ``ValueError`` names what is wrong."""
+    if isinstance(value, Pose):
+        return value
+    if isinstance(value, str | bytes | bytearray) or not isinstance(value, Sequence):
+        raise ValueError(
+            f"a pose is 6 numbers (x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg), got {value!r}"
+        )
+    return Pose.from_sequence(value)
+
+
+def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:
+    """``[[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]`` (or ``(t_s, pose)``
+    pairs) → points sorted by time; ``ValueError`` says what is wrong."""
+    try:
+        points = sorted(((float(t), as_pose(p)) for t, p in payload), key=lambda tp: tp[0])
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise ValueError(f"bad trajectory: {exc}") from exc
+    if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
+        raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
+    return points
