@@ -9,5 +9,45 @@ Modules: :mod:`~companion.daemon.service` (``ArmDaemon``: the control loop and s
 (sd_notify), :mod:`~companion.daemon.run` (``armbridge run``), :mod:`~companion.daemon.demo`
 (``armbridge demo``), :mod:`~companion.daemon.cli` (the ``armbridge`` command).
 
-Nothing is imported here, so that the command line starts without loading the solver.
+The public API is listed in ``__all__``. Nothing is imported until a name is used, so that the
+command line starts without loading the solver.
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from companion.daemon.cli import main
+    from companion.daemon.client import request
+    from companion.daemon.config import DaemonConfig, load_config, parse_config
+    from companion.daemon.requests import Outcome, Reply
+    from companion.daemon.service import ArmDaemon
+
+_WHERE = {
+    "ArmDaemon": "service",
+    "DaemonConfig": "config",
+    "Outcome": "requests",
+    "Reply": "requests",
+    "load_config": "config",
+    "main": "cli",
+    "parse_config": "config",
+    "request": "client",
+}
+__all__ = [
+    "ArmDaemon",
+    "DaemonConfig",
+    "Outcome",
+    "Reply",
+    "load_config",
+    "main",
+    "parse_config",
+    "request",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _WHERE:
+        raise AttributeError(f"module 'companion.daemon' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"companion.daemon.{_WHERE[name]}"), name)

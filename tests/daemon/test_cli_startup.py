@@ -64,3 +64,11 @@ def test_the_probe_would_see_the_solver():
     """The check above can fail: ``solve`` does load it."""
     loaded, rc = run_cli("solve", "30", "10", "20", "0", "45", "0", "--budget-ms", "50")
     assert "numba" in loaded and "companion.ik" in loaded
+
+
+def test_the_daemon_package_lists_its_api_and_loads_it_lazily():
+    import companion.daemon as daemon
+
+    assert sorted(daemon.__all__) == sorted(daemon._WHERE)
+    for name in daemon.__all__:
+        assert getattr(daemon, name) is not None
