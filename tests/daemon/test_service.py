@@ -20,7 +20,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from sim_servo.query import query
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
+from tests.support.timing import wait_until
 from tests.support.sim_process import hand_errors
 
 WAIT_S = 10.0

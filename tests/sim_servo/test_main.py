@@ -17,7 +17,7 @@ import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.__main__ import build_parser, main
-from tests.support.mavlink_peer import wait_until
+from tests.support.timing import wait_until
 from tests.support.sim_process import SimProcess
 
 WAIT_S = 10.0
