@@ -54,7 +54,7 @@ class SimProcess:
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 stderr=stderr,
-                text=True,
+                bufsize=0,  # unbuffered: select() then sees every line still unread
             )
         try:
             self.url = self._line(timeout_s)
@@ -76,7 +76,7 @@ class SimProcess:
 
     def _line(self, timeout_s: float) -> str:
         ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
-        line = self.proc.stdout.readline().strip() if ready else ""
+        line = self.proc.stdout.readline().decode().strip() if ready else ""
         if not line:
             raise AssertionError(f"no line on stdout within {timeout_s} s")
         return line
