@@ -19,10 +19,11 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
+from companion.ik import warm_up
 from sim_servo.query import query
 from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import wait_until
 from tests.support.sim_process import hand_errors
+from tests.support.timing import wait_until
 
 WAIT_S = 10.0
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
@@ -61,6 +62,7 @@ def make_daemon(url, rate_hz=50.0, **arm):
         }
     )
     daemon = ArmDaemon(cfg)
+    warm_up()  # as `armbridge run` does: no solve pays for loading the kernels
     daemon.start()
     assert daemon.wait_for_autopilot(WAIT_S)
     return daemon

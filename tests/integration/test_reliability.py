@@ -18,6 +18,7 @@ import pytest
 
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
+from companion.ik import warm_up
 from companion.kinematics.arm import Arm
 from tests.support.campaign import (
     ALLOWED_OUTCOMES,
@@ -133,6 +134,7 @@ def daemon(tmp_path_factory):
     """One simulator and daemon for the regressions below (each starts in ~1 s)."""
     sim = start_sim(tmp_path_factory.mktemp("regressions"))
     daemon = ArmDaemon(parse_config(target_daemon_config(sim.url, budget_ms=2.0, seed=1)))
+    warm_up()  # as `armbridge run` does: a 2 ms budget has no room for loading the kernels
     daemon.start()
     try:
         assert daemon.wait_for_autopilot(WAIT_S)

@@ -45,6 +45,7 @@ from companion.daemon import cli
 from companion.daemon import config as config_module
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
+from companion.ik import warm_up
 from companion.kinematics.arm import Arm, Pose
 from firmware_interface import ArmCalibration
 from tests.support.config import toml_document
@@ -371,6 +372,7 @@ def run_targets(
         daemon = ArmDaemon(
             parse_config(target_daemon_config(sim.url, budget_ms=budget_ms, seed=seed))
         )
+        warm_up()  # as `armbridge run` does before READY: no target pays for the kernels
         daemon.start()
         if not daemon.wait_for_autopilot(WAIT_S):
             raise RuntimeError("the daemon did not hear the simulator")
