@@ -57,6 +57,8 @@ class PtyEndpoint:
         try:
             return os.read(self.master, 4096)
         except OSError:  # EIO while nobody holds the slave open (link reopening)
+            # Not a synchronisation: the master stays "readable" with EIO until the link
+            # reopens its side, so the reader thread backs off instead of spinning a core.
             time.sleep(0.01)
             return b""
 
