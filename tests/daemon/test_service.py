@@ -118,11 +118,11 @@ def test_invalid_target_is_denied(sim, bad):
 
 @pytest.mark.slow
 def test_link_loss_holds_and_recovery_resends(sim):
-    # The sim stops its heartbeat from 5 s to 11 s: the daemon (3 s loss timeout) holds. The
-    # refused target goes out once the daemon reports the link lost, at least 3 s before the
-    # heartbeat resumes.
-    pause_after_s = 5.0  # room to start on a loaded machine
-    url, sock = sim("--heartbeat-pause-after", str(pause_after_s), "--heartbeat-pause-for", "6")
+    # The sim stops its heartbeat from 4 s to 9 s: the daemon (3 s loss timeout) holds. The
+    # refused target goes out once the daemon reports the link lost, at least 2 s before the
+    # heartbeat resumes (an in-process submit takes milliseconds).
+    pause_after_s = 4.0  # room to start on a loaded machine; checked below
+    url, sock = sim("--heartbeat-pause-after", str(pause_after_s), "--heartbeat-pause-for", "5")
     daemon = make_daemon(url)
     try:
         target = daemon.config.arm.fk([10, 80, 20, 10, 20, 30]).as_tuple()
