@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.report import interpreter, write_markdown
 from companion.kinematics.arm import Arm, Pose
 from companion.papers.de import differential_evolution
 from companion.papers.objective import IKObjective
@@ -80,8 +81,7 @@ def main() -> None:
 
     arm = Arm.default()
     lines = [
-        f"machine: {platform.machine()}, {platform.python_implementation()} "
-        f"{platform.python_version()}, numpy {np.__version__}",
+        f"machine: {platform.machine()}, {interpreter()}",
         "",
     ]
     lines += ["| FK call | poses per call | µs per pose |", "|---|---|---|"]
@@ -100,8 +100,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.markdown:
-        args.markdown.parent.mkdir(parents=True, exist_ok=True)
-        args.markdown.write_text(text + "\n")
+        write_markdown(args.markdown, text + "\n")
 
 
 if __name__ == "__main__":

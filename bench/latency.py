@@ -51,12 +51,11 @@ from bench.loopback import (
     Stack,
     answer_one,
     load_average,
-    machine,
-    md_table,
     percentiles_ms,
     plt,
     servo_command_times,
 )
+from bench.report import machine, md_table, write_markdown
 from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -212,8 +211,7 @@ def main() -> int:
         lines += ["", "(No PNG: matplotlib is not installed; it is the optional `plots` extra.)"]
     text = "\n".join(lines) + "\n"
     print(text)
-    args.markdown.parent.mkdir(parents=True, exist_ok=True)
-    args.markdown.write_text(text, encoding="utf-8")
+    write_markdown(args.markdown, text)
     return 0 if all(math.isfinite(len(r["rows"])) for r in results) else 1
 
 

@@ -19,11 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import platform
-import signal
 import socket
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -33,7 +29,9 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_servo.eventlog import read_events
+from tests.support.daemon_process import DaemonProcess
+from tests.support.sim_process import SimProcess
+from tests.support.timing import wait_until
 
 SERVO_COMMANDS = {183: "DO_SET_SERVO", 187: "DO_SET_ACTUATOR"}
 WAIT_S = 30.0
@@ -45,14 +43,6 @@ try:  # PNG plots when matplotlib is installed (the `plots` extra); the Markdown
     import matplotlib.pyplot as plt
 except ImportError:  # pragma: no cover - depends on the environment
     plt = None
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no {what} within {timeout_s} s")
-        time.sleep(0.02)
 
 
 class ControlClient:
@@ -246,7 +236,9 @@ DEFAULT_INPUT = "mavlink"
 
 
 class Stack:
-    """The simulator and the daemon as subprocesses on UDP loopback (a context manager).
+    """The simulator and the daemon as subprocesses on UDP loopback (a context manager), by the
+    tests' harnesses (:class:`~tests.support.sim_process.SimProcess`,
+    :class:`~tests.support.daemon_process.DaemonProcess`).
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
     ``sim_servo`` flags.
@@ -262,38 +254,31 @@ class Stack:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
         tmp = Path(self._tmp.name)
-        self.event_log = tmp / "sim.jsonl"
-        self.control_path = str(tmp / "control.sock")
-        self.daemon_log = tmp / "daemon.log"
         flavour = "ardupilot" if dialect == "ardupilot" else "px4"
-        self.sim = subprocess.Popen(
-            [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--flavour", flavour,
-             "--gcs", "127.0.0.1:0", "--event-log", str(self.event_log), *sim_args],
-            stdout=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        self.daemon: subprocess.Popen | None = None
+        self.sim: SimProcess | None = None
+        self.daemon: DaemonProcess | None = None
+        self._status_client: ControlClient | None = None
         try:
-            url = self.sim.stdout.readline().strip()
-            kind, _, self.gcs_url = self.sim.stdout.readline().strip().partition(" ")
-            if not url.startswith("udpout:") or kind != "gcs":
-                raise RuntimeError(f"sim_servo did not start (first lines {url!r}, {kind!r})")
+            self.sim = SimProcess(
+                tmp / "sim",
+                "--udp", "127.0.0.1:0", "--flavour", flavour, "--gcs", "127.0.0.1:0", *sim_args,
+                timeout_s=WAIT_S,
+            )  # fmt: skip
+            self.event_log = self.sim.log_path
+            self.gcs_url = self.sim.gcs_url
             tables: dict[str, dict[str, Any]] = {
-                "link": {"url": url, "dialect": dialect},
-                "control": {"socket": self.control_path},
+                "link": {"url": self.sim.url, "dialect": dialect},
+                "control": {"socket": str(tmp / "control.sock")},
             }
             for name, values in (daemon or {}).items():
                 tables.setdefault(name, {}).update(values)
-            self.config_path = tmp / "armbridge.toml"
-            self.config_path.write_text(_toml(tables))
-            self._stderr = open(self.daemon_log, "w")  # noqa: SIM115 - closed in close()
-            self.daemon = subprocess.Popen(
-                [sys.executable, "-m", "companion.daemon.cli", "run", "--config",
-                 str(self.config_path)],
-                stderr=self._stderr,
-            )  # fmt: skip
-            wait_until(lambda: os.path.exists(self.control_path), WAIT_S, "control socket")
+            self.daemon = DaemonProcess(tmp / "daemon", tables, ready_timeout_s=WAIT_S)
+            self.control_path = str(self.daemon.control_path)
+            self.config_path = self.daemon.config_path
+            self.daemon_log = self.daemon.log_path
             self._status_client = ControlClient(self.control_path)
-            wait_until(lambda: self.status()["link"] == "up", WAIT_S, "autopilot link")
+            if not wait_until(lambda: self.status()["link"] == "up", WAIT_S):
+                raise TimeoutError(f"no autopilot link within {WAIT_S} s")
         except BaseException:
             self.close()
             raise
@@ -305,6 +290,7 @@ class Stack:
         self.close()
 
     def status(self) -> dict[str, Any]:
+        assert self._status_client is not None
         return self._status_client.request({"cmd": "status"})["status"]
 
     @property
@@ -314,41 +300,24 @@ class Stack:
 
     def stop(self) -> list[dict[str, Any]]:
         """Stop both processes and return the simulator's events (its log is complete then)."""
-        client = getattr(self, "_status_client", None)
-        if client is not None:
-            client.close()
+        if self._status_client is not None:
+            self._status_client.close()
             self._status_client = None
-        if self.daemon is not None and self.daemon.poll() is None:
-            self.daemon.send_signal(signal.SIGTERM)
-            self.daemon.wait(timeout=10)
-        if self.sim.poll() is None:
-            self.sim.send_signal(signal.SIGTERM)
-            self.sim.wait(timeout=10)
-        return read_events(self.event_log) if self.event_log.exists() else []
+        if self.daemon is not None:
+            self.daemon.stop()
+        if self.sim is None:
+            return []
+        self.sim.stop()
+        return self.sim.events() if self.sim.log_path.exists() else []
 
     def close(self) -> None:
         try:
             self.stop()
         finally:
             for proc in (self.daemon, self.sim):
-                if proc is not None and proc.poll() is None:
+                if proc is not None:
                     proc.kill()
-                    proc.wait()
-            if self.sim.stdout is not None:
-                self.sim.stdout.close()
-            stderr = getattr(self, "_stderr", None)
-            if stderr is not None:
-                stderr.close()
             self._tmp.cleanup()
-
-
-def _toml(tables: dict[str, dict[str, Any]]) -> str:
-    lines = []
-    for name, values in tables.items():
-        lines.append(f"[{name}]")
-        for key, value in values.items():
-            lines.append(f"{key} = {json.dumps(value)}")
-    return "\n".join(lines) + "\n"
 
 
 def _servo_and_acks(
@@ -399,13 +368,6 @@ def load_average() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def machine() -> str:
-    return (
-        f"{platform.machine()}, {os.cpu_count()} cores, Python "
-        f"{platform.python_version()}, {platform.system()} {platform.release()}"
-    )
-
-
 # -- tables -----------------------------------------------------------------------------------
 
 
@@ -415,14 +377,3 @@ def percentiles_ms(values_s: Sequence[float]) -> tuple[float, float, float]:
     if arr.size == 0:
         return (math.nan, math.nan, math.nan)
     return (float(np.percentile(arr, 50)), float(np.percentile(arr, 99)), float(arr.max()))
-
-
-def md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> list[str]:
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return "–" if math.isnan(v) else f"{v:.2f}"
-        return str(v)
-
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
-    return lines

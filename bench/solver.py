@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.report import interpreter, md_table, write_markdown
 from companion.ik import SolverSettings, kernel_arrays, kernels, solve
 from companion.kinematics.arm import Arm, Pose
 from companion.papers.de import differential_evolution
@@ -308,14 +309,11 @@ def first_call(cache_dir: str | None) -> dict:
 
 def table(rows: list[dict]) -> list[str]:
     keys = list(dict.fromkeys(k for r in rows for k in r))
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    for r in rows:
-        cells = []
-        for k in keys:
-            v = r.get(k, "")
-            cells.append(f"{v:.3g}" if isinstance(v, float) else str(v))
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
+    return md_table(
+        keys,
+        [[r.get(k, "") for k in keys] for r in rows],
+        cell=lambda v: f"{v:.3g}" if isinstance(v, float) else str(v),
+    )
 
 
 def main() -> None:
@@ -378,9 +376,8 @@ def main() -> None:
         ]
 
     lines = [
-        f"machine: {platform.machine()}, {os.cpu_count()} cores, "
-        f"{platform.python_implementation()} {platform.python_version()}, "
-        f"numpy {np.__version__}; budget {args.budget_ms} ms; success = pos ≤ {TOL_POS_CM} cm "
+        f"machine: {platform.machine()}, {os.cpu_count()} cores, {interpreter()}; "
+        f"budget {args.budget_ms} ms; success = pos ≤ {TOL_POS_CM} cm "
         f"and ori ≤ {TOL_ORI_DEG}° and within limits",
         "",
     ]
@@ -393,8 +390,7 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     if args.markdown:
-        args.markdown.parent.mkdir(parents=True, exist_ok=True)
-        args.markdown.write_text(text + "\n")
+        write_markdown(args.markdown, text + "\n")
 
 
 if __name__ == "__main__":

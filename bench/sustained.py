@@ -48,12 +48,11 @@ from bench.loopback import (
     answer_one,
     cpu_s,
     load_average,
-    machine,
-    md_table,
     percentiles_ms,
     plt,
     rss_mb,
 )
+from bench.report import machine, md_table, write_markdown
 from companion.kinematics.arm import Arm, Pose
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -244,8 +243,7 @@ def main() -> int:
         lines += ["", "(No PNG: matplotlib is not installed; it is the optional `plots` extra.)"]
     text = "\n".join(lines) + "\n"
     print(text)
-    args.markdown.parent.mkdir(parents=True, exist_ok=True)
-    args.markdown.write_text(text, encoding="utf-8")
+    write_markdown(args.markdown, text)
     return 0
 
 

@@ -36,21 +36,21 @@ log = logging.getLogger("armbridge.control")
 __all__ = ["ControlServer", "request"]
 
 MAX_LINE = 1 << 20  # a request line longer than this is refused
+_SUN_PATH_MAX = 107  # bytes of a Unix socket path (sockaddr_un.sun_path, less its NUL)
 
 
 class ControlServer:
-    """Serves ``daemon`` on the Unix socket ``path`` (a stale socket file is replaced)."""
+    """Serves ``daemon`` on the Unix socket ``path`` (a stale socket file is replaced).
+
+    ``path`` appears only once the socket listens: a client that sees the file can connect.
+    """
 
     def __init__(self, path: str | Path, daemon: ArmDaemon, *, reply_timeout_s: float = 5.0):
         self.path = str(path)
         self.daemon = daemon
         self.reply_timeout_s = reply_timeout_s
         self._stop = threading.Event()
-        if os.path.exists(self.path):
-            os.unlink(self.path)
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.bind(self.path)
-        self._sock.listen(8)
+        self._sock = _listening_socket(self.path)
         self._sock.settimeout(0.2)
         self._clients: set[socket.socket] = set()
         self._thread = threading.Thread(
@@ -145,6 +145,47 @@ class ControlServer:
         except TimeoutError:
             return {"ok": False, "error": f"no answer within {self.reply_timeout_s} s"}
         return {"ok": reply.outcome is Outcome.ACCEPTED, **reply.as_dict()}
+
+
+def _listening_socket(path: str) -> socket.socket:
+    """A Unix stream socket listening at ``path``, which appears only once it listens.
+
+    Between ``bind()`` and ``listen()`` a client connecting gets ECONNREFUSED; so bind a
+    temporary name in the same directory, listen, then ``rename()`` it onto ``path`` (atomic;
+    it also replaces a stale socket file in the same step).
+    """
+    temporary = _temporary_name(path)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        if temporary is None:  # no free short name: bind in place, as before
+            if os.path.exists(path):
+                os.unlink(path)
+            sock.bind(path)
+            sock.listen(8)
+            return sock
+        sock.bind(temporary)
+        try:
+            sock.listen(8)
+            os.rename(temporary, path)
+        except BaseException:
+            os.unlink(temporary)
+            raise
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def _temporary_name(path: str) -> str | None:
+    """A free name next to ``path`` that still fits ``sun_path`` (107 bytes), or None."""
+    directory, name = os.path.split(path)
+    pid = os.getpid()
+    # Same directory, so that rename() stays on one file system.
+    for candidate in (f".{name}.{pid}", f".{pid}", f".{pid % 10 ** max(1, len(name) - 1)}"):
+        temporary = os.path.join(directory, candidate)
+        if len(os.fsencode(temporary)) <= _SUN_PATH_MAX and not os.path.lexists(temporary):
+            return temporary
+    return None
 
 
 def _json_safe(value: Any) -> Any:

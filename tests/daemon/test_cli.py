@@ -7,7 +7,6 @@ import math
 import os
 import signal
 import socket
-import subprocess
 import sys
 import time
 
@@ -17,7 +16,8 @@ from companion.daemon.cli import main
 from companion.daemon.control_socket import request
 from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
 from companion.kinematics.arm import Pose
-from tests.support.mavlink_peer import wait_until
+from tests.support.config import write_config
+from tests.support.daemon_process import run_daemon
 
 WAIT_S = 15.0
 
@@ -66,6 +66,7 @@ def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert "cannot reach the daemon" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_runs_the_tour(capsys, tmp_path):
     png = tmp_path / "demo.png"
     assert main(["demo", "--plot", str(png)]) == 0
@@ -102,37 +103,26 @@ def test_demo_plot_is_a_png(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_run_as_a_service_ready_goto_sigterm(tmp_path):
+@pytest.mark.slow
+def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
     """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
     control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))
     notify.settimeout(WAIT_S)
-    sim_sock = str(tmp_path / "sim.sock")
-    sim = subprocess.Popen(
-        [sys.executable, "-m", "sim_servo", "--udp", "127.0.0.1:0", "--query-socket", sim_sock],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    control = str(tmp_path / "control.sock")
-    config = tmp_path / "armbridge.toml"
-    config.write_text(
-        f'[link]\nurl = "{sim.stdout.readline().strip()}"\n'
-        "[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\npark_on_stop = true\n"
-        f'[control]\nsocket = "{control}"\n'
-    )
+    sim = sims("--udp", "127.0.0.1:0")
     env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify.sock"), "WATCHDOG_USEC": "2000000"}
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
+    # The harness returns once the control socket answers; the notifications wait in `notify`.
+    daemon = daemons(
+        {"link": {"url": sim.url}, "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "park_on_stop": True}},
         env=env,
-        stderr=subprocess.PIPE,
-        text=True,
     )
+    control = daemon.control_path
+    config = daemon.config_path
     try:
         messages = []
         while not any(m.startswith(b"READY=1") for m in messages):
-            messages.append(notify.recv(4096))
-        assert wait_until(lambda: os.path.exists(control), WAIT_S)
+            messages.append(notify.recv(4096))  # each recv bounded by the socket timeout
         reply = request(
             control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
         )
@@ -151,7 +141,7 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
             .replace("[arm]", "[solver]\nbudget_ms = 5.0\n[arm]")
             .replace("udpout:127.0.0.1:", "udpout:127.0.0.2:")
         )
-        daemon.send_signal(signal.SIGHUP)
+        daemon.proc.send_signal(signal.SIGHUP)
         seen = []
         while not (
             b"RELOADING=1" in seen
@@ -160,8 +150,8 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
             seen.append(notify.recv(4096))  # each recv bounded by the socket timeout
         assert request(control, {"cmd": "status"})["status"]["link"] == "up"
         started = time.monotonic()
-        daemon.send_signal(signal.SIGTERM)
-        assert daemon.wait(timeout=5) == 0
+        daemon.proc.send_signal(signal.SIGTERM)
+        assert daemon.proc.wait(timeout=5) == 0
         assert time.monotonic() - started < 1.5
         rest = []
         notify.settimeout(0.5)
@@ -171,32 +161,22 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path):
         except TimeoutError:
             pass
         assert any(m.startswith(b"STOPPING=1") for m in rest)
-        log = daemon.stderr.read()
+        log = daemon.log()
         assert "stopping (parking)" in log
         assert "reload: link changed: restart the daemon to apply it" in log
         assert "reloaded" in log
     finally:
-        if daemon.poll() is None:
-            daemon.kill()
-            daemon.wait()
-        daemon.stderr.close()
-        sim.terminate()
-        sim.wait(timeout=5)
-        sim.stdout.close()
         notify.close()
 
 
+@pytest.mark.slow
 def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
     """The flight controller's port is missing (unplugged, not enumerated yet): one clear line
     and exit 1, so systemd's Restart=on-failure tries again; no traceback."""
-    config = tmp_path / "armbridge.toml"
-    config.write_text(f'[link]\nurl = "{tmp_path / "ttyACM9"},115200"\n')
-    done = subprocess.run(
-        [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
-        capture_output=True,
-        text=True,
-        timeout=60,
+    config = write_config(
+        tmp_path / "armbridge.toml", {"link": {"url": f"{tmp_path / 'ttyACM9'},115200"}}
     )
+    done = run_daemon(config)
     assert done.returncode == 1
     assert "cannot open the autopilot link" in done.stderr and "ttyACM9" in done.stderr
     assert "Traceback" not in done.stderr

@@ -2,7 +2,7 @@
 knows, makes ``armbridge check-config`` exit 2 with a message naming the file and the field;
 ``armbridge run`` on a bad config exits 2 and sends nothing to a listening autopilot.
 
-The cases come from ``bench/reliability.py`` (``config_cases``), which enumerates the fields
+The cases come from ``tests/support/campaign.py`` (``config_cases``), which enumerates the fields
 from ``companion.daemon.config``'s own key lists: a new field without a fuzz entry fails here.
 """
 
@@ -13,7 +13,9 @@ import re
 import numpy as np
 import pytest
 
-from bench.reliability import (
+from companion.daemon.config import load_config
+from companion.errors import ConfigError
+from tests.support.campaign import (
     ARM_DOF,
     EXAMPLE_TEXT,
     FIELD_KINDS,
@@ -24,8 +26,6 @@ from bench.reliability import (
     run_rejects_config,
     schema_fields,
 )
-from companion.daemon.config import load_config
-from companion.errors import ConfigError
 
 SEED = 8
 
@@ -40,6 +40,7 @@ def test_every_config_field_has_fuzz_values_and_is_in_the_example():
         assert re.search(rf"^#?\s*{key}\s*=", EXAMPLE_TEXT, re.M), f"{dotted} not in the example"
 
 
+@pytest.mark.slow
 def test_every_malformed_config_exits_2_naming_the_field(tmp_path):
     report = run_config_fuzz(tmp_path, seed=SEED)
     assert report.failures == []
@@ -63,6 +64,7 @@ def test_every_malformed_config_exits_2_naming_the_field(tmp_path):
     assert expected <= report.fields_covered
 
 
+@pytest.mark.slow
 def test_config_cases_are_seeded(tmp_path):
     runs = []
     for name in ("a", "b"):
@@ -111,6 +113,7 @@ def test_found_by_the_fuzz_now_names_the_field(tmp_path, content, field, words):
     assert words in str(info.value) and str(path) in str(info.value)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("edit", "field"),
     [

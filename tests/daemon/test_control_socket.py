@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
 import socket
+import stat
 
 import pytest
 
@@ -13,7 +15,7 @@ from companion.daemon.service import ArmDaemon
 
 
 @pytest.fixture
-def server(tmp_path):
+def daemon():
     silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # an autopilot that never talks
     silent.bind(("127.0.0.1", 0))
     daemon = ArmDaemon(
@@ -25,11 +27,42 @@ def server(tmp_path):
         )
     )
     daemon.start()
+    yield daemon
+    daemon.close()
+    silent.close()
+
+
+@pytest.fixture
+def server(tmp_path, daemon):
     srv = ControlServer(tmp_path / "control.sock", daemon)
     yield srv
     srv.close()
-    daemon.close()
-    silent.close()
+
+
+def test_the_socket_path_appears_only_once_it_listens(tmp_path, daemon, monkeypatch):
+    """A client that sees the path can connect: it was bound under another name, listened,
+    and only then renamed onto the path (which replaces a stale file)."""
+    path = tmp_path / "control.sock"
+    path.write_text("stale")
+    at_rename = []
+    real_rename = os.rename
+
+    def rename(src, dst):
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            probe.connect(src)  # ECONNREFUSED if it were not listening yet
+        at_rename.append((os.path.dirname(src), dst, path.read_text()))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(os, "rename", rename)
+    srv = ControlServer(path, daemon)
+    try:
+        assert at_rename == [(str(tmp_path), str(path), "stale")]
+        assert stat.S_ISSOCK(path.stat().st_mode)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["control.sock"]
+        assert request(path, {"cmd": "status"})["ok"]
+    finally:
+        srv.close()
+    assert not path.exists()
 
 
 def raw(srv, *lines: bytes) -> list[dict]:

@@ -8,9 +8,6 @@ command, the way a real autopilot forwards it to its companion.
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
 import threading
 
 import numpy as np
@@ -19,47 +16,43 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
+from companion.ik import warm_up
 from sim_servo.query import query
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
 from tests.support.sim_process import hand_errors
+from tests.support.timing import wait_until
 
 WAIT_S = 10.0
+HEARTBEAT_PERIOD_S = 1.0  # the simulator's HEARTBEAT rate is 1 Hz
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
 
 
 @pytest.fixture
-def sim(tmp_path):
+def sim(sims):
     """Starts simulated ArduPilots (UDP by default, or a pty); each start returns
-    (link url, query socket path)."""
-    procs = []
+    (link url, query socket path). The ``sims`` fixture stops them, asserting exit 0."""
 
     def start(*extra, transport=("--udp", "127.0.0.1:0")):
-        sock = str(tmp_path / f"sim{len(procs)}.sock")
-        cmd = [sys.executable, "-m", "sim_servo", *transport, "--query-socket", sock, *extra]
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-        procs.append(proc)
-        url = proc.stdout.readline().strip()
-        assert url.startswith(("udpout:", "/dev/")), url
-        assert wait_until(lambda: os.path.exists(sock), WAIT_S)
-        return url, sock
+        process = sims(*transport, *extra)
+        assert process.url.startswith(("udpout:", "/dev/")), process.url
+        return process.url, process.query_path
 
-    yield start
-    for proc in procs:
-        proc.terminate()
-        assert proc.wait(timeout=5) == 0
-        proc.stdout.close()
+    return start
 
 
-def make_daemon(url, rate_hz=50.0, **arm):
+def make_daemon(url, rate_hz=50.0, loss_timeout_s=3 * HEARTBEAT_PERIOD_S, **arm):
+    # The loss timeout is three of the simulator's heartbeat periods: one heartbeat late on a
+    # loaded machine is not a link loss.
     cfg = parse_config(
         {
-            "link": {"url": url, "loss_timeout_s": 1.0, "command_timeout_s": 0.3},
+            "link": {"url": url, "loss_timeout_s": loss_timeout_s, "command_timeout_s": 0.3},
             "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 360.0, **arm},
             "control": {"rate_hz": rate_hz},
             "solver": {"seed": 1},
         }
     )
     daemon = ArmDaemon(cfg)
+    warm_up()  # as `armbridge run` does: no solve pays for loading the kernels
     daemon.start()
     assert daemon.wait_for_autopilot(WAIT_S)
     return daemon
@@ -73,6 +66,7 @@ def settled(daemon, sock):
     return not daemon.status()["moving"] and query(sock, "state")["settled"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("transport", [("--udp", "127.0.0.1:0"), ("--pty",)], ids=["udp", "pty"])
 def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
     # Over UDP, and over a pseudo-terminal opened exactly like the flight controller's serial port.
@@ -92,6 +86,7 @@ def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
         daemon.close()
 
 
+@pytest.mark.slow
 def test_unreachable_g_is_refused_and_nothing_moves(sim):
     url, sock = sim()
     daemon = make_daemon(url)
@@ -107,6 +102,7 @@ def test_unreachable_g_is_refused_and_nothing_moves(sim):
         daemon.close()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "bad", [(1, 2, math.nan, 0, 0, 0), (1, 2, 3, math.inf, 0, 0), (1, 2, 3), "x"]
 )
@@ -120,14 +116,20 @@ def test_invalid_target_is_denied(sim, bad):
         daemon.close()
 
 
+@pytest.mark.slow
 def test_link_loss_holds_and_recovery_resends(sim):
-    # The sim stops its heartbeat from 1.5 s to 4 s: the daemon (1 s loss timeout) holds.
-    url, sock = sim("--heartbeat-pause-after", "1.5", "--heartbeat-pause-for", "2.5")
+    # The sim stops its heartbeat from 4 s to 9 s: the daemon (3 s loss timeout) holds. The
+    # refused target goes out once the daemon reports the link lost, at least 2 s before the
+    # heartbeat resumes (an in-process submit takes milliseconds).
+    pause_after_s = 4.0  # room to start on a loaded machine; checked below
+    url, sock = sim("--heartbeat-pause-after", str(pause_after_s), "--heartbeat-pause-for", "5")
     daemon = make_daemon(url)
     try:
         target = daemon.config.arm.fk([10, 80, 20, 10, 20, 30]).as_tuple()
         assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
-        assert wait_until(lambda: daemon.status()["link"] == "lost", WAIT_S)
+        accepted_s = query(sock, "state")["t_s"]
+        assert accepted_s < pause_after_s, f"accepted at {accepted_s:.1f} s, after the pause"
+        assert wait_until(lambda: daemon.status()["link"] == "lost", pause_after_s + WAIT_S)
         assert wait_until(lambda: daemon.status()["holding"], WAIT_S)  # on its next control tick
         reply = daemon.submit("goto", daemon.config.arm.fk([0, 90, 0, 0, 0, 0]).as_tuple())
         assert reply.result(WAIT_S).outcome is Outcome.TEMPORARILY_REJECTED
@@ -140,6 +142,7 @@ def test_link_loss_holds_and_recovery_resends(sim):
         daemon.close()
 
 
+@pytest.mark.slow
 def test_accepted_target_moves_at_once_and_reports_its_timing(sim):
     # 1 Hz ticks: right after target A's first step, target B would wait about a second for
     # the next tick. It does not: its first step goes out as soon as it is solved.
@@ -159,6 +162,7 @@ def test_accepted_target_moves_at_once_and_reports_its_timing(sim):
         daemon.close()
 
 
+@pytest.mark.slow
 def test_immediate_steps_keep_to_the_joint_speed_limit(sim):
     # Two targets in quick succession: the second's immediate step may only move the joints
     # as far as the joint speed allows in the time since the first step, not a whole period.
@@ -182,6 +186,7 @@ def test_immediate_steps_keep_to_the_joint_speed_limit(sim):
         daemon.close()
 
 
+@pytest.mark.slow
 def test_park_and_stop(sim):
     url, sock = sim()
     daemon = make_daemon(url)

@@ -8,14 +8,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
 from firmware_interface.transport import open_transport, parse_url
-from tests.support.mavlink_peer import (
-    FakeClock,
-    PtyEndpoint,
-    ScriptedPeer,
-    TcpEndpoint,
-    UdpEndpoint,
-    wait_until,
-)
+from tests.support.mavlink_peer import PtyEndpoint, ScriptedPeer, TcpEndpoint, UdpEndpoint
+from tests.support.timing import wait_until
 
 FAST = dict(heartbeat_rate_hz=20.0, reconnect_initial_s=0.02, reconnect_max_s=0.2)
 
@@ -25,11 +19,6 @@ def udp_peer():
     peer = ScriptedPeer(UdpEndpoint(), system_id=42)
     yield peer
     peer.close()
-
-
-@pytest.fixture
-def clock():
-    return FakeClock()
 
 
 @pytest.fixture

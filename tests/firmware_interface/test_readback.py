@@ -7,7 +7,8 @@ from firmware_interface.commands import CommandSender
 from firmware_interface.errors import ConfigurationError, LinkTimeout
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.readback import OutputReadback
-from tests.support.mavlink_peer import FakeClock, ScriptedPeer, UdpEndpoint
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
+from tests.support.timing import FakeClock
 
 
 @pytest.fixture

@@ -11,7 +11,8 @@ from firmware_interface.signing import (
     load_key,
     wall_to_ticks,
 )
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint, wait_until
+from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
+from tests.support.timing import wait_until
 
 KEY = bytes(range(32))
 WRONG_KEY = bytes(32)

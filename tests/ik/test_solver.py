@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from companion.ik import SolverSettings, StopReason, solve
 from companion.kinematics.arm import Arm, Pose
 from companion.papers.objective import IKObjective
+from tests.support.timing import FakeClock
 
 ARM = Arm.default()
 G = Pose(-20, 3, 40, 0, 10, 15)  # the papers' target: unreachable within the Table 2 limits
@@ -28,24 +29,11 @@ def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
     return float(e.pos_err_cm[0]), float(e.ori_err_deg[0])
 
 
-class TickClock:
-    """A fake clock: every reading advances time by ``tick_s``."""
-
-    def __init__(self, tick_s: float) -> None:
-        self.now = 0.0
-        self.tick_s = tick_s
-
-    def __call__(self) -> float:
-        value = self.now
-        self.now += self.tick_s
-        return value
-
-
 def test_deadline_on_a_fake_clock():
     # Each clock reading advances 1 ms; a generation is read before and after, so each costs
     # 1 ms and the loop starts one only if it is predicted to end by 10.5 ms: the fifth starts
     # at 9 ms, the sixth would start at 11 ms.
-    clock = TickClock(1e-3)
+    clock = FakeClock(0.0, tick_s=1e-3)
     res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock)
     assert res.stop_reason is StopReason.DEADLINE and not res.converged
     assert res.generations == 5

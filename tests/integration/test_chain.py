@@ -13,104 +13,74 @@ query socket. Every wait is bounded and waits on a condition.
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.daemon.control_socket import request
 from companion.kinematics.arm import Arm
 from companion.kinematics.jacobian import geometric_jacobian
 from firmware_interface.calibration import default_calibration
 from sim_servo.gcs import GroundStation
-from sim_servo.query import query
-from tests.support.mavlink_peer import wait_until
 from tests.support.sim_process import hand_errors
+from tests.support.timing import wait_until
+
+pytestmark = pytest.mark.slow  # three processes per test
 
 WAIT_S = 15.0
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)  # the papers' target G: out of reach
 KEY = bytes(range(100, 132))
+#: The simulator's HEARTBEAT period; the daemon's loss timeout (3 s) is three of them, so a
+#: heartbeat delayed by a loaded machine is not a link loss.
+HEARTBEAT_PERIOD_S = 1.0
 ARM = Arm.default()
 CALIBRATION = default_calibration()  # what the daemon uses without [[joint]] tables
 
 
 class Chain:
-    """A simulator and a daemon as subprocesses, and a ground station, in ``tmp_path``."""
+    """A simulator and a daemon as subprocesses, and a ground station (the processes are owned
+    by the ``sims`` and ``daemons`` fixtures, so they are always stopped and reaped)."""
 
     def __init__(
         self,
-        tmp_path: Path,
-        procs: list[subprocess.Popen],
+        sims,
+        daemons,
         *,
         sim_args=(),
         pty=False,
         dialect="ardupilot",
-        link_extra="",
+        link_extra: dict | None = None,
+        loss_timeout_s: float = 3.0,
         gcs_key: bytes | None = None,
     ) -> None:
-        self.tmp = tmp_path
-        self.sim_sock = str(tmp_path / "sim.sock")
-        self.control = str(tmp_path / "control.sock")
-        self.procs = procs
-        self.spawned_s = time.monotonic()  # the simulator's clock starts about here
         transport = ["--pty"] if pty else ["--udp", "127.0.0.1:0"]
-        sim = self._spawn(
-            [
-                sys.executable,
-                "-m",
-                "sim_servo",
-                *transport,
-                "--gcs",
-                "127.0.0.1:0",
-                "--query-socket",
-                self.sim_sock,
-                *sim_args,
-            ],
-            stdout=subprocess.PIPE,
+        self.sim = sims(*transport, "--gcs", "127.0.0.1:0", *sim_args)
+        self.daemon = daemons(
+            {
+                "link": {
+                    "url": self.sim.url,
+                    "dialect": dialect,
+                    "loss_timeout_s": loss_timeout_s,
+                    "command_timeout_s": 0.3,
+                    **(link_extra or {}),
+                },
+                "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 720.0},
+                "solver": {"seed": 1},
+                "control": {"rate_hz": 50.0},
+            }
         )
-        self.sim = sim
-        url = sim.stdout.readline().strip()
-        kind, gcs_url = sim.stdout.readline().split()
-        assert kind == "gcs", kind
-        config = tmp_path / "armbridge.toml"
-        config.write_text(
-            f'[link]\nurl = "{url}"\ndialect = "{dialect}"\nloss_timeout_s = 1.0\n'
-            f"command_timeout_s = 0.3\n{link_extra}"
-            "[arm]\npark_deg = [0, 90, 0, 0, 0, 0]\njoint_speed_deg_s = 720.0\n"
-            f'[solver]\nseed = 1\n[control]\nrate_hz = 50.0\nsocket = "{self.control}"\n'
-        )
-        self.daemon = self._spawn(
-            [sys.executable, "-m", "companion.daemon.cli", "run", "--config", str(config)],
-            stderr=subprocess.PIPE,
-        )
-        assert wait_until(lambda: os.path.exists(self.control), WAIT_S), self._stderr()
-        assert wait_until(lambda: self.status()["link"] == "up", WAIT_S)
-        self.gcs_url = gcs_url
-        self.gcs = GroundStation(gcs_url, signing_key=gcs_key)
+        self.daemon.wait_link("up", WAIT_S)
+        self.gcs_url = self.sim.gcs_url
+        self.gcs = GroundStation(self.gcs_url, signing_key=gcs_key)
         if not self.gcs.connect(WAIT_S):
             self.gcs.close()
             raise AssertionError("no companion HEARTBEAT through the autopilot")
 
-    def _spawn(self, cmd, **kwargs) -> subprocess.Popen:
-        proc = subprocess.Popen(cmd, text=True, **kwargs)
-        self.procs.append(proc)
-        return proc
-
-    def _stderr(self) -> str:
-        if self.daemon.poll() is None:
-            return "daemon still running"
-        return self.daemon.stderr.read()
-
     def status(self) -> dict:
-        return request(self.control, {"cmd": "status"})["status"]
+        return self.daemon.status()
 
     def sim_state(self) -> dict:
-        return query(self.sim_sock, "state")
+        return self.sim.state()
 
     def target(self, pose, **ids):
         """Send a target from the ground station; its ACK (or None)."""
@@ -122,38 +92,18 @@ class Chain:
 
 
 @pytest.fixture
-def chain(tmp_path):
-    made = []
+def chain(sims, daemons):
+    """Starts a chain (``chain(**kwargs)``); its ground station is closed at the end, the
+    daemon and the simulator stopped by their fixtures (daemon first), asserting exit 0."""
+    made: list[Chain] = []
 
     def start(**kwargs) -> Chain:
-        procs: list[subprocess.Popen] = []
-        made.append((procs, []))  # owned here, so a chain that fails to start is still stopped
-        chain = Chain(tmp_path, procs, **kwargs)
-        made[-1][1].append(chain)
-        return chain
+        made.append(Chain(sims, daemons, **kwargs))
+        return made[-1]
 
     yield start
-    for procs, chains in made:
-        for chain in chains:
-            chain.gcs.close()
-        stop_all(procs)
-
-
-def stop_all(procs: list[subprocess.Popen]) -> None:
-    """SIGTERM each (daemon first), wait, and check they all exited cleanly."""
-    for proc in reversed(procs):
-        proc.terminate()
-    codes = []
-    for proc in procs:
-        try:
-            codes.append(proc.wait(timeout=5))
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            codes.append(proc.wait())
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
-    assert all(code == 0 for code in codes), codes
+    for chain in made:
+        chain.gcs.close()
 
 
 def quantisation_bound(q_deg, slack_us: float) -> tuple[float, float]:
@@ -249,7 +199,7 @@ def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
     key_file.write_bytes(KEY)
     c = chain(
         sim_args=["--signing-key", str(key_file)],
-        link_extra=f'signing_key = "{key_file}"\nsigning_state = "{tmp_path / "state"}"\n',
+        link_extra={"signing_key": str(key_file), "signing_state": str(tmp_path / "state")},
         gcs_key=KEY,
     )
     target = ARM.fk([30, 60, 40, 0, 20, 10]).as_tuple()
@@ -270,17 +220,31 @@ def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
 
 
 def test_link_loss_rejects_targets_temporarily_then_recovers(chain):
-    """Heartbeats stop for 3 s: the daemon holds and answers TEMPORARILY_REJECTED through the
-    autopilot (which still routes); when they return, targets are accepted again."""
-    pause_after_s = 6.0  # room for the three processes to start on a loaded machine
+    """Heartbeats stop for a while: the daemon holds and answers TEMPORARILY_REJECTED through
+    the autopilot (which still routes); when they return, targets are accepted again.
+
+    No step rests on timing: the target that must be refused goes out only once the daemon
+    itself reports the link lost, and the pause outlasts that by a wide margin (the loss
+    timeout is three heartbeat periods, so a late heartbeat is no loss; after it, 4 s remain
+    for one target's round trip before heartbeats resume)."""
+    loss_timeout_s = 3 * HEARTBEAT_PERIOD_S
+    pause_after_s, pause_for_s = 6.0, 7.0  # the chain starts in ~3 s; checked below
     c = chain(
-        sim_args=["--heartbeat-pause-after", str(pause_after_s), "--heartbeat-pause-for", "3"]
+        loss_timeout_s=loss_timeout_s,
+        sim_args=[
+            "--heartbeat-pause-after",
+            str(pause_after_s),
+            "--heartbeat-pause-for",
+            str(pause_for_s),
+        ],
     )
-    started_in_s = time.monotonic() - c.spawned_s
-    assert started_in_s < pause_after_s - 1.0, f"the chain took {started_in_s:.1f} s to start"
-    assert wait_until(lambda: c.status()["link"] != "up", WAIT_S)
+    # The link came up before the pause (on the simulator's own clock), so it can be lost.
+    started_s = c.sim_state()["t_s"]
+    assert started_s < pause_after_s, f"the chain took {started_s:.1f} s to start"
+    c.daemon.wait_link("lost", pause_after_s + loss_timeout_s + WAIT_S)
+    assert not c.sim.events("fault", fault="heartbeat_resumed")  # still within the pause
     ack = c.target(ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple())
-    assert ack is not None and ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-    assert wait_until(lambda: c.status()["link"] == "up", WAIT_S)
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED, ack
+    c.daemon.wait_link("up", pause_for_s + WAIT_S)
     ack = c.target(ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple())
     assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED

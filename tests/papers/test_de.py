@@ -16,6 +16,7 @@ from companion.papers.de import (
     distinct_indices,
 )
 from companion.papers.objective import IKObjective, OrientationMetric
+from tests.support.timing import FakeClock
 
 # A hand-built population of five 2-D points; costs make row 3 the best.
 POP = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [2.0, 2.0], [3.0, 1.0]])
@@ -181,15 +182,15 @@ def test_tolerance_stops_early_as_converged():
 def test_budget_on_an_injected_clock():
     # Time advances 1 ms per objective call (one per generation): a 5.5 ms budget allows the
     # initial evaluation plus exactly five generations.
-    now = [0.0]
+    clock = FakeClock(0.0)
 
     class SlowSphere(Sphere):
         def cost(self, x):
-            now[0] += 1e-3
+            clock.advance(1e-3)
             return super().cost(x)
 
     res = differential_evolution(
-        SlowSphere(), seed=0, generations=1000, budget_s=5.5e-3, clock=lambda: now[0]
+        SlowSphere(), seed=0, generations=1000, budget_s=5.5e-3, clock=clock
     )
     assert res.stop_reason is StopReason.DEADLINE
     assert res.generations == 5

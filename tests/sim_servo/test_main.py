@@ -17,8 +17,8 @@ import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.__main__ import build_parser, main
-from tests.support.mavlink_peer import wait_until
 from tests.support.sim_process import SimProcess
+from tests.support.timing import wait_until
 
 WAIT_S = 10.0
 ROOT = Path(__file__).resolve().parents[2]
@@ -87,7 +87,7 @@ def udp_sim(tmp_path):
     clients: list[UdpClient] = []
 
     def start(*args: str, signing_key: bytes | None = None) -> tuple[SimProcess, UdpClient]:
-        sim = SimProcess(tmp_path, "--udp", "127.0.0.1:0", *args)
+        sim = SimProcess(tmp_path / f"sim{len(sims)}", "--udp", "127.0.0.1:0", *args)
         sims.append(sim)
         client = UdpClient(sim.url, signing_key)
         clients.append(client)
@@ -105,6 +105,7 @@ def udp_sim(tmp_path):
         sim.kill()
 
 
+@pytest.mark.slow
 def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
     sim, client = udp_sim()
     beat = client.wait_for(is_type("HEARTBEAT"))
@@ -147,6 +148,7 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
     assert [e["fields"]["command"] for e in commands] == [183, 183, 22, 511]
 
 
+@pytest.mark.slow
 def test_udp_slew_timing_and_hand_at_target(udp_sim):
     sim, client = udp_sim("--slew-s-per-60deg", "0.6")  # slow: 1000 µs take ~1.8 s
     client.wait_for(is_type("HEARTBEAT"))
@@ -158,7 +160,9 @@ def test_udp_slew_timing_and_hand_at_target(udp_sim):
     settled = wait_until(lambda: sim.state()["settled"])
     elapsed = time.monotonic() - sent
     travel_s = 500 * 0.18 / (60 / 0.6)  # 500 µs × 0.18 °/µs at 100 °/s = 0.9 s
-    assert travel_s * 0.8 < elapsed < travel_s + 3.0  # loose: shared machine
+    # Only an upper bound on the wall clock (a loaded machine is late, never early to ask);
+    # the travel time itself is checked exactly on the simulator's clock below.
+    assert elapsed < travel_s + 3.0
     hand = sim.state()["hand"]
     assert settled and hand["angles_deg"]["theta1"] == pytest.approx(-90.0)
     from companion.kinematics.arm import Arm
@@ -171,6 +175,7 @@ def test_udp_slew_timing_and_hand_at_target(udp_sim):
     assert sim.stop() == 0
 
 
+@pytest.mark.slow
 def test_udp_signing_required(udp_sim, tmp_path):
     key = bytes(range(1, 33))
     key_file = tmp_path / "key.hex"
@@ -189,6 +194,7 @@ def test_udp_signing_required(udp_sim, tmp_path):
     assert sim.stop() == 0
 
 
+@pytest.mark.slow
 def test_udp_faults_withhold_nack_heartbeat_pause(udp_sim):
     sim, client = udp_sim(
         "--withhold-ack", "DO_SET_SERVO", "--nack-output", "10", "--heartbeat-pause-after", "0"
@@ -207,6 +213,7 @@ def test_udp_faults_withhold_nack_heartbeat_pause(udp_sim):
     assert sim.stop() == 0
 
 
+@pytest.mark.slow
 def test_udp_drop_and_latency(udp_sim):
     sim, client = udp_sim("--latency-ms", "200")
     sent = client.command(mavlink.MAV_CMD_NAV_TAKEOFF)
@@ -223,6 +230,7 @@ def test_udp_drop_and_latency(udp_sim):
     assert sim.stop() == 0
 
 
+@pytest.mark.slow
 def test_tcp_link(tmp_path):
     sim = SimProcess(tmp_path, "--tcp", "127.0.0.1:0")
     try:
@@ -252,8 +260,10 @@ def _pty_exchange(port: serial.Serial, mav, dec, msg, want, timeout_s=WAIT_S):
     raise AssertionError("no reply over the pty")
 
 
+@pytest.mark.slow
 def test_pty_link_and_hangup(tmp_path):
-    sim = SimProcess(tmp_path, "--pty", "--hangup-after", "2.5")
+    # The hang-up comes after the three exchanges below, with room for a loaded machine.
+    sim = SimProcess(tmp_path, "--pty", "--hangup-after", "4")
     try:
         device, _, baud = sim.url.rpartition(",")
         assert device.startswith("/dev/") and baud == "115200"

@@ -19,22 +19,6 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 WAIT_S = 5.0
 
 
-class FakeClock:
-    """A monotonic clock the test advances by hand."""
-
-    def __init__(self, start: float = 1000.0) -> None:
-        self.now = start
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self.now
-
-    def advance(self, seconds: float) -> None:
-        with self._lock:
-            self.now += seconds
-
-
 class UdpEndpoint:
     """The autopilot's side of a UDP link: bound on 127.0.0.1, replies to the last sender."""
 
@@ -73,6 +57,8 @@ class PtyEndpoint:
         try:
             return os.read(self.master, 4096)
         except OSError:  # EIO while nobody holds the slave open (link reopening)
+            # Not a synchronisation: the master stays "readable" with EIO until the link
+            # reopens its side, so the reader thread backs off instead of spinning a core.
             time.sleep(0.01)
             return b""
 
@@ -234,13 +220,3 @@ class ScriptedPeer:
         self._stop.set()
         self._thread.join()
         self.endpoint.close()
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float = WAIT_S) -> bool:
-    """Poll ``predicate`` until true or the deadline passes; for state owned by the link."""
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.005)
-    return True

@@ -1,10 +1,9 @@
-"""The simulator as a subprocess, and the hand's distance from a target: shared by the tests that
-run ``python -m sim_servo`` for real."""
+"""The simulator as a subprocess, and the hand's distance from a target: shared by the tests
+(and the benches) that run ``python -m sim_servo`` for real."""
 
 from __future__ import annotations
 
 import math
-import os
 import select
 import signal
 import subprocess
@@ -15,9 +14,10 @@ import numpy as np
 
 from companion.kinematics import rotation_angle
 from companion.kinematics.arm import Pose
+from sim_servo.errors import SimIOError
 from sim_servo.eventlog import read_events
 from sim_servo.query import query
-from tests.support.mavlink_peer import wait_until
+from tests.support.timing import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT_S = 10.0
@@ -25,11 +25,18 @@ WAIT_S = 10.0
 
 class SimProcess:
     """A ``python -m sim_servo *args`` subprocess with a query socket and an event log in
-    ``directory``; ``url`` is the first line it printed."""
+    ``directory``; stderr goes to a file there.
 
-    def __init__(self, directory: Path, *args: str) -> None:
+    ``url`` is the first line it printed (its link), ``gcs_url`` the second one's URL when
+    ``--gcs`` is among ``args``. Returns once the query socket answers. A context manager:
+    leaving it stops (and reaps) the process.
+    """
+
+    def __init__(self, directory: Path, *args: str, timeout_s: float = WAIT_S) -> None:
+        directory.mkdir(parents=True, exist_ok=True)
         self.query_path = str(directory / "sim.sock")
         self.log_path = directory / "events.jsonl"
+        self.stderr_path = directory / "sim.stderr"
         command = [
             sys.executable,
             "-m",
@@ -40,15 +47,42 @@ class SimProcess:
             "--event-log",
             str(self.log_path),
         ]
-        self.proc = subprocess.Popen(
-            command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-        )
-        ready, _, _ = select.select([self.proc.stdout], [], [], WAIT_S)
-        self.url = self.proc.stdout.readline().strip() if ready else ""
-        if not self.url:
+        with open(self.stderr_path, "wb") as stderr:
+            self.proc = subprocess.Popen(
+                command,
+                cwd=ROOT,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                stderr=stderr,
+                bufsize=0,  # unbuffered: select() then sees every line still unread
+            )
+        try:
+            self.url = self._line(timeout_s)
+            self.gcs_url = ""
+            if "--gcs" in args:
+                kind, _, self.gcs_url = self._line(timeout_s).partition(" ")
+                assert kind == "gcs", f"second line {kind!r}, expected 'gcs URL'"
+            # Ready means answering, not merely a socket file existing.
+            answered = wait_until(
+                lambda: self.proc.poll() is not None or self.ping(),
+                timeout_s,
+                ignore=(OSError, ValueError, SimIOError),
+            )
+            if not answered or self.proc.poll() is not None:
+                raise AssertionError("query socket does not answer")
+        except BaseException as exc:
             self.kill()
-            raise AssertionError(f"simulator did not start: {self.proc.stderr.read()}")
-        assert wait_until(lambda: os.path.exists(self.query_path), WAIT_S)
+            raise AssertionError(f"simulator did not start ({exc}): {self.stderr()}") from exc
+
+    def _line(self, timeout_s: float) -> str:
+        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
+        line = self.proc.stdout.readline().decode().strip() if ready else ""
+        if not line:
+            raise AssertionError(f"no line on stdout within {timeout_s} s")
+        return line
+
+    def ping(self) -> bool:
+        return bool(query(self.query_path, "ping", timeout_s=2.0).get("ok"))
 
     def state(self) -> dict:
         return query(self.query_path, "state")
@@ -62,19 +96,31 @@ class SimProcess:
             and all(e.get(k) == v for k, v in fields.items())
         ]
 
-    def stop(self) -> int:
-        self.proc.send_signal(signal.SIGTERM)
+    def stderr(self) -> str:
+        return self.stderr_path.read_text(errors="replace") if self.stderr_path.exists() else ""
+
+    def stop(self, timeout_s: float = WAIT_S) -> int:
+        """SIGTERM, wait (bounded) and reap; the exit code (a later call returns it again)."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
         try:
-            return self.proc.wait(WAIT_S)
+            return self.proc.wait(timeout_s)
         finally:
             self.kill()
 
     def kill(self) -> None:
+        """SIGKILL if still running, reap, close the pipe (idempotent)."""
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(WAIT_S)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            pipe.close()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
+
+    def __enter__(self) -> SimProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
 
 
 def hand_errors(target, hand: dict) -> tuple[float, float]:
