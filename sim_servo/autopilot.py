@@ -160,6 +160,8 @@ class SimAutopilot:
             msg_id: now_s if self._interval_ms[msg_id] > 0 else None for msg_id in self._stream_msgs
         }
         self._heartbeat_paused = False
+        # Set by pause_heartbeat() (a test asking over the query socket): overrides the schedule.
+        self._heartbeat_held: bool | None = None
         self._moving = False
         self.peer: tuple[int, int] | None = None
         self._peers_seen: set[tuple[int, int]] = set()
@@ -320,7 +322,18 @@ class SimAutopilot:
         for msg in due:
             self._send(msg, now_s)
 
+    def pause_heartbeat(self, paused: bool, now_s: float) -> None:
+        """Stop (``paused``) or restart our HEARTBEAT now, whatever the configured schedule says
+        from then on: a test triggers a link loss when it is ready instead of at a fixed time.
+        A restart sends the next heartbeat at its regular slot, as a recovering autopilot does."""
+        self._heartbeat_held = paused
+        if paused != self._heartbeat_paused:
+            self._heartbeat_paused = paused
+            self.emit(now_s, "fault", fault="heartbeat_paused" if paused else "heartbeat_resumed")
+
     def _heartbeat_paused_at(self, now_s: float) -> bool:
+        if self._heartbeat_held is not None:
+            return self._heartbeat_held
         after = self.config.faults.heartbeat_pause_after_s
         if after is None:
             return False

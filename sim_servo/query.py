@@ -7,7 +7,10 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
 * ``state``  – outputs (function, PWM, horn position, target, moving), ``settled``, the hand
   (joint angles, pose in cm / degrees, or why they are unknown), streams, counters;
 * ``events`` – the events kept in memory (``{"events": [...]}``);
-* ``ping``   – ``{"ok": true}``.
+* ``ping``   – ``{"ok": true}``;
+* ``pause_heartbeat`` / ``resume_heartbeat`` – stop or restart the autopilot's HEARTBEAT now
+  (a link loss on demand, for tests; ``--heartbeat-pause-after`` schedules one instead);
+  ``{"ok": true}``.
 
 An unknown request gets ``{"error": "..."}`` naming the valid ones.
 """
@@ -25,7 +28,7 @@ from typing import Any
 from sim_servo.errors import SimIOError
 
 Responder = Callable[[str], dict[str, Any]]
-QUERIES = ("state", "events", "ping")
+QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat")
 _MAX_LINE = 65536
 
 

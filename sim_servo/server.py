@@ -91,6 +91,8 @@ class SimServer:
             return state
         if request == "events":
             return {"events": list(self.events.recent)}
+        if request in ("pause_heartbeat", "resume_heartbeat"):
+            self.autopilot.pause_heartbeat(request == "pause_heartbeat", self.clock())
         return {"ok": True}
 
     def run(self) -> int:

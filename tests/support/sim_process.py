@@ -87,6 +87,10 @@ class SimProcess:
     def state(self) -> dict:
         return query(self.query_path, "state")
 
+    def pause_heartbeat(self, paused: bool = True) -> None:
+        """Stop (or with ``paused=False`` restart) the autopilot's HEARTBEAT now."""
+        query(self.query_path, "pause_heartbeat" if paused else "resume_heartbeat")
+
     def events(self, event: str | None = None, **fields) -> list[dict]:
         """The event log so far, optionally only ``event`` entries with these field values."""
         return [
