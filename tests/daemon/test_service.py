@@ -19,7 +19,7 @@ from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from sim_servo.query import query
 from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.sim_process import hand_errors
+from tests.support.sim_process import assert_within_quantisation
 from tests.support.timing import wait_until
 
 WAIT_S = 10.0
@@ -77,9 +77,8 @@ def test_goto_moves_the_simulated_hand_to_the_target(sim, transport):
         reply = daemon.submit("goto", target).result(WAIT_S)
         assert reply.outcome is Outcome.ACCEPTED, reply.message
         assert wait_until(lambda: settled(daemon, sock), WAIT_S)
-        pos, ori = hand_errors(target, sim_hand(sock))
         # 1 µs of PWM is 0.18° on a 180° joint: the hand is as close as the servos can put it.
-        assert pos < 0.2 and ori < 0.5
+        assert_within_quantisation(target, sim_hand(sock), daemon.status()["current_deg"])
         counters = daemon.status()["counters"]
         assert counters["accepted"] == 1 and counters["servo_errors"] == 0
     finally:

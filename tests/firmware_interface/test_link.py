@@ -199,8 +199,9 @@ def test_serial_port_vanishes_and_is_reopened_with_backoff(tmp_path):
         # The device node goes first, so no reopen can race to the dying port.
         device.unlink()
         first.close()  # the port vanishes
-        assert wait_until(lambda: link.stats.transport_errors >= 1)
-        assert link.transport is None and not link.closed
+        # The reader counts the error, then drops the port: wait for both, not just the count.
+        assert wait_until(lambda: link.stats.transport_errors >= 1 and link.transport is None)
+        assert not link.closed
         second = ScriptedPeer(PtyEndpoint(), system_id=9)  # plugged back in
         os.symlink(second.endpoint.path, device)
         second.wait_for_messages("HEARTBEAT")

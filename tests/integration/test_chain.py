@@ -14,15 +14,12 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.kinematics.arm import Arm
-from companion.kinematics.jacobian import geometric_jacobian
-from firmware_interface.calibration import default_calibration
 from sim_servo.gcs import GroundStation
-from tests.support.sim_process import hand_errors
+from tests.support.sim_process import assert_within_quantisation
 from tests.support.timing import wait_until
 
 pytestmark = pytest.mark.slow  # three processes per test
@@ -34,7 +31,6 @@ KEY = bytes(range(100, 132))
 #: heartbeat delayed by a loaded machine is not a link loss.
 HEARTBEAT_PERIOD_S = 1.0
 ARM = Arm.default()
-CALIBRATION = default_calibration()  # what the daemon uses without [[joint]] tables
 
 
 class Chain:
@@ -106,29 +102,12 @@ def chain(sims, daemons):
         chain.gcs.close()
 
 
-def quantisation_bound(q_deg, slack_us: float) -> tuple[float, float]:
-    """The largest hand error (cm, deg) that each joint's PWM being off by ``slack_us`` can
-    cause at ``q_deg``: first order, summed over joints (a bound), plus 10 %."""
-    deg_per_us = np.array(
-        [
-            (j.angle_max_deg - j.angle_min_deg) / (j.pwm_max_us - j.pwm_min_us)
-            for j in CALIBRATION.joints
-        ]
-    )
-    dq_rad = np.radians(slack_us * deg_per_us)
-    jac = geometric_jacobian(ARM, np.radians([q_deg]))[0]
-    pos_cm = float(np.sum(np.linalg.norm(jac[:3], axis=0) * dq_rad))
-    ori_deg = math.degrees(float(np.sum(np.linalg.norm(jac[3:], axis=0) * dq_rad)))
-    return 1.1 * pos_cm, 1.1 * ori_deg
-
-
-def assert_within_quantisation(c: Chain, pose, slack_us: float) -> tuple[float, float]:
+def assert_hand_at(c: Chain, pose, slack_us: float) -> tuple[float, float]:
     """The sim's hand is at ``pose`` as nearly as PWM off by ``slack_us`` allows (rounding to
     whole µs: 0.5; plus the servos' dead band); the errors."""
-    pos, ori = hand_errors(pose, c.sim_state()["hand"])
-    bound_pos, bound_ori = quantisation_bound(c.status()["current_deg"], slack_us)
-    assert pos <= bound_pos and ori <= bound_ori, (pos, bound_pos, ori, bound_ori)
-    return pos, ori
+    return assert_within_quantisation(
+        pose, c.sim_state()["hand"], c.status()["current_deg"], slack_us=slack_us
+    )
 
 
 @pytest.mark.parametrize("dialect", ["ardupilot", "px4"])
@@ -141,7 +120,7 @@ def test_ground_station_targets_end_to_end(chain, pty, dialect):
     ack = c.target(target)
     assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, ack
     assert wait_until(c.settled, WAIT_S)
-    assert_within_quantisation(c, target, slack_us=1.5)  # rounding + the 1 µs dead band
+    assert_hand_at(c, target, slack_us=1.5)  # rounding + the 1 µs dead band
 
     before = c.sim_state()["outputs"]
     ack = c.target(G)
@@ -188,7 +167,7 @@ def test_streamed_trajectory_the_hand_follows_each_sample(chain):
         ack = c.target(sample)
         assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED, sample
         assert wait_until(c.settled, WAIT_S)
-        assert_within_quantisation(c, sample, slack_us=0.5)
+        assert_hand_at(c, sample, slack_us=0.5)
     assert c.status()["counters"]["accepted"] == len(samples)
 
 
@@ -216,7 +195,7 @@ def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
     ack = c.target(target)
     assert ack is not None and ack.result == mavlink.MAV_RESULT_ACCEPTED
     assert wait_until(c.settled, WAIT_S)
-    assert_within_quantisation(c, target, slack_us=1.5)
+    assert_hand_at(c, target, slack_us=1.5)
 
 
 def test_link_loss_rejects_targets_temporarily_then_recovers(chain):

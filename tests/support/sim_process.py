@@ -13,7 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from companion.kinematics import rotation_angle
-from companion.kinematics.arm import Pose
+from companion.kinematics.arm import Arm, Pose
+from companion.kinematics.jacobian import geometric_jacobian
+from firmware_interface.calibration import ArmCalibration, default_calibration
 from sim_servo.errors import SimIOError
 from sim_servo.eventlog import read_events
 from sim_servo.query import query
@@ -135,3 +137,37 @@ def hand_errors(target, hand: dict) -> tuple[float, float]:
     pos_cm = float(np.linalg.norm(reached.position_cm - goal.position_cm))
     ori_deg = math.degrees(float(rotation_angle(goal.rotation, reached.rotation)))
     return pos_cm, ori_deg
+
+
+def quantisation_bound(
+    q_deg, slack_us: float, arm: Arm | None = None, calibration: ArmCalibration | None = None
+) -> tuple[float, float]:
+    """The largest hand error (cm, deg) that each joint's PWM being off by ``slack_us`` can
+    cause at ``q_deg``: first order, summed over joints (a bound), plus 10 %. Defaults: the
+    default arm and the calibration the daemon uses without ``[[joint]]`` tables."""
+    arm = arm or Arm.default()
+    calibration = calibration or default_calibration()
+    deg_per_us = np.array(
+        [
+            (j.angle_max_deg - j.angle_min_deg) / (j.pwm_max_us - j.pwm_min_us)
+            for j in calibration.joints
+        ]
+    )
+    dq_rad = np.radians(slack_us * deg_per_us)
+    jac = geometric_jacobian(arm, np.radians([q_deg]))[0]
+    pos_cm = float(np.sum(np.linalg.norm(jac[:3], axis=0) * dq_rad))
+    ori_deg = math.degrees(float(np.sum(np.linalg.norm(jac[3:], axis=0) * dq_rad)))
+    return 1.1 * pos_cm, 1.1 * ori_deg
+
+
+# PWM is rounded to whole µs (±0.5) and the simulated servos stop within their dead band (1 µs).
+SERVO_SLACK_US = 1.5
+
+
+def assert_within_quantisation(target, hand: dict, q_deg, slack_us: float = SERVO_SLACK_US):
+    """The sim's ``hand`` is at ``target`` as nearly as PWM off by ``slack_us`` at the commanded
+    joints ``q_deg`` allows; returns the errors (cm, deg)."""
+    pos, ori = hand_errors(target, hand)
+    bound_pos, bound_ori = quantisation_bound(q_deg, slack_us)
+    assert pos <= bound_pos and ori <= bound_ori, (pos, bound_pos, ori, bound_ori)
+    return pos, ori
