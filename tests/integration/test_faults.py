@@ -383,9 +383,10 @@ def test_withheld_acks_fail_the_target_in_bounded_time_and_a_rebooted_autopilot_
             assert failure.outcome is Outcome.FAILED
             assert "MAV_CMD_DO_SET_SERVO" in failure.message, failure.message
             assert f"after {retries + 1} attempts of timeout_s={timeout_s}" in failure.message
-        # solve (< 20 ms budget) + one control tick (20 ms) + the retries; 0.2 s of slack for a
-        # loaded machine.
-        assert max(took_s) < bound_s + 0.2, took_s
+        # solve (< 20 ms budget) + one control tick (20 ms) + the retries, and slack for a
+        # machine loaded by other processes (the figure itself is printed below with -s): the
+        # behaviour checked is a bounded answer, not its exact time.
+        assert max(took_s) < bound_s + 1.0, took_s
         status = daemon.status()
         assert status["counters"]["servo_errors"] == 2 and status["counters"]["failed"] == 2
         assert status["last_pwm_us"] is None and status["goal_deg"] is None and daemon.healthy
