@@ -138,7 +138,9 @@ def write_demo_plot(
 
 def demo(seed: int = 0, plot: str = "") -> int:
     """Run the tour; returns the exit code (3 if the simulator did not come up)."""
-    print(f"IK kernels ready in {ik.warm_up():.1f} s (compiled on the first run, cached after)")
+    # On a first run numba compiles the kernels: say so before the wait, not after it.
+    print("loading the IK kernels (the first run compiles them: 10-20 s) ...", flush=True)
+    print(f"IK kernels ready in {ik.warm_up():.1f} s")
     with tempfile.TemporaryDirectory(prefix="armbridge-demo-") as tmp:
         sim_sock = str(Path(tmp) / "sim.sock")
         sim = subprocess.Popen(
