@@ -445,8 +445,9 @@ class MavlinkLink:
             try:
                 transport.write(buf)
             except TransportError:
-                self._counts["transport_errors"] += 1
                 self._write_failed = transport  # the reader thread reopens it
+                self._heard_on_transport = False  # lost from now on, as after a read error
+                self._counts["transport_errors"] += 1
                 raise
             self._counts["tx_messages"] += 1
             return buf
@@ -568,9 +569,10 @@ class MavlinkLink:
                 try:
                     data = transport.read(self.config.read_timeout_s)
                 except TransportError as exc:
+                    # Drop the port first: whoever sees the error counted sees the link lost.
+                    self._drop_transport()
                     self._counts["transport_errors"] += 1
                     log.warning("%s: %s; reopening", self.description, exc)
-                    self._drop_transport()
                     continue
                 if data:
                     for msg in self._decoder.parse_buffer(data) or ():
