@@ -325,8 +325,12 @@ class SimAutopilot:
     def pause_heartbeat(self, paused: bool, now_s: float) -> None:
         """Stop (``paused``) or restart our HEARTBEAT now, whatever the configured schedule says
         from then on: a test triggers a link loss when it is ready instead of at a fixed time.
-        A restart sends the next heartbeat at its regular slot, as a recovering autopilot does."""
+        A restart sends a heartbeat at once and every period from there, so the daemon's
+        reaction is measured from the heartbeat, not from where the old schedule stood."""
         self._heartbeat_held = paused
+        msg_id = mavlink.MAVLINK_MSG_ID_HEARTBEAT
+        if not paused and self._heartbeat_paused and self._next_due_s.get(msg_id) is not None:
+            self._next_due_s[msg_id] = now_s
         if paused != self._heartbeat_paused:
             self._heartbeat_paused = paused
             self.emit(now_s, "fault", fault="heartbeat_paused" if paused else "heartbeat_resumed")

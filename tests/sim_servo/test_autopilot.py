@@ -464,10 +464,10 @@ def test_heartbeat_paused_and_resumed_on_demand_overrides_the_schedule():
     h.ap.pause_heartbeat(True, h.now)
     h.run_for(3.0)
     h.ap.pause_heartbeat(False, h.now)
-    h.run_for(2.0)
+    h.run_for(2.01)
     times = [round(t - START_S, 6) for t, m in h.received if m.get_type() == "HEARTBEAT"]
-    # Paused at 2.5 s, resumed at 5.5 s: the next heartbeat at its regular slot, 6 s.
-    assert times == [0.0, 1.0, 2.0, 6.0, 7.0]
+    # Paused at 2.5 s, resumed at 5.5 s: a heartbeat at once, then every second from there.
+    assert times == [0.0, 1.0, 2.0, 5.5, 6.5, 7.5]
     faults = [(e["fault"], round(e["t_s"], 6)) for e in h.events if e["event"] == "fault"]
     assert faults == [("heartbeat_paused", 2.5), ("heartbeat_resumed", 5.5)]
 
