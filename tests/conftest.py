@@ -3,14 +3,28 @@ are always stopped and reaped, whatever the test did."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator, Mapping
-from typing import Any
+import subprocess
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import Any, Protocol
 
 import pytest
 
 from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import FakeClock
+
+
+class _Started(Protocol):
+    proc: subprocess.Popen
+
+    def stop(self) -> int: ...
+
+
+def _stop_all(started: Sequence[_Started]) -> None:
+    """Stop every process still running; each must exit 0 (one that already ended was checked
+    by its test)."""
+    codes = [p.stop() for p in started if p.proc.poll() is None]
+    assert all(code == 0 for code in codes), codes
 
 
 @pytest.fixture
@@ -20,18 +34,14 @@ def sims(tmp_path) -> Iterator[Callable[..., SimProcess]]:
     started: list[SimProcess] = []
 
     def start(*args: str) -> SimProcess:
-        sim = SimProcess(tmp_path / f"sim{len(started)}", *args)
-        started.append(sim)
-        return sim
+        started.append(SimProcess(tmp_path / f"sim{len(started)}", *args))
+        return started[-1]
 
     yield start
-    codes = []
-    for sim in started:
-        running = sim.proc.poll() is None
-        code = sim.stop()
-        if running:
-            codes.append(code)
-    assert all(code == 0 for code in codes), codes
+    for sim in started:  # reap those that already ended, too
+        if sim.proc.poll() is not None:
+            sim.stop()
+    _stop_all(started)
 
 
 @pytest.fixture
@@ -42,19 +52,16 @@ def daemons(tmp_path) -> Iterator[Callable[..., DaemonProcess]]:
     started: list[DaemonProcess] = []
 
     def start(config: Mapping[str, Any], **kwargs: Any) -> DaemonProcess:
-        daemon = DaemonProcess(tmp_path / f"daemon{len(started)}", config, **kwargs)
-        started.append(daemon)
-        return daemon
+        started.append(DaemonProcess(tmp_path / f"daemon{len(started)}", config, **kwargs))
+        return started[-1]
 
     yield start
-    codes = []
-    for daemon in started:
-        running = daemon.proc.poll() is None
-        code = daemon.stop()
-        if running:
-            codes.append(code)
-        print(f"--- {daemon.log_path} ---\n{daemon.log()}")
-    assert all(code == 0 for code in codes), codes
+    try:
+        _stop_all(started)
+    finally:
+        for daemon in started:
+            daemon.stop()  # reaps those that had already ended
+            print(f"--- {daemon.log_path} ---\n{daemon.log()}")
 
 
 @pytest.fixture

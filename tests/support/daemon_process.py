@@ -10,7 +10,6 @@ failure message includes.
 from __future__ import annotations
 
 import copy
-import signal
 import subprocess
 import sys
 from collections.abc import Mapping
@@ -19,12 +18,13 @@ from typing import Any
 
 from companion.daemon.control_socket import request
 from tests.support.config import write_config
-from tests.support.timing import wait_until
+from tests.support.process import kill, terminate
+from tests.support.timing import WAIT_S, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Start-up bound: importing numba and loading the solver's kernels take seconds when loaded.
 READY_S = 30.0
-WAIT_S = 10.0
+
 #: What a status request raises while the daemon is not (yet, or any more) serving.
 NOT_SERVING = (OSError, ConnectionError, ValueError)
 
@@ -124,21 +124,11 @@ class DaemonProcess:
 
     def stop(self, timeout_s: float = WAIT_S) -> int:
         """SIGTERM, bounded wait, reap; the exit code (SIGKILL, then -9, if it hangs)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            self.kill()
-            return self.proc.returncode
-        finally:
-            self.kill()
+        return terminate(self.proc, timeout_s)
 
     def kill(self) -> None:
         """SIGKILL if still running, and reap (idempotent)."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(WAIT_S)
+        kill(self.proc)
 
     def __enter__(self) -> DaemonProcess:
         return self

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import select
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -19,10 +18,10 @@ from firmware_interface.calibration import ArmCalibration, default_calibration
 from sim_servo.errors import SimIOError
 from sim_servo.eventlog import read_events
 from sim_servo.query import query
-from tests.support.timing import wait_until
+from tests.support.process import kill, terminate
+from tests.support.timing import WAIT_S, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
-WAIT_S = 10.0
 
 
 class SimProcess:
@@ -107,18 +106,14 @@ class SimProcess:
 
     def stop(self, timeout_s: float = WAIT_S) -> int:
         """SIGTERM, wait (bounded) and reap; the exit code (a later call returns it again)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
         try:
-            return self.proc.wait(timeout_s)
+            return terminate(self.proc, timeout_s)
         finally:
             self.kill()
 
     def kill(self) -> None:
         """SIGKILL if still running, reap, close the pipe (idempotent)."""
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(WAIT_S)
+        kill(self.proc)
         if self.proc.stdout is not None:
             self.proc.stdout.close()
 
