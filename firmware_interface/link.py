@@ -72,6 +72,13 @@ _NOT_AN_AUTOPILOT_TYPES = frozenset(
 _MAVLINK_IFLAG_SIGNED = 0x01
 
 
+def is_autopilot_heartbeat(msg: MavMessage) -> bool:
+    """A HEARTBEAT from a flight controller (not a GCS, companion, gimbal or other device)."""
+    return (
+        msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type not in _NOT_AN_AUTOPILOT_TYPES
+    )
+
+
 class LinkState(enum.Enum):
     """Autopilot link state as seen from the companion."""
 
@@ -523,7 +530,7 @@ class MavlinkLink:
             log.debug("%s: bad frame: %s", self.description, reason)
 
     def _handle_heartbeat(self, msg: MavMessage) -> None:
-        if msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AN_AUTOPILOT_TYPES:
+        if not is_autopilot_heartbeat(msg):
             return
         system, component = msg.get_srcSystem(), msg.get_srcComponent()
         wanted_system = self.config.target_system or (

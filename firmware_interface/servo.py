@@ -1,8 +1,11 @@
 """Servo commands for the arm, in two autopilot dialects behind one interface.
 
 * ``ardupilot``: one COMMAND_LONG ``MAV_CMD_DO_SET_SERVO`` (183) per joint — param1 = output
-  number (1-based), param2 = PWM µs — sent one at a time, each waiting for its ACK (ACKs carry
-  no sequence number, see :mod:`firmware_interface.commands`). ArduPilot accepts it only on
+  number (1-based), param2 = PWM µs. :meth:`ServoDialect.send_pwm` sends them one at a time,
+  each waiting for its ACK (ACKs carry no sequence number, see
+  :mod:`firmware_interface.commands`); the daemon instead sends an update's commands
+  back-to-back (:meth:`ServoDialect.plan`) and counts the ACKs
+  (:mod:`firmware_interface.updates`). ArduPilot accepts it only on
   outputs whose ``SERVOn_FUNCTION`` is 0, 1 or 51–66; otherwise it sends the STATUSTEXT
   "ServoRelayEvent: Channel N is already in use" and ``MAV_RESULT_FAILED``
   (AP_ServoRelayEvents.cpp), which we raise as :class:`ServoOutputUnavailable`.
@@ -29,6 +32,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_interface.calibration import ArmCalibration
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import CommandRejected, ConfigurationError, ServoOutputUnavailable
+from firmware_interface.updates import ServoCommand
 
 PX4_ACTUATOR_SLOTS = 6
 #: One COMMAND_LONG: the MAV_CMD id and its seven params.
@@ -39,10 +43,34 @@ class ServoDialect(abc.ABC):
     """Moves the arm's servos through one autopilot's command set."""
 
     name: str
+    #: True where each output is its own command (ardupilot), False for one command for all.
+    per_output: bool
 
-    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
-        self.commands = commands
+    def __init__(self, commands: CommandSender | None, calibration: ArmCalibration) -> None:
+        self.commands = commands  # None: plan updates only (the daemon sends them itself)
         self.calibration = calibration
+
+    def plan(
+        self, pwm_by_output: Mapping[int, int], acked_pwm_us: Mapping[int, int] | None = None
+    ) -> list[ServoCommand]:
+        """The commands of one update, to be sent back-to-back (see
+        :mod:`firmware_interface.updates`). Every value is checked against its output's range
+        first. ``acked_pwm_us``: what the autopilot is known to hold; where the dialect sets
+        outputs one by one (ardupilot), outputs already at their value are left out."""
+        self.calibration.check_pwm_us(pwm_by_output)
+        acked = acked_pwm_us or {}
+        wanted = {
+            o: p for o, p in pwm_by_output.items() if not self.per_output or acked.get(o) != p
+        }
+        if not wanted:
+            return []
+        if not self.per_output:  # one command sets every output
+            setting = tuple(sorted(pwm_by_output.items()))
+            return [ServoCommand(c, tuple(p), setting) for c, p in self.command_params(wanted)]
+        return [
+            ServoCommand(c, tuple(p), ((int(p[0]), wanted[int(p[0])]),))
+            for c, p in self.command_params(wanted)
+        ]
 
     def send_angles(self, angles_deg: Sequence[float] | Mapping[str, float]) -> dict[int, int]:
         """Convert joint angles (degrees) through the calibration and send them.
@@ -50,6 +78,13 @@ class ServoDialect(abc.ABC):
         pwm_by_output = self.calibration.angles_to_pwm_us(angles_deg)
         self.send_pwm(pwm_by_output)
         return pwm_by_output
+
+    def _sender(self) -> CommandSender:
+        if self.commands is None:
+            raise ConfigurationError(
+                f"{self.name} dialect built without a CommandSender: plan only"
+            )
+        return self.commands
 
     def send_pwm(self, pwm_by_output: Mapping[int, int], *, skip_unchanged: bool = False) -> None:
         """Send ``{output: pwm_us}`` and wait until the autopilot acknowledged all of it.
@@ -74,8 +109,9 @@ class ArduPilotServoDialect(ServoDialect):
     """One DO_SET_SERVO per output, each acknowledged before the next is sent."""
 
     name = "ardupilot"
+    per_output = True
 
-    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
+    def __init__(self, commands: CommandSender | None, calibration: ArmCalibration) -> None:
         super().__init__(commands, calibration)
         self._acked_pwm_us: dict[int, int] = {}  # per output, the PWM last ACCEPTED
 
@@ -97,7 +133,7 @@ class ArduPilotServoDialect(ServoDialect):
             # Unknown until acknowledged: a timeout may or may not have moved the servo.
             self._acked_pwm_us.pop(output, None)
             try:
-                self.commands.command_long(command, params)
+                self._sender().command_long(command, params)
             except CommandRejected as exc:
                 if exc.result != mavlink.MAV_RESULT_FAILED:
                     raise
@@ -118,8 +154,9 @@ class Px4ServoDialect(ServoDialect):
     """One DO_SET_ACTUATOR carrying all joints as −1…1 values."""
 
     name = "px4"
+    per_output = False
 
-    def __init__(self, commands: CommandSender, calibration: ArmCalibration) -> None:
+    def __init__(self, commands: CommandSender | None, calibration: ArmCalibration) -> None:
         if len(calibration) > PX4_ACTUATOR_SLOTS:
             raise ConfigurationError(
                 f"px4 dialect drives at most {PX4_ACTUATOR_SLOTS} joints "
@@ -139,20 +176,21 @@ class Px4ServoDialect(ServoDialect):
 
     def _send_checked(self, pwm_by_output: dict[int, int], skip_unchanged: bool) -> None:
         for command, params in self.command_params(pwm_by_output):
-            self.commands.command_long(command, params)
+            self._sender().command_long(command, params)
 
 
 #: The dialects by name; an unknown name is refused with this list.
-SERVO_DIALECTS: dict[str, Callable[[CommandSender, ArmCalibration], ServoDialect]] = {
+SERVO_DIALECTS: dict[str, Callable[[CommandSender | None, ArmCalibration], ServoDialect]] = {
     "ardupilot": ArduPilotServoDialect,
     "px4": Px4ServoDialect,
 }
 
 
 def make_servo_dialect(
-    name: str, commands: CommandSender, calibration: ArmCalibration
+    name: str, commands: CommandSender | None, calibration: ArmCalibration
 ) -> ServoDialect:
-    """Build the dialect called ``name`` (``ardupilot`` or ``px4``)."""
+    """Build the dialect called ``name`` (``ardupilot`` or ``px4``); without ``commands`` it
+    only plans updates (:meth:`ServoDialect.plan`)."""
     try:
         factory = SERVO_DIALECTS[name]
     except KeyError:

@@ -39,6 +39,7 @@ class LinkSettings:
     system_id: int | None = None
     component_id: int = 191
     target_system: int | None = None
+    target_component: int | None = None
     loss_timeout_s: float = 3.0
     command_timeout_s: float = 0.5
     command_retries: int = 2

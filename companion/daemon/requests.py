@@ -7,8 +7,9 @@ the CLI) and answers each with exactly one :class:`Reply`.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
-from concurrent.futures import Future
+from concurrent.futures import Future, InvalidStateError
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING, Any
@@ -22,6 +23,8 @@ if TYPE_CHECKING:  # the solver (numba) is not needed to parse or answer a reque
 
 MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
 STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
+#: common.xml's MAV_RESULT_CANCELLED (6); the pymavlink release we pin predates it.
+MAV_RESULT_CANCELLED = getattr(mavlink, "MAV_RESULT_CANCELLED", 6)
 
 
 class Outcome(Enum):
@@ -31,6 +34,7 @@ class Outcome(Enum):
     DENIED = "denied"
     FAILED = "failed"
     TEMPORARILY_REJECTED = "temporarily_rejected"
+    CANCELLED = "cancelled"  # superseded by a newer target, or stopped before it moved
 
 
 MAV_RESULT = {
@@ -38,7 +42,11 @@ MAV_RESULT = {
     Outcome.DENIED: mavlink.MAV_RESULT_DENIED,
     Outcome.FAILED: mavlink.MAV_RESULT_FAILED,
     Outcome.TEMPORARILY_REJECTED: mavlink.MAV_RESULT_TEMPORARILY_REJECTED,
+    Outcome.CANCELLED: MAV_RESULT_CANCELLED,
 }
+#: The request kinds; ``goto`` and ``trajectory`` are motion targets (the newest one wins).
+KINDS = ("goto", "trajectory", "park", "stop")
+MOTION_KINDS = frozenset({"goto", "trajectory"})
 
 
 @dataclass(frozen=True)
@@ -73,16 +81,30 @@ class Reply:
         return out
 
 
-@dataclass
+@dataclass(eq=False)
 class Request:
-    """One request on the control queue, with the future its :class:`Reply` is set on."""
+    """One request, with the future its :class:`Reply` is set on (exactly once)."""
 
     kind: str  # goto | trajectory | park | stop
     payload: Any
     direct: bool = False
     received_s: float = 0.0  # daemon clock when submitted
-    accepted: Reply | None = None  # the reply sent once its first servo commands are out
+    source: tuple[Any, ...] = ("local",)  # who sent it: ("mavlink", sys, comp), ("socket", n) …
     future: Future = field(default_factory=Future)
+    #: Set once the control thread took it from the intake (or it was answered there).
+    taken: threading.Event = field(default_factory=threading.Event)
+
+    @property
+    def answered(self) -> bool:
+        return self.future.done()
+
+    def answer(self, reply: Reply) -> bool:
+        """Set the reply unless one was set already (from any thread); True if this one was."""
+        try:
+            self.future.set_result(reply)
+        except InvalidStateError:
+            return False
+        return True
 
 
 def as_pose(value: Any) -> Pose:

@@ -323,11 +323,11 @@ class _BuggyDaemon(ArmDaemon):
 
     bugs = 1
 
-    def _goto(self, request, pose, received_s):
+    def _solve(self, pose, q_start_deg):
         if self.bugs:
             self.bugs -= 1
             raise RuntimeError("a bug under the control thread")
-        return super()._goto(request, pose, received_s)
+        return super()._solve(pose, q_start_deg)
 
 
 def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
@@ -344,20 +344,28 @@ def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(a
         reply = daemon.submit("goto", target).result(WAIT_S)
         assert reply.outcome is Outcome.FAILED and "internal error" in reply.message
         assert daemon.healthy and daemon.status()["counters"]["internal_errors"] == 1
-        assert peer.messages("COMMAND_LONG") == []  # nothing was sent for it
+        servo_commands = [
+            m for m in peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_SERVO
+        ]
+        assert servo_commands == []  # nothing was sent for it
         assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
     finally:
         daemon.close()
 
 
 def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
-    """Targets that arrive while an update is under way are all answered, but only the latest
-    goal is sent, in one update: a flood of targets never becomes a flood of servo updates."""
+    """Targets that arrive while an update is under way are all answered at once: the newest
+    wins, the others are CANCELLED (superseded), and only the newest goal is sent, in one
+    update: a flood of targets never becomes a flood of servo updates."""
     endpoint, peer = autopilot
     daemon = ArmDaemon(
         parse_config(
             {
-                "link": {"url": f"udpout:127.0.0.1:{endpoint.port}", "loss_timeout_s": 30.0},
+                "link": {
+                    "url": f"udpout:127.0.0.1:{endpoint.port}",
+                    "loss_timeout_s": 30.0,
+                    "command_timeout_s": 30.0,  # the peer holds its answers until told
+                },
                 "arm": {"joint_speed_deg_s": 36_000.0},
                 "control": {"rate_hz": 0.2},  # no regular tick during the test
             }
@@ -375,17 +383,23 @@ def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
         targets = [arm.fk(rng.uniform(lows, highs)).as_tuple() for _ in range(40)]
         first_command, burst_queued = threading.Event(), threading.Event()
 
-        def answer_once_the_burst_is_queued(_cmd):
-            first_command.set()
-            burst_queued.wait(WAIT_S)
+        def answer_once_the_burst_is_queued(cmd):
+            if cmd.command == mavlink.MAV_CMD_DO_SET_SERVO:
+                first_command.set()
+                burst_queued.wait(WAIT_S)
 
         peer.on_command = answer_once_the_burst_is_queued
         futures = [daemon.submit("goto", targets[0])]
         assert first_command.wait(WAIT_S)  # the first target's update is under way ...
-        futures += [daemon.submit("goto", t) for t in targets[1:]]  # ... when the rest arrive
+        # ... when the rest arrive (from many sources: one source's burst is rate limited).
+        futures += [daemon.submit("goto", t, source=("test", i)) for i, t in enumerate(targets[1:])]
+        # All but the newest are answered before the autopilot has said anything.
+        superseded = [f.result(WAIT_S) for f in futures[1:-1]]
+        assert {r.outcome for r in superseded} == {Outcome.CANCELLED}
+        assert not futures[0].done() and not futures[-1].done()
         burst_queued.set()
         replies = [f.result(WAIT_S) for f in futures]
-        assert sum(r.outcome is Outcome.ACCEPTED for r in replies) >= 30
+        assert replies[0].outcome is Outcome.ACCEPTED and replies[-1].outcome is Outcome.ACCEPTED
         status = daemon.status()
         assert status["counters"]["servo_updates"] == 2, status["counters"]
         # The latest goal is the one followed (the step towards it may be cut short by the

@@ -236,7 +236,11 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
         )
         first_after = [e for e in sim.events("servo") if e["t_s"] > resumed["t_s"]]
         first_after = {e["output"]: e["pwm_us"] for e in first_after[: len(calibration)]}
-        assert first_after == {int(o): p for o, p in held["last_pwm_us"].items()}
+        # While held, what the outputs hold is unknown (status says so); the pose last
+        # acknowledged is what is sent again.
+        assert held["last_pwm_us"] is None
+        assert {o["state"] for o in held["outputs"].values()} == {"unknown"}
+        assert first_after == calibration.angles_to_pwm_us(held["current_deg"])
         recovered_s = min(e["t_s"] for e in commands if e["t_s"] > resumed["t_s"]) - resumed["t_s"]
 
         assert daemon.request("goto", pose=list(near))["outcome"] == "accepted"

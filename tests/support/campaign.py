@@ -86,11 +86,32 @@ ALLOWED_OUTCOMES = {
     "non_finite": {Outcome.DENIED},
     "wrong_arity": {Outcome.DENIED},
     "wrong_types": {Outcome.DENIED},
-    "extreme_finite": {Outcome.FAILED, Outcome.ACCEPTED, Outcome.TEMPORARILY_REJECTED},
+    # A solved target is CANCELLED when the next one replaces it before its first step went out.
+    "extreme_finite": {
+        Outcome.FAILED,
+        Outcome.ACCEPTED,
+        Outcome.TEMPORARILY_REJECTED,
+        Outcome.CANCELLED,
+    },
     "out_of_workspace": {Outcome.FAILED, Outcome.TEMPORARILY_REJECTED},
-    "reachable": {Outcome.ACCEPTED, Outcome.FAILED, Outcome.TEMPORARILY_REJECTED},
-    "angle_wrapped": {Outcome.ACCEPTED, Outcome.FAILED, Outcome.TEMPORARILY_REJECTED},
-    "near_boundary": {Outcome.ACCEPTED, Outcome.FAILED, Outcome.TEMPORARILY_REJECTED},
+    "reachable": {
+        Outcome.ACCEPTED,
+        Outcome.FAILED,
+        Outcome.TEMPORARILY_REJECTED,
+        Outcome.CANCELLED,
+    },
+    "angle_wrapped": {
+        Outcome.ACCEPTED,
+        Outcome.FAILED,
+        Outcome.TEMPORARILY_REJECTED,
+        Outcome.CANCELLED,
+    },
+    "near_boundary": {
+        Outcome.ACCEPTED,
+        Outcome.FAILED,
+        Outcome.TEMPORARILY_REJECTED,
+        Outcome.CANCELLED,
+    },
 }
 
 _EXTREMES = (
@@ -311,6 +332,8 @@ def check_sim_log(sim: SimProcess, calibration: ArmCalibration, report: TargetRe
             fields = event["fields"]
             if event["src"][1] != OUR_COMPONENT:
                 continue
+            if fields["command"] == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                continue  # the daemon asks for SYSTEM_TIME (reboot detection)
             if fields["command"] != mavlink.MAV_CMD_DO_SET_SERVO:
                 report.pwm_violations.append(f"sim rx: unexpected command {fields['command']}")
                 continue
@@ -381,10 +404,16 @@ def run_targets(
         for start in range(0, len(targets), batch):
             chunk = targets[start : start + batch]
             futures = []
-            for category, payload in chunk:
+            for i, (category, payload) in enumerate(chunk):
                 report.inputs[category] += 1
                 try:
-                    futures.append((category, payload, daemon.submit("goto", payload)))
+                    # Each from its own source (one source's burst is rate limited), and the
+                    # next only once the control thread took this one: the newest target wins,
+                    # so without the pacing most would be superseded before they reach the
+                    # solver. Paced, every valid one is solved.
+                    request = daemon.new_request("goto", payload, source=("campaign", i))
+                    futures.append((category, payload, daemon.submit_request(request)))
+                    request.taken.wait(WAIT_S)
                 except Exception as exc:  # submit itself must never raise for a payload
                     report.submit_errors.append(f"{category}: {payload!r}: {exc!r}")
             deadline = time.monotonic() + 60.0 + len(chunk) * budget_ms / 1e3 * 4
@@ -747,7 +776,8 @@ def run_mavlink_fuzz(
     for msg in peer.received:
         report.peer_received[msg.get_type()] += 1
         if msg.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
-            report.servo_commands.append(f"{msg.get_type()} command {msg.command}")
+            if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:  # SYSTEM_TIME, see core
+                report.servo_commands.append(f"{msg.get_type()} command {msg.command}")
         elif msg.get_type() not in ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT"):
             report.servo_commands.append(f"unexpected {msg.get_type()}")
     report.elapsed_s = time.perf_counter() - started

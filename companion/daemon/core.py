@@ -1,0 +1,718 @@
+"""The daemon's control logic as a state machine: events in, actions out, no I/O.
+
+:class:`ControlCore` owns the arm's state. It is driven by one thread (the daemon's control
+thread, :mod:`companion.daemon.service`) with three events — a request taken from the intake
+(:meth:`~ControlCore.request`), a frame from the autopilot (:meth:`~ControlCore.frame`), a tick
+(:meth:`~ControlCore.tick`) — and returns the actions to carry out: commands to send to the
+autopilot (:class:`SendCommand`) and answers to requests (:class:`Answer`). Time comes from the
+injected clock, the solver is injected too, so every rule below is an in-process test with a
+fake clock.
+
+Rules:
+
+* **Status is what the autopilot acknowledged.** Per output, the PWM the autopilot ACCEPTED;
+  per joint, the angle whose PWM it accepted. Motion steps from there, so a partial update can
+  neither break the speed limit nor make the status lie.
+* **Pipelined updates.** An update's commands go out back-to-back and its ACKs are counted
+  (:mod:`firmware_interface.updates`). One update is in flight at a time. When the outputs' state
+  is unknown (ACKs missing), the same values are re-sent (``command_retries`` more times at
+  once), and the arm does not move on before they are confirmed. An update that stays unknown
+  fails the targets waiting on it; ``UPDATE_ATTEMPTS`` of them in a row abandon the motion.
+* **A refused output stops the motion** with the autopilot's reason; what did move is reported
+  as moved.
+* **Every request gets one answer**: ``goto`` ACCEPTED once its first step is acknowledged,
+  FAILED (out of reach, refused, unanswered), DENIED (malformed), TEMPORARILY_REJECTED (no
+  autopilot), CANCELLED (superseded or stopped before its first step went out). A target whose
+  first step is already on its way is not cancelled: it is answered with what happened.
+* **A pinned autopilot**: its ids come from the config or from the first autopilot HEARTBEAT,
+  and never change; ACKs, STATUSTEXTs and SYSTEM_TIMEs from anyone else are counted and ignored.
+* **An autopilot reboot** (SYSTEM_TIME ``time_boot_ms`` going backwards, whatever the gap) is a
+  link loss: the outputs' state is unknown, and every output is re-sent before moving on.
+* **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED; when it is
+  back, re-send every output at the acknowledged pose, then carry on towards the goal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.config import DaemonConfig
+from companion.daemon.motion import limit_step
+from companion.daemon.requests import Outcome, Reply, Request, as_pose, parse_trajectory
+from companion.kinematics.arm import Pose
+from firmware_interface import CalibrationError, make_servo_dialect
+from firmware_interface.commands import command_name
+from firmware_interface.link import is_autopilot_heartbeat
+from firmware_interface.updates import ServoCommand, UpdateTracker
+
+log = logging.getLogger("armbridge")
+
+#: An accepted motion survives this many unanswered updates in a row (each already re-sent
+#: ``command_retries`` times); then it is abandoned.
+UPDATE_ATTEMPTS = 3
+#: SYSTEM_TIME is asked for at this interval, for reboot detection.
+SYSTEM_TIME_INTERVAL_S = 0.25
+#: A SYSTEM_TIME stream that fell silent this long is asked for again (a rebooted autopilot
+#: forgets the intervals it was asked for), and the outputs are re-sent in case it rebooted.
+SYSTEM_TIME_SILENT_S = 1.0
+#: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
+REBOOT_BACKSTEP_MS = 100
+
+Solve = Callable[[Pose, Sequence[float]], Any]  # (pose, q_start_deg) → ik.IKResult
+
+
+@dataclass(frozen=True)
+class SendCommand:
+    """A COMMAND_LONG to the autopilot ``target`` (system, component)."""
+
+    target: tuple[int, int]
+    command: int
+    params: tuple[float, ...]
+    confirmation: int = 0
+
+
+@dataclass(frozen=True)
+class Answer:
+    """Answer ``request`` with ``reply`` (the edge sets its future)."""
+
+    request: Request
+    reply: Reply
+
+
+Action = SendCommand | Answer
+
+
+@dataclass(eq=False)
+class _Waiting:
+    """An accepted target waiting for its first step to be acknowledged."""
+
+    request: Request
+    reply: Reply  # what it will be answered once its first step is acknowledged
+
+
+@dataclass(eq=False)
+class _InFlight:
+    """The update on its way: the joints it moves to, and its ACK accounting.
+
+    All its commands go out at once (``tracker`` counts their ACKs). Those whose fate that
+    leaves unknown are then sent **one at a time** (``pending``), each waiting for its own ACK
+    (unambiguous) and re-sent up to ``command_retries`` times: on a lossy link a lost frame
+    then costs one command's round trip, not the whole update's.
+    """
+
+    step_deg: tuple[float, ...]
+    pwm_by_output: dict[int, int]  # the whole step (outputs already there are not sent)
+    sent_outputs: frozenset[int]
+    tracker: UpdateTracker
+    sent_s: float
+    waiting: list[_Waiting] = field(default_factory=list)  # targets whose first step this is
+    pending: list[ServoCommand] = field(default_factory=list)  # still to confirm, in order
+    attempt: int = 0  # sends of the command being confirmed one at a time (0: the batch)
+    accepted: dict[int, int] = field(default_factory=dict)
+    refused: dict[int, str] = field(default_factory=dict)
+
+
+class ControlCore:
+    """See the module docstring. Not thread-safe: one thread drives it."""
+
+    def __init__(
+        self,
+        config: DaemonConfig,
+        *,
+        solve: Solve,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self._solve = solve
+        self._dialect = make_servo_dialect(config.link.dialect, None, config.calibration)
+        self._outputs = tuple(j.output for j in config.calibration.joints)
+        arm = config.arm
+        start = config.park_deg or tuple(
+            math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints
+        )
+        #: Per joint: the acknowledged angle (before any ACK: the assumed start pose).
+        self._position: list[float] = [float(a) for a in start]
+        self._acked_pwm: dict[int, int] = {}
+        self._refused: dict[int, str] = {}
+        #: A step sent whose outputs are not all confirmed: re-sent before moving on.
+        self._unconfirmed: tuple[float, ...] | None = None
+        self._goal: tuple[float, ...] | None = None
+        self._trajectory: list[tuple[float, Pose]] = []
+        self._trajectory_t0 = 0.0
+        self._waiting: list[_Waiting] = []  # accepted, first step not sent yet
+        self._inflight: _InFlight | None = None
+        self._unanswered = 0
+        self._last_step_s = -math.inf
+        self._next_tick_s = clock()
+        self._link_up = False
+        #: The autopilot's (system, component): configured parts are fixed, the rest latched
+        #: from the first autopilot HEARTBEAT that matches them.
+        self._pin_config = (config.link.target_system, config.link.target_component)
+        self._pinned: tuple[int, int] | None = None
+        self._boot_ms: int | None = None
+        self._system_time_s: float | None = None  # when the last SYSTEM_TIME came
+        self._system_time_asked_s = -math.inf
+        self.counters = {
+            "targets": 0,
+            "solved": 0,
+            "accepted": 0,
+            "denied": 0,
+            "failed": 0,
+            "temporarily_rejected": 0,
+            "cancelled": 0,
+            "servo_updates": 0,
+            "servo_errors": 0,
+            "refused_outputs": 0,
+            "foreign_frames": 0,
+            "autopilot_reboots": 0,
+            "internal_errors": 0,
+        }
+        self.last_target: dict[str, Any] | None = None
+
+    # -- events -----------------------------------------------------------------------------
+
+    def request(self, request: Request) -> list[Action]:
+        """A request taken from the intake (``goto``, ``trajectory``, ``park``, ``stop``)."""
+        actions: list[Action] = []
+        if request.answered:  # withdrawn or answered meanwhile: never carried out
+            return actions
+        if request.kind == "stop":
+            self._stop_motion(actions, Reply(Outcome.CANCELLED, "stopped before it moved"))
+            self._answer(actions, request, Reply(Outcome.ACCEPTED, "holding"))
+            return actions
+        if request.kind == "goto":
+            self.counters["targets"] += 1
+        try:
+            parsed = self._parse(request)
+        except (TypeError, ValueError, OverflowError) as exc:
+            self._answer(actions, request, Reply(Outcome.DENIED, str(exc)))
+            return actions
+        if not self._link_up:
+            self._answer(
+                actions, request, Reply(Outcome.TEMPORARILY_REJECTED, "autopilot link down")
+            )
+            return actions
+        superseded = Reply(Outcome.CANCELLED, f"superseded by a {request.kind}")
+        if request.kind == "park":
+            self._stop_motion(actions, superseded)
+            if request.direct:
+                self._send_direct(actions, tuple(parsed))
+            self._accept(actions, request, tuple(parsed), Reply(Outcome.ACCEPTED, "parking"))
+        elif request.kind == "trajectory":
+            self._stop_motion(actions, superseded)
+            self._trajectory = parsed
+            self._trajectory_t0 = self.clock()
+            self._answer(
+                actions, request, Reply(Outcome.ACCEPTED, f"trajectory of {len(parsed)} points")
+            )
+            self._due_trajectory_point(actions)
+        else:
+            self._goto(actions, request, parsed)
+        self._maybe_send(actions, immediate=True)
+        return actions
+
+    def frame(self, msg: Any) -> list[Action]:
+        """A frame from the link: HEARTBEAT, COMMAND_ACK, STATUSTEXT or SYSTEM_TIME."""
+        actions: list[Action] = []
+        kind = msg.get_type()
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        if kind == "HEARTBEAT":
+            if not is_autopilot_heartbeat(msg):
+                return actions
+            if self._pinned is None:
+                self._pin(source)
+            elif source != self._pinned:
+                self.counters["foreign_frames"] += 1
+            return actions
+        if source != self._pinned:
+            self.counters["foreign_frames"] += 1
+            return actions
+        inflight = self._inflight
+        if kind == "COMMAND_ACK":
+            if inflight is not None and msg.target_component in (0, self.config.link.component_id):
+                inflight.tracker.on_ack(msg.command, msg.result, self.clock())
+                self._poll_update(actions)
+        elif kind == "STATUSTEXT":
+            if inflight is not None:
+                text = msg.text
+                if isinstance(text, bytes | bytearray):
+                    text = text.decode("ascii", "replace")
+                inflight.tracker.on_statustext(str(text))
+        elif kind == "SYSTEM_TIME":
+            self._on_system_time(actions, int(msg.time_boot_ms))
+        return actions
+
+    def tick(self, link_up: bool, autopilot: tuple[int, int] | None = None) -> list[Action]:
+        """Periodic work; call at least every :meth:`next_wake_s`, and whenever the link's
+        state may have changed. ``autopilot``: the ids the link latched, if it did (it hears
+        the first HEARTBEAT a moment before this core does)."""
+        actions: list[Action] = []
+        now = self.clock()
+        if self._pinned is None and autopilot is not None:
+            self._pin(autopilot)
+        # The link may report UP a moment before its HEARTBEAT reached us: pinned first.
+        self._set_link(actions, link_up and self._pinned is not None)
+        if not self._link_up:
+            return actions
+        self._poll_update(actions)
+        self._watch_system_time(actions, now)
+        if now >= self._next_tick_s:
+            period = 1.0 / self.config.rate_hz
+            self._next_tick_s = max(self._next_tick_s + period, now)
+            if self._trajectory:
+                self._due_trajectory_point(actions)
+            self._maybe_send(actions, immediate=False)
+        return actions
+
+    def next_wake_s(self) -> float:
+        """When :meth:`tick` next has something to do (daemon clock)."""
+        wake = self._next_tick_s
+        if self._inflight is not None:
+            wake = min(wake, self._inflight.tracker.next_event_s())
+        return wake
+
+    def shutdown(self, *, park: bool) -> list[Action]:
+        """Stop: answer everything waiting, and send the park pose directly if asked."""
+        actions: list[Action] = []
+        self._stop_motion(actions, Reply(Outcome.CANCELLED, "daemon stopping"))
+        if park and self.config.park_deg is not None and self._link_up:
+            self._send_direct(actions, tuple(self.config.park_deg), force=True)
+        return actions
+
+    def finish(self) -> list[Action]:
+        """The daemon exits now: whatever still waits on an update is answered."""
+        actions: list[Action] = []
+        if self._inflight is not None:
+            for w in self._inflight.waiting:
+                self._answer(actions, w.request, Reply(Outcome.FAILED, "daemon stopped"))
+            self._inflight = None
+        return actions
+
+    def internal_error(self, reply: Reply) -> list[Action]:
+        """A bug under the driving thread: stop moving, hold (the servos keep their last
+        PWM), answer every waiting target with ``reply``; the outputs of an update in flight
+        are re-sent before anything moves again."""
+        actions: list[Action] = []
+        self.counters["internal_errors"] += 1
+        inflight, self._inflight = self._inflight, None
+        if inflight is not None:
+            for w in inflight.waiting:
+                self._answer(actions, w.request, reply)
+            for output in inflight.sent_outputs:
+                self._acked_pwm.pop(output, None)
+            self._unconfirmed = tuple(self._position)
+        self._stop_motion(actions, reply)
+        return actions
+
+    def parked(self) -> bool:
+        """Every output acknowledged at the park pose."""
+        park = self.config.park_deg
+        return park is not None and self._settled() and tuple(self._position) == tuple(park)
+
+    @property
+    def idle(self) -> bool:
+        """No update in flight."""
+        return self._inflight is None
+
+    # -- requests ---------------------------------------------------------------------------
+
+    def _parse(self, request: Request) -> Any:
+        if request.kind == "park":
+            if self.config.park_deg is None:
+                raise ValueError("no park_deg configured")
+            return self.config.park_deg
+        if request.kind == "trajectory":
+            return parse_trajectory(request.payload)
+        try:
+            return as_pose(request.payload)
+        except ValueError as exc:
+            raise ValueError(f"invalid target: {exc}") from exc
+
+    def _goto(self, actions: list[Action], request: Request | None, pose: Pose) -> bool:
+        start = self._goal if self._goal is not None else tuple(self._position)
+        result = self._solve(pose, start)
+        self.counters["solved"] += 1
+        timing = {
+            "received_s": request.received_s if request is not None else self.clock(),
+            "solved_s": self.clock(),
+        }
+        self.last_target = {
+            "pose": list(pose.as_tuple()),
+            "converged": result.converged,
+            "pos_err_cm": result.pos_err_cm,
+            "ori_err_deg": result.ori_err_deg,
+            "solve_ms": result.elapsed_ms,
+            "timing": timing,
+        }
+        if not result.converged:
+            reply = Reply(
+                Outcome.FAILED,
+                f"unreachable: pos {result.pos_err_cm:.2f}cm ori {result.ori_err_deg:.1f}deg",
+                result,
+            )
+            if request is not None:
+                self._answer(actions, request, reply)
+            else:
+                log.warning("trajectory point refused: %s", reply.message)
+            return False
+        try:
+            self.config.calibration.angles_to_pwm_us(result.q_deg)
+        except CalibrationError as exc:  # the config check makes this unreachable; stay safe
+            if request is not None:
+                self._answer(
+                    actions, request, Reply(Outcome.FAILED, f"calibration refused: {exc}", result)
+                )
+            return False
+        if request is None:
+            self._goal = tuple(result.q_deg)
+        else:
+            superseded = Reply(Outcome.CANCELLED, "superseded by a newer target")
+            self._stop_motion(actions, superseded)
+            self._accept(
+                actions, request, result.q_deg, Reply(Outcome.ACCEPTED, "moving", result, timing)
+            )
+        return True
+
+    def _accept(
+        self, actions: list[Action], request: Request, goal: Sequence[float], reply: Reply
+    ) -> None:
+        self._goal = tuple(float(g) for g in goal)
+        if tuple(self._position) == self._goal and self._settled():
+            self._answer(actions, request, reply)  # already there: nothing to send
+            return
+        self._waiting.append(_Waiting(request, reply))
+
+    def _stop_motion(self, actions: list[Action], reply: Reply) -> None:
+        """Forget the goal; targets whose first step has not gone out get ``reply``. Those
+        already on their way are answered when their update resolves."""
+        self._goal = None
+        self._trajectory.clear()
+        for w in self._waiting:
+            self._answer(actions, w.request, reply)
+        self._waiting.clear()
+
+    def _due_trajectory_point(self, actions: list[Action]) -> None:
+        elapsed = self.clock() - self._trajectory_t0
+        due = [p for p in self._trajectory if p[0] <= elapsed]
+        if not due:
+            return
+        self._trajectory = self._trajectory[len(due) :]
+        if not self._goto(actions, None, due[-1][1]):
+            log.warning("trajectory aborted: a point is out of reach")
+            self._trajectory.clear()
+
+    # -- updates ----------------------------------------------------------------------------
+
+    def _settled(self) -> bool:
+        return (
+            self._unconfirmed is None
+            and self._inflight is None
+            and all(o in self._acked_pwm or o in self._refused for o in self._outputs)
+        )
+
+    def _maybe_send(self, actions: list[Action], *, immediate: bool) -> None:
+        """Start the next update if one is due and none is in flight. ``immediate``: only if a
+        newly accepted target waits (its first step does not wait for the next tick)."""
+        if self._inflight is not None or not self._link_up:
+            return
+        if immediate and not self._waiting:
+            return
+        now = self.clock()
+        if self._unconfirmed is not None:
+            step = self._unconfirmed
+        else:
+            goal = self._goal
+            if goal is None or (goal == tuple(self._position) and self._settled()):
+                return
+            period = 1.0 / self.config.rate_hz
+            max_step_deg = self.config.joint_speed_deg_s * min(period, now - self._last_step_s)
+            if not max_step_deg > 0:
+                return
+            step = limit_step(self._position, goal, max_step_deg)
+        self._send_step(actions, step, now)
+
+    def _send_step(
+        self,
+        actions: list[Action],
+        step: tuple[float, ...],
+        now: float,
+        *,
+        everything: bool = False,
+    ) -> None:
+        try:
+            pwm = self.config.calibration.angles_to_pwm_us(step)
+            commands = self._dialect.plan(pwm, None if everything else self._acked_pwm)
+        except CalibrationError as exc:  # unreachable by construction; refuse, never clamp
+            log.error("calibration refused a step, holding: %s", exc)
+            self._fail_motion(actions, f"calibration refused a step: {exc}")
+            return
+        waiting, self._waiting = self._waiting, []
+        if not commands:  # every output already holds this step
+            self._position = list(step)
+            self._unconfirmed = None
+            for w in waiting:
+                self._answer(actions, w.request, w.reply)
+            return
+        tracker = UpdateTracker(commands, sent_s=now, timeout_s=self.config.link.command_timeout_s)
+        sent = frozenset(o for c in commands for o in c.outputs)
+        self._inflight = _InFlight(step, pwm, sent, tracker, now, waiting)
+        self._last_step_s = now
+        self.counters["servo_updates"] += 1
+        self._emit(actions, commands, 0)
+
+    def _send_direct(
+        self, actions: list[Action], step: tuple[float, ...], *, force: bool = False
+    ) -> None:
+        """Everything to ``step`` at once, past the speed limit (park on shutdown)."""
+        if self._inflight is not None:
+            # Its answers would be counted into this update; the autopilot handles frames in
+            # order, so the direct step lands last whatever happens to the one in flight.
+            for w in self._inflight.waiting:
+                self._answer(actions, w.request, Reply(Outcome.CANCELLED, "overridden by park"))
+            for o in self._inflight.sent_outputs:
+                self._acked_pwm.pop(o, None)
+            self._inflight = None
+        self._unconfirmed = None
+        self._send_step(actions, step, self.clock(), everything=force)
+
+    def _emit(self, actions: list[Action], commands: list[ServoCommand], attempt: int) -> None:
+        assert self._pinned is not None  # the link is up only once an autopilot was heard
+        for c in commands:
+            actions.append(SendCommand(self._pinned, c.command, c.params, attempt))
+
+    def _poll_update(self, actions: list[Action]) -> None:
+        inflight = self._inflight
+        if inflight is None:
+            return
+        now = self.clock()
+        outcome = inflight.tracker.poll(now)
+        if outcome is None:
+            return
+        inflight.accepted.update(outcome.accepted)
+        inflight.refused.update(outcome.refused)
+        unknown = set(outcome.unknown)
+        commands = inflight.tracker.commands
+        if unknown:
+            # Each command is sent at most 1 + command_retries times: once in the batch, then
+            # alone until its ACK comes.
+            retry = [c for c in commands if unknown.intersection(c.outputs)]
+            if inflight.attempt < self.config.link.command_retries:
+                inflight.pending = retry + inflight.pending
+                inflight.attempt += 1
+            else:
+                names = sorted({command_name(c.command) for c in retry})
+                outputs = sorted(o for c in retry for o in c.outputs)
+                reason = (
+                    f"no COMMAND_ACK for {', '.join(names)} to output(s) "
+                    f"{', '.join(map(str, outputs))} after {inflight.attempt + 1} attempts of "
+                    f"timeout_s={self.config.link.command_timeout_s:g}"
+                )
+                self._resolve_update(actions, inflight, now, unknown=reason)
+                return
+            log.info("servo update unconfirmed (%s), confirming one at a time", outcome.reason)
+        elif inflight.pending:
+            inflight.attempt = 1
+        if inflight.pending:
+            command = inflight.pending.pop(0)
+            inflight.tracker = UpdateTracker(
+                [command], sent_s=now, timeout_s=self.config.link.command_timeout_s
+            )
+            self._emit(actions, [command], inflight.attempt)
+            return
+        self._resolve_update(actions, inflight, now)
+
+    def _resolve_update(
+        self, actions: list[Action], inflight: _InFlight, now: float, *, unknown: str = ""
+    ) -> None:
+        """Every command of the update has its verdict (or ``unknown`` says why not)."""
+        self._inflight = None
+        joint_of = {o: i for i, o in enumerate(self._outputs)}
+        for output, pwm in inflight.accepted.items():
+            self._acked_pwm[output] = pwm
+            self._refused.pop(output, None)
+            self._position[joint_of[output]] = inflight.step_deg[joint_of[output]]
+        settled = set(inflight.accepted) | set(inflight.refused)
+        for output in inflight.sent_outputs - settled:
+            self._acked_pwm.pop(output, None)
+        timing = {"first_out_s": inflight.sent_s, "acked_s": now}
+        if inflight.refused:
+            self._unconfirmed = None
+            self._unanswered = 0
+            self._refused.update(inflight.refused)
+            self.counters["refused_outputs"] += len(inflight.refused)
+            reason = "; ".join(
+                f"servo output {o} refused by the autopilot: {why}"
+                for o, why in sorted(inflight.refused.items())
+            )
+            hint = " ".join(
+                f"Set SERVO{o}_FUNCTION = 0 on the flight controller."
+                for o in sorted(inflight.refused)
+                if self.config.link.dialect == "ardupilot"
+            )
+            log.error("%s; motion stopped. %s", reason, hint)
+            for w in inflight.waiting:
+                self._answer(actions, w.request, Reply(Outcome.FAILED, f"{reason}. {hint}".strip()))
+            self._fail_motion(actions, reason)
+            return
+        if not unknown:
+            self._unconfirmed = None
+            self._unanswered = 0
+            self._record_first_out(timing)
+            for w in inflight.waiting:
+                reply = w.reply
+                if reply.timing is not None:
+                    reply = dataclasses.replace(reply, timing={**reply.timing, **timing})
+                self._answer(actions, w.request, reply)
+            self._maybe_send(actions, immediate=True)
+            return
+        # Some outputs may or may not have moved: that step is re-sent before moving on.
+        self._unconfirmed = inflight.step_deg
+        self.counters["servo_errors"] += 1
+        self._unanswered += 1
+        message = f"servo update unanswered: {unknown}"
+        if inflight.waiting or self._unanswered >= UPDATE_ATTEMPTS:
+            log.error("%s; motion stopped", message)
+            for w in inflight.waiting:
+                self._answer(actions, w.request, Reply(Outcome.FAILED, message))
+            self._fail_motion(actions, message)
+            self._unanswered = 0
+        else:
+            log.warning(
+                "%s (%d of %d), trying again on the next tick",
+                message,
+                self._unanswered,
+                UPDATE_ATTEMPTS,
+            )
+
+    def _fail_motion(self, actions: list[Action], reason: str) -> None:
+        self._stop_motion(actions, Reply(Outcome.FAILED, f"motion stopped: {reason}"))
+
+    def _record_first_out(self, timing: dict[str, float]) -> None:
+        last = self.last_target
+        if last is not None and "first_out_s" not in last["timing"]:
+            self.last_target = {**last, "timing": {**last["timing"], **timing}}
+
+    # -- the autopilot ----------------------------------------------------------------------
+
+    def _pin(self, source: tuple[int, int]) -> None:
+        if all(want in (None, got) for want, got in zip(self._pin_config, source, strict=True)):
+            self._pinned = source
+            log.info("autopilot %d/%d pinned", *source)
+
+    def _set_link(self, actions: list[Action], up: bool) -> None:
+        if up == self._link_up:
+            return
+        self._link_up = up
+        if not up:
+            log.warning("autopilot link lost: holding, no servo commands")
+            self._lose_outputs(actions, "autopilot link lost")
+        else:
+            if self._last_step_s > -math.inf:
+                log.info("autopilot link up: re-sending every output before moving on")
+            self._ask_system_time(actions)
+
+    def _lose_outputs(self, actions: list[Action], reason: str) -> None:
+        """The autopilot's outputs are unknown (link lost, reboot): re-send them all at the
+        acknowledged pose before moving on; targets waiting are TEMPORARILY_REJECTED."""
+        inflight, self._inflight = self._inflight, None
+        rejected = Reply(Outcome.TEMPORARILY_REJECTED, reason)
+        for w in (inflight.waiting if inflight else []) + self._waiting:
+            self._answer(actions, w.request, rejected)
+        self._waiting.clear()
+        self._acked_pwm.clear()
+        if inflight is not None or self._last_step_s > -math.inf:
+            self._unconfirmed = tuple(self._position)
+
+    def _ask_system_time(self, actions: list[Action]) -> None:
+        if self._pinned is None:
+            return
+        self._system_time_asked_s = self.clock()
+        actions.append(
+            SendCommand(
+                self._pinned,
+                mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                (
+                    float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME),
+                    SYSTEM_TIME_INTERVAL_S * 1e6,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                    0.0,
+                ),
+            )
+        )
+
+    def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
+        previous = self._boot_ms
+        self._boot_ms = boot_ms
+        self._system_time_s = self.clock()
+        if previous is not None and boot_ms + REBOOT_BACKSTEP_MS < previous:
+            self.counters["autopilot_reboots"] += 1
+            log.warning(
+                "autopilot rebooted (time_boot_ms %d → %d): re-sending every output",
+                previous,
+                boot_ms,
+            )
+            self._lose_outputs(actions, "autopilot rebooted")
+            self._ask_system_time(actions)
+
+    def _watch_system_time(self, actions: list[Action], now: float) -> None:
+        heard = self._system_time_s
+        if now - self._system_time_asked_s < SYSTEM_TIME_SILENT_S:
+            return
+        if heard is None:
+            if now - self._system_time_asked_s >= 5 * SYSTEM_TIME_SILENT_S:
+                self._ask_system_time(actions)  # never answered yet: ask now and then
+            return
+        if now - heard < SYSTEM_TIME_SILENT_S:
+            return
+        # The stream stopped while the autopilot still beats: it may have rebooted and
+        # forgotten the interval. Ask again, and take no output for granted meanwhile: the
+        # next update re-sends them all.
+        log.info("SYSTEM_TIME stopped: asking again; every output will be re-sent")
+        self._system_time_s = None
+        self._acked_pwm.clear()
+        self._ask_system_time(actions)
+
+    # -- answers and status -----------------------------------------------------------------
+
+    def _answer(self, actions: list[Action], request: Request, reply: Reply) -> None:
+        actions.append(Answer(request, reply))
+        if request.kind != "stop":
+            self.counters[reply.outcome.value] += 1
+
+    def status(self) -> dict[str, Any]:
+        """A JSON-ready snapshot (build it on the driving thread)."""
+        outputs = {}
+        for output in self._outputs:
+            if output in self._refused:
+                state: dict[str, Any] = {"state": "refused", "reason": self._refused[output]}
+            elif output in self._acked_pwm:
+                state = {"state": "acknowledged"}
+            else:
+                state = {"state": "unknown"}
+            outputs[output] = {"pwm_us": self._acked_pwm.get(output), **state}
+        position = tuple(self._position)
+        return {
+            "autopilot": list(self._pinned) if self._pinned else None,
+            "holding": not self._link_up and self._last_step_s > -math.inf,
+            "current_deg": list(position),
+            "goal_deg": list(self._goal) if self._goal is not None else None,
+            "moving": self._inflight is not None
+            or (self._goal is not None and (self._goal != position or not self._settled())),
+            "last_pwm_us": dict(self._acked_pwm) or None,
+            "outputs": outputs,
+            "last_target": self.last_target,
+            "trajectory_points_left": len(self._trajectory),
+            "counters": dict(self.counters),
+        }
