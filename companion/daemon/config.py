@@ -26,8 +26,48 @@ from firmware_interface import (
     SigningConfig,
     parse_url,
 )
+from firmware_interface.calibration import (
+    ANGLE_LIMIT_DEG,
+    OUTPUT_MAX,
+    OUTPUT_MIN,
+    PWM_LIMIT_MAX_US,
+    PWM_LIMIT_MIN_US,
+)
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
+
+# -- Bounds of the numbers, each with its physical reason (also in the example config and the
+# README). A bound is (min, max); None for min means "> 0".
+
+#: The control loop's rate. 1 Hz: the service counts itself healthy while it ticked within
+#: 2 / rate_hz + 1 s, which must stay inside the shipped unit's WatchdogSec=5: 3 s at 1 Hz,
+#: 5 s at 0.5 Hz.
+#: 400 Hz: ArduPilot's copter main loop (SCHED_LOOP_RATE) and a digital servo's frame rate;
+#: updates faster than that are never executed (and the serial link tops out near it, README).
+RATE_HZ = (1.0, 400.0)
+#: The autopilot's HEARTBEAT comes at 1 Hz: below 2 s one lost or late heartbeat would be
+#: taken for a lost link (and stop the arm). Above 60 s the arm keeps commanding a dead link.
+LOSS_TIMEOUT_S = (2.0, 60.0)
+#: No ACK comes back in under a millisecond, even on loopback; 60 s is past any radio's delay.
+COMMAND_TIMEOUT_S = (0.001, 60.0)
+#: Resends after the first attempt of one servo command.
+COMMAND_RETRIES = (0, 10)
+#: The control thread waits on one command's ACK for at most (retries + 1) × command_timeout_s;
+#: meanwhile it neither ticks nor holds. Over a minute it is hung, whatever each number says.
+COMMAND_WAIT_MAX_S = 60.0
+#: The solve runs on the control thread (no tick meanwhile), and a target on a flying drone
+#: that takes over a second to solve is stale.
+BUDGET_MS = (None, 1000.0)
+#: 1e-6 cm and 1e-6 deg sit far above float64 FK noise (~1e-12) and far below what a 1 µs PWM
+#: step moves the hand (~0.1 cm, 0.18 deg). 10 cm is the size of a hand: farther off, the arm
+#: is not at the target; 180 deg is the largest orientation error there is (position only).
+TOL_POS_CM = (1e-6, 10.0)
+TOL_ORI_DEG = (1e-6, 180.0)
+#: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing.
+JOINT_SPEED_DEG_S = (None, 1000.0)
+#: A trim corrects a horn's mounting (one spline tooth is 80-130 us); past 500 us, half a
+#: standard 1000-2000 us servo's travel, it is a different calibration: set pwm_min/max_us.
+TRIM_US_MAX = 500
 
 
 @dataclass(frozen=True)
@@ -39,6 +79,7 @@ class LinkSettings:
     system_id: int | None = None
     component_id: int = 191
     target_system: int | None = None
+    target_component: int | None = None
     loss_timeout_s: float = 3.0
     command_timeout_s: float = 0.5
     command_retries: int = 2
@@ -71,6 +112,7 @@ _LINK_KEYS = (
     "system_id",
     "component_id",
     "target_system",
+    "target_component",
     "loss_timeout_s",
     "command_timeout_s",
     "command_retries",
@@ -122,21 +164,27 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
 
     solver = root.table("solver", allowed=_SOLVER_KEYS)
     control = root.table("control", allowed=_CONTROL_KEYS)
+    calibration = _parse_calibration(root, arm)
     return DaemonConfig(
         source=source,
         link=link,
         arm=arm,
-        calibration=_parse_calibration(root, arm),
-        budget_ms=solver.number("budget_ms", 20.0, positive=True, max_value=10_000),
-        tol_pos_cm=solver.number("tol_pos_cm", 0.01, positive=True),
-        tol_ori_deg=solver.number("tol_ori_deg", 0.1, positive=True),
+        calibration=calibration,
+        budget_ms=_bounded(solver, "budget_ms", 20.0, BUDGET_MS),
+        tol_pos_cm=_bounded(solver, "tol_pos_cm", 0.01, TOL_POS_CM),
+        tol_ori_deg=_bounded(solver, "tol_ori_deg", 0.1, TOL_ORI_DEG),
         seed=solver.integer("seed", min_value=0) if "seed" in solver else None,
-        rate_hz=control.number("rate_hz", 20.0, positive=True, max_value=500),
-        joint_speed_deg_s=arm_table.number("joint_speed_deg_s", 60.0, positive=True),
+        rate_hz=_bounded(control, "rate_hz", 20.0, RATE_HZ),
+        joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
         control_socket=_socket_path(control) if "socket" in control else None,
     )
+
+
+def _bounded(t: Table, key: str, default: float, bounds: tuple[float | None, float]) -> float:
+    low, high = bounds
+    return t.number(key, default, min_value=low, max_value=high, positive=low is None)
 
 
 # A Unix socket's path must fit sockaddr_un.sun_path (108 bytes on Linux, with its NUL).
@@ -174,19 +222,35 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
             raise t.fail("signing_key", str(exc)) from exc
     elif "signing_state" in t or "signing_link_id" in t:
         raise t.fail("signing_key", "missing: signing_state / signing_link_id need a key")
+    command_timeout_s = _bounded(t, "command_timeout_s", 0.5, COMMAND_TIMEOUT_S)
+    command_retries = t.integer(
+        "command_retries", 2, min_value=COMMAND_RETRIES[0], max_value=COMMAND_RETRIES[1]
+    )
+    wait_s = (command_retries + 1) * command_timeout_s
+    if wait_s > COMMAND_WAIT_MAX_S:
+        raise t.fail(
+            "command_timeout_s",
+            f"(command_retries + 1) x command_timeout_s = {command_retries + 1} x "
+            f"{command_timeout_s:g} s = {wait_s:g} s outside (0, {COMMAND_WAIT_MAX_S:g}] s: "
+            "the control thread waits that long on one unanswered servo command",
+        )
     return LinkSettings(
         url=url,
         dialect=t.string("dialect", "ardupilot", choices=tuple(SERVO_DIALECTS)),
-        system_id=t.integer("system_id", min_value=1, max_value=255) if "system_id" in t else None,
+        system_id=_mavlink_id(t, "system_id"),
         component_id=t.integer("component_id", 191, min_value=1, max_value=255),
-        target_system=(
-            t.integer("target_system", min_value=1, max_value=255) if "target_system" in t else None
-        ),
-        loss_timeout_s=t.number("loss_timeout_s", 3.0, positive=True),
-        command_timeout_s=t.number("command_timeout_s", 0.5, positive=True),
-        command_retries=t.integer("command_retries", 2, min_value=0, max_value=10),
+        target_system=_mavlink_id(t, "target_system"),
+        target_component=_mavlink_id(t, "target_component"),
+        loss_timeout_s=_bounded(t, "loss_timeout_s", 3.0, LOSS_TIMEOUT_S),
+        command_timeout_s=command_timeout_s,
+        command_retries=command_retries,
         signing=signing,
     )
+
+
+def _mavlink_id(t: Table, key: str) -> int | None:
+    """An optional MAVLink system or component id, 1-255 (absent: learned from the link)."""
+    return t.integer(key, min_value=1, max_value=255) if key in t else None
 
 
 def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
@@ -203,20 +267,31 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
             for i, o in enumerate(DEFAULT_OUTPUTS, start=1)
         ]
     joints = []
-    for row, arm_joint in zip(rows, arm.joints, strict=True):
-        lo = math.degrees(arm_joint.min_rad)
-        hi = math.degrees(arm_joint.max_rad)
+    for index, (row, arm_joint) in enumerate(zip(rows, arm.joints, strict=True)):
+        lo, hi = _limits_deg(arm, index)
+        angle_min_deg = row.number(
+            "angle_min_deg", lo, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG
+        )
+        angle_max_deg = row.number(
+            "angle_max_deg", hi, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG
+        )
         try:
             joints.append(
                 JointCalibration(
                     name=row.string("name", arm_joint.name),
-                    output=row.integer("output", min_value=1, max_value=16),
-                    angle_min_deg=row.number("angle_min_deg", lo),
-                    angle_max_deg=row.number("angle_max_deg", hi),
-                    pwm_min_us=row.integer("pwm_min_us", 1000),
-                    pwm_max_us=row.integer("pwm_max_us", 2000),
+                    output=row.integer("output", min_value=OUTPUT_MIN, max_value=OUTPUT_MAX),
+                    angle_min_deg=angle_min_deg,
+                    angle_max_deg=angle_max_deg,
+                    pwm_min_us=row.integer(
+                        "pwm_min_us", 1000, min_value=PWM_LIMIT_MIN_US, max_value=PWM_LIMIT_MAX_US
+                    ),
+                    pwm_max_us=row.integer(
+                        "pwm_max_us", 2000, min_value=PWM_LIMIT_MIN_US, max_value=PWM_LIMIT_MAX_US
+                    ),
                     reversed=row.boolean("reversed", False),
-                    trim_us=row.integer("trim_us", 0),
+                    trim_us=row.integer(
+                        "trim_us", 0, min_value=-TRIM_US_MAX, max_value=TRIM_US_MAX
+                    ),
                 )
             )
         except FirmwareInterfaceError as exc:
@@ -234,3 +309,9 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         return ArmCalibration(tuple(joints))
     except FirmwareInterfaceError as exc:
         raise root.fail("joint", str(exc)) from exc
+
+
+def _limits_deg(arm: Arm, index: int) -> tuple[float, float]:
+    """Joint ``index``'s limits in degrees, exactly as the solver's answers reach them."""
+    joint = arm.joints[index]
+    return math.degrees(joint.min_rad), math.degrees(joint.max_rad)

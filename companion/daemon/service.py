@@ -138,6 +138,7 @@ class ArmDaemon:
                 system_id=s.system_id,
                 component_id=s.component_id,
                 target_system=s.target_system,
+                target_component=s.target_component,
                 loss_timeout_s=s.loss_timeout_s,
                 signing=s.signing,
             ),

@@ -7,6 +7,7 @@ command, the way a real autopilot forwards it to its companion.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
 
@@ -354,15 +355,13 @@ def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
     """Targets that arrive while an update is under way are all answered, but only the latest
     goal is sent, in one update: a flood of targets never becomes a flood of servo updates."""
     endpoint, peer = autopilot
-    daemon = ArmDaemon(
-        parse_config(
-            {
-                "link": {"url": f"udpout:127.0.0.1:{endpoint.port}", "loss_timeout_s": 30.0},
-                "arm": {"joint_speed_deg_s": 36_000.0},
-                "control": {"rate_hz": 0.2},  # no regular tick during the test
-            }
-        )
+    config = parse_config(
+        {"link": {"url": f"udpout:127.0.0.1:{endpoint.port}", "loss_timeout_s": 30.0}}
     )
+    # Past the config's bounds ([1, 400] Hz, 1000 deg/s), which load_config would refuse, on
+    # purpose: no regular tick during the test and no speed limit on a step, so the only
+    # updates are the ones the coalescing decides. ArmDaemon takes any DaemonConfig.
+    daemon = ArmDaemon(dataclasses.replace(config, rate_hz=0.2, joint_speed_deg_s=36_000.0))
     daemon.start()
     try:
         assert peer.wait_for(lambda: endpoint.peer is not None)

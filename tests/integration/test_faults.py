@@ -13,6 +13,7 @@ measured figures are printed (``pytest -s`` shows them).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import time
@@ -46,9 +47,12 @@ def config_dict(url: str, **link) -> dict:
 
 
 def start_daemon(url: str, *, joint_speed_deg_s: float = 360.0, **link) -> ArmDaemon:
-    cfg = config_dict(url, **link)
-    cfg["arm"]["joint_speed_deg_s"] = joint_speed_deg_s
-    daemon = ArmDaemon(parse_config(cfg))
+    # The speed is set after parsing: a test may go past the config's 1000 deg/s bound, which
+    # load_config would refuse, to make every move a single servo update.
+    config = dataclasses.replace(
+        parse_config(config_dict(url, **link)), joint_speed_deg_s=joint_speed_deg_s
+    )
+    daemon = ArmDaemon(config)
     # As `armbridge run` does before READY: a first solve that compiles or loads the kernels
     # would overrun its 20 ms budget and fail a reachable target.
     warm_up()
