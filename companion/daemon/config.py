@@ -33,6 +33,7 @@ from firmware_interface.calibration import (
     PWM_LIMIT_MAX_US,
     PWM_LIMIT_MIN_US,
 )
+from firmware_interface.errors import CalibrationError, PwmOutOfRange
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
 
@@ -165,6 +166,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
     solver = root.table("solver", allowed=_SOLVER_KEYS)
     control = root.table("control", allowed=_CONTROL_KEYS)
     calibration = _parse_calibration(root, arm)
+    _check_pwm_covers_arm(source, arm, calibration, park)
     return DaemonConfig(
         source=source,
         link=link,
@@ -269,11 +271,13 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
     joints = []
     for index, (row, arm_joint) in enumerate(zip(rows, arm.joints, strict=True)):
         lo, hi = _limits_deg(arm, index)
-        angle_min_deg = row.number(
-            "angle_min_deg", lo, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG
+        angle_min_deg = _arm_limit_if_equal(
+            row.number("angle_min_deg", lo, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG),
+            lo,
         )
-        angle_max_deg = row.number(
-            "angle_max_deg", hi, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG
+        angle_max_deg = _arm_limit_if_equal(
+            row.number("angle_max_deg", hi, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG),
+            hi,
         )
         try:
             joints.append(
@@ -299,9 +303,9 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         cal = joints[-1]
         # The calibrated range must cover the arm's limits: the solver may return any angle in
         # them, and an angle the calibration refuses would stop the arm mid-motion.
-        if cal.angle_min_deg > lo + 1e-9 or cal.angle_max_deg < hi - 1e-9:
+        if cal.angle_min_deg > lo or cal.angle_max_deg < hi:
             raise row.fail(
-                "angle_min_deg" if cal.angle_min_deg > lo + 1e-9 else "angle_max_deg",
+                "angle_min_deg" if cal.angle_min_deg > lo else "angle_max_deg",
                 f"calibrated [{cal.angle_min_deg:g}, {cal.angle_max_deg:g}] deg must cover the "
                 f"arm's joint limits [{lo:g}, {hi:g}] for {arm_joint.name}",
             )
@@ -315,3 +319,44 @@ def _limits_deg(arm: Arm, index: int) -> tuple[float, float]:
     """Joint ``index``'s limits in degrees, exactly as the solver's answers reach them."""
     joint = arm.joints[index]
     return math.degrees(joint.min_rad), math.degrees(joint.max_rad)
+
+
+def _arm_limit_if_equal(angle_deg: float, limit_deg: float) -> float:
+    """The arm's limit for a calibrated angle equal to it but for the degrees → radians →
+    degrees round trip (-127 comes back as -127.00000000000001): otherwise the solver's answer
+    at that limit would fall an ulp outside the calibration and be refused mid-motion."""
+    return limit_deg if abs(angle_deg - limit_deg) <= 1e-9 else angle_deg
+
+
+def _check_pwm_covers_arm(
+    source: str, arm: Arm, calibration: ArmCalibration, park_deg: tuple[float, ...] | None
+) -> None:
+    """Every joint's limits (both ends) and park angle must map, through that joint's own
+    :meth:`~firmware_interface.JointCalibration.angle_to_pwm_us` (reversal and trim included),
+    into its [pwm_min_us, pwm_max_us]: the function that gates every PWM the daemon sends, so
+    this check and the running daemon cannot disagree. The mapping is monotonic: the two ends
+    prove every angle between them. A calibration that covers the arm maps inside untrimmed;
+    a trim is what pushes an end out, so ``joint[N].trim_us`` is the field named."""
+    for index, cal in enumerate(calibration.joints):
+        lo, hi = _limits_deg(arm, index)
+        angles = [
+            (f"the arm's lower limit {lo:g} deg", lo),
+            (f"the arm's upper limit {hi:g} deg", hi),
+        ]
+        if park_deg is not None:
+            angles.append((f"arm.park_deg[{index}]={park_deg[index]:g} deg", park_deg[index]))
+        for what, angle in angles:
+            try:
+                cal.angle_to_pwm_us(angle)
+            except PwmOutOfRange:
+                raise ConfigError(
+                    source,
+                    f"joint[{index + 1}].trim_us" if cal.trim_us else f"joint[{index + 1}]",
+                    f"trim_us={cal.trim_us} maps {what} (joint {cal.name!r}, "
+                    f"{'reversed, ' if cal.reversed else ''}output {cal.output}) to "
+                    f"{cal.mapped_pwm_us(angle)} µs, outside [{cal.pwm_min_us}, "
+                    f"{cal.pwm_max_us}] µs; a trim needs a calibrated angle range wider than "
+                    "the arm's limits",
+                ) from None
+            except CalibrationError as exc:  # only a park angle within 1e-9 deg past a limit
+                raise ConfigError(source, "arm.park_deg", f"[{index}]: {exc}") from exc

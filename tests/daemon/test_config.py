@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from importlib import resources
 
 import pytest
@@ -241,3 +242,71 @@ def test_target_component_pins_the_autopilot_component(tmp_path):
     assert text != EXAMPLE
     assert load_config(write(tmp_path, text)).link.target_component == 1
     assert load_config(write(tmp_path, EXAMPLE)).link.target_component is None
+
+
+# -- the calibration covers the arm: limits and park map into each servo's PWM range -----------
+
+
+def joints(**theta2):
+    """Six default [[joint]] rows, the second (theta2: 0…180 deg) with ``theta2`` set."""
+    rows = [{"output": 9 + i} for i in range(6)]
+    rows[1].update(theta2)
+    return rows
+
+
+def test_the_reviews_trim_with_park_at_170_is_refused_naming_trim_angle_pwm_and_range():
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(trim_us=100), arm={"park_deg": [0, 170, 0, 0, 0, 0]}))
+    assert info.value.field == "joint[2].trim_us"
+    message = str(info.value)
+    assert "upper limit 180 deg" in message and "2100 µs" in message
+    assert "outside [1000, 2000] µs" in message
+
+
+def test_reversal_is_applied_before_the_check():
+    # Reversed, 180 deg maps to 1000 us: a negative trim pushes that end out, not the other.
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(reversed=True, trim_us=-1)))
+    assert info.value.field == "joint[2].trim_us"
+    assert "upper limit 180 deg" in str(info.value) and "reversed" in str(info.value)
+    assert "999 µs" in str(info.value)
+    with pytest.raises(ConfigError, match="lower limit 0 deg"):
+        parse_config(config(joint=joints(reversed=True, trim_us=1)))
+
+
+def test_a_trim_fits_once_the_calibrated_range_leaves_room_for_it():
+    # theta2 calibrated over [-18, 198] deg: its limits 0 and 180 map to 1083.3 and 1916.7 us,
+    # so a trim of up to +83 us keeps 180 deg at 2000 us or below; +84 is 2001 us.
+    wide = {"angle_min_deg": -18, "angle_max_deg": 198}
+    cfg = parse_config(config(joint=joints(**wide, trim_us=83)))
+    assert cfg.calibration.joints[1].angle_to_pwm_us(180.0) == 2000
+    assert parse_config(config(joint=joints(**wide, trim_us=-83))).calibration
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(**wide, trim_us=84)))
+    assert info.value.field == "joint[2].trim_us" and "2001 µs" in str(info.value)
+    with pytest.raises(ConfigError, match="lower limit 0 deg .* 999 µs"):
+        parse_config(config(joint=joints(**wide, trim_us=-84)))
+
+
+def test_a_calibrated_limit_equal_to_the_arms_but_for_the_radian_round_trip(tmp_path):
+    # The arm stores -127 deg as radians: math.degrees brings back -127.00000000000001, and that
+    # is what the solver answers at the limit. A calibration written as -127 must map it.
+    assert math.degrees(math.radians(-127)) < -127 < 127 < math.degrees(math.radians(127))
+    arm = ['convention = "standard"', 'length_unit = "cm"', "dof = 1"]
+    arm += ["[[joint]]", "alpha_deg = 0", "a = 10", "d = 0", "min_deg = -127", "max_deg = 127"]
+    (tmp_path / "one.toml").write_text("\n".join(arm) + "\n")
+    text = (
+        f'[link]\nurl = "{URL}"\n[arm]\nfile = "one.toml"\n'
+        "[[joint]]\noutput = 9\nangle_min_deg = -127\nangle_max_deg = 127\n"
+    )
+    cfg = load_config(write(tmp_path, text))
+    joint, cal = cfg.arm.joints[0], cfg.calibration.joints[0]
+    assert cal.angle_to_pwm_us(math.degrees(joint.min_rad)) == 1000
+    assert cal.angle_to_pwm_us(math.degrees(joint.max_rad)) == 2000
+
+
+def test_every_default_end_maps_exactly_onto_the_servo_range():
+    cfg = parse_config(config())
+    for joint, cal in zip(cfg.arm.joints, cfg.calibration.joints, strict=True):
+        ends = (math.degrees(joint.min_rad), math.degrees(joint.max_rad))
+        assert [cal.angle_to_pwm_us(a) for a in ends] == [1000, 2000]

@@ -845,7 +845,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "joint.angle_min_deg": ("number", (361.0, -361.0, 100.0, 1e308)),
     "joint.angle_max_deg": ("number", (361.0, -361.0, -100.0, 5.0)),
     "joint.reversed": ("bool", ()),
-    "joint.trim_us": ("integer", (501, -501, 2**31)),
+    # Any trim: the example calibrates exactly the arm's limits, so a trimmed end leaves the
+    # servo's range (joint[N].trim_us names it).
+    "joint.trim_us": ("integer", (501, -501, 2**31, 1, -1, 100)),
 }
 
 #: Fields that only mean something next to another; the case adds what they need.
