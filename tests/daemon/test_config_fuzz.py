@@ -4,6 +4,8 @@ knows, makes ``armbridge check-config`` exit 2 with a message naming the file an
 
 The cases come from ``tests/support/campaign.py`` (``config_cases``), which enumerates the fields
 from ``companion.daemon.config``'s own key lists: a new field without a fuzz entry fails here.
+At the end, a hypothesis property: whatever ``parse_config`` accepts maps the arm's whole range
+and park into every servo's PWM range.
 """
 
 from __future__ import annotations
