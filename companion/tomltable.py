@@ -38,6 +38,16 @@ def load_toml(path: str | Path, error: type[ConfigError] = ConfigError) -> dict[
         raise error(str(path), "<file>", "not valid TOML: nested too deeply") from exc
 
 
+def _range_text(min_value: float | None, max_value: float | None, *, positive: bool = False) -> str:
+    """``[1, 400]``, ``(0, 60]`` (``positive``, no lower bound of its own), ``[0, inf)``."""
+    if positive and (min_value is None or min_value <= 0):
+        low = "(0"
+    else:
+        low = "(-inf" if min_value is None else f"[{min_value:g}"
+    high = "inf)" if max_value is None else f"{max_value:g}]"
+    return f"{low}, {high}"
+
+
 class Table:
     """One table of a config file; ``prefix`` is its dotted name (``""`` for the root)."""
 
@@ -90,20 +100,26 @@ class Table:
         max_value: float | None = None,
         positive: bool = False,
     ) -> float:
-        """A finite number, optionally within ``[min_value, max_value]`` or ``> 0``."""
+        """A finite number, optionally within ``[min_value, max_value]``; ``positive``: ``> 0``.
+
+        Out of range, the message gives the value and the whole allowed range, e.g.
+        ``1e-10 outside [1, 400]`` or ``0 outside (0, 1000]``.
+        """
         value = self._get(key, default)
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.fail(key, f"must be a number, got {value!r}")
         if not math.isfinite(value):
             raise self.fail(key, f"must be a finite number, got {value!r}")
-        if positive and not value > 0:
-            raise self.fail(key, f"{value!r} must be > 0")
-        if (min_value is not None and value < min_value) or (
-            max_value is not None and value > max_value
+        if (
+            (positive and not value > 0)
+            or (min_value is not None and value < min_value)
+            or (max_value is not None and value > max_value)
         ):
-            lo = "-inf" if min_value is None else f"{min_value:g}"
-            hi = "inf" if max_value is None else f"{max_value:g}"
-            raise self.fail(key, f"{value!r} outside [{lo}, {hi}]")
+            if positive and min_value is None and max_value is None:
+                raise self.fail(key, f"{value!r} must be > 0")
+            raise self.fail(
+                key, f"{value!r} outside {_range_text(min_value, max_value, positive=positive)}"
+            )
         return float(value)
 
     def integer(
@@ -120,7 +136,7 @@ class Table:
         if (min_value is not None and value < min_value) or (
             max_value is not None and value > max_value
         ):
-            raise self.fail(key, f"{value!r} outside [{min_value}, {max_value}]")
+            raise self.fail(key, f"{value!r} outside {_range_text(min_value, max_value)}")
         return value
 
     def string(self, key: str, default: Any = _MISSING, *, choices: Sequence[str] = ()) -> str:

@@ -164,15 +164,21 @@ class JointCalibration:
 
     def angle_to_pwm_us(self, angle_deg: float) -> int:
         """Convert a joint angle (degrees) to the integer PWM (µs) for this joint's output."""
+        pwm_us = self.mapped_pwm_us(angle_deg)
+        # Only a trim can push an in-range angle past the servo's limits: refuse, don't clamp.
+        self.check_pwm_us(pwm_us)
+        return pwm_us
+
+    def mapped_pwm_us(self, angle_deg: float) -> int:
+        """The integer PWM (µs) ``angle_deg`` maps to, reversal and trim included, *before* the
+        servo-range check. Only for saying how far out a refused PWM is: what is sent goes
+        through :meth:`angle_to_pwm_us`. The angle is checked as there."""
         angle = self.check_angle_deg(angle_deg)
         fraction = (angle - self.angle_min_deg) / (self.angle_max_deg - self.angle_min_deg)
         if self.reversed:
             fraction = 1.0 - fraction
         exact_us = self.pwm_min_us + fraction * (self.pwm_max_us - self.pwm_min_us) + self.trim_us
-        pwm_us = round_half_up_us(exact_us)
-        # Only a trim can push an in-range angle past the servo's limits: refuse, don't clamp.
-        self.check_pwm_us(pwm_us)
-        return pwm_us
+        return round_half_up_us(exact_us)
 
     def pwm_us_to_angle_deg(self, pwm_us: float) -> float:
         """Convert a PWM (µs, within the servo's range) back to the joint angle in degrees.

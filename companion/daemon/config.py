@@ -26,8 +26,50 @@ from firmware_interface import (
     SigningConfig,
     parse_url,
 )
+from firmware_interface.calibration import (
+    ANGLE_LIMIT_DEG,
+    OUTPUT_MAX,
+    OUTPUT_MIN,
+    PWM_LIMIT_MAX_US,
+    PWM_LIMIT_MIN_US,
+)
+from firmware_interface.errors import CalibrationError, PwmOutOfRange
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
+
+# -- Bounds of the numbers, each with its physical reason (also in the example config and the
+# README). A bound is (min, max); None for min means "> 0".
+
+#: The control loop's rate. 1 Hz: the service counts itself healthy while it ticked within
+#: 2 / rate_hz + 1 s, which must stay inside the shipped unit's WatchdogSec=5: 3 s at 1 Hz,
+#: 5 s at 0.5 Hz.
+#: 400 Hz: ArduPilot's copter main loop (SCHED_LOOP_RATE) and a digital servo's frame rate;
+#: updates faster than that are never executed (and the serial link tops out near it, README).
+RATE_HZ = (1.0, 400.0)
+#: The autopilot's HEARTBEAT comes at 1 Hz: below 2 s one lost or late heartbeat would be
+#: taken for a lost link (and stop the arm). Above 60 s the arm keeps commanding a dead link.
+LOSS_TIMEOUT_S = (2.0, 60.0)
+#: No ACK comes back in under a millisecond, even on loopback; 60 s is past any radio's delay.
+COMMAND_TIMEOUT_S = (0.001, 60.0)
+#: Resends after the first attempt of one servo command.
+COMMAND_RETRIES = (0, 10)
+#: One servo command is given up after (retries + 1) × command_timeout_s, and a target waiting on
+#: it is answered no later: over a minute, its sender (and the watchdog of whoever waits) has
+#: long given up, whatever each number says.
+COMMAND_WAIT_MAX_S = 60.0
+#: The solve runs on the control thread (no tick meanwhile), and a target on a flying drone
+#: that takes over a second to solve is stale.
+BUDGET_MS = (None, 1000.0)
+#: 1e-6 cm and 1e-6 deg sit far above float64 FK noise (~1e-12) and far below what a 1 µs PWM
+#: step moves the hand (~0.1 cm, 0.18 deg). 10 cm is the size of a hand: farther off, the arm
+#: is not at the target; 180 deg is the largest orientation error there is (position only).
+TOL_POS_CM = (1e-6, 10.0)
+TOL_ORI_DEG = (1e-6, 180.0)
+#: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing.
+JOINT_SPEED_DEG_S = (None, 1000.0)
+#: A trim corrects a horn's mounting (one spline tooth is 80-130 us); past 500 us, half a
+#: standard 1000-2000 us servo's travel, it is a different calibration: set pwm_min/max_us.
+TRIM_US_MAX = 500
 
 
 @dataclass(frozen=True)
@@ -72,6 +114,7 @@ _LINK_KEYS = (
     "system_id",
     "component_id",
     "target_system",
+    "target_component",
     "loss_timeout_s",
     "command_timeout_s",
     "command_retries",
@@ -123,21 +166,28 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
 
     solver = root.table("solver", allowed=_SOLVER_KEYS)
     control = root.table("control", allowed=_CONTROL_KEYS)
+    calibration = _parse_calibration(root, arm)
+    _check_pwm_covers_arm(source, arm, calibration, park)
     return DaemonConfig(
         source=source,
         link=link,
         arm=arm,
-        calibration=_parse_calibration(root, arm),
-        budget_ms=solver.number("budget_ms", 20.0, positive=True, max_value=10_000),
-        tol_pos_cm=solver.number("tol_pos_cm", 0.01, positive=True),
-        tol_ori_deg=solver.number("tol_ori_deg", 0.1, positive=True),
+        calibration=calibration,
+        budget_ms=_bounded(solver, "budget_ms", 20.0, BUDGET_MS),
+        tol_pos_cm=_bounded(solver, "tol_pos_cm", 0.01, TOL_POS_CM),
+        tol_ori_deg=_bounded(solver, "tol_ori_deg", 0.1, TOL_ORI_DEG),
         seed=solver.integer("seed", min_value=0) if "seed" in solver else None,
-        rate_hz=control.number("rate_hz", 20.0, positive=True, max_value=500),
-        joint_speed_deg_s=arm_table.number("joint_speed_deg_s", 60.0, positive=True),
+        rate_hz=_bounded(control, "rate_hz", 20.0, RATE_HZ),
+        joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
         control_socket=_socket_path(control) if "socket" in control else None,
     )
+
+
+def _bounded(t: Table, key: str, default: float, bounds: tuple[float | None, float]) -> float:
+    low, high = bounds
+    return t.number(key, default, min_value=low, max_value=high, positive=low is None)
 
 
 # A Unix socket's path must fit sockaddr_un.sun_path (108 bytes on Linux, with its NUL).
@@ -175,19 +225,35 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
             raise t.fail("signing_key", str(exc)) from exc
     elif "signing_state" in t or "signing_link_id" in t:
         raise t.fail("signing_key", "missing: signing_state / signing_link_id need a key")
+    command_timeout_s = _bounded(t, "command_timeout_s", 0.5, COMMAND_TIMEOUT_S)
+    command_retries = t.integer(
+        "command_retries", 2, min_value=COMMAND_RETRIES[0], max_value=COMMAND_RETRIES[1]
+    )
+    wait_s = (command_retries + 1) * command_timeout_s
+    if wait_s > COMMAND_WAIT_MAX_S:
+        raise t.fail(
+            "command_timeout_s",
+            f"(command_retries + 1) x command_timeout_s = {command_retries + 1} x "
+            f"{command_timeout_s:g} s = {wait_s:g} s outside (0, {COMMAND_WAIT_MAX_S:g}] s: "
+            "a target waiting on an unanswered servo command is answered only after that",
+        )
     return LinkSettings(
         url=url,
         dialect=t.string("dialect", "ardupilot", choices=tuple(SERVO_DIALECTS)),
-        system_id=t.integer("system_id", min_value=1, max_value=255) if "system_id" in t else None,
+        system_id=_mavlink_id(t, "system_id"),
         component_id=t.integer("component_id", 191, min_value=1, max_value=255),
-        target_system=(
-            t.integer("target_system", min_value=1, max_value=255) if "target_system" in t else None
-        ),
-        loss_timeout_s=t.number("loss_timeout_s", 3.0, positive=True),
-        command_timeout_s=t.number("command_timeout_s", 0.5, positive=True),
-        command_retries=t.integer("command_retries", 2, min_value=0, max_value=10),
+        target_system=_mavlink_id(t, "target_system"),
+        target_component=_mavlink_id(t, "target_component"),
+        loss_timeout_s=_bounded(t, "loss_timeout_s", 3.0, LOSS_TIMEOUT_S),
+        command_timeout_s=command_timeout_s,
+        command_retries=command_retries,
         signing=signing,
     )
+
+
+def _mavlink_id(t: Table, key: str) -> int | None:
+    """An optional MAVLink system or component id, 1-255 (absent: learned from the link)."""
+    return t.integer(key, min_value=1, max_value=255) if key in t else None
 
 
 def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
@@ -204,20 +270,33 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
             for i, o in enumerate(DEFAULT_OUTPUTS, start=1)
         ]
     joints = []
-    for row, arm_joint in zip(rows, arm.joints, strict=True):
-        lo = math.degrees(arm_joint.min_rad)
-        hi = math.degrees(arm_joint.max_rad)
+    for index, (row, arm_joint) in enumerate(zip(rows, arm.joints, strict=True)):
+        lo, hi = _limits_deg(arm, index)
+        angle_min_deg = _arm_limit_if_equal(
+            row.number("angle_min_deg", lo, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG),
+            lo,
+        )
+        angle_max_deg = _arm_limit_if_equal(
+            row.number("angle_max_deg", hi, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG),
+            hi,
+        )
         try:
             joints.append(
                 JointCalibration(
                     name=row.string("name", arm_joint.name),
-                    output=row.integer("output", min_value=1, max_value=16),
-                    angle_min_deg=row.number("angle_min_deg", lo),
-                    angle_max_deg=row.number("angle_max_deg", hi),
-                    pwm_min_us=row.integer("pwm_min_us", 1000),
-                    pwm_max_us=row.integer("pwm_max_us", 2000),
+                    output=row.integer("output", min_value=OUTPUT_MIN, max_value=OUTPUT_MAX),
+                    angle_min_deg=angle_min_deg,
+                    angle_max_deg=angle_max_deg,
+                    pwm_min_us=row.integer(
+                        "pwm_min_us", 1000, min_value=PWM_LIMIT_MIN_US, max_value=PWM_LIMIT_MAX_US
+                    ),
+                    pwm_max_us=row.integer(
+                        "pwm_max_us", 2000, min_value=PWM_LIMIT_MIN_US, max_value=PWM_LIMIT_MAX_US
+                    ),
                     reversed=row.boolean("reversed", False),
-                    trim_us=row.integer("trim_us", 0),
+                    trim_us=row.integer(
+                        "trim_us", 0, min_value=-TRIM_US_MAX, max_value=TRIM_US_MAX
+                    ),
                 )
             )
         except FirmwareInterfaceError as exc:
@@ -225,9 +304,9 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         cal = joints[-1]
         # The calibrated range must cover the arm's limits: the solver may return any angle in
         # them, and an angle the calibration refuses would stop the arm mid-motion.
-        if cal.angle_min_deg > lo + 1e-9 or cal.angle_max_deg < hi - 1e-9:
+        if cal.angle_min_deg > lo or cal.angle_max_deg < hi:
             raise row.fail(
-                "angle_min_deg" if cal.angle_min_deg > lo + 1e-9 else "angle_max_deg",
+                "angle_min_deg" if cal.angle_min_deg > lo else "angle_max_deg",
                 f"calibrated [{cal.angle_min_deg:g}, {cal.angle_max_deg:g}] deg must cover the "
                 f"arm's joint limits [{lo:g}, {hi:g}] for {arm_joint.name}",
             )
@@ -235,3 +314,50 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         return ArmCalibration(tuple(joints))
     except FirmwareInterfaceError as exc:
         raise root.fail("joint", str(exc)) from exc
+
+
+def _limits_deg(arm: Arm, index: int) -> tuple[float, float]:
+    """Joint ``index``'s limits in degrees, exactly as the solver's answers reach them."""
+    joint = arm.joints[index]
+    return math.degrees(joint.min_rad), math.degrees(joint.max_rad)
+
+
+def _arm_limit_if_equal(angle_deg: float, limit_deg: float) -> float:
+    """The arm's limit for a calibrated angle equal to it but for the degrees → radians →
+    degrees round trip (-127 comes back as -127.00000000000001): otherwise the solver's answer
+    at that limit would fall an ulp outside the calibration and be refused mid-motion."""
+    return limit_deg if abs(angle_deg - limit_deg) <= 1e-9 else angle_deg
+
+
+def _check_pwm_covers_arm(
+    source: str, arm: Arm, calibration: ArmCalibration, park_deg: tuple[float, ...] | None
+) -> None:
+    """Every joint's limits (both ends) and park angle must map, through that joint's own
+    :meth:`~firmware_interface.JointCalibration.angle_to_pwm_us` (reversal and trim included),
+    into its [pwm_min_us, pwm_max_us]: the function that gates every PWM the daemon sends, so
+    this check and the running daemon cannot disagree. The mapping is monotonic: the two ends
+    prove every angle between them. A calibration that covers the arm maps inside untrimmed;
+    a trim is what pushes an end out, so ``joint[N].trim_us`` is the field named."""
+    for index, cal in enumerate(calibration.joints):
+        lo, hi = _limits_deg(arm, index)
+        angles = [
+            (f"the arm's lower limit {lo:g} deg", lo),
+            (f"the arm's upper limit {hi:g} deg", hi),
+        ]
+        if park_deg is not None:
+            angles.append((f"arm.park_deg[{index}]={park_deg[index]:g} deg", park_deg[index]))
+        for what, angle in angles:
+            try:
+                cal.angle_to_pwm_us(angle)
+            except PwmOutOfRange:
+                raise ConfigError(
+                    source,
+                    f"joint[{index + 1}].trim_us" if cal.trim_us else f"joint[{index + 1}]",
+                    f"trim_us={cal.trim_us} maps {what} (joint {cal.name!r}, "
+                    f"{'reversed, ' if cal.reversed else ''}output {cal.output}) to "
+                    f"{cal.mapped_pwm_us(angle)} µs, outside [{cal.pwm_min_us}, "
+                    f"{cal.pwm_max_us}] µs; a trim needs a calibrated angle range wider than "
+                    "the arm's limits",
+                ) from None
+            except CalibrationError as exc:  # only a park angle within 1e-9 deg past a limit
+                raise ConfigError(source, "arm.park_deg", f"[{index}]: {exc}") from exc

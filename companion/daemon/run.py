@@ -24,6 +24,19 @@ from firmware_interface import LinkError, LinkState
 log = logging.getLogger("armbridge")
 
 
+def reload_config(daemon: ArmDaemon, config_path: str) -> bool:
+    """SIGHUP: re-read the config through the same ``load_config`` as start-up, so the same
+    bounds apply; a config it refuses never reaches ``daemon.reload`` and the running one is
+    kept. True if the new config was handed over."""
+    try:
+        config = load_config(config_path)
+    except ConfigError as exc:
+        log.error("reload refused, keeping the running config: %s", exc)
+        return False
+    daemon.reload(config)
+    return True
+
+
 def run(config_path: str) -> int:
     """``armbridge run``: the service until SIGTERM/SIGINT; returns the exit code."""
     config = load_config(config_path)  # ConfigError → exit 2, nothing opened or sent
@@ -81,10 +94,7 @@ def run(config_path: str) -> int:
             if reload.is_set():
                 reload.clear()
                 notifier.reloading()
-                try:
-                    daemon.reload(load_config(config_path))
-                except ConfigError as exc:
-                    log.error("reload refused, keeping the running config: %s", exc)
+                reload_config(daemon, config_path)
                 notifier.ready()
             if daemon.healthy:
                 notifier.watchdog()

@@ -177,18 +177,32 @@ class ArmDaemon:
     def reload(self, new: DaemonConfig) -> list[str]:
         """Apply a re-read config (SIGHUP). Solver, motion, park and rate settings take effect
         at once. Link, arm and calibration changes need a restart: they are kept as they were
-        and named in the returned warnings."""
+        and named in the returned warnings, and so is a new park pose they cannot reach."""
+        old = self.config
         warnings = [
             f"{name} changed: restart the daemon to apply it"
             for name, old_value, new_value in (
-                ("link", self.config.link, new.link),
-                ("arm", self.config.arm, new.arm),
-                ("calibration", self.config.calibration, new.calibration),
+                ("link", old.link, new.link),
+                ("arm", old.arm, new.arm),
+                ("calibration", old.calibration, new.calibration),
             )
             if old_value != new_value
         ]
+        park_deg = new.park_deg
+        if park_deg is not None and (new.arm != old.arm or new.calibration != old.calibration):
+            # load_config proved the new park against the new arm and calibration; the running
+            # ones are the old, and a park they refuse would fail when it is asked for.
+            try:
+                old.arm.check_limits(park_deg)
+                old.calibration.angles_to_pwm_us(park_deg)
+            except ValueError as exc:
+                warnings.append(
+                    f"park_deg {list(park_deg)} does not fit the running arm and calibration "
+                    f"({exc}): kept {list(old.park_deg) if old.park_deg else None}"
+                )
+                park_deg = old.park_deg
         self.config = dataclasses.replace(
-            new, link=self.config.link, arm=self.config.arm, calibration=self.config.calibration
+            new, link=old.link, arm=old.arm, calibration=old.calibration, park_deg=park_deg
         )
         self._new_config = self.config
         self._wake.set()

@@ -61,6 +61,56 @@ def test_run_with_broken_config_exits_2_and_sends_nothing(tmp_path, capsys):
         listener.close()
 
 
+OUT_OF_BOUNDS = {
+    "rate": ("[control]\nrate_hz = 1e-10\n", "control.rate_hz", "1e-10 outside [1, 400]"),
+    "ack-wait": (
+        "[link]\ncommand_timeout_s = 1e300\n",
+        "link.command_timeout_s",
+        "outside [0.001, 60]",
+    ),
+    "joint-speed": (
+        "[arm]\njoint_speed_deg_s = 1e6\n",
+        "arm.joint_speed_deg_s",
+        "outside (0, 1000]",
+    ),
+    "trim": (
+        "[arm]\npark_deg = [0, 170, 0, 0, 0, 0]\n"
+        + "".join(f"[[joint]]\noutput = {o}\n" for o in range(9, 15)).replace(
+            "output = 10\n", "output = 10\ntrim_us = 100\n"
+        ),
+        "joint[2].trim_us",
+        "2100 µs, outside [1000, 2000] µs",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", OUT_OF_BOUNDS, ids=list(OUT_OF_BOUNDS))
+def test_check_config_and_run_refuse_the_same_out_of_bounds_values(tmp_path, capsys, case):
+    """Both go through load_config: what check-config refuses, run refuses with the same
+    message (exit 2) before it opens or sends anything."""
+    text, field, words = OUT_OF_BOUNDS[case]
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", 0))
+    listener.settimeout(0.2)
+    url = f"udpout:127.0.0.1:{listener.getsockname()[1]}"
+    path = tmp_path / "bounds.toml"
+    if text.startswith("[link]"):
+        text = f'[link]\nurl = "{url}"\n' + text.removeprefix("[link]\n")
+    else:
+        text = f'[link]\nurl = "{url}"\n' + text
+    path.write_text(text)
+    try:
+        assert main(["check-config", str(path)]) == 2
+        checked = capsys.readouterr().err
+        assert f"{path}: {field}: " in checked and words in checked, checked
+        assert main(["run", "--config", str(path)]) == 2
+        assert capsys.readouterr().err == checked
+        with pytest.raises(TimeoutError):
+            listener.recv(4096)  # not even a heartbeat went out
+    finally:
+        listener.close()
+
+
 def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
     assert "cannot reach the daemon" in capsys.readouterr().err

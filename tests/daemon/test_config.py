@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from importlib import resources
 
 import pytest
 
-from companion.daemon.config import load_config
+from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
 
 EXAMPLE = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
@@ -66,7 +67,7 @@ BAD = [
         "negative timeout",
         lambda t: t.replace("loss_timeout_s = 3.0", "loss_timeout_s = -1"),
         "link.loss_timeout_s",
-        "> 0",
+        "-1 outside [2, 60]",
     ),
     (
         "missing key file",
@@ -96,9 +97,14 @@ BAD = [
         "zero budget",
         lambda t: t.replace("budget_ms = 20.0", "budget_ms = 0"),
         "solver.budget_ms",
-        "> 0",
+        "0 outside (0, 1000]",
     ),
-    ("rate", lambda t: t.replace("rate_hz = 20.0", "rate_hz = 5000"), "control.rate_hz", "outside"),
+    (
+        "rate",
+        lambda t: t.replace("rate_hz = 20.0", "rate_hz = 5000"),
+        "control.rate_hz",
+        "5000 outside [1, 400]",
+    ),
     ("unknown section", lambda t: t + "\n[extra]\nx = 1\n", "extra", "unknown field"),
     (
         "typo",
@@ -149,3 +155,158 @@ def test_malformed_field_is_named(tmp_path, desc, edit, field, words):
     assert info.value.field == field, str(info.value)
     assert words in str(info.value)
     assert str(path) in str(info.value)
+
+
+# -- bounds with physical meaning (the reasons are in config.py, the example and the README) --
+
+URL = "udpout:127.0.0.1:14550"
+
+#: (section, key, refused below, lowest accepted, highest accepted, refused above, range text)
+BOUNDS = [
+    ("control", "rate_hz", 0.999, 1, 400, 400.5, "[1, 400]"),
+    ("link", "loss_timeout_s", 1.999, 2, 60, 60.001, "[2, 60]"),
+    ("link", "command_timeout_s", 0.0009, 0.001, 20, 60.001, "[0.001, 60]"),
+    ("link", "command_retries", -1, 0, 10, 11, "[0, 10]"),
+    ("link", "target_component", 0, 1, 255, 256, "[1, 255]"),
+    ("solver", "budget_ms", 0, 1e-3, 1000, 1000.001, "(0, 1000]"),
+    ("solver", "tol_pos_cm", 9e-7, 1e-6, 10, 10.001, "[1e-06, 10]"),
+    ("solver", "tol_ori_deg", 9e-7, 1e-6, 180, 180.001, "[1e-06, 180]"),
+    ("arm", "joint_speed_deg_s", 0, 1e-3, 1000, 1000.001, "(0, 1000]"),
+]
+
+
+def config(**sections):
+    """A config dict: the URL, plus ``section={key: value}`` tables."""
+    data: dict = {"link": {"url": URL}}
+    for section, table in sections.items():
+        if isinstance(table, list):  # [[joint]] rows
+            data[section] = table
+        else:
+            data.setdefault(section, {}).update(table)
+    return data
+
+
+@pytest.mark.parametrize("bound", BOUNDS, ids=[f"{b[0]}.{b[1]}" for b in BOUNDS])
+def test_every_bound_accepts_its_ends_and_refuses_past_them_naming_the_range(bound):
+    section, key, below, lowest, highest, above, range_text = bound
+    for value in (lowest, highest):
+        cfg = parse_config(config(**{section: {key: value}}))
+        table = cfg.link if section == "link" else cfg
+        field = {"arm": key, "solver": key, "control": key}.get(section, key)
+        assert getattr(table, field) == value
+    for value in (below, above):
+        with pytest.raises(ConfigError) as info:
+            parse_config(config(**{section: {key: value}}))
+        assert info.value.field == f"{section}.{key}", str(info.value)
+        assert f"{value!r} outside {range_text}" in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("section", "values", "field", "words"),
+    [
+        # What the review found: each of these passed check-config and then broke the daemon.
+        ("control", {"rate_hz": 1e-10}, "control.rate_hz", "1e-10 outside [1, 400]"),
+        ("link", {"command_timeout_s": 1e300}, "link.command_timeout_s", "outside [0.001, 60]"),
+        ("link", {"loss_timeout_s": 1e300}, "link.loss_timeout_s", "outside [2, 60]"),
+        ("solver", {"budget_ms": 1e300}, "solver.budget_ms", "outside (0, 1000]"),
+        # Each number in range, together an 11-minute wait on one unanswered command.
+        (
+            "link",
+            {"command_timeout_s": 60, "command_retries": 10},
+            "link.command_timeout_s",
+            "11 x 60 s = 660 s outside (0, 60] s",
+        ),
+        ("joint", None, "joint[1].trim_us", "501 outside [-500, 500]"),
+    ],
+    ids=["rate", "command-timeout", "loss-timeout", "budget", "total-ack-wait", "trim"],
+)
+def test_values_that_broke_the_daemon_are_refused(section, values, field, words):
+    if section == "joint":
+        data = config(joint=[{"output": 9 + i} for i in range(6)])
+        data["joint"][0].update(pwm_min_us=800, pwm_max_us=2200, trim_us=501)
+    else:
+        data = config(**{section: values})
+    with pytest.raises(ConfigError) as info:
+        parse_config(data)
+    assert info.value.field == field, str(info.value)
+    assert words in str(info.value)
+
+
+def test_command_wait_of_exactly_a_minute_is_accepted():
+    cfg = parse_config(config(link={"command_timeout_s": 20, "command_retries": 2}))
+    assert (cfg.link.command_retries + 1) * cfg.link.command_timeout_s == 60
+
+
+def test_target_component_pins_the_autopilot_component(tmp_path):
+    text = EXAMPLE.replace("# target_component = 1 ", "target_component = 1 ")
+    assert text != EXAMPLE
+    assert load_config(write(tmp_path, text)).link.target_component == 1
+    assert load_config(write(tmp_path, EXAMPLE)).link.target_component is None
+
+
+# -- the calibration covers the arm: limits and park map into each servo's PWM range -----------
+
+
+def joints(**theta2):
+    """Six default [[joint]] rows, the second (theta2: 0…180 deg) with ``theta2`` set."""
+    rows = [{"output": 9 + i} for i in range(6)]
+    rows[1].update(theta2)
+    return rows
+
+
+def test_the_reviews_trim_with_park_at_170_is_refused_naming_trim_angle_pwm_and_range():
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(trim_us=100), arm={"park_deg": [0, 170, 0, 0, 0, 0]}))
+    assert info.value.field == "joint[2].trim_us"
+    message = str(info.value)
+    assert "upper limit 180 deg" in message and "2100 µs" in message
+    assert "outside [1000, 2000] µs" in message
+
+
+def test_reversal_is_applied_before_the_check():
+    # Reversed, 180 deg maps to 1000 us: a negative trim pushes that end out, not the other.
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(reversed=True, trim_us=-1)))
+    assert info.value.field == "joint[2].trim_us"
+    assert "upper limit 180 deg" in str(info.value) and "reversed" in str(info.value)
+    assert "999 µs" in str(info.value)
+    with pytest.raises(ConfigError, match="lower limit 0 deg"):
+        parse_config(config(joint=joints(reversed=True, trim_us=1)))
+
+
+def test_a_trim_fits_once_the_calibrated_range_leaves_room_for_it():
+    # theta2 calibrated over [-18, 198] deg: its limits 0 and 180 map to 1083.3 and 1916.7 us,
+    # so a trim of up to +83 us keeps 180 deg at 2000 us or below; +84 is 2001 us.
+    wide = {"angle_min_deg": -18, "angle_max_deg": 198}
+    cfg = parse_config(config(joint=joints(**wide, trim_us=83)))
+    assert cfg.calibration.joints[1].angle_to_pwm_us(180.0) == 2000
+    assert parse_config(config(joint=joints(**wide, trim_us=-83))).calibration
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(joint=joints(**wide, trim_us=84)))
+    assert info.value.field == "joint[2].trim_us" and "2001 µs" in str(info.value)
+    with pytest.raises(ConfigError, match="lower limit 0 deg .* 999 µs"):
+        parse_config(config(joint=joints(**wide, trim_us=-84)))
+
+
+def test_a_calibrated_limit_equal_to_the_arms_but_for_the_radian_round_trip(tmp_path):
+    # The arm stores -127 deg as radians: math.degrees brings back -127.00000000000001, and that
+    # is what the solver answers at the limit. A calibration written as -127 must map it.
+    assert math.degrees(math.radians(-127)) < -127 < 127 < math.degrees(math.radians(127))
+    arm = ['convention = "standard"', 'length_unit = "cm"', "dof = 1"]
+    arm += ["[[joint]]", "alpha_deg = 0", "a = 10", "d = 0", "min_deg = -127", "max_deg = 127"]
+    (tmp_path / "one.toml").write_text("\n".join(arm) + "\n")
+    text = (
+        f'[link]\nurl = "{URL}"\n[arm]\nfile = "one.toml"\n'
+        "[[joint]]\noutput = 9\nangle_min_deg = -127\nangle_max_deg = 127\n"
+    )
+    cfg = load_config(write(tmp_path, text))
+    joint, cal = cfg.arm.joints[0], cfg.calibration.joints[0]
+    assert cal.angle_to_pwm_us(math.degrees(joint.min_rad)) == 1000
+    assert cal.angle_to_pwm_us(math.degrees(joint.max_rad)) == 2000
+
+
+def test_every_default_end_maps_exactly_onto_the_servo_range():
+    cfg = parse_config(config())
+    for joint, cal in zip(cfg.arm.joints, cfg.calibration.joints, strict=True):
+        ends = (math.degrees(joint.min_rad), math.degrees(joint.max_rad))
+        assert [cal.angle_to_pwm_us(a) for a in ends] == [1000, 2000]

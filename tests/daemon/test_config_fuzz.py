@@ -4,17 +4,23 @@ knows, makes ``armbridge check-config`` exit 2 with a message naming the file an
 
 The cases come from ``tests/support/campaign.py`` (``config_cases``), which enumerates the fields
 from ``companion.daemon.config``'s own key lists: a new field without a fuzz entry fails here.
+At the end, a hypothesis property: whatever ``parse_config`` accepts maps the arm's whole range
+and park into every servo's PWM range.
 """
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
 import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
 
-from companion.daemon.config import load_config
+from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
+from companion.kinematics.arm import Arm
 from tests.support.campaign import (
     ARM_DOF,
     EXAMPLE_TEXT,
@@ -32,7 +38,7 @@ SEED = 8
 
 def test_every_config_field_has_fuzz_values_and_is_in_the_example():
     fields = schema_fields()
-    assert len(fields) == len(set(fields)) == 29
+    assert len(fields) == len(set(fields)) == 30
     assert set(fields) == set(FIELD_KINDS)
     # The README promises the example lists every field with its default.
     for dotted in fields:
@@ -155,3 +161,85 @@ def test_a_case_that_passes_check_config_is_reported(tmp_path):
     path.write_text(EXAMPLE_TEXT)
     problem = check_config_case(ConfigCase("control", "valid example", path, "link.url"))
     assert problem is not None and "exit 0" in problem
+
+
+# -- property: whatever parse_config accepts, the arm's whole range maps into the servo's ------
+
+ARM = Arm.default()
+LIMITS_DEG = [(math.degrees(j.min_rad), math.degrees(j.max_rad)) for j in ARM.joints]
+
+
+@st.composite
+def calibrations(draw):
+    """``(data, park_deg)``: a config of six [[joint]] rows with valid PWM ranges and trims
+    within half their span, calibrated angle ranges from exactly the arm's limits to 60 deg
+    wider on either side, and maybe a park pose; only the coverage rule can refuse it."""
+    rows = []
+    for i, (lo, hi) in enumerate(LIMITS_DEG):
+        pwm_min = draw(st.integers(500, 2400))
+        pwm_max = draw(st.integers(pwm_min + 1, 2500))
+        half = min(500, (pwm_max - pwm_min) // 2)
+        margin = st.one_of(st.just(0.0), st.floats(1e-6, 60.0))  # past the 1e-9 snap
+        rows.append(
+            {
+                "output": 9 + i,
+                "pwm_min_us": pwm_min,
+                "pwm_max_us": pwm_max,
+                "angle_min_deg": lo - draw(margin),
+                "angle_max_deg": hi + draw(margin),
+                "reversed": draw(st.booleans()),
+                "trim_us": draw(
+                    st.one_of(st.just(0), st.integers(-min(half, 20), min(half, 20)))
+                    | st.integers(-half, half)
+                ),
+            }
+        )
+    park = None
+    if draw(st.booleans()):
+        park = [lo + draw(st.floats(0.0, 1.0)) * (hi - lo) for lo, hi in LIMITS_DEG]
+    data = {"link": {"url": "udpout:127.0.0.1:14550"}, "joint": rows}
+    if park is not None:
+        data["arm"] = {"park_deg": park}
+    return data, park
+
+
+def spec_pwm_us(row: dict, angle_deg: float) -> int:
+    """The calibration's rule, written out from its docstring: linear from
+    [angle_min_deg, angle_max_deg] onto [pwm_min_us, pwm_max_us] (swapped when reversed), plus
+    trim, rounded to the nearest µs with halves up."""
+    fraction = (angle_deg - row["angle_min_deg"]) / (row["angle_max_deg"] - row["angle_min_deg"])
+    if row["reversed"]:
+        fraction = 1.0 - fraction
+    span_us = row["pwm_max_us"] - row["pwm_min_us"]
+    return math.floor(row["pwm_min_us"] + fraction * span_us + row["trim_us"] + 0.5)
+
+
+@settings(max_examples=300, deadline=None)
+@given(calibrations(), st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3))
+def test_an_accepted_config_maps_the_whole_arm_range_and_park_into_each_servo_range(
+    drawn, fractions
+):
+    data, park = drawn
+    ends_inside = all(
+        row["pwm_min_us"] <= spec_pwm_us(row, angle) <= row["pwm_max_us"]
+        for row, (lo, hi), i in zip(data["joint"], LIMITS_DEG, range(6), strict=True)
+        for angle in (lo, hi, *(() if park is None else (park[i],)))
+    )
+    try:
+        cfg = parse_config(data)
+    except ConfigError as exc:
+        event("refused")
+        # Refused only for an end (or the park angle) whose trimmed PWM leaves the range.
+        assert not ends_inside, str(exc)
+        assert re.fullmatch(r"joint\[[1-6]\]\.trim_us", exc.field), str(exc)
+        return
+    event("accepted")
+    assert ends_inside
+    for i, (joint, (lo, hi)) in enumerate(zip(cfg.calibration.joints, LIMITS_DEG, strict=True)):
+        angles = [lo, hi, *(lo + f * (hi - lo) for f in fractions)]
+        if cfg.park_deg is not None:
+            angles.append(cfg.park_deg[i])
+        for angle in angles:
+            pwm_us = joint.angle_to_pwm_us(angle)  # raises if the daemon would refuse it
+            assert joint.pwm_min_us <= pwm_us <= joint.pwm_max_us
+            assert pwm_us == spec_pwm_us(data["joint"][i], angle)

@@ -7,8 +7,10 @@ command, the way a real autopilot forwards it to its companion.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
+from importlib import resources
 
 import numpy as np
 import pytest
@@ -25,6 +27,7 @@ from tests.support.timing import wait_until
 WAIT_S = 10.0
 HEARTBEAT_PERIOD_S = 1.0  # the simulator's HEARTBEAT rate is 1 Hz
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
+URL = "udpout:127.0.0.1:14550"
 
 
 @pytest.fixture
@@ -358,19 +361,19 @@ def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
     wins, the others are CANCELLED (superseded), and only the newest goal is sent, in one
     update: a flood of targets never becomes a flood of servo updates."""
     endpoint, peer = autopilot
-    daemon = ArmDaemon(
-        parse_config(
-            {
-                "link": {
-                    "url": f"udpout:127.0.0.1:{endpoint.port}",
-                    "loss_timeout_s": 30.0,
-                    "command_timeout_s": 30.0,  # the peer holds its answers until told
-                },
-                "arm": {"joint_speed_deg_s": 36_000.0},
-                "control": {"rate_hz": 0.2},  # no regular tick during the test
+    config = parse_config(
+        {
+            "link": {
+                "url": f"udpout:127.0.0.1:{endpoint.port}",
+                "loss_timeout_s": 30.0,
+                "command_timeout_s": 15.0,  # the peer holds its answers until told
             }
-        )
+        }
     )
+    # Past the config's bounds ([1, 400] Hz, 1000 deg/s), which load_config would refuse, on
+    # purpose: no regular tick during the test and no speed limit on a step, so the only
+    # updates are the ones the coalescing decides. ArmDaemon takes any DaemonConfig.
+    daemon = ArmDaemon(dataclasses.replace(config, rate_hz=0.2, joint_speed_deg_s=36_000.0))
     daemon.start()
     try:
         assert peer.wait_for(lambda: endpoint.peer is not None)
@@ -408,3 +411,29 @@ def test_a_burst_of_targets_is_coalesced_into_one_update(autopilot):
         assert status["goal_deg"] == pytest.approx(list(last_accepted.solve.q_deg))
     finally:
         daemon.close()
+
+
+def test_reload_keeps_a_park_the_running_arm_cannot_reach(tmp_path):
+    """SIGHUP keeps the running arm and calibration (a change needs a restart), but load_config
+    proved the new park against the new ones: a park only the new arm reaches is not taken."""
+    running = parse_config({"link": {"url": URL}, "arm": {"park_deg": [0, 90, 0, 0, 0, 0]}})
+    daemon = ArmDaemon(running)  # never started: reload needs no link
+    # The new arm's q2 reaches 200 deg (the running one's stops at 180): park there.
+    paper = resources.files("companion.kinematics") / "arms" / "paper_arm.toml"
+    text = paper.read_text().replace("min_deg = 0\nmax_deg = 180", "min_deg = 0\nmax_deg = 200")
+    (tmp_path / "wider.toml").write_text(text)
+    new = parse_config(
+        {"link": {"url": URL}, "arm": {"file": "wider.toml", "park_deg": [0, 190, 0, 0, 0, 0]}},
+        source=str(tmp_path / "armbridge.toml"),
+    )
+    warnings = daemon.reload(new)
+    assert "arm changed: restart the daemon to apply it" in warnings
+    assert daemon.config.arm == running.arm and daemon.config.calibration == running.calibration
+    assert daemon.config.park_deg == (0, 90, 0, 0, 0, 0)
+    assert any("park_deg [0.0, 190.0, 0.0, 0.0, 0.0, 0.0] does not fit" in w for w in warnings)
+    # A park the running arm reaches is taken, arm change or not.
+    assert not any(
+        "park_deg" in w
+        for w in daemon.reload(dataclasses.replace(new, park_deg=(0, 120, 0, 0, 0, 0)))
+    )
+    assert daemon.config.park_deg == (0, 120, 0, 0, 0, 0)

@@ -93,6 +93,15 @@ def test_trim_shifts_and_refuses_rather_than_clamps():
         joint.angle_to_pwm_us(180.0)
 
 
+def test_mapped_pwm_says_where_a_refused_angle_lands():
+    # What the daemon's config check quotes: the same mapping, without the range gate.
+    joint = theta2(trim_us=20, reversed=True)
+    assert joint.mapped_pwm_us(0.0) == 2020 and joint.mapped_pwm_us(180.0) == 1020
+    assert joint.mapped_pwm_us(90.0) == joint.angle_to_pwm_us(90.0) == 1520
+    with pytest.raises(AngleOutOfRange):
+        joint.mapped_pwm_us(181.0)
+
+
 def test_normalised_values_for_px4():
     joint = theta2()
     assert joint.pwm_us_to_normalized(1000) == -1.0

@@ -846,8 +846,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "link.system_id": ("integer", (0, 256, -1, 2**63 - 1)),
     "link.component_id": ("integer", (0, 256, -1)),
     "link.target_system": ("integer", (0, 256, -1)),
-    "link.loss_timeout_s": ("number", (0, -1.0, -1e-300)),
-    "link.command_timeout_s": ("number", (0, -0.5)),
+    "link.target_component": ("integer", (0, 256, -1)),
+    "link.loss_timeout_s": ("number", (0, -1.0, -1e-300, 1.999, 60.5, 1e300)),
+    "link.command_timeout_s": ("number", (0, -0.5, 0.0009, 60.5, 1e300, 25.0)),  # 25: 3 x 25 s
     "link.command_retries": ("integer", (-1, 11, 2**63 - 1)),
     "link.signing_key": ("string", ("no-such.key", "short.key", "notakey.key", ".")),
     "link.signing_link_id": ("integer", (-1, 256)),
@@ -860,12 +861,12 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
         ([0, 90], [0, 90, 0, 0, 0, 0, 0], [], [0, -10, 0, 0, 0, 0], [0, 90, 0, 0, 0, 1e308]),
     ),
     "arm.park_on_stop": ("bool", ()),
-    "arm.joint_speed_deg_s": ("number", (0, -60.0)),
-    "solver.budget_ms": ("number", (0, -1, 10_000.5, 1e308)),
-    "solver.tol_pos_cm": ("number", (0, -0.01)),
-    "solver.tol_ori_deg": ("number", (0, -0.1)),
+    "arm.joint_speed_deg_s": ("number", (0, -60.0, 1000.5, 1e300)),
+    "solver.budget_ms": ("number", (0, -1, 1000.5, 1e308)),
+    "solver.tol_pos_cm": ("number", (0, -0.01, 9e-7, 10.5)),
+    "solver.tol_ori_deg": ("number", (0, -0.1, 9e-7, 180.5)),
     "solver.seed": ("integer", (-1,)),
-    "control.rate_hz": ("number", (0, -20, 500.5, 1e9)),
+    "control.rate_hz": ("number", (0, -20, 1e-10, 0.999, 400.5, 1e9)),
     "control.socket": ("string", ("/tmp/" + "s" * 120 + ".sock",)),
     "joint.name": ("string", ()),
     "joint.output": ("integer", (0, 17, -9)),
@@ -874,7 +875,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "joint.angle_min_deg": ("number", (361.0, -361.0, 100.0, 1e308)),
     "joint.angle_max_deg": ("number", (361.0, -361.0, -100.0, 5.0)),
     "joint.reversed": ("bool", ()),
-    "joint.trim_us": ("integer", (501, -501, 2**31)),
+    # Any trim: the example calibrates exactly the arm's limits, so a trimmed end leaves the
+    # servo's range (joint[N].trim_us names it).
+    "joint.trim_us": ("integer", (501, -501, 2**31, 1, -1, 100)),
 }
 
 #: Fields that only mean something next to another; the case adds what they need.

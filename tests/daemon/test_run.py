@@ -1,0 +1,73 @@
+"""``armbridge run``'s SIGHUP path, in-process: a re-read config goes through load_config's
+bounds before ``ArmDaemon.reload`` ever sees it."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from companion.daemon.config import load_config
+from companion.daemon.run import reload_config
+from companion.daemon.service import ArmDaemon
+
+GOOD = '[link]\nurl = "udpout:127.0.0.1:14550"\n[control]\nrate_hz = 20.0\n'
+
+
+class RecordingDaemon(ArmDaemon):
+    """An ArmDaemon (never started: no link) that records what reload is given."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.reloaded = []
+
+    def reload(self, new):
+        self.reloaded.append(new)
+        return super().reload(new)
+
+
+@pytest.fixture
+def daemon_and_path(tmp_path):
+    path = tmp_path / "armbridge.toml"
+    path.write_text(GOOD)
+    return RecordingDaemon(load_config(path)), path
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda t: t.replace("rate_hz = 20.0", "rate_hz = 1e-10"), "control.rate_hz"),
+        (lambda t: t + "[solver]\nbudget_ms = 1e300\n", "solver.budget_ms"),
+        (lambda t: t + "[arm]\njoint_speed_deg_s = 1e6\n", "arm.joint_speed_deg_s"),
+        (
+            lambda t: t.replace("[control]", "command_timeout_s = 1e300\n[control]"),
+            "link.command_timeout_s",
+        ),
+        (
+            lambda t: (
+                t
+                + "[arm]\npark_deg = [0, 170, 0, 0, 0, 0]\n"
+                + "".join(f"[[joint]]\noutput = {o}\n" for o in range(9, 15)).replace(
+                    "output = 10\n", "output = 10\ntrim_us = 100\n"
+                )
+            ),
+            "joint[2].trim_us",
+        ),
+    ],
+    ids=["rate", "budget", "joint-speed", "command-timeout", "trim"],
+)
+def test_an_out_of_bounds_reload_never_reaches_the_daemon(daemon_and_path, caplog, edit, field):
+    daemon, path = daemon_and_path
+    running = daemon.config
+    path.write_text(edit(GOOD))
+    with caplog.at_level(logging.ERROR, logger="armbridge"):
+        assert reload_config(daemon, str(path)) is False
+    assert daemon.reloaded == [] and daemon.config is running
+    assert f": {field}: " in caplog.text and "keeping the running config" in caplog.text
+
+
+def test_an_in_bounds_reload_is_applied(daemon_and_path):
+    daemon, path = daemon_and_path
+    path.write_text(GOOD.replace("rate_hz = 20.0", "rate_hz = 400"))
+    assert reload_config(daemon, str(path)) is True
+    assert len(daemon.reloaded) == 1 and daemon.config.rate_hz == 400
