@@ -1,7 +1,10 @@
 """The simulated autopilot's MAVLink behaviour, driven frame by frame on a fake clock.
 
 A plain pymavlink codec plays the daemon; nothing here sleeps. ``Harness.run_until`` jumps from
-one scheduled event of the autopilot to the next, so stream rates and delays are exact.
+one scheduled event of the autopilot to the next, so stream rates and delays are exact. The
+harness turns the link timing model off (frames leave on the main-loop pass that made them)
+unless a test asks for it; the model itself is tested in ``test_linktiming.py`` and at the end
+of this file.
 """
 
 from __future__ import annotations
@@ -14,19 +17,35 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.calibration import default_calibration
 from sim_servo.autopilot import SimAutopilot
-from sim_servo.config import FaultConfig, SimConfig
+from sim_servo.config import FaultConfig, LinkTimingConfig, SimConfig
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
 START_S = 100.0
+WALL_S = 1.7e9
 SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
+SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+INSTANT = LinkTimingConfig.instant()
+
+
+def frame_source(frame: bytes) -> tuple[int, int]:
+    """(system, component) from a raw MAVLink 2 (or 1) frame's header."""
+    return (frame[5], frame[6]) if frame[0] == 0xFD else (frame[3], frame[4])
 
 
 class Harness:
+    """The autopilot on a fake clock; ``received`` is what link 0 got, decoded, with times;
+    ``wire`` every frame on every link. ``link_timing`` replaces the config's (default: off)."""
+
     def __init__(
-        self, config: SimConfig | None = None, *, signing_key: bytes | None = None
+        self,
+        config: SimConfig | None = None,
+        *,
+        signing_key: bytes | None = None,
+        link_timing: LinkTimingConfig = INSTANT,
+        links: int = 1,
     ) -> None:
-        self.config = config or SimConfig()
+        self.config = replace(config or SimConfig(), link_timing=link_timing)
         self.now = START_S
         self.events: list[dict] = []
         self.hand = HandModel.from_config(self.config.arm)
@@ -35,7 +54,8 @@ class Harness:
             now_s=self.now,
             emit=self.events.append,
             hand=self.hand,
-            wall_clock=lambda: 1.7e9,
+            wall_clock=lambda: WALL_S,
+            links=links,
         )
         self.gcs = mavlink.MAVLink(None, 255, 190)
         self.dec = mavlink.MAVLink(None)
@@ -47,18 +67,39 @@ class Harness:
             self.gcs.signing.timestamp = 1
             self.dec.signing.secret_key = signing_key
         self.received: list[tuple[float, mavlink.MAVLink_message]] = []
+        self.wire: list[tuple[float, int, bytes]] = []
+        self._forwarded_seen = 0
 
-    def send(self, msg) -> None:
-        self.ap.receive(msg.pack(self.gcs), self.now)
+    def send(self, msg, channel: int = 0) -> None:
+        self.ap.receive(msg.pack(self.gcs), self.now, channel)
 
     def command(self, command: int, *params: float, target=(1, 1)) -> None:
         values = list(params) + [0.0] * (7 - len(params))
         self.send(self.gcs.command_long_encode(*target, command, 0, *values))
 
     def _collect(self) -> None:
-        for frame in self.ap.poll(self.now):
-            for msg in self.dec.parse_buffer(frame) or []:
-                self.received.append((self.now, msg))
+        for channel, frame in self.ap.poll(self.now):
+            self.wire.append((self.now, channel, frame))
+            if channel == 0:
+                for msg in self.dec.parse_buffer(frame) or []:
+                    self.received.append((self.now, msg))
+
+    def forwarded(self) -> list[tuple[int, bytes]]:
+        """Frames routed (not ours) onto a link since the last call: ``(link, frame)``."""
+        own = (self.config.system_id, self.config.component_id)
+        frames = self.wire[self._forwarded_seen :]
+        self._forwarded_seen = len(self.wire)
+        return [(ch, f) for _, ch, f in frames if frame_source(f) != own]
+
+    def on_link(self, channel: int, kind: str | None = None) -> list:
+        """Our own messages (decoded) that went out on ``channel``, optionally of one type."""
+        dec = mavlink.MAVLink(None)
+        own = (self.config.system_id, self.config.component_id)
+        msgs = []
+        for _, ch, frame in self.wire:
+            if ch == channel and frame_source(frame) == own:
+                msgs += dec.parse_buffer(frame) or []
+        return [m for m in msgs if kind is None or m.get_type() == kind]
 
     def run_until(self, end_s: float) -> list:
         """Advance to ``end_s`` through every scheduled event; the messages received meanwhile."""
@@ -217,10 +258,16 @@ def test_unknown_commands_are_unsupported(command):
     assert (ack.command, ack.result) == (command, mavlink.MAV_RESULT_UNSUPPORTED)
 
 
-def test_commands_for_another_component_are_ignored():
-    h = Harness()
+def test_commands_for_another_component_heard_elsewhere_are_not_handled_here():
+    # Once 1/154 (a camera, say) has been heard on link 1, a command for it is its business
+    # (routing: forwarded there, not handled). Never heard: see the routing tests below.
+    h = Harness(links=2)
+    camera = mavlink.MAVLink(None, 1, 154)
+    h.ap.receive(camera.heartbeat_encode(30, 8, 0, 0, 0).pack(camera), h.now, 1)
+    h.run_for(0.01)
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(1, 154))
-    assert acks(h.run_for(0.1)) == []
+    assert acks(h.run_for(0.1)) == [] and h.ap.pwm_us[9] == 0
+    assert [ch for ch, _ in h.forwarded()] == [1]
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(0, 0))  # broadcast
     assert len(acks(h.run_for(0.1))) == 1
 
@@ -242,7 +289,8 @@ def test_servo_output_raw_runs_at_the_requested_rate(rate_hz):
 
 
 def test_message_interval_special_values():
-    h = Harness()
+    # A 1 kHz loop, so the 80 %-of-loop-rate cap (next test) leaves 1 ms alone.
+    h = Harness(SimConfig(loop_rate_hz=1000))
     h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 500)  # < 1 ms → 1 ms
     h.run_for(0.01)
     assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 1
@@ -582,7 +630,7 @@ COMPANION = (1, 191)
 
 def routing_harness(signing_key: bytes | None = None):
     """Link 0: the companion (1/191); link 1: a ground station (255/190). Both heard once."""
-    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key)
+    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key, links=2)
     companion = mavlink.MAVLink(None, *COMPANION)
     if signing_key is not None:
         companion.signing.secret_key = signing_key
@@ -595,24 +643,24 @@ def routing_harness(signing_key: bytes | None = None):
     gcs_hb = h.gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
     h.ap.receive(gcs_hb.pack(h.gcs), h.now, 1)
     h.run_for(0.01)
-    h.ap.forwarded()  # the heartbeats' own forwarding is checked in its own test
+    h.forwarded()  # the heartbeats' own forwarding is checked in its own test
     return h, companion
 
 
 def test_heartbeats_are_forwarded_to_the_other_link_and_routes_learned():
-    h = Harness()
+    h = Harness(links=2)
     companion = mavlink.MAVLink(None, *COMPANION)
     frame = companion.heartbeat_encode(
         mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
     ).pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == []  # nobody heard on another link yet: nowhere to forward
+    assert h.forwarded() == []  # nobody heard on another link yet: nowhere to forward
     gcs_frame = h.gcs.heartbeat_encode(6, 8, 0, 0, 0).pack(h.gcs)
     h.ap.receive(gcs_frame, h.now, 1)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, gcs_frame), (1, frame)]
+    assert h.forwarded() == [(0, gcs_frame), (1, frame)]
     assert h.ap.snapshot(h.now)["routes"] == [[1, 191, 0], [255, 190, 1]]
 
 
@@ -623,7 +671,7 @@ def test_target_for_the_companion_is_forwarded_unchanged_and_not_handled_here():
     frame = msg.pack(h.gcs)
     h.ap.receive(frame, h.now, 1)
     replies = h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, frame)]
+    assert h.forwarded() == [(0, frame)]
     assert h.of_type("COMMAND_ACK", replies) == []  # the companion answers, not the autopilot
     assert h.ap.stats["routed"] == routed + 1
 
@@ -638,8 +686,11 @@ def test_commands_for_the_autopilot_are_handled_and_not_forwarded():
         1,
     )
     replies = h.run_for(0.01)
-    assert h.ap.forwarded() == []
-    assert [a.result for a in h.of_type("COMMAND_ACK", replies)] == [mavlink.MAV_RESULT_ACCEPTED]
+    assert h.forwarded() == []
+    # The ACK goes back on the ground station's link only, as GCS_Common.cpp sends it on
+    # the command's channel: the companion's link (0) does not see it.
+    assert [a.result for a in h.on_link(1, "COMMAND_ACK")] == [mavlink.MAV_RESULT_ACCEPTED]
+    assert h.of_type("COMMAND_ACK", replies) == []
 
 
 def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
@@ -648,12 +699,12 @@ def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
         h.gcs.command_long_encode(7, 191, mavlink.MAV_CMD_USER_1, 0, *[0] * 7).pack(h.gcs), h.now, 1
     )
     h.run_for(0.01)
-    assert h.ap.forwarded() == []
+    assert h.forwarded() == []
     ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
     frame = ack.pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(1, frame)]
+    assert h.forwarded() == [(1, frame)]
 
 
 def test_statustext_is_a_broadcast_and_is_also_handled_here():
@@ -661,7 +712,7 @@ def test_statustext_is_a_broadcast_and_is_also_handled_here():
     frame = companion.statustext_encode(4, b"unreachable").pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(1, frame)]
+    assert h.forwarded() == [(1, frame)]
 
 
 def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped():
@@ -671,7 +722,7 @@ def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped(
     assert frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
     h.ap.receive(frame, h.now, 1)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, frame)]
+    assert h.forwarded() == [(0, frame)]
     plain = mavlink.MAVLink(None, 255, 190)
     h.ap.receive(
         plain.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7).pack(plain),
@@ -688,7 +739,7 @@ def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped(
         1,
     )
     h.run_for(0.01)
-    assert h.ap.forwarded() == []
+    assert h.forwarded() == []
     assert h.ap.stats["rejected_signature"] == 2
 
 
@@ -700,5 +751,5 @@ def test_a_stream_split_across_reads_on_one_link_survives_frames_on_another():
     h.ap.receive(other, h.now, 0)
     h.ap.receive(frame[10:], h.now, 1)
     h.run_for(0.01)
-    assert sorted(h.ap.forwarded()) == [(0, frame), (1, other)]
+    assert sorted(h.forwarded()) == [(0, frame), (1, other)]
     assert h.ap.stats["bad_frames"] == 0
