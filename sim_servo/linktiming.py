@@ -12,10 +12,14 @@ that leave by a time. The model and the figures it was fitted to are in
 
    * a frame arrives from the link (the next frame flushes, as a TCP segment carries the
      peer's pending ACK), or
-   * the link's *window* closes: ``H`` after the first frame that arrived since the window last
-     closed; with no window open, ``H`` after the first held frame was ready, or
+   * the link's *window* closes: ``H`` after the frame that opened it; with no window open,
+     ``H`` after the first held frame was ready, or
    * ``N`` or more frames arrived within the open window (TCP acknowledges at least every
      second segment at once); then every frame that becomes ready in that window leaves at once.
+
+   A frame arriving with no window open opens one; so does a frame arriving after something
+   left during the open window (that output answered the window's frames; the new frame waits
+   for its own answer).
 
 ``H = 0`` turns the hold off, ``d = 0`` the delay: :meth:`LinkTimingConfig.instant`.
 """
@@ -40,9 +44,11 @@ class LinkOutput:
         self._delayed: list[tuple[float, int, bytes]] = []
         self._held: list[bytes] = []
         self._held_since_s: float | None = None
-        #: First arrival since the window last closed (None: closed), and the frames since.
+        #: The frame that opened the window arrived then (None: closed); frames since; whether
+        #: anything left since it opened.
         self._window_start_s: float | None = None
         self._window_frames = 0
+        self._window_answered = False
         self._released: list[bytes] = []
         self._released_s: float | None = None
 
@@ -58,8 +64,8 @@ class LinkOutput:
             return
         if self._held:
             self._flush(now_s)
-        if self._window_start_s is None:
-            self._window_start_s, self._window_frames = now_s, 0
+        if self._window_start_s is None or self._window_answered:
+            self._window_start_s, self._window_frames, self._window_answered = now_s, 0, False
         self._window_frames += frames
         if self._hold_s == 0.0:
             self._close_window()
@@ -136,6 +142,8 @@ class LinkOutput:
             self._flush(ready_s)
 
     def _flush(self, at_s: float) -> None:
+        if self._window_start_s is not None:
+            self._window_answered = True
         self._released.extend(self._held)
         self._held.clear()
         self._held_since_s = None
@@ -143,4 +151,4 @@ class LinkOutput:
             self._released_s = at_s
 
     def _close_window(self) -> None:
-        self._window_start_s, self._window_frames = None, 0
+        self._window_start_s, self._window_frames, self._window_answered = None, 0, False
