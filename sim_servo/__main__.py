@@ -152,13 +152,13 @@ def build_parser() -> argparse.ArgumentParser:
     timing.add_argument(
         "--link-delay-ms",
         type=_non_negative,
-        help="each frame we send leaves at least this long after it was produced (default 1.7)",
+        help="each frame we send leaves at least this long after it was produced (default 1.0)",
     )
     timing.add_argument(
         "--link-hold-ms",
         type=_non_negative,
         help="then it is held until the link sends a frame, or this long after the first "
-        "frame the link sent since it was last quiet (default 5.2; 0 with --link-delay-ms 0: "
+        "frame the link sent since it was last quiet (default 4.8; 0 with --link-delay-ms 0: "
         "frames leave on the main-loop pass that made them)",
     )
     timing.add_argument(

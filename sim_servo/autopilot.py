@@ -10,9 +10,22 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 * HEARTBEAT at 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, disarmed, STANDBY.
 * Received frames are handled on the next main-loop pass (``loop_rate_hz``, 400 Hz as
   ArduCopter), like ``GCS::update_receive`` running once per loop.
-* COMMAND_LONG / COMMAND_INT are handled only when addressed to us (system ours or 0, component
-  ours or 0); the COMMAND_ACK goes out at once, addressed to the sender
-  (GCS_Common.cpp ``handle_command_long``).
+* When frames leave: each link's output goes through :class:`~sim_servo.linktiming.LinkOutput`,
+  a delay-and-hold model fitted to ArduCopter 4.7.0-dev SITL over TCP loopback with a
+  pymavlink client (one DO_SET_SERVO round trip 5.7 ms median, range 5.3–6.1; six in sequence
+  32.2 ms; six back-to-back 3.2 ms median, 6.0 max, so a burst beats a lone command). Frames
+  leave ``output_delay_ms`` (1.0) after they were produced at the earliest, then are held until
+  the link sends a frame, or ``hold_ms`` (4.8) after the first frame the link sent since it was
+  last quiet, or at once when two frames came within that window. See
+  :class:`~sim_servo.config.LinkTimingConfig` (defaults, fit, limits); ``instant()`` turns it
+  off. Applied to every transport; serial links were not measured.
+* Routing between links as ``MAVLink_routing::check_and_forward`` (see :meth:`_route`): a
+  command for our system and a component never heard (or heard only on the link it came from)
+  is handled here, so it gets our UNSUPPORTED; routes are never forgotten (frames for a
+  companion that left still go to its dead link); nothing goes back out of the link it came on.
+* COMMAND_LONG / COMMAND_INT that routing gives us are handled (GCS_Common.cpp
+  ``handle_command_long`` checks no target itself); the COMMAND_ACK is produced at once,
+  addressed to the sender, on the link the command came from only.
 * MAV_CMD_DO_SET_SERVO (GCS_ServoRelay.cpp, AP_ServoRelayEvents.cpp ``do_set_servo``): an output
   outside 1–16 → FAILED; an output whose SERVOn_FUNCTION is not 0 (disabled), 1 (RC pass-through)
   or 51–66 (RC input 1–16) → STATUSTEXT severity INFO "ServoRelayEvent: Channel N is already in
@@ -20,8 +33,21 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   STATUSTEXTs are queued and sent from the main loop (GCS.cpp ``service_statustext``), so the
   text arrives one loop period *after* the ACK.
 * MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): −1 stops, 0 resets to
-  the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds;
-  ACCEPTED for messages we can stream, FAILED for the others.
+  the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds, then
+  ``cap_message_interval``: at most 80 % of the loop rate (3 ms at 400 Hz); ACCEPTED for
+  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME; PX4 also
+  ACTUATOR_OUTPUT_STATUS), FAILED for the others. SERVO_OUTPUT_RAW never streams faster than
+  ``servo_output_min_interval_ms`` (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when
+  400 Hz is asked); GET_MESSAGE_INTERVAL reports the stored interval, as
+  ``get_ap_message_interval`` reads it back, not the rate achieved (3000 µs for a 400 Hz ask).
+* SYSTEM_TIME (``time_unix_usec``, ``time_boot_ms``): in ArduPilot's EXTRA3 stream, whose
+  SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until
+  SET_MESSAGE_INTERVAL asks; PX4 streams it at 1 Hz on a companion (ONBOARD mode) link
+  (mavlink_main.cpp ``configure_streams_to_default``).
+* Reboot (:meth:`reboot`, ``reboot_after_s``, the query ``reboot``): silent and deaf for
+  ``reboot_gap_s`` (0.36 s, measured on a real reboot), then time_boot from 0, outputs at their
+  boot values, streams at their defaults, an empty routing table, the sequence number from 0;
+  parameters keep their values.
 * PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST (GCS_Param.cpp): unknown names get no
   reply; integer parameters take ``value + 0.01`` (away from zero) truncated; the answer is
   PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
@@ -30,7 +56,9 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
 (Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
 Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
-streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does).
+streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does);
+SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor; routing and link timing as ArduPilot's (not
+measured on PX4).
 """
 
 from __future__ import annotations
