@@ -375,20 +375,22 @@ class SimAutopilot:
         """Run the periodic work due by ``now_s``; the frames to write now, as ``(link,
         frame)``: our own (on every link, or the one a reply is for) and those routed from one
         link to another (as received: a signed frame keeps its signature)."""
-        # Servos that arrived by an earlier call first: the hand's pose costs a forward
-        # kinematics, which must not hold up the frames this call produces.
-        self._check_settled(now_s)
         self._run_reboot(now_s)
         if self._rebooting_until_s is None:
             self._run_inbox(now_s)
             self._run_deferred(now_s)
             self._run_heartbeat(now_s)
             self._run_streams(now_s)
-        return [
+        frames = [
             (channel, frame)
             for channel, link in enumerate(self._links)
             for frame in link.take(now_s)
         ]
+        # The settled event's hand pose costs a forward kinematics: not while frames wait to be
+        # written (next_event_s() asks for another call at once; the event keeps its time).
+        if not frames:
+            self._check_settled(now_s)
+        return frames
 
     def next_event_s(self, now_s: float) -> float:
         """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""

@@ -140,8 +140,8 @@ class LinkTimingConfig:
     6 × 4.8 = 28.8 ms, a burst of six 0–2.5 ms + ``output_delay_ms`` (median 2.25 ms). The
     defaults were fitted with ``python -m bench.sim_calibration`` (this simulator as a process,
     a Python client, a loaded 2-core machine), which adds 0.5–1 ms per exchange: it measures
-    about 5.5, 32.5 and 4.7 ms. The burst stays above SITL's there, because handling six
-    commands costs this Python simulator about 1 ms, as much as ``output_delay_ms``. Fitted,
+    about 5.6, 33 and 4.7–5.3 ms. The burst stays above SITL's there, because handling six
+    commands costs this Python simulator 0.6–1.2 ms, more than ``output_delay_ms``. Fitted,
     not derived: which part of SITL holds the frames was not identified. Serial links could not
     be measured here; the same model applies to UDP, TCP and pty. ``hold_ms`` and
     ``output_delay_ms`` 0 (:meth:`instant`) give the old timing: frames leave on the pass that
