@@ -133,10 +133,38 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     vehicle.add_argument(
+        "--system-time-rate-hz",
+        type=_non_negative,
+        help="SYSTEM_TIME rate before any SET_MESSAGE_INTERVAL (default: ardupilot 0, "
+        "off, as ArduCopter; px4 1, as PX4's onboard mode)",
+    )
+
+    vehicle.add_argument(
         "--loop-rate-hz",
         type=_non_negative,
         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
         "sent, on loop passes (default 400, as ArduCopter)",
+    )
+
+    timing = parser.add_argument_group(
+        "link timing (a model fitted to ArduCopter SITL; see docs/sim_servo.md)"
+    )
+    timing.add_argument(
+        "--link-delay-ms",
+        type=_non_negative,
+        help="each frame we send leaves at least this long after it was produced (default 1.0)",
+    )
+    timing.add_argument(
+        "--link-hold-ms",
+        type=_non_negative,
+        help="then it is held until the link sends a frame, or this long after the first "
+        "frame the link sent since it was last quiet (default 4.8; 0 with --link-delay-ms 0: "
+        "frames leave on the main-loop pass that made them)",
+    )
+    timing.add_argument(
+        "--link-burst-frames",
+        type=int,
+        help="this many frames from a link within the hold release its replies at once (default 2)",
     )
 
     servo = parser.add_argument_group("servos and arm")
@@ -159,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument(
         "--query-socket",
         metavar="PATH",
-        help="answer 'state' / 'events' / 'ping' lines on this Unix socket",
+        help="answer 'state' / 'events' / 'ping' (and the 'pause_heartbeat', "
+        "'resume_heartbeat', 'reboot' requests) lines on this Unix socket",
     )
     report.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
 
@@ -237,6 +266,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--pty-link at it (default: the port never comes back)",
     )
     faults.add_argument(
+        "--reboot-after",
+        type=_non_negative,
+        metavar="S",
+        help="reboot the autopilot S seconds after start (the query 'reboot' does it on demand)",
+    )
+    faults.add_argument(
+        "--reboot-gap",
+        type=_non_negative,
+        metavar="S",
+        help="a reboot's silence: no frame out, input ignored (default 0.36, measured)",
+    )
+    faults.add_argument(
         "--signing-key",
         metavar="PATH",
         help="require MAVLink 2 signing with this key (32 bytes or 64 hex "
@@ -256,10 +297,20 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         ("flavour", args.flavour),
         ("system_id", args.system_id),
         ("servo_output_rate_hz", args.servo_output_rate_hz),
+        ("system_time_rate_hz", args.system_time_rate_hz),
         ("loop_rate_hz", args.loop_rate_hz),
     ):
         if value is not None:
             data[key] = value
+    timing = dict(data.get("link_timing", {}))
+    for key, value in (
+        ("output_delay_ms", args.link_delay_ms),
+        ("hold_ms", args.link_hold_ms),
+        ("burst_frames", args.link_burst_frames),
+    ):
+        if value is not None:
+            timing[key] = value
+    data["link_timing"] = timing
     if args.function:
         outputs = dict(data.get("outputs", {}))
         outputs.update({str(o): f for o, f in args.function})
@@ -295,6 +346,8 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         ("heartbeat_pause_for_s", args.heartbeat_pause_for),
         ("hangup_after_s", args.hangup_after),
         ("hangup_for_s", args.hangup_for),
+        ("reboot_after_s", args.reboot_after),
+        ("reboot_gap_s", args.reboot_gap),
     ):
         if value is not None:
             faults[key] = value

@@ -10,9 +10,22 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 * HEARTBEAT at 1 Hz: MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA, disarmed, STANDBY.
 * Received frames are handled on the next main-loop pass (``loop_rate_hz``, 400 Hz as
   ArduCopter), like ``GCS::update_receive`` running once per loop.
-* COMMAND_LONG / COMMAND_INT are handled only when addressed to us (system ours or 0, component
-  ours or 0); the COMMAND_ACK goes out at once, addressed to the sender
-  (GCS_Common.cpp ``handle_command_long``).
+* When frames leave: each link's output goes through :class:`~sim_servo.linktiming.LinkOutput`,
+  a delay-and-hold model fitted to ArduCopter 4.7.0-dev SITL over TCP loopback with a
+  pymavlink client (one DO_SET_SERVO round trip 5.7 ms median, range 5.3–6.1; six in sequence
+  32.2 ms; six back-to-back 3.2 ms median, 6.0 max, so a burst beats a lone command). Frames
+  leave ``output_delay_ms`` (1.0) after they were produced at the earliest, then are held until
+  the link sends a frame, or ``hold_ms`` (4.8) after the first frame the link sent since it was
+  last quiet, or at once when two frames came within that window. See
+  :class:`~sim_servo.config.LinkTimingConfig` (defaults, fit, limits); ``instant()`` turns it
+  off. Applied to every transport; serial links were not measured.
+* Routing between links as ``MAVLink_routing::check_and_forward`` (see :meth:`_route`): a
+  command for our system and a component never heard (or heard only on the link it came from)
+  is handled here, so it gets our UNSUPPORTED; routes are never forgotten (frames for a
+  companion that left still go to its dead link); nothing goes back out of the link it came on.
+* COMMAND_LONG / COMMAND_INT that routing gives us are handled (GCS_Common.cpp
+  ``handle_command_long`` checks no target itself); the COMMAND_ACK is produced at once,
+  addressed to the sender, on the link the command came from only.
 * MAV_CMD_DO_SET_SERVO (GCS_ServoRelay.cpp, AP_ServoRelayEvents.cpp ``do_set_servo``): an output
   outside 1–16 → FAILED; an output whose SERVOn_FUNCTION is not 0 (disabled), 1 (RC pass-through)
   or 51–66 (RC input 1–16) → STATUSTEXT severity INFO "ServoRelayEvent: Channel N is already in
@@ -20,8 +33,21 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   STATUSTEXTs are queued and sent from the main loop (GCS.cpp ``service_statustext``), so the
   text arrives one loop period *after* the ACK.
 * MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): −1 stops, 0 resets to
-  the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds;
-  ACCEPTED for messages we can stream, FAILED for the others.
+  the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds, then
+  ``cap_message_interval``: at most 80 % of the loop rate (3 ms at 400 Hz); ACCEPTED for
+  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME; PX4 also
+  ACTUATOR_OUTPUT_STATUS), FAILED for the others. SERVO_OUTPUT_RAW never streams faster than
+  ``servo_output_min_interval_ms`` (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when
+  400 Hz is asked); GET_MESSAGE_INTERVAL reports the stored interval, as
+  ``get_ap_message_interval`` reads it back, not the rate achieved (3000 µs for a 400 Hz ask).
+* SYSTEM_TIME (``time_unix_usec``, ``time_boot_ms``): in ArduPilot's EXTRA3 stream, whose
+  SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until
+  SET_MESSAGE_INTERVAL asks; PX4 streams it at 1 Hz on a companion (ONBOARD mode) link
+  (mavlink_main.cpp ``configure_streams_to_default``).
+* Reboot (:meth:`reboot`, ``reboot_after_s``, the query ``reboot``): silent and deaf for
+  ``reboot_gap_s`` (0.36 s, measured on a real reboot), then time_boot from 0, outputs at their
+  boot values, streams at their defaults, an empty routing table, the sequence number from 0;
+  parameters keep their values.
 * PARAM_SET / PARAM_REQUEST_READ / PARAM_REQUEST_LIST (GCS_Param.cpp): unknown names get no
   reply; integer parameters take ``value + 0.01`` (away from zero) truncated; the answer is
   PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
@@ -30,13 +56,13 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
 (Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
 Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
-streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does).
+streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does);
+SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor; routing and link timing as ArduPilot's (not
+measured on PX4).
 """
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import math
 import struct
 import time
@@ -59,6 +85,7 @@ from sim_servo.config import (
 )
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
+from sim_servo.linktiming import LinkOutput
 from sim_servo.servo import Servo, ServoParams
 
 Emit = Callable[[dict[str, Any]], None]
@@ -75,6 +102,17 @@ MAX_INTERVAL_MS = 60_000
 SIGNING_EPOCH_UNIX_S = 1_420_070_400
 #: Accepted unsigned even when signing is required (GCS_Signing.cpp accept list).
 UNSIGNED_ALLOWED_IDS = frozenset({mavlink.MAVLINK_MSG_ID_RADIO_STATUS})
+#: MAVLink_routing.h: the routing table holds at most this many (system, component, link).
+MAX_ROUTES = 20
+#: Handled here and never forwarded (MAVLink_routing.cpp ``check_and_forward``): RADIO and
+#: RADIO_STATUS are about the link itself, ADSB_VEHICLE has its own stream.
+NOT_FORWARDED_IDS = frozenset(
+    {
+        mavlink.MAVLINK_MSG_ID_RADIO,
+        mavlink.MAVLINK_MSG_ID_RADIO_STATUS,
+        mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
+    }
+)
 
 
 @dataclass
@@ -93,6 +131,7 @@ class Command:
     command: int
     params: tuple[float, ...]
     source: tuple[int, int]
+    channel: int = 0
 
 
 class SimAutopilot:
@@ -107,12 +146,17 @@ class SimAutopilot:
         hand: HandModel | None = None,
         faults: FaultInjector | None = None,
         wall_clock: Callable[[], float] = time.time,
+        links: int = 1,
     ) -> None:
         self.config = config
         self.hand = hand
         self.faults = faults or FaultInjector(config.faults)
         self._emit_sink = emit or (lambda event: None)
         self._start_s = now_s
+        #: When the current boot started: time_boot, the main-loop phase (a reboot moves it).
+        self._boot_s = now_s
+        #: The wall clock at ``now_s``, for SYSTEM_TIME; later read as ``now_s`` goes on.
+        self._unix_at_start_s = wall_clock()
         self._loop_s = 1.0 / config.loop_rate_hz
         self._enc = mavlink.MAVLink(
             None, srcSystem=config.system_id, srcComponent=config.component_id
@@ -126,19 +170,22 @@ class SimAutopilot:
             self._enc.signing.timestamp = max(
                 1, int((wall_clock() - SIGNING_EPOCH_UNIX_S) * 100_000)
             )
-        #: (system, component) → the link it was last heard on (ArduPilot's routing table).
-        self.routes: dict[tuple[int, int], int] = {}
-        self._forwarded: list[tuple[int, bytes]] = []
-        self._outbox: list[tuple[float, int, bytes]] = []
-        self._seq = itertools.count()
+        #: ArduPilot's routing table: (system, component, link) in the order learned, at most
+        #: MAX_ROUTES, never forgotten (only a reboot clears it).
+        self.routes: list[tuple[int, int, int]] = []
+        #: Links a frame was received on since boot (ArduPilot's ``active_channel_mask``).
+        self._active_links: set[int] = set()
+        #: Each link's outgoing side (channel 0 the companion's): delay and hold, see
+        #: :mod:`sim_servo.linktiming`.
+        self._links: list[LinkOutput] = []
+        self.set_links(links)
         self._deferred: list[tuple[float, mavlink.MAVLink_message]] = []
         self._inbox: list[tuple[float, int, mavlink.MAVLink_message]] = []
+        #: The link of the frame being handled (a COMMAND_ACK goes back on it only).
+        self._rx_channel = 0
         self.params: dict[str, Param] = self._make_params()
         self._param_names = list(self.params)
-        self.pwm_us: dict[int, int] = {
-            output: 0 if self._function(output) == 0 else IDLE_ASSIGNED_PWM_US
-            for output in range(1, OUTPUT_COUNT + 1)
-        }
+        self.pwm_us: dict[int, int] = self._boot_pwm_us()
         self.servos: dict[int, Servo] = {}
         for output in range(1, OUTPUT_COUNT + 1):
             deg_per_us = config.servo.deg_per_us
@@ -162,6 +209,10 @@ class SimAutopilot:
         self._heartbeat_paused = False
         # Set by pause_heartbeat() (a test asking over the query socket): overrides the schedule.
         self._heartbeat_held: bool | None = None
+        #: While rebooting: when the autopilot comes back (silent and deaf until then).
+        self._rebooting_until_s: float | None = None
+        after_s = config.faults.reboot_after_s
+        self._reboot_due_s: float | None = None if after_s is None else now_s + after_s
         self._moving = False
         self.peer: tuple[int, int] | None = None
         self._peers_seen: set[tuple[int, int]] = set()
@@ -178,6 +229,8 @@ class SimAutopilot:
                 "acks",
                 "acks_withheld",
                 "routed",
+                "reboots",
+                "ignored_rebooting",
             ),
             0,
         )
@@ -197,6 +250,24 @@ class SimAutopilot:
             "PARAM_SET": self._on_param_set,
             "PARAM_REQUEST_READ": self._on_param_request_read,
             "PARAM_REQUEST_LIST": self._on_param_request_list,
+        }
+
+    def set_links(self, count: int) -> None:
+        """Serve ``count`` links (channels 0 … count−1): our own frames go out on each."""
+        if count < 1:
+            raise ValueError(f"links={count} must be >= 1")
+        while len(self._links) < count:
+            self._links.append(LinkOutput(self.config.link_timing))
+
+    def _link(self, channel: int) -> LinkOutput:
+        self.set_links(channel + 1)  # a link we hear from exists
+        return self._links[channel]
+
+    def _boot_pwm_us(self) -> dict[int, int]:
+        """Each output's PWM at boot: none on a disabled output, idle on an assigned one."""
+        return {
+            output: 0 if self._function(output) == 0 else IDLE_ASSIGNED_PWM_US
+            for output in range(1, OUTPUT_COUNT + 1)
         }
 
     # -- parameters ------------------------------------------------------------------------
@@ -270,11 +341,15 @@ class SimAutopilot:
         self._emit_sink({"t_s": self._t(now_s), "event": event, **fields})
 
     def _time_boot_us(self, now_s: float) -> int:
-        return max(0, round((now_s - self._start_s) * 1e6))
+        return max(0, round((now_s - self._boot_s) * 1e6))
+
+    def _time_unix_us(self, now_s: float) -> int:
+        return max(0, round((self._unix_at_start_s + now_s - self._start_s) * 1e6))
 
     # -- output pipeline -------------------------------------------------------------------
 
-    def _send(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
+    def _send(self, msg: mavlink.MAVLink_message, now_s: float, channel: int | None = None) -> None:
+        """Send ``msg`` on every link, or only on ``channel``."""
         frame = msg.pack(self._enc)
         self._enc.seq = (self._enc.seq + 1) % 256
         self._enc.total_packets_sent += 1
@@ -286,32 +361,49 @@ class SimAutopilot:
         if corrupted != frame:
             self.stats["corrupted_out"] += 1
             self.emit(now_s, "fault", fault="corrupt_out", msg=msg.get_type())
-        heapq.heappush(self._outbox, (now_s + self.faults.delay_s(), next(self._seq), corrupted))
+        self.stats["tx"] += 1
+        delay_s = self.faults.delay_s()
+        links = self._links if channel is None else [self._link(channel)]
+        for link in links:
+            link.write(corrupted, now_s, delay_s)
 
     def _defer(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
         """Send on the next main-loop pass, as ArduPilot does for STATUSTEXT and PARAM_VALUE."""
         self._deferred.append((now_s + self._loop_s, msg))
 
-    def poll(self, now_s: float) -> list[bytes]:
-        """Run the periodic work due by ``now_s`` and return the frames to write now."""
-        self._run_inbox(now_s)
-        self._run_deferred(now_s)
-        self._run_heartbeat(now_s)
-        self._run_streams(now_s)
-        self._check_settled(now_s)
-        frames = []
-        while self._outbox and self._outbox[0][0] <= now_s:
-            frames.append(heapq.heappop(self._outbox)[2])
-        self.stats["tx"] += len(frames)
+    def poll(self, now_s: float) -> list[tuple[int, bytes]]:
+        """Run the periodic work due by ``now_s``; the frames to write now, as ``(link,
+        frame)``: our own (on every link, or the one a reply is for) and those routed from one
+        link to another (as received: a signed frame keeps its signature)."""
+        self._run_reboot(now_s)
+        if self._rebooting_until_s is None:
+            self._run_inbox(now_s)
+            self._run_deferred(now_s)
+            self._run_heartbeat(now_s)
+            self._run_streams(now_s)
+        frames = [
+            (channel, frame)
+            for channel, link in enumerate(self._links)
+            for frame in link.take(now_s)
+        ]
+        # The settled event's hand pose costs a forward kinematics: not while frames wait to be
+        # written (next_event_s() asks for another call at once; the event keeps its time).
+        if not frames:
+            self._check_settled(now_s)
         return frames
 
     def next_event_s(self, now_s: float) -> float:
         """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""
-        candidates = [due for due in self._next_due_s.values() if due is not None]
-        candidates += [due for due, _ in self._deferred]
-        candidates += [due for due, _, _ in self._inbox]
-        if self._outbox:
-            candidates.append(self._outbox[0][0])
+        candidates: list[float] = []
+        if self._rebooting_until_s is not None:
+            candidates.append(self._rebooting_until_s)
+        else:
+            candidates += [due for due in self._next_due_s.values() if due is not None]
+            candidates += [due for due, _ in self._deferred]
+            candidates += [due for due, _, _ in self._inbox]
+        if self._reboot_due_s is not None:
+            candidates.append(self._reboot_due_s)
+        candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
         if self._moving:
             candidates.append(max(servo.arrival_s() for servo in self.servos.values()))
         return max(now_s, min(candidates)) if candidates else now_s + 1.0
@@ -334,6 +426,62 @@ class SimAutopilot:
         if paused != self._heartbeat_paused:
             self._heartbeat_paused = paused
             self.emit(now_s, "fault", fault="heartbeat_paused" if paused else "heartbeat_resumed")
+
+    # -- reboot ----------------------------------------------------------------------------
+
+    @property
+    def rebooting(self) -> bool:
+        return self._rebooting_until_s is not None
+
+    def reboot(self, now_s: float, gap_s: float | None = None) -> bool:
+        """Reboot now: silent and deaf for ``gap_s`` (default ``reboot_gap_s``), then back with
+        time_boot from 0, outputs at their boot values, streams at their defaults (requested
+        intervals lost), an empty routing table and the MAVLink sequence from 0; parameters
+        keep their values. Frames not yet sent are lost. False (nothing done) while already
+        rebooting."""
+        if self._rebooting_until_s is not None:
+            return False
+        gap_s = self.config.faults.reboot_gap_s if gap_s is None else gap_s
+        if not 0.0 <= gap_s <= 600.0:
+            raise ValueError(f"reboot gap_s={gap_s!r} outside [0.0, 600.0]")
+        self._rebooting_until_s = now_s + gap_s
+        self.stats["reboots"] += 1
+        self.emit(now_s, "fault", fault="reboot", gap_s=gap_s)
+        self._inbox.clear()
+        self._deferred.clear()
+        self._decoders.clear()  # a partial frame does not survive the reboot
+        for link in self._links:
+            link.clear()
+        # No pulses while the board restarts: servos hold where they are.
+        for output in self.pwm_us:
+            if self.pwm_us[output] != 0:
+                self._apply(output, 0, now_s)
+        if gap_s == 0.0:
+            self._boot(now_s)
+        return True
+
+    def _run_reboot(self, now_s: float) -> None:
+        if self._reboot_due_s is not None and self._reboot_due_s <= now_s:
+            due_s, self._reboot_due_s = self._reboot_due_s, None
+            self.reboot(due_s)
+        if self._rebooting_until_s is not None and self._rebooting_until_s <= now_s:
+            self._boot(self._rebooting_until_s)
+
+    def _boot(self, now_s: float) -> None:
+        self._rebooting_until_s = None
+        self._boot_s = now_s
+        self._enc.seq = 0
+        self.routes.clear()
+        self._active_links.clear()
+        self.peer = None
+        self._peers_seen.clear()
+        for output, pwm in self._boot_pwm_us().items():
+            if self.pwm_us[output] != pwm:
+                self._apply(output, pwm, now_s)
+        for msg_id in self._stream_msgs:
+            self._interval_ms[msg_id] = self._default_interval_ms(msg_id)
+            self._next_due_s[msg_id] = now_s if self._interval_ms[msg_id] > 0 else None
+        self.emit(now_s, "fault", fault="booted")
 
     def _heartbeat_paused_at(self, now_s: float) -> bool:
         if self._heartbeat_held is not None:
@@ -372,8 +520,16 @@ class SimAutopilot:
             mavlink.MAV_STATE_STANDBY,
         )
 
-    def _advance(self, msg_id: int, now_s: float) -> None:
+    def _effective_interval_ms(self, msg_id: int) -> int:
+        """The interval a stream really runs at: SERVO_OUTPUT_RAW never beats the configured
+        floor (50 Hz on ArduCopter, measured), whatever interval is stored and reported."""
         interval_ms = self._interval_ms[msg_id]
+        if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW and interval_ms > 0:
+            return max(interval_ms, self.config.servo_output_floor_ms)
+        return interval_ms
+
+    def _advance(self, msg_id: int, now_s: float) -> None:
+        interval_ms = self._effective_interval_ms(msg_id)
         if interval_ms <= 0:
             self._next_due_s[msg_id] = None
             return
@@ -394,7 +550,11 @@ class SimAutopilot:
             self._send(self._stream_message(msg_id, now_s), now_s)
 
     def _streamable(self) -> tuple[int, ...]:
-        ids = [mavlink.MAVLINK_MSG_ID_HEARTBEAT, mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW]
+        ids = [
+            mavlink.MAVLINK_MSG_ID_HEARTBEAT,
+            mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
+            mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
+        ]
         if self.config.flavour == "px4":
             ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
         return tuple(ids)
@@ -404,6 +564,8 @@ class SimAutopilot:
             return round(1000.0 / self.config.heartbeat_rate_hz)
         if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW and self.config.servo_output_rate_hz:
             return max(1, round(1000.0 / self.config.servo_output_rate_hz))
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME and self.config.system_time_default_hz:
+            return max(1, round(1000.0 / self.config.system_time_default_hz))
         return 0
 
     def _stream_message(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message:
@@ -417,6 +579,11 @@ class SimAutopilot:
             return self._enc.actuator_output_status_encode(
                 self._time_boot_us(now_s), OUTPUT_COUNT, actuators + [0.0] * (32 - OUTPUT_COUNT)
             )
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME:
+            # time_boot_ms restarts at 0 on a reboot: how a peer tells a reboot from a link loss.
+            return self._enc.system_time_encode(
+                self._time_unix_us(now_s), (self._time_boot_us(now_s) // 1000) & 0xFFFFFFFF
+            )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()
         raise AssertionError(f"message id {msg_id} is not streamable")  # _streamable() guards
@@ -426,6 +593,10 @@ class SimAutopilot:
     def receive(self, data: bytes, now_s: float, channel: int = 0) -> None:
         """Feed bytes that arrived at ``now_s`` on link ``channel`` (0: the companion's link;
         others: e.g. a ground station's), a datagram or a chunk of a serial stream."""
+        self._run_reboot(now_s)
+        if self._rebooting_until_s is not None:
+            self.stats["ignored_rebooting"] += 1
+            return
         corrupted = self.faults.corrupt_in(data)
         if corrupted != data:
             self.stats["corrupted_in"] += 1
@@ -434,6 +605,7 @@ class SimAutopilot:
             messages = self._decoder(channel).parse_buffer(corrupted) or []
         except mavlink.MAVError as exc:  # robust_parsing reports most problems as BAD_DATA
             messages = [mavlink.MAVLink_bad_data(b"", str(exc))]
+        self._link(channel).arrived(len(messages), now_s)
         due = self._next_tick_s(now_s)
         self._inbox.extend((due, channel, msg) for msg in messages)
 
@@ -450,16 +622,11 @@ class SimAutopilot:
             self._decoders[channel] = decoder
         return decoder
 
-    def forwarded(self) -> list[tuple[int, bytes]]:
-        """Frames routed between links since the last call: ``(channel, frame)``, to be written
-        as they are (a signed frame keeps its signature)."""
-        frames, self._forwarded = self._forwarded, []
-        return frames
-
     def _next_tick_s(self, now_s: float) -> float:
-        """The next main-loop pass at or after ``now_s`` (passes every ``1/loop_rate_hz``)."""
-        ticks = math.ceil(round((now_s - self._start_s) / self._loop_s, 9))
-        return self._start_s + ticks * self._loop_s
+        """The next main-loop pass at or after ``now_s`` (passes every ``1/loop_rate_hz`` from
+        boot)."""
+        ticks = math.ceil(round((now_s - self._boot_s) / self._loop_s, 9))
+        return self._boot_s + ticks * self._loop_s
 
     def _run_inbox(self, now_s: float) -> None:
         # ArduPilot reads its links once per main-loop pass (GCS::update_receive), so a frame
@@ -492,58 +659,95 @@ class SimAutopilot:
             src=[msg.get_srcSystem(), msg.get_srcComponent()],
             fields=_fields(msg),
         )
+        self._active_links.add(channel)
         if not self._route(msg, channel, now_s):
             return
         handler = self._handlers.get(kind)
         if handler is not None:
+            self._rx_channel = channel
             handler(msg, now_s)
 
     def _route(self, msg: mavlink.MAVLink_message, channel: int, now_s: float) -> bool:
-        """Learn where ``msg`` came from and forward it to the links of its target, as
-        ArduPilot's ``MAVLink_routing::check_and_forward`` does; True if it is (also) for us.
+        """Learn where ``msg`` came from and forward it to the links of its target; True if it
+        is (also) for us. ArduPilot's rules, libraries/GCS_MAVLink/MAVLink_routing.cpp
+        ``check_and_forward``:
 
-        No target field, or target system 0: a broadcast, handled here and forwarded to every
-        other link someone was heard on. Target (system, component) elsewhere: forwarded to the
-        link that system/component was heard on, not handled here. Our own system with
-        component 0: handled here and forwarded to our system's other components.
+        * our own (system, component) looped back: handled, neither learned nor forwarded;
+        * every other source is learned as (system, component, link), never forgotten (a
+          reboot clears the table), at most MAX_ROUTES entries;
+        * RADIO, RADIO_STATUS, ADSB_VEHICLE: handled, not forwarded; HEARTBEAT: handled and
+          forwarded to every active link but its own and those its sender was heard on;
+        * target (system, component) ours: handled only;
+        * otherwise forwarded to each link (never the one it came in on) with a route that
+          matches: target system 0 or absent, any route; else the route's system and, for our
+          own system, its component (or target component 0/absent); for another system, any
+          of its components;
+        * for our system and not forwarded anywhere (a component never heard, or heard only on
+          the link the frame came in on): handled here, so a command gets our UNSUPPORTED.
         """
         source = (msg.get_srcSystem(), msg.get_srcComponent())
         own = (self.config.system_id, self.config.component_id)
-        if source != own:
-            self.routes[source] = channel
-        target_system = getattr(msg, "target_system", 0)
-        target_component = getattr(msg, "target_component", 0)
-        for_us = target_system in (0, own[0]) and target_component in (0, own[1])
-        if for_us and target_system != 0 and target_component != 0:
+        if source == own:
             return True
-        links = {
-            link
-            for (system, component), link in self.routes.items()
-            if link != channel
-            and (
-                target_system == 0
-                or (system == target_system and target_component in (0, component))
+        self._learn_route(source, channel)
+        msg_id = msg.get_msgId()
+        if msg_id in NOT_FORWARDED_IDS:
+            return True
+        if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
+            heard_on = {link for s, c, link in self.routes if (s, c) == source}
+            others = sorted(self._active_links - {channel} - heard_on)
+            self._forward(msg, others, now_s, source, (0, 0), log=False)
+            return True
+        target_system = getattr(msg, "target_system", -1)
+        target_component = getattr(msg, "target_component", -1)
+        broadcast_system = target_system in (0, -1)
+        broadcast_component = target_component in (0, -1)
+        match_system = broadcast_system or target_system == own[0]
+        process_locally = match_system and (broadcast_component or target_component == own[1])
+        if process_locally and not broadcast_system and not broadcast_component:
+            return True
+        links: list[int] = []
+        for system, component, link in self.routes:
+            matches = broadcast_system or (
+                target_system == system
+                and (broadcast_component or target_component == component or not match_system)
             )
-        }
-        for link in sorted(links):
-            self._forwarded.append((link, bytes(msg.get_msgbuf())))
+            if matches and link != channel and link not in links:
+                links.append(link)
+        self._forward(msg, links, now_s, source, (target_system, target_component))
+        if not links and match_system:
+            process_locally = True
+        return process_locally
+
+    def _learn_route(self, source: tuple[int, int], channel: int) -> None:
+        route = (*source, channel)
+        if source[0] != 0 and route not in self.routes and len(self.routes) < MAX_ROUTES:
+            self.routes.append(route)
+
+    def _forward(
+        self,
+        msg: mavlink.MAVLink_message,
+        links: list[int],
+        now_s: float,
+        source: tuple[int, int],
+        target: tuple[int, int],
+        *,
+        log: bool = True,
+    ) -> None:
+        frame = bytes(msg.get_msgbuf())
+        for link in links:
+            # Routed frames take the same way out as ours (delay and hold), without faults.
+            self._link(link).write(frame, now_s)
             self.stats["routed"] += 1
-        if links and not for_us:
+        if links and log:
             self.emit(
                 now_s,
                 "routed",
                 msg=msg.get_type(),
                 src=list(source),
-                to=[target_system, target_component],
-                links=sorted(links),
+                to=list(target),
+                links=links,
             )
-        return for_us
-
-    def _for_us(self, msg: Any) -> bool:
-        return msg.target_system in (0, self.config.system_id) and msg.target_component in (
-            0,
-            self.config.component_id,
-        )
 
     def _on_heartbeat(self, msg: Any, now_s: float) -> None:
         source = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -553,8 +757,8 @@ class SimAutopilot:
             self.emit(now_s, "peer", src=list(source), type=msg.type, autopilot=msg.autopilot)
 
     def _on_command_long(self, msg: Any, now_s: float) -> None:
-        if not self._for_us(msg):
-            return
+        # Routing decided it is ours (MAVLink_routing.cpp); GCS_Common.cpp handle_command_long
+        # checks no target itself, so a command for a component never heard gets our answer.
         params = (
             msg.param1,
             msg.param2,
@@ -564,17 +768,15 @@ class SimAutopilot:
             msg.param6,
             msg.param7,
         )
-        self._run_command(
-            Command(msg.command, params, (msg.get_srcSystem(), msg.get_srcComponent())), now_s
-        )
+        self._run_command(self._command(msg, params), now_s)
 
     def _on_command_int(self, msg: Any, now_s: float) -> None:
-        if not self._for_us(msg):
-            return
         params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
-        self._run_command(
-            Command(msg.command, params, (msg.get_srcSystem(), msg.get_srcComponent())), now_s
-        )
+        self._run_command(self._command(msg, params), now_s)
+
+    def _command(self, msg: Any, params: tuple[float, ...]) -> Command:
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        return Command(msg.command, params, source, self._rx_channel)
 
     def _run_command(self, command: Command, now_s: float) -> None:
         handler = self._commands.get(command.command)
@@ -596,9 +798,9 @@ class SimAutopilot:
             self.stats["acks_withheld"] += 1
             return
         self.stats["acks"] += 1
-        self._send(
-            self._enc.command_ack_encode(command.command, result, 0, 0, *command.source), now_s
-        )
+        # On the link the command came from only (GCS_Common.cpp: sent on ``chan``).
+        ack = self._enc.command_ack_encode(command.command, result, 0, 0, *command.source)
+        self._send(ack, now_s, command.channel)
 
     def _statustext(self, severity: int, text: str, now_s: float) -> None:
         self.emit(now_s, "statustext", severity=severity, text=text)
@@ -695,6 +897,10 @@ class SimAutopilot:
             interval_ms = MAX_INTERVAL_MS
         else:
             interval_ms = interval_us // 1000
+        # GCS_Common.cpp cap_message_interval: at most 80 % of the main-loop rate (3 ms at 400 Hz).
+        loop_period_us = 1e6 / self.config.loop_rate_hz
+        if 0 < interval_ms and interval_ms * 800 < loop_period_us:
+            interval_ms = int(loop_period_us / 800)
         self._interval_ms[msg_id] = interval_ms
         self._next_due_s[msg_id] = now_s if interval_ms > 0 else None
         self.emit(now_s, "stream", msg=_message_name(msg_id), interval_ms=interval_ms)
@@ -703,6 +909,9 @@ class SimAutopilot:
     def _cmd_get_message_interval(self, command: Command, now_s: float) -> int:
         msg_id = int(command.params[0]) if math.isfinite(command.params[0]) else -1
         if msg_id in self._interval_ms:
+            # The stored interval, as GCS_Common.cpp get_ap_message_interval reads it back, not
+            # the rate achieved: SERVO_OUTPUT_RAW asked for at 400 Hz reports 3000 µs (the
+            # 0.8 x loop-rate cap) while it streams at 50 Hz.
             interval_ms = self._interval_ms[msg_id]
             interval_us = interval_ms * 1000 if interval_ms > 0 else -1
         else:
@@ -789,10 +998,9 @@ class SimAutopilot:
             "flavour": self.config.flavour,
             "system_id": self.config.system_id,
             "peer": list(self.peer) if self.peer else None,
-            "routes": [
-                [system, component, link]
-                for (system, component), link in sorted(self.routes.items())
-            ],
+            "routes": [list(route) for route in sorted(self.routes)],
+            "rebooting": self.rebooting,
+            "time_boot_ms": self._time_boot_us(now_s) // 1000,
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
             "hand": self.hand.state(positions).as_dict() if self.hand else None,

@@ -45,6 +45,15 @@ ARDUPILOT_MOTOR_FUNCTIONS = {1: 33, 2: 34, 3: 35, 4: 36}
 PX4_MOTOR_FUNCTIONS = {1: 101, 2: 102, 3: 103, 4: 104}
 PX4_ACTUATOR_SET_FIRST_FUNCTION = 301
 PX4_ACTUATOR_SET_COUNT = 6
+#: Measured on ArduCopter 4.7.0-dev SITL: SERVO_OUTPUT_RAW never faster than 50 Hz, whatever
+#: SET_MESSAGE_INTERVAL asked for.
+ARDUPILOT_SERVO_OUTPUT_MIN_INTERVAL_MS = 20
+#: SYSTEM_TIME before any SET_MESSAGE_INTERVAL. ArduCopter: in the EXTRA3 stream, whose
+#: SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off. PX4: 1 Hz in the
+#: ONBOARD mode of a companion link (mavlink_main.cpp ``configure_streams_to_default``).
+DEFAULT_SYSTEM_TIME_RATE_HZ = {"ardupilot": 0.0, "px4": 1.0}
+#: A real flight controller's reboot measured at 0.36 s without a frame.
+DEFAULT_REBOOT_GAP_S = 0.36
 
 
 def _where(source: str, name: str) -> str:
@@ -107,6 +116,54 @@ class ServoConfig:
 
 
 @dataclass(frozen=True)
+class LinkTimingConfig:
+    """When the autopilot's frames leave, on every link: a model fitted to ArduCopter SITL.
+
+    Measured on ArduCopter 4.7.0-dev SITL over TCP on loopback with a pymavlink client (the
+    figures ``python -m bench.sim_calibration`` compares against): one DO_SET_SERVO round trip
+    5.7 ms median (5.3–6.1); six one after another, each waiting for its ACK, 32.2 ms in all;
+    six back-to-back, then their six ACKs, 3.2 ms median (6.0 max). A burst beats a single
+    round trip, so the time is not spent handling the command; the model, on top of the 400 Hz
+    main-loop pass that handles each frame:
+
+    * every frame the autopilot writes to a link leaves ``output_delay_ms`` after it was
+      produced at the earliest (the burst's floor);
+    * then it is *held*, as a receiver's delayed ACK is: released when the next frame arrives
+      from that link, or ``hold_ms`` after the first frame that arrived on the link since it
+      was last quiet (``hold_ms`` after the frame was produced if none did), or at once when
+      ``burst_frames`` frames have arrived on the link within that window (TCP acknowledges at
+      least every second segment at once).
+
+    So a lone command's answer leaves ``hold_ms`` after the command arrived, whatever the loop
+    phase, and a burst's answers leave ``output_delay_ms`` after the pass that handled them.
+    The model's own figures (no I/O cost): one round trip ``hold_ms`` (4.8 ms), six in sequence
+    6 × 4.8 = 28.8 ms, a burst of six 0–2.5 ms + ``output_delay_ms`` (median 2.25 ms). The
+    defaults were fitted with ``python -m bench.sim_calibration`` (this simulator as a process,
+    a Python client, a loaded 2-core machine), which adds 0.5–1 ms per exchange: it measures
+    about 5.6, 33 and 4.7–5.3 ms. The burst stays above SITL's there, because handling six
+    commands costs this Python simulator 0.6–1.2 ms, more than ``output_delay_ms``. Fitted,
+    not derived: which part of SITL holds the frames was not identified. Serial links could not
+    be measured here; the same model applies to UDP, TCP and pty. ``hold_ms`` and
+    ``output_delay_ms`` 0 (:meth:`instant`) give the old timing: frames leave on the pass that
+    produced them.
+    """
+
+    output_delay_ms: float = 1.0
+    hold_ms: float = 4.8
+    burst_frames: int = 2
+
+    def __post_init__(self) -> None:
+        _real(self.output_delay_ms, "output_delay_ms", 0.0, 1000.0)
+        _real(self.hold_ms, "hold_ms", 0.0, 1000.0)
+        _int(self.burst_frames, "burst_frames", 1, 1000)
+
+    @classmethod
+    def instant(cls) -> LinkTimingConfig:
+        """No delay, no hold: frames leave on the main-loop pass that produced them."""
+        return cls(output_delay_ms=0.0, hold_ms=0.0)
+
+
+@dataclass(frozen=True)
 class FaultConfig:
     """Fault injection; every field off by default. Probabilities are per frame, in [0, 1]."""
 
@@ -123,6 +180,8 @@ class FaultConfig:
     nack_outputs: frozenset[int] = frozenset()
     hangup_after_s: float | None = None
     hangup_for_s: float | None = None  # None: the port never comes back
+    reboot_after_s: float | None = None
+    reboot_gap_s: float = DEFAULT_REBOOT_GAP_S
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -136,6 +195,8 @@ class FaultConfig:
         _optional_real(self.hangup_for_s, "hangup_for_s", 0.0, 1e6)
         if self.hangup_for_s is not None and self.hangup_after_s is None:
             raise SimConfigError("hangup_for_s needs hangup_after_s (when the port goes away)")
+        _optional_real(self.reboot_after_s, "reboot_after_s", 0.0, 1e6)
+        _real(self.reboot_gap_s, "reboot_gap_s", 0.0, 600.0)
         for command in self.withhold_ack_commands:
             _int(command, "withhold_ack command", 0, 65535)
         for output in self.nack_outputs:
@@ -211,8 +272,14 @@ class SimConfig:
     servo: ServoConfig = field(default_factory=ServoConfig)
     arm: ArmConfig = field(default_factory=ArmConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
+    link_timing: LinkTimingConfig = field(default_factory=LinkTimingConfig)
     signing_key: bytes | None = None
     servo_output_rate_hz: float = 0.0
+    #: SERVO_OUTPUT_RAW's shortest interval, whatever is asked; None: the flavour's (ArduPilot
+    #: 20 ms, PX4 none).
+    servo_output_min_interval_ms: int | None = None
+    #: SYSTEM_TIME before any SET_MESSAGE_INTERVAL; None: the flavour's (ArduPilot 0, PX4 1 Hz).
+    system_time_rate_hz: float | None = None
     heartbeat_rate_hz: float = 1.0
     loop_rate_hz: float = 400.0
 
@@ -231,10 +298,27 @@ class SimConfig:
         ):
             raise SimConfigError("signing_key must be 32 bytes")
         _real(self.servo_output_rate_hz, "servo_output_rate_hz", 0.0, 1000.0)
+        if self.servo_output_min_interval_ms is not None:
+            _int(self.servo_output_min_interval_ms, "servo_output_min_interval_ms", 0, 60_000)
+        _optional_real(self.system_time_rate_hz, "system_time_rate_hz", 0.0, 1000.0)
         if _real(self.heartbeat_rate_hz, "heartbeat_rate_hz", 0.0, 100.0) == 0.0:
             raise SimConfigError("heartbeat_rate_hz=0 must be > 0")
         if _real(self.loop_rate_hz, "loop_rate_hz", 0.0, 10_000.0) == 0.0:
             raise SimConfigError("loop_rate_hz=0 must be > 0")
+
+    @property
+    def servo_output_floor_ms(self) -> int:
+        """SERVO_OUTPUT_RAW's shortest interval in force (the flavour's when not set)."""
+        if self.servo_output_min_interval_ms is not None:
+            return self.servo_output_min_interval_ms
+        return ARDUPILOT_SERVO_OUTPUT_MIN_INTERVAL_MS if self.flavour == "ardupilot" else 0
+
+    @property
+    def system_time_default_hz(self) -> float:
+        """SYSTEM_TIME's rate before any SET_MESSAGE_INTERVAL (the flavour's when not set)."""
+        if self.system_time_rate_hz is not None:
+            return self.system_time_rate_hz
+        return DEFAULT_SYSTEM_TIME_RATE_HZ[self.flavour]
 
 
 def default_functions(flavour: str, arm_outputs: tuple[int, ...]) -> dict[int, int]:
@@ -276,6 +360,8 @@ _TOP_KEYS = {
     "system_id",
     "component_id",
     "servo_output_rate_hz",
+    "servo_output_min_interval_ms",
+    "system_time_rate_hz",
     "heartbeat_rate_hz",
     "loop_rate_hz",
     "signing_key_file",
@@ -283,6 +369,7 @@ _TOP_KEYS = {
     "servo",
     "arm",
     "faults",
+    "link_timing",
 }
 _FAULT_KEYS = {
     "drop_in",
@@ -297,6 +384,8 @@ _FAULT_KEYS = {
     "nack_outputs",
     "hangup_after_s",
     "hangup_for_s",
+    "reboot_after_s",
+    "reboot_gap_s",
     "seed",
 }
 _ARM_KEYS = {"file", "outputs", "pwm_min_us", "pwm_max_us", "reversed", "trims_us"}
@@ -352,6 +441,8 @@ def config_from_mapping(
         "system_id",
         "component_id",
         "servo_output_rate_hz",
+        "servo_output_min_interval_ms",
+        "system_time_rate_hz",
         "heartbeat_rate_hz",
         "loop_rate_hz",
     ):
@@ -391,6 +482,11 @@ def config_from_mapping(
     if "nack_outputs" in faults:
         faults["nack_outputs"] = frozenset(faults["nack_outputs"])
     kwargs["faults"] = FaultConfig(**faults)
+    timing = _table(data, "link_timing", source)
+    _reject_unknown(
+        timing, set(LinkTimingConfig.__dataclass_fields__), f"[link_timing] in {source}"
+    )
+    kwargs["link_timing"] = LinkTimingConfig(**timing)
     return SimConfig(**kwargs)
 
 

@@ -10,7 +10,10 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
 * ``ping``   – ``{"ok": true}``;
 * ``pause_heartbeat`` / ``resume_heartbeat`` – stop or restart the autopilot's HEARTBEAT now
   (a link loss on demand, for tests; ``--heartbeat-pause-after`` schedules one instead);
-  ``{"ok": true}``.
+  ``{"ok": true}``;
+* ``reboot`` – reboot the autopilot now (silent for ``--reboot-gap`` seconds, then back with
+  time_boot from 0; ``--reboot-after`` schedules one instead); ``{"ok": true}``, or
+  ``{"ok": false}`` while it is already rebooting.
 
 An unknown request gets ``{"error": "..."}`` naming the valid ones.
 """
@@ -28,7 +31,7 @@ from typing import Any
 from sim_servo.errors import SimIOError
 
 Responder = Callable[[str], dict[str, Any]]
-QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat")
+QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat", "reboot")
 _MAX_LINE = 65536
 
 

@@ -2,10 +2,10 @@
 
 One thread, one ``select``: it waits until a descriptor is readable or the autopilot's next
 event is due, feeds what arrived to :meth:`SimAutopilot.receive` (tagged with the link it came
-on: 0 for the companion's endpoint, 1 for the optional ground-station endpoint), writes what
-:meth:`SimAutopilot.poll` returns to every link and what it routed
-(:meth:`SimAutopilot.forwarded`) to its link, answers queries and applies the hang-up fault (to
-the companion's endpoint). Nothing here decides protocol behaviour. An exception from the
+on: 0 for the companion's endpoint, 1 for the optional ground-station endpoint), writes each
+frame :meth:`SimAutopilot.poll` returns to the link it names (when frames leave, and on which
+links, is the autopilot's decision), answers queries and applies the hang-up fault (to the
+companion's endpoint). Nothing here decides protocol behaviour. An exception from the
 autopilot ends the loop; it is logged as an ``error`` event and :meth:`SimServer.run` returns 1.
 """
 
@@ -51,6 +51,7 @@ class SimServer:
         self.gcs = gcs
         #: The links by channel number: 0 the companion's, 1 the ground station's.
         self.links: list[Endpoint] = [endpoint] + ([gcs] if gcs is not None else [])
+        autopilot.set_links(len(self.links))
         self.events = events
         self.clock = clock
         self._start_s = clock() if start_s is None else start_s
@@ -93,6 +94,8 @@ class SimServer:
             return {"events": list(self.events.recent)}
         if request in ("pause_heartbeat", "resume_heartbeat"):
             self.autopilot.pause_heartbeat(request == "pause_heartbeat", self.clock())
+        if request == "reboot":
+            return {"ok": self.autopilot.reboot(self.clock())}
         return {"ok": True}
 
     def run(self) -> int:
@@ -138,10 +141,7 @@ class SimServer:
             else:
                 self.endpoint.close()
             self.autopilot.emit(now, "fault", fault=fault, url=self.endpoint.url)
-        for frame in self.autopilot.poll(now):
-            for link in self.links:
-                link.write(frame)
-        for channel, frame in self.autopilot.forwarded():
+        for channel, frame in self.autopilot.poll(now):
             self.links[channel].write(frame)
 
     def close(self) -> None:

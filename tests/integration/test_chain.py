@@ -114,7 +114,8 @@ def assert_hand_at(c: Chain, pose, slack_us: float) -> tuple[float, float]:
 @pytest.mark.parametrize("pty", [False, True], ids=["udp", "pty"])
 def test_ground_station_targets_end_to_end(chain, pty, dialect):
     """USER_1 from a ground station moves the simulated hand; G is FAILED with a STATUSTEXT and
-    nothing moves; NaN is DENIED; a target for another component gets no answer from us."""
+    nothing moves; NaN is DENIED; a target for a component never heard is answered UNSUPPORTED by
+    the autopilot itself, and the daemon never sees it."""
     c = chain(pty=pty, dialect=dialect, sim_args=["--flavour", dialect])
     target = ARM.fk([20, 70, 50, 20, 30, 10]).as_tuple()
     ack = c.target(target)
@@ -131,11 +132,16 @@ def test_ground_station_targets_end_to_end(chain, pty, dialect):
     assert any("must be finite" in t for t in ack.statustexts), ack.statustexts
     assert c.sim_state()["outputs"] == before
 
-    # Addressed to component 192: the autopilot has no route to it and nobody answers.
+    # Addressed to component 192, never heard: as ArduPilot's routing does, the autopilot keeps
+    # it and answers UNSUPPORTED itself (from 1/1); the daemon never sees it.
     c.gcs.send_target(target, component_id=192)
-    status = c.status()
-    assert c.gcs.wait_ack(0.5) is None
-    counters = status["counters"]
+    ack = c.gcs.wait_for(
+        lambda m: m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_USER_1, WAIT_S
+    )
+    assert ack is not None and ack.result == mavlink.MAV_RESULT_UNSUPPORTED
+    assert (ack.get_srcSystem(), ack.get_srcComponent()) == (1, 1)
+    assert c.gcs.wait_ack(0.5) is None  # and nothing from the daemon
+    counters = c.status()["counters"]
     assert (counters["targets"], counters["accepted"], counters["failed"], counters["denied"]) == (
         3,
         1,

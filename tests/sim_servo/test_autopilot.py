@@ -1,7 +1,10 @@
 """The simulated autopilot's MAVLink behaviour, driven frame by frame on a fake clock.
 
 A plain pymavlink codec plays the daemon; nothing here sleeps. ``Harness.run_until`` jumps from
-one scheduled event of the autopilot to the next, so stream rates and delays are exact.
+one scheduled event of the autopilot to the next, so stream rates and delays are exact. The
+harness turns the link timing model off (frames leave on the main-loop pass that made them)
+unless a test asks for it; the model itself is tested in ``test_linktiming.py`` and at the end
+of this file.
 """
 
 from __future__ import annotations
@@ -9,24 +12,41 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.calibration import default_calibration
 from sim_servo.autopilot import SimAutopilot
-from sim_servo.config import FaultConfig, SimConfig
+from sim_servo.config import FaultConfig, LinkTimingConfig, SimConfig
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
 START_S = 100.0
+WALL_S = 1.7e9
 SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
+SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+INSTANT = LinkTimingConfig.instant()
+
+
+def frame_source(frame: bytes) -> tuple[int, int]:
+    """(system, component) from a raw MAVLink 2 (or 1) frame's header."""
+    return (frame[5], frame[6]) if frame[0] == 0xFD else (frame[3], frame[4])
 
 
 class Harness:
+    """The autopilot on a fake clock; ``received`` is what link 0 got, decoded, with times;
+    ``wire`` every frame on every link. ``link_timing`` replaces the config's (default: off)."""
+
     def __init__(
-        self, config: SimConfig | None = None, *, signing_key: bytes | None = None
+        self,
+        config: SimConfig | None = None,
+        *,
+        signing_key: bytes | None = None,
+        link_timing: LinkTimingConfig = INSTANT,
+        links: int = 1,
     ) -> None:
-        self.config = config or SimConfig()
+        self.config = replace(config or SimConfig(), link_timing=link_timing)
         self.now = START_S
         self.events: list[dict] = []
         self.hand = HandModel.from_config(self.config.arm)
@@ -35,7 +55,8 @@ class Harness:
             now_s=self.now,
             emit=self.events.append,
             hand=self.hand,
-            wall_clock=lambda: 1.7e9,
+            wall_clock=lambda: WALL_S,
+            links=links,
         )
         self.gcs = mavlink.MAVLink(None, 255, 190)
         self.dec = mavlink.MAVLink(None)
@@ -47,18 +68,39 @@ class Harness:
             self.gcs.signing.timestamp = 1
             self.dec.signing.secret_key = signing_key
         self.received: list[tuple[float, mavlink.MAVLink_message]] = []
+        self.wire: list[tuple[float, int, bytes]] = []
+        self._forwarded_seen = 0
 
-    def send(self, msg) -> None:
-        self.ap.receive(msg.pack(self.gcs), self.now)
+    def send(self, msg, channel: int = 0) -> None:
+        self.ap.receive(msg.pack(self.gcs), self.now, channel)
 
     def command(self, command: int, *params: float, target=(1, 1)) -> None:
         values = list(params) + [0.0] * (7 - len(params))
         self.send(self.gcs.command_long_encode(*target, command, 0, *values))
 
     def _collect(self) -> None:
-        for frame in self.ap.poll(self.now):
-            for msg in self.dec.parse_buffer(frame) or []:
-                self.received.append((self.now, msg))
+        for channel, frame in self.ap.poll(self.now):
+            self.wire.append((self.now, channel, frame))
+            if channel == 0:
+                for msg in self.dec.parse_buffer(frame) or []:
+                    self.received.append((self.now, msg))
+
+    def forwarded(self) -> list[tuple[int, bytes]]:
+        """Frames routed (not ours) onto a link since the last call: ``(link, frame)``."""
+        own = (self.config.system_id, self.config.component_id)
+        frames = self.wire[self._forwarded_seen :]
+        self._forwarded_seen = len(self.wire)
+        return [(ch, f) for _, ch, f in frames if frame_source(f) != own]
+
+    def on_link(self, channel: int, kind: str | None = None) -> list:
+        """Our own messages (decoded) that went out on ``channel``, optionally of one type."""
+        dec = mavlink.MAVLink(None)
+        own = (self.config.system_id, self.config.component_id)
+        msgs = []
+        for _, ch, frame in self.wire:
+            if ch == channel and frame_source(frame) == own:
+                msgs += dec.parse_buffer(frame) or []
+        return [m for m in msgs if kind is None or m.get_type() == kind]
 
     def run_until(self, end_s: float) -> list:
         """Advance to ``end_s`` through every scheduled event; the messages received meanwhile."""
@@ -217,10 +259,16 @@ def test_unknown_commands_are_unsupported(command):
     assert (ack.command, ack.result) == (command, mavlink.MAV_RESULT_UNSUPPORTED)
 
 
-def test_commands_for_another_component_are_ignored():
-    h = Harness()
+def test_commands_for_another_component_heard_elsewhere_are_not_handled_here():
+    # Once 1/154 (a camera, say) has been heard on link 1, a command for it is its business
+    # (routing: forwarded there, not handled). Never heard: see the routing tests below.
+    h = Harness(links=2)
+    camera = mavlink.MAVLink(None, 1, 154)
+    h.ap.receive(camera.heartbeat_encode(30, 8, 0, 0, 0).pack(camera), h.now, 1)
+    h.run_for(0.01)
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(1, 154))
-    assert acks(h.run_for(0.1)) == []
+    assert acks(h.run_for(0.1)) == [] and h.ap.pwm_us[9] == 0
+    assert [ch for ch, _ in h.forwarded()] == [1]
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500, target=(0, 0))  # broadcast
     assert len(acks(h.run_for(0.1))) == 1
 
@@ -242,7 +290,8 @@ def test_servo_output_raw_runs_at_the_requested_rate(rate_hz):
 
 
 def test_message_interval_special_values():
-    h = Harness()
+    # A 1 kHz loop, so the 80 %-of-loop-rate cap (next test) leaves 1 ms alone.
+    h = Harness(SimConfig(loop_rate_hz=1000))
     h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 500)  # < 1 ms → 1 ms
     h.run_for(0.01)
     assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 1
@@ -582,7 +631,7 @@ COMPANION = (1, 191)
 
 def routing_harness(signing_key: bytes | None = None):
     """Link 0: the companion (1/191); link 1: a ground station (255/190). Both heard once."""
-    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key)
+    h = Harness(replace(SimConfig(), signing_key=signing_key), signing_key=signing_key, links=2)
     companion = mavlink.MAVLink(None, *COMPANION)
     if signing_key is not None:
         companion.signing.secret_key = signing_key
@@ -595,24 +644,24 @@ def routing_harness(signing_key: bytes | None = None):
     gcs_hb = h.gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
     h.ap.receive(gcs_hb.pack(h.gcs), h.now, 1)
     h.run_for(0.01)
-    h.ap.forwarded()  # the heartbeats' own forwarding is checked in its own test
+    h.forwarded()  # the heartbeats' own forwarding is checked in its own test
     return h, companion
 
 
 def test_heartbeats_are_forwarded_to_the_other_link_and_routes_learned():
-    h = Harness()
+    h = Harness(links=2)
     companion = mavlink.MAVLink(None, *COMPANION)
     frame = companion.heartbeat_encode(
         mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0
     ).pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == []  # nobody heard on another link yet: nowhere to forward
+    assert h.forwarded() == []  # nobody heard on another link yet: nowhere to forward
     gcs_frame = h.gcs.heartbeat_encode(6, 8, 0, 0, 0).pack(h.gcs)
     h.ap.receive(gcs_frame, h.now, 1)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, gcs_frame), (1, frame)]
+    assert h.forwarded() == [(0, gcs_frame), (1, frame)]
     assert h.ap.snapshot(h.now)["routes"] == [[1, 191, 0], [255, 190, 1]]
 
 
@@ -623,7 +672,7 @@ def test_target_for_the_companion_is_forwarded_unchanged_and_not_handled_here():
     frame = msg.pack(h.gcs)
     h.ap.receive(frame, h.now, 1)
     replies = h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, frame)]
+    assert h.forwarded() == [(0, frame)]
     assert h.of_type("COMMAND_ACK", replies) == []  # the companion answers, not the autopilot
     assert h.ap.stats["routed"] == routed + 1
 
@@ -638,8 +687,11 @@ def test_commands_for_the_autopilot_are_handled_and_not_forwarded():
         1,
     )
     replies = h.run_for(0.01)
-    assert h.ap.forwarded() == []
-    assert [a.result for a in h.of_type("COMMAND_ACK", replies)] == [mavlink.MAV_RESULT_ACCEPTED]
+    assert h.forwarded() == []
+    # The ACK goes back on the ground station's link only, as GCS_Common.cpp sends it on
+    # the command's channel: the companion's link (0) does not see it.
+    assert [a.result for a in h.on_link(1, "COMMAND_ACK")] == [mavlink.MAV_RESULT_ACCEPTED]
+    assert h.of_type("COMMAND_ACK", replies) == []
 
 
 def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
@@ -648,12 +700,12 @@ def test_unknown_targets_go_nowhere_and_replies_go_back_to_their_sender():
         h.gcs.command_long_encode(7, 191, mavlink.MAV_CMD_USER_1, 0, *[0] * 7).pack(h.gcs), h.now, 1
     )
     h.run_for(0.01)
-    assert h.ap.forwarded() == []
+    assert h.forwarded() == []
     ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
     frame = ack.pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(1, frame)]
+    assert h.forwarded() == [(1, frame)]
 
 
 def test_statustext_is_a_broadcast_and_is_also_handled_here():
@@ -661,7 +713,7 @@ def test_statustext_is_a_broadcast_and_is_also_handled_here():
     frame = companion.statustext_encode(4, b"unreachable").pack(companion)
     h.ap.receive(frame, h.now, 0)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(1, frame)]
+    assert h.forwarded() == [(1, frame)]
 
 
 def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped():
@@ -671,7 +723,7 @@ def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped(
     assert frame[2] & mavlink.MAVLINK_IFLAG_SIGNED
     h.ap.receive(frame, h.now, 1)
     h.run_for(0.01)
-    assert h.ap.forwarded() == [(0, frame)]
+    assert h.forwarded() == [(0, frame)]
     plain = mavlink.MAVLink(None, 255, 190)
     h.ap.receive(
         plain.command_long_encode(*COMPANION, mavlink.MAV_CMD_USER_1, 0, *[1] * 7).pack(plain),
@@ -688,7 +740,7 @@ def test_signed_frames_are_forwarded_with_their_signature_unsigned_ones_dropped(
         1,
     )
     h.run_for(0.01)
-    assert h.ap.forwarded() == []
+    assert h.forwarded() == []
     assert h.ap.stats["rejected_signature"] == 2
 
 
@@ -700,5 +752,272 @@ def test_a_stream_split_across_reads_on_one_link_survives_frames_on_another():
     h.ap.receive(other, h.now, 0)
     h.ap.receive(frame[10:], h.now, 1)
     h.run_for(0.01)
-    assert sorted(h.ap.forwarded()) == [(0, frame), (1, other)]
+    assert sorted(h.forwarded()) == [(0, frame), (1, other)]
     assert h.ap.stats["bad_frames"] == 0
+
+
+# -- ArduPilot's routing rules, as measured on ArduCopter SITL (MAVLink_routing.cpp) --------
+
+USER_1 = mavlink.MAV_CMD_USER_1
+
+
+def user_1(h: Harness, target=COMPANION) -> bytes:
+    return h.gcs.command_long_encode(*target, USER_1, 0, *[1] * 7).pack(h.gcs)
+
+
+def heartbeat_from(codec) -> bytes:
+    return codec.heartbeat_encode(18, 8, 0, 0, 0).pack(codec)
+
+
+def test_a_command_for_a_component_never_heard_is_answered_unsupported_by_the_autopilot():
+    h = Harness(links=2)
+    h.ap.receive(heartbeat_from(h.gcs), h.now, 1)  # the ground station on link 1
+    h.run_for(0.01)
+    h.ap.receive(user_1(h), h.now, 1)  # for 1/191, before any companion was heard
+    h.run_for(0.01)
+    ack = h.on_link(1, "COMMAND_ACK")[0]
+    assert (ack.get_srcSystem(), ack.get_srcComponent()) == (1, 1)
+    assert (ack.command, ack.result) == (USER_1, mavlink.MAV_RESULT_UNSUPPORTED)
+    assert (ack.target_system, ack.target_component) == (255, 190)
+    assert h.forwarded() == []
+
+
+def test_a_component_that_left_keeps_its_route_and_gets_the_frames_no_ack_comes():
+    h, companion = routing_harness()
+    h.run_for(60.0)  # the companion's link closed / it stopped talking long ago
+    frame = user_1(h)
+    h.ap.receive(frame, h.now, 1)
+    h.run_for(0.5)
+    assert h.forwarded() == [(0, frame)]  # to the dead link, as ArduPilot never forgets
+    assert h.on_link(1, "COMMAND_ACK") == []
+    assert [1, 191, 0] in h.ap.snapshot(h.now)["routes"]
+
+
+def test_a_frame_is_never_forwarded_back_out_of_the_link_it_came_in_on():
+    # A ground station and the companion behind one link (link 0): the GCS's USER_1 for the
+    # companion is not sent back down that link, so the autopilot answers it itself.
+    h = Harness(links=2)
+    companion = mavlink.MAVLink(None, *COMPANION)
+    h.ap.receive(heartbeat_from(companion), h.now, 0)
+    h.ap.receive(heartbeat_from(h.gcs), h.now, 0)
+    h.run_for(0.01)
+    h.forwarded()
+    h.ap.receive(user_1(h), h.now, 0)
+    replies = h.run_for(0.01)
+    assert h.forwarded() == []
+    assert [(a.command, a.result) for a in acks(replies)] == [
+        (USER_1, mavlink.MAV_RESULT_UNSUPPORTED)
+    ]
+
+
+def test_a_component_heard_on_two_links_gets_frames_on_the_other_one():
+    h, companion = routing_harness()
+    h.ap.receive(heartbeat_from(companion), h.now, 1)  # now also heard on link 1
+    h.run_for(0.01)
+    h.forwarded()
+    frame = user_1(h)
+    h.ap.receive(frame, h.now, 1)
+    h.run_for(0.01)
+    assert h.forwarded() == [(0, frame)]  # not back onto link 1, and not handled here
+    assert h.on_link(1, "COMMAND_ACK") == []
+
+
+def test_another_system_is_reached_whatever_its_component():
+    h = Harness(links=2)
+    other = mavlink.MAVLink(None, 7, 1)
+    h.ap.receive(heartbeat_from(other), h.now, 1)
+    h.run_for(0.01)
+    frame = user_1(h, target=(7, 50))  # a component of system 7 never heard
+    h.ap.receive(frame, h.now, 0)
+    replies = h.run_for(0.01)
+    assert (1, frame) in h.forwarded() and acks(replies) == []
+
+
+def test_our_own_frames_looped_back_teach_no_route_and_radio_status_is_not_forwarded():
+    h, companion = routing_harness()
+    me = mavlink.MAVLink(None, 1, 1)
+    h.ap.receive(heartbeat_from(me), h.now, 1)
+    radio = companion.radio_status_encode(200, 190, 100, 10, 10, 0, 0).pack(companion)
+    h.ap.receive(radio, h.now, 0)
+    h.run_for(0.01)
+    assert h.forwarded() == []
+    assert [1, 1, 1] not in h.ap.snapshot(h.now)["routes"]
+
+
+def test_the_routing_table_holds_at_most_20_routes():
+    h = Harness(links=2)
+    for component in range(1, 31):
+        codec = mavlink.MAVLink(None, 9, component)
+        h.ap.receive(heartbeat_from(codec), h.now, 1)
+    h.run_for(0.01)
+    assert len(h.ap.routes) == 20
+    assert h.ap.routes[-1] == (9, 20, 1)
+
+
+# -- streams: the 50 Hz SERVO_OUTPUT_RAW floor, the interval cap, SYSTEM_TIME ----------------
+
+
+def test_servo_output_raw_never_beats_50_hz_on_ardupilot_and_reports_what_is_stored():
+    h = Harness()
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 2500)  # 400 Hz
+    assert acks(h.run_for(0.001))[0].result == mavlink.MAV_RESULT_ACCEPTED
+    raws = h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0))
+    assert len(raws) == 50
+    stamps = [m.time_usec for m in raws]
+    assert {b - a for a, b in zip(stamps, stamps[1:], strict=False)} == {20_000}
+    h.command(mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW)
+    interval = h.of_type("MESSAGE_INTERVAL", h.run_for(0.01))[0]
+    # The stored interval: 2.5 ms → 2 ms → capped to 3 ms (80 % of the 400 Hz loop).
+    assert interval.interval_us == 3000
+    assert h.ap.snapshot(h.now)["streams"]["SERVO_OUTPUT_RAW"] == 3
+
+
+def test_px4_has_no_servo_output_floor_and_the_floor_is_configurable():
+    h = Harness(SimConfig(flavour="px4"))
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 5000)  # 200 Hz
+    assert len(h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0 - 1e-6))) == 200
+    h = Harness(SimConfig(servo_output_min_interval_ms=50))
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 5000)
+    assert len(h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0 - 1e-6))) == 20
+
+
+@pytest.mark.parametrize(("loop_rate_hz", "stored_ms"), [(400, 3), (100, 12), (1000, 1)])
+def test_message_intervals_are_capped_at_80_percent_of_the_loop_rate(loop_rate_hz, stored_ms):
+    h = Harness(SimConfig(loop_rate_hz=loop_rate_hz))
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_HEARTBEAT, 1000)
+    h.run_for(0.05)
+    assert h.ap.snapshot(h.now)["streams"]["HEARTBEAT"] == stored_ms
+
+
+def test_system_time_is_off_on_ardupilot_until_asked_and_counts_from_boot():
+    h = Harness()
+    assert h.of_type("SYSTEM_TIME", h.run_for(2.0)) == []  # SR0_EXTRA3 is 0 on Copter
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SYSTEM_TIME, 200_000)  # 5 Hz
+    msgs = h.run_for(1.0 - 1e-6)
+    assert acks(msgs)[0].result == mavlink.MAV_RESULT_ACCEPTED
+    times = h.of_type("SYSTEM_TIME", msgs)
+    assert [m.time_boot_ms for m in times] == [2000, 2200, 2400, 2600, 2800]
+    assert times[0].time_unix_usec == round((WALL_S + 2.0) * 1e6)
+
+
+def test_px4_streams_system_time_at_1_hz_by_default():
+    h = Harness(SimConfig(flavour="px4"))
+    times = h.of_type("SYSTEM_TIME", h.run_for(2.5))
+    assert [m.time_boot_ms for m in times] == [0, 1000, 2000]
+
+
+# -- reboot -------------------------------------------------------------------------------------
+
+
+def test_a_reboot_is_silent_deaf_then_restarts_time_seq_streams_routes_and_outputs():
+    h, companion = routing_harness()
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SYSTEM_TIME, 100_000)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1700)
+    h.send(h.gcs.param_set_encode(1, 1, b"SERVO10_MIN", 1050, mavlink.MAV_PARAM_TYPE_INT16))
+    before = h.of_type("SYSTEM_TIME", h.run_for(1.0))
+    assert before[-1].time_boot_ms > 900 and h.ap.pwm_us[9] == 1700
+    h.ap.reboot(h.now)
+    rebooted_at = h.now
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 11, 1600)  # ignored: nobody is listening
+    assert h.run_until(rebooted_at + 0.36 - 1e-6) == []
+    assert h.forwarded() == [] and h.ap.snapshot(h.now)["rebooting"]
+    first = h.run_until(rebooted_at + 0.36)
+    assert first[0].get_type() == "HEARTBEAT" and first[0].get_seq() == 0
+    assert h.ap.pwm_us[9] == 0 and h.ap.pwm_us[11] == 0 and h.ap.pwm_us[1] == 1000
+    state = h.ap.snapshot(h.now)
+    assert state["routes"] == [] and state["peer"] is None and not state["rebooting"]
+    assert state["streams"]["SYSTEM_TIME"] == 0  # back to the default: the request is lost
+    assert h.ap.params["SERVO10_MIN"].value == 1050  # parameters survive
+    h.command(mavlink.MAV_CMD_REQUEST_MESSAGE, SYSTEM_TIME)
+    after = h.of_type("SYSTEM_TIME", h.run_for(0.1))
+    assert after[0].time_boot_ms < 10 < before[-1].time_boot_ms
+    faults = [(e["fault"], e["t_s"]) for e in h.events if e["event"] == "fault"]
+    t0 = round(rebooted_at - START_S, 6)
+    assert faults == [("reboot", t0), ("booted", pytest.approx(t0 + 0.36))]
+    assert h.ap.stats["reboots"] == 1 and h.ap.stats["ignored_rebooting"] == 1
+
+
+def test_a_reboot_while_rebooting_is_refused_and_the_gap_is_configurable():
+    h = Harness(SimConfig(faults=FaultConfig(reboot_gap_s=1.0)))
+    h.run_for(0.5)
+    assert h.ap.reboot(h.now)
+    assert not h.ap.reboot(h.now + 0.1)
+    h.run_for(1.0 - 1e-6)
+    assert h.ap.rebooting
+    h.run_for(1e-6)
+    assert not h.ap.rebooting
+
+
+def test_a_scheduled_reboot_restarts_the_heartbeat_from_boot():
+    h = faulty(reboot_after_s=2.2, reboot_gap_s=0.5)
+    h.run_for(4.0)
+    times = [round(t - START_S, 6) for t, m in h.received if m.get_type() == "HEARTBEAT"]
+    assert times == [0.0, 1.0, 2.0, 2.7, 3.7]
+
+
+def test_px4_outputs_return_to_their_disarmed_value_after_a_reboot():
+    h = Harness(SimConfig(flavour="px4"))
+    h.command(mavlink.MAV_CMD_DO_SET_ACTUATOR, 0.5, 0, 0, 0, 0, 0, 0)
+    h.run_for(0.1)
+    assert h.ap.pwm_us[9] == 1750
+    h.ap.reboot(h.now, gap_s=0.1)
+    h.run_for(0.2)
+    assert h.ap.pwm_us[9] == 1000 and h.ap.pwm_us[1] == 1000 and h.ap.pwm_us[16] == 0
+
+
+# -- the link timing model through the autopilot (no I/O overhead: the model's own figures) --
+
+
+def _timed_harness(rng_seed: int = 0):
+    h = Harness(link_timing=LinkTimingConfig())
+    return h, np.random.default_rng(rng_seed)
+
+
+def _wait_ack(h: Harness, count: int = 1) -> float:
+    """Advance until ``count`` more COMMAND_ACKs arrived; the time the last one did."""
+    seen = len(h.of_type("COMMAND_ACK"))
+    while len(h.of_type("COMMAND_ACK")) < seen + count:
+        h.now = h.ap.next_event_s(h.now + 1e-9)
+        h._collect()
+    return h.now
+
+
+def test_default_timing_a_lone_command_is_answered_hold_ms_after_it_arrived():
+    h, rng = _timed_harness()
+    hold_s = h.config.link_timing.hold_ms / 1000
+    rtts = []
+    for _ in range(40):
+        h.run_for(rng.uniform(0.0, 0.02))  # a random phase of the 400 Hz loop
+        sent = h.now
+        h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
+        rtts.append(_wait_ack(h) - sent)
+    assert rtts == pytest.approx([hold_s] * 40)
+    sent = h.now
+    for _ in range(6):  # six in sequence, each waiting for its ACK
+        h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
+        _wait_ack(h)
+    assert h.now - sent == pytest.approx(6 * hold_s)
+
+
+def test_default_timing_a_burst_is_answered_faster_than_a_lone_command():
+    h, rng = _timed_harness(1)
+    timing = h.config.link_timing
+    loop_s, delay_s = 1 / h.config.loop_rate_hz, timing.output_delay_ms / 1000
+    totals = []
+    for _ in range(60):
+        h.run_for(rng.uniform(0.0, 0.02))
+        sent = h.now
+        for output in range(9, 15):
+            h.command(mavlink.MAV_CMD_DO_SET_SERVO, output, 1500)
+        _wait_ack(h, 6)
+        totals.append(h.now - sent)
+    assert all(delay_s - 1e-9 <= t <= loop_s + delay_s + 1e-9 for t in totals)
+    assert float(np.median(totals)) < timing.hold_ms / 1000
+    assert all(a.result == mavlink.MAV_RESULT_ACCEPTED for a in h.of_type("COMMAND_ACK"))
+
+
+def test_a_statustext_still_follows_its_ack_under_the_timing_model():
+    h, _ = _timed_harness()
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 2, 1500)  # a motor: FAILED + STATUSTEXT
+    kinds = [m.get_type() for m in h.run_for(0.1) if m.get_type() != "HEARTBEAT"]
+    assert kinds == ["COMMAND_ACK", "STATUSTEXT"]

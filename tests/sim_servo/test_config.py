@@ -1,5 +1,6 @@
 """Simulator settings: defaults, validation messages, TOML file, flag layering."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -8,6 +9,7 @@ from sim_servo.__main__ import build_parser, config_data
 from sim_servo.config import (
     ArmConfig,
     FaultConfig,
+    LinkTimingConfig,
     ServoConfig,
     SimConfig,
     config_from_mapping,
@@ -40,6 +42,11 @@ def test_px4_defaults_actuator_set_on_arm_outputs():
         ({"functions": {17: 0}}, "output=17 outside [1, 16]"),
         ({"servo_output_rate_hz": -1}, "servo_output_rate_hz=-1 outside [0.0, 1000.0]"),
         ({"signing_key": b"short"}, "signing_key must be 32 bytes"),
+        (
+            {"servo_output_min_interval_ms": -1},
+            "servo_output_min_interval_ms=-1 outside [0, 60000]",
+        ),
+        ({"system_time_rate_hz": 2000}, "system_time_rate_hz=2000 outside [0.0, 1000.0]"),
     ],
 )
 def test_validation_names_value_and_range(kwargs, message):
@@ -54,6 +61,8 @@ def test_validation_names_value_and_range(kwargs, message):
         (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
         (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
         (FaultConfig, {"hangup_for_s": 1.0}, "hangup_for_s needs hangup_after_s"),
+        (FaultConfig, {"reboot_after_s": -1.0}, "reboot_after_s=-1.0 outside [0.0, 1000000.0]"),
+        (FaultConfig, {"reboot_gap_s": 601}, "reboot_gap_s=601 outside [0.0, 600.0]"),
         (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),
         (ServoConfig, {"travel_min_us": 2000, "travel_max_us": 1000}, "must be below"),
         (ArmConfig, {"outputs": (9, 9)}, "repeat an output"),
@@ -76,6 +85,26 @@ def test_validation_names_value_and_range(kwargs, message):
 def test_part_validation(cls, kwargs, message):
     with pytest.raises(SimConfigError, match=message.replace("[", r"\[").replace("]", r"\]")):
         cls(**kwargs)
+
+
+def test_flavour_defaults_for_the_servo_stream_floor_and_system_time():
+    ardupilot, px4 = SimConfig(), SimConfig(flavour="px4")
+    assert (ardupilot.servo_output_floor_ms, px4.servo_output_floor_ms) == (20, 0)
+    assert (ardupilot.system_time_default_hz, px4.system_time_default_hz) == (0.0, 1.0)
+    # Not frozen into the config: changing the flavour changes the defaults.
+    assert replace(ardupilot, flavour="px4").servo_output_floor_ms == 0
+    assert SimConfig(servo_output_min_interval_ms=5).servo_output_floor_ms == 5
+    assert FaultConfig().reboot_gap_s == 0.36 and FaultConfig().reboot_after_s is None
+
+
+def test_link_timing_from_toml_and_validated():
+    config = config_from_mapping({"link_timing": {"hold_ms": 0, "output_delay_ms": 0}})
+    assert config.link_timing == LinkTimingConfig.instant()
+    assert SimConfig().link_timing == LinkTimingConfig()
+    with pytest.raises(SimConfigError, match=r"unknown keys \['hold'\] in \[link_timing\]"):
+        config_from_mapping({"link_timing": {"hold": 1}}, "x.toml")
+    with pytest.raises(SimConfigError, match=r"hold_ms=-2 outside \[0.0, 1000.0\]"):
+        config_from_mapping({"link_timing": {"hold_ms": -2}}, "x.toml")
 
 
 def test_arm_table_from_toml():
@@ -152,6 +181,18 @@ def test_flags_override_the_file():
             "5",
             "--hangup-for",
             "1.5",
+            "--reboot-after",
+            "7",
+            "--reboot-gap",
+            "0.5",
+            "--link-hold-ms",
+            "3",
+            "--link-delay-ms",
+            "0.5",
+            "--link-burst-frames",
+            "3",
+            "--system-time-rate-hz",
+            "2",
         ]
     )
     data, base = config_data(args)
@@ -161,3 +202,6 @@ def test_flags_override_the_file():
     assert config.faults.nack_outputs == {10} and config.faults.hangup_after_s == 5
     assert config.faults.hangup_for_s == 1.5
     assert config.servo.slew_s_per_60deg == 0.2 and config.servo.deadband_us == 1.0
+    assert (config.faults.reboot_after_s, config.faults.reboot_gap_s) == (7, 0.5)
+    assert config.link_timing == LinkTimingConfig(output_delay_ms=0.5, hold_ms=3, burst_frames=3)
+    assert config.system_time_default_hz == 2

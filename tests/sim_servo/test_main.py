@@ -214,6 +214,31 @@ def test_udp_faults_withhold_nack_heartbeat_pause(udp_sim):
 
 
 @pytest.mark.slow
+def test_udp_reboot_on_request_silence_then_time_boot_and_sequence_from_zero(udp_sim):
+    sim, client = udp_sim("--system-time-rate-hz", "20", "--reboot-gap", "0.5")
+    last = client.wait_for(lambda m: is_type("SYSTEM_TIME")(m) and m.time_boot_ms > 300)
+    start = len(client.log)
+    assert sim.reboot()
+    assert not sim.reboot()  # already rebooting
+    assert wait_until(lambda: len(sim.events("fault", fault="booted")) == 1)
+    client.wait_for(is_type("SYSTEM_TIME"))
+    deadline = time.monotonic() + 0.3
+    while time.monotonic() < deadline:
+        client.read(0.05)
+    log = client.log[start - 1 :]
+    # The first frame after the longest silence is the first one after the reboot.
+    pairs = enumerate(zip(log, log[1:], strict=False))
+    gap_s, after = max((b[0] - a[0], i + 1) for i, (a, b) in pairs)
+    assert gap_s >= 0.45  # 0.5 s on the simulator's clock, less our read jitter
+    assert log[after][1].get_seq() == 0
+    first = next(m for _, m in log[after:] if m.get_type() == "SYSTEM_TIME")
+    assert first.time_boot_ms < 100 < last.time_boot_ms
+    assert sim.events("fault", fault="reboot")[0]["gap_s"] == 0.5
+    assert sim.state()["stats"]["reboots"] == 1
+    assert sim.stop() == 0
+
+
+@pytest.mark.slow
 def test_udp_drop_and_latency(udp_sim):
     sim, client = udp_sim("--latency-ms", "200")
     sent = client.command(mavlink.MAV_CMD_NAV_TAKEOFF)
@@ -333,6 +358,12 @@ def test_help_documents_every_fault_flag(capsys):
         "--hangup-for",
         "--pty-link",
         "--signing-key",
+        "--reboot-after",
+        "--reboot-gap",
+        "--link-hold-ms",
+        "--link-delay-ms",
+        "--link-burst-frames",
+        "--system-time-rate-hz",
     ):
         assert flag in text
 

@@ -36,6 +36,8 @@ def test_word_and_json_requests(server):
     assert query(server, "state") == {"answer": "state"}
     assert query(server, '{"query": "events"}') == {"answer": "events"}
     assert "unknown query 'nope'" in query(server, "nope")["error"]
+    for request in ("pause_heartbeat", "resume_heartbeat", "reboot"):
+        assert query(server, request) == {"answer": request}
 
 
 def test_several_requests_on_one_connection(server):

@@ -92,6 +92,13 @@ class SimProcess:
         """Stop (or with ``paused=False`` restart) the autopilot's HEARTBEAT now."""
         query(self.query_path, "pause_heartbeat" if paused else "resume_heartbeat")
 
+    def reboot(self) -> bool:
+        """Reboot the autopilot now: silent for its reboot gap (``--reboot-gap``, 0.36 s by
+        default), then back with time_boot from 0, default streams, an empty routing table;
+        False if it was already rebooting. Wait for the ``fault`` event ``booted`` (or a
+        HEARTBEAT) to know it is back."""
+        return bool(query(self.query_path, "reboot").get("ok"))
+
     def events(self, event: str | None = None, **fields) -> list[dict]:
         """The event log so far, optionally only ``event`` entries with these field values."""
         return [
