@@ -466,7 +466,6 @@ class ControlCore:
         sent = frozenset(o for c in commands for o in c.outputs)
         self._inflight = _InFlight(step, pwm, sent, tracker, now, waiting)
         self._last_step_s = now
-        self.counters["servo_updates"] += 1
         self._emit(actions, commands, 0)
 
     def _send_direct(
@@ -566,6 +565,7 @@ class ControlCore:
         if not unknown:
             self._unconfirmed = None
             self._unanswered = 0
+            self.counters["servo_updates"] += 1  # acknowledged in full
             self._record_first_out(timing)
             for w in inflight.waiting:
                 reply = w.reply
