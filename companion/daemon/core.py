@@ -143,8 +143,10 @@ class ControlCore:
         self._position: list[float] = [float(a) for a in start]
         self._acked_pwm: dict[int, int] = {}
         self._refused: dict[int, str] = {}
-        #: A step sent whose outputs are not all confirmed: re-sent before moving on.
+        #: A step sent whose outputs are not all confirmed: re-sent before moving on, and at
+        #: once (``_resend_now``) after a link loss or a reboot.
         self._unconfirmed: tuple[float, ...] | None = None
+        self._resend_now = False
         self._goal: tuple[float, ...] | None = None
         self._trajectory: list[tuple[float, Pose]] = []
         self._trajectory_t0 = 0.0
@@ -428,6 +430,9 @@ class ControlCore:
             return
         now = self.clock()
         if self._unconfirmed is not None:
+            if not (self._resend_now or self._goal is not None or self._waiting):
+                return  # an unanswered step is tried again when there is somewhere to go
+            self._resend_now = False
             step = self._unconfirmed
         else:
             goal = self._goal
@@ -631,6 +636,7 @@ class ControlCore:
         self._acked_pwm.clear()
         if inflight is not None or self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)
+            self._resend_now = True
 
     def _ask_system_time(self, actions: list[Action]) -> None:
         if self._pinned is None:

@@ -1,0 +1,432 @@
+"""The control core in-process: events in, actions out, a fake clock, no threads or sockets.
+
+A fake solver makes a target's six numbers the joint angles it "solves" to (a first number
+above 1000 is unreachable), so each test says exactly which joints it asks for. Frames are real
+pymavlink frames, encoded by a codec standing in for the autopilot and decoded again.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.config import parse_config
+from companion.daemon.core import UPDATE_ATTEMPTS, Answer, ControlCore, SendCommand
+from companion.daemon.requests import Outcome, Request
+from tests.support.timing import FakeClock
+
+PARK = (0.0, 90.0, 0.0, 0.0, 0.0, 0.0)
+SPEED_DEG_S, RATE_HZ = 60.0, 20.0
+STEP_DEG = SPEED_DEG_S / RATE_HZ  # 3 degrees a tick
+SERVO = mavlink.MAV_CMD_DO_SET_SERVO
+ACCEPTED, FAILED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
+
+
+def fake_solve(pose, q_start_deg):
+    q = pose.as_tuple()
+    return SimpleNamespace(
+        q_deg=tuple(q),
+        converged=q[0] < 1000,
+        pos_err_cm=0.0 if q[0] < 1000 else 99.0,
+        ori_err_deg=0.0,
+        elapsed_ms=0.1,
+    )
+
+
+class Rig:
+    """A core, the autopilot's codec, and what came out."""
+
+    def __init__(self, dialect: str = "ardupilot", **link: object) -> None:
+        self.clock = FakeClock()
+        config = parse_config(
+            {
+                "link": {"url": "udpout:127.0.0.1:14550", "dialect": dialect, **link},
+                "arm": {"park_deg": list(PARK), "joint_speed_deg_s": SPEED_DEG_S},
+                "control": {"rate_hz": RATE_HZ},
+            }
+        )
+        self.config = config
+        self.calibration = config.calibration
+        self.core = ControlCore(config, solve=fake_solve, clock=self.clock)
+        self.sent: list[SendCommand] = []
+        self.answers: dict[int, list] = {}
+        self.codecs: dict[tuple[int, int], mavlink.MAVLink] = {}
+        self.decoder = mavlink.MAVLink(None)
+
+    # -- driving ----------------------------------------------------------------------------
+
+    def take(self, actions) -> list[SendCommand]:
+        new = []
+        for action in actions:
+            if isinstance(action, Answer):
+                self.answers.setdefault(id(action.request), []).append(action.reply)
+                action.request.answer(action.reply)
+            else:
+                new.append(action)
+        self.sent += new
+        return new
+
+    def frame(self, build, src=(1, 1)):
+        codec = self.codecs.setdefault(src, mavlink.MAVLink(None, *src))
+        buf = build(codec).pack(codec)
+        msg = self.decoder.parse_buffer(buf)[0]
+        return self.take(self.core.frame(msg))
+
+    def heartbeat(self, src=(1, 1), autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA):
+        return self.frame(
+            lambda c: c.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, autopilot, 0, 0, 3), src
+        )
+
+    def ack(self, result=ACCEPTED, command=SERVO, src=(1, 1)):
+        return self.frame(lambda c: c.command_ack_encode(command, result, 0, 0, 1, 191), src)
+
+    def statustext(self, text, src=(1, 1)):
+        return self.frame(lambda c: c.statustext_encode(6, text.encode()), src)
+
+    def system_time(self, boot_ms, src=(1, 1)):
+        return self.frame(lambda c: c.system_time_encode(0, boot_ms), src)
+
+    def tick(self, link_up=True):
+        return self.take(self.core.tick(link_up))
+
+    def advance(self, seconds, link_up=True):
+        self.clock.advance(seconds)
+        return self.tick(link_up)
+
+    def up(self):
+        self.heartbeat()
+        return self.tick()
+
+    def request(self, kind, payload=None, **kw) -> Request:
+        request = Request(kind, payload, received_s=self.clock(), **kw)
+        self.take(self.core.request(request))
+        return request
+
+    def goto(self, q_deg) -> Request:
+        return self.request("goto", tuple(q_deg))
+
+    def reply(self, request):
+        [reply] = self.answers.get(id(request), [None]) or [None]
+        return reply
+
+    # -- reading ----------------------------------------------------------------------------
+
+    def servo(self, commands=None) -> dict[int, int]:
+        """{output: pwm_us} of the DO_SET_SERVO commands given (default: all sent)."""
+        commands = self.sent if commands is None else commands
+        return {int(c.params[0]): int(c.params[1]) for c in commands if c.command == SERVO}
+
+    def angle(self, output, pwm):
+        return self.calibration.for_output(output).pwm_us_to_angle_deg(pwm)
+
+    def ack_all(self, commands, result=ACCEPTED):
+        out = []
+        for c in list(commands):
+            if c.command == SERVO:
+                out += self.ack(result)
+        return out
+
+
+@pytest.fixture
+def rig():
+    rig = Rig()
+    rig.up()
+    return rig
+
+
+def near(q_deg, delta_deg=STEP_DEG / 2):
+    """Joints each within one step of the park pose: a target reached in one update."""
+    return tuple(p + delta_deg for p in PARK)
+
+
+# -- pipelined updates and acknowledged state ---------------------------------------------------
+
+
+def test_an_update_goes_out_back_to_back_and_is_answered_once_every_ack_is_in(rig):
+    request = rig.goto(near(PARK))
+    first = [c for c in rig.sent if c.command == SERVO]
+    assert len(first) == 6  # all six at once, before any ACK
+    assert [c.confirmation for c in first] == [0] * 6
+    for c in first[:5]:
+        rig.ack()
+        assert not request.answered  # not before the last one
+    rig.ack()
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    status = rig.core.status()
+    assert status["last_pwm_us"] == rig.servo(first)
+    assert {o["state"] for o in status["outputs"].values()} == {"acknowledged"}
+    assert status["current_deg"] == pytest.approx(near(PARK))
+
+
+def test_only_outputs_whose_pwm_changed_are_sent(rig):
+    rig.ack_all(rig.take(rig.core.request(Request("goto", near(PARK)))))
+    rig.sent.clear()
+    rig.advance(1.0 / RATE_HZ)
+    moved = list(near(PARK))
+    moved[2] += 1.0  # one joint
+    rig.goto(moved)
+    assert list(rig.servo()) == [11]
+
+
+def test_a_refused_output_stops_the_motion_reports_what_moved_and_the_next_step_keeps_the_limit(
+    rig,
+):
+    # Joint 6's output (14) is a motor on the autopilot: DO_SET_SERVO is refused with a
+    # STATUSTEXT naming the channel. Before this was fixed, status said nothing moved and the
+    # next target's step was computed from the stale park pose (a 5.9 deg jump in one step).
+    far = tuple(p + 30.0 for p in PARK)
+    request = rig.goto(far)
+    first = [c for c in rig.sent if c.command == SERVO]
+    assert len(first) == 6
+    for c in first[:5]:
+        rig.ack()
+    rig.ack(FAILED)
+    rig.statustext("ServoRelayEvent: Channel 14 is already in use")
+    rig.advance(0.2)  # past the grace for the STATUSTEXT
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.FAILED
+    assert "output 14" in reply.message and "SERVO14_FUNCTION = 0" in reply.message
+    status = rig.core.status()
+    assert status["goal_deg"] is None and not status["moving"]
+    assert status["outputs"][14]["state"] == "refused"
+    moved = rig.servo(first)
+    assert status["last_pwm_us"] == {o: moved[o] for o in (9, 10, 11, 12, 13)}
+    for j, output in enumerate((9, 10, 11, 12, 13)):
+        assert status["current_deg"][j] == pytest.approx(PARK[j] + STEP_DEG)
+    assert status["current_deg"][5] == PARK[5]
+    # The next target steps from what was acknowledged: no joint moves more than a step.
+    rig.sent.clear()
+    rig.advance(1.0 / RATE_HZ)
+    rig.goto(tuple(p - 30.0 for p in PARK))
+    for output, pwm in rig.servo().items():
+        before = status["last_pwm_us"].get(output, rig.calibration.angles_to_pwm_us(PARK)[output])
+        assert abs(rig.angle(output, pwm) - rig.angle(output, before)) <= STEP_DEG + 0.2
+
+
+def test_missing_acks_leave_the_outputs_unknown_and_each_is_confirmed_alone(rig):
+    request = rig.goto(near(PARK))
+    first = [c for c in rig.sent if c.command == SERVO]
+    for _ in range(4):
+        rig.ack()  # two ACKs lost: which ones cannot be told
+    rig.sent.clear()
+    rig.advance(rig.config.link.command_timeout_s)
+    assert not request.answered
+    assert rig.core.status()["last_pwm_us"] is None  # nothing taken for granted
+    # Now one command at a time, each answered before the next.
+    for expected in first:
+        [alone] = [c for c in rig.sent if c.command == SERVO]
+        assert alone.params == expected.params and alone.confirmation == 1
+        rig.sent.clear()
+        rig.ack()
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["last_pwm_us"] == rig.servo(first)
+
+
+def test_an_ack_too_many_is_not_trusted(rig):
+    # A forged FAILED arrives before the six genuine ACCEPTED: seven answers for six commands.
+    # Believing it would abort the motion (it did before); counting shows the accounting was
+    # disturbed, and the outputs are confirmed one at a time instead.
+    request = rig.goto(near(PARK))
+    rig.ack(FAILED)
+    for _ in range(6):
+        rig.ack()
+    rig.sent.clear()
+    rig.advance(0.2)
+    assert not request.answered
+    assert len([c for c in rig.sent if c.command == SERVO]) == 1  # confirming one at a time
+    for _ in range(6):
+        rig.ack()
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+
+
+def test_an_update_that_stays_unanswered_fails_its_target_and_is_resent_before_moving_on(rig):
+    request = rig.goto(tuple(p + 30.0 for p in PARK))
+    first = rig.servo()
+    for _ in range(1 + rig.config.link.command_retries):
+        rig.advance(rig.config.link.command_timeout_s)
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.FAILED and "no COMMAND_ACK" in reply.message
+    status = rig.core.status()
+    assert status["goal_deg"] is None and status["last_pwm_us"] is None
+    assert status["counters"]["servo_errors"] == 1
+    # Nothing more is sent on its own; a new target sends the unconfirmed step again first,
+    # not a step beyond it.
+    rig.sent.clear()
+    rig.advance(1.0)
+    assert rig.servo() == {}
+    rig.goto(tuple(p - 30.0 for p in PARK))
+    assert rig.servo() == first
+
+
+def test_a_moving_arm_survives_unanswered_updates_up_to_update_attempts(rig):
+    request = rig.goto(tuple(p + 30.0 for p in PARK))
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    for attempt in range(1, UPDATE_ATTEMPTS + 1):
+        rig.advance(1.0 / RATE_HZ)  # a tick: the next step goes out
+        for _ in range(1 + rig.config.link.command_retries):
+            rig.advance(rig.config.link.command_timeout_s)  # and is never answered
+        moving = rig.core.status()["goal_deg"] is not None
+        assert moving == (attempt < UPDATE_ATTEMPTS)
+
+
+# -- requests ----------------------------------------------------------------------------------
+
+
+def test_a_stop_before_the_first_step_went_out_cancels_the_target_and_nothing_is_sent(rig):
+    first = rig.goto(near(PARK))  # its update is in flight ...
+    second = rig.goto(tuple(p + 1.0 for p in PARK))  # ... so this one waits
+    rig.sent.clear()
+    stop = rig.request("stop")
+    assert rig.reply(stop).outcome is Outcome.ACCEPTED
+    assert rig.reply(second).outcome is Outcome.CANCELLED
+    rig.ack_all([SendCommand((1, 1), SERVO, (0,) * 7)] * 6)
+    # The first target's step was on its way: it is answered with what happened.
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    rig.advance(1.0)
+    assert rig.servo() == {}  # nothing for the cancelled target, ever
+
+
+def test_a_newer_target_supersedes_one_waiting_for_its_first_step(rig):
+    first = rig.goto(near(PARK))
+    waiting = rig.goto(tuple(p + 1.0 for p in PARK))
+    newest = rig.goto(tuple(p + 1.2 for p in PARK))
+    assert rig.reply(waiting).outcome is Outcome.CANCELLED
+    rig.ack_all(rig.sent)  # the first target's six
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    before = len(rig.sent)
+    rig.advance(1.0 / RATE_HZ)  # the speed limit counts from the last step
+    rig.ack_all(rig.sent[before:])
+    assert rig.reply(newest).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["current_deg"] == pytest.approx(tuple(p + 1.2 for p in PARK))
+
+
+@pytest.mark.parametrize(
+    ("payload", "outcome"),
+    [((math.nan, 0, 0, 0, 0, 0), Outcome.DENIED), ((2000, 0, 0, 0, 0, 0), Outcome.FAILED)],
+)
+def test_bad_targets_are_refused_and_nothing_moves(rig, payload, outcome):
+    request = rig.goto(payload)
+    assert rig.reply(request).outcome is outcome
+    assert rig.servo() == {}
+
+
+def test_targets_while_the_link_is_down_are_temporarily_rejected():
+    rig = Rig()
+    rig.heartbeat()
+    request = rig.goto(near(PARK))  # pinned, but no tick has seen the link up yet
+    assert rig.reply(request).outcome is Outcome.TEMPORARILY_REJECTED
+
+
+# -- the autopilot -----------------------------------------------------------------------------
+
+
+def test_the_first_autopilot_is_pinned_and_others_are_ignored():
+    rig = Rig()
+    rig.heartbeat(src=(42, 1))  # heard first
+    rig.tick()
+    assert rig.core.status()["autopilot"] == [42, 1]
+    rig.heartbeat(src=(1, 1))
+    assert rig.core.status()["autopilot"] == [42, 1]  # never changed while running
+    request = rig.goto(near(PARK))
+    assert {c.target for c in rig.sent} == {(42, 1)}
+    for _ in range(6):
+        rig.ack(src=(1, 1))  # ACKs from anyone else do not count
+    assert not request.answered
+    assert rig.core.status()["counters"]["foreign_frames"] == 7
+
+
+def test_a_configured_autopilot_is_the_only_one_pinned():
+    # A fake autopilot (42/1) heard first used to be adopted for good.
+    rig = Rig(target_system=1)
+    rig.heartbeat(src=(42, 1))
+    rig.heartbeat(src=(1, 1))
+    rig.tick()
+    assert rig.core.status()["autopilot"] == [1, 1]
+
+
+def test_a_ground_station_heartbeat_is_not_an_autopilot():
+    rig = Rig()
+    rig.heartbeat(src=(255, 190), autopilot=mavlink.MAV_AUTOPILOT_INVALID)
+    rig.tick()
+    assert rig.core.status()["autopilot"] is None
+
+
+def test_system_time_is_asked_for_once_pinned(rig):
+    [ask] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert ask.params[0] == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME and ask.params[1] > 0
+
+
+def test_a_reboot_within_the_loss_timeout_is_seen_and_every_output_resent(rig):
+    # An autopilot restarted in 0.36 s went unnoticed: status "up" with the old PWMs while its
+    # outputs were at 0, and the next target sent only the output that changed.
+    rig.system_time(600_000)
+    request = rig.goto(near(PARK))
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    rig.sent.clear()
+    rig.advance(0.36)
+    rig.system_time(150)  # time_boot_ms went back: it rebooted
+    status = rig.core.status()
+    assert status["counters"]["autopilot_reboots"] == 1
+    assert status["last_pwm_us"] is None
+    assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
+    rig.advance(1.0 / RATE_HZ)
+    assert sorted(rig.servo()) == [9, 10, 11, 12, 13, 14]  # every output, not only changes
+
+
+def test_system_time_going_quiet_makes_the_next_update_resend_everything(rig):
+    rig.system_time(600_000)
+    rig.ack_all(rig.take(rig.core.request(Request("goto", near(PARK)))))
+    rig.sent.clear()
+    rig.advance(1.5)  # no SYSTEM_TIME: the autopilot may have rebooted and forgotten it
+    assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
+    assert rig.core.status()["last_pwm_us"] is None
+    moved = list(near(PARK))
+    moved[0] += 1.0
+    rig.goto(moved)
+    assert sorted(rig.servo()) == [9, 10, 11, 12, 13, 14]
+
+
+def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_back(rig):
+    request = rig.goto(tuple(p + 30.0 for p in PARK))
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    acked = rig.core.status()["current_deg"]
+    rig.advance(1.0 / RATE_HZ)  # the next step is in flight when the link goes
+    rig.sent.clear()
+    rig.advance(0.1, link_up=False)
+    assert rig.core.status()["holding"]
+    late = rig.goto(near(PARK))
+    assert rig.reply(late).outcome is Outcome.TEMPORARILY_REJECTED
+    rig.advance(5.0, link_up=False)
+    assert rig.servo() == {}  # nothing while holding
+    rig.advance(0.01)
+    # Back: every output at the acknowledged pose first, then on towards the goal.
+    assert rig.servo() == rig.calibration.angles_to_pwm_us(acked)
+
+
+def test_shutdown_answers_everything_and_parks_every_output_directly(rig):
+    first = rig.goto(tuple(p + 30.0 for p in PARK))  # in flight
+    waiting = rig.goto(tuple(p + 20.0 for p in PARK))
+    rig.sent.clear()
+    rig.take(rig.core.shutdown(park=True))
+    assert rig.reply(waiting).outcome is Outcome.CANCELLED
+    assert rig.reply(first).outcome is Outcome.CANCELLED
+    assert rig.servo() == rig.calibration.angles_to_pwm_us(PARK)  # all six, past the limit
+    rig.ack_all(rig.sent)
+    assert rig.core.parked() and rig.core.idle
+
+
+def test_px4_sends_one_frame_for_every_joint():
+    rig = Rig(dialect="px4")
+    rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    rig.tick()
+    request = rig.goto(near(PARK))
+    [frame] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_DO_SET_ACTUATOR]
+    rig.ack(command=mavlink.MAV_CMD_DO_SET_ACTUATOR)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert frame.params[6] == 0.0
