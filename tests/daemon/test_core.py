@@ -150,7 +150,7 @@ def test_an_update_goes_out_back_to_back_and_is_answered_once_every_ack_is_in(ri
     first = [c for c in rig.sent if c.command == SERVO]
     assert len(first) == 6  # all six at once, before any ACK
     assert [c.confirmation for c in first] == [0] * 6
-    for c in first[:5]:
+    for _ in first[:5]:
         rig.ack()
         assert not request.answered  # not before the last one
     rig.ack()
@@ -181,7 +181,7 @@ def test_a_refused_output_stops_the_motion_reports_what_moved_and_the_next_step_
     request = rig.goto(far)
     first = [c for c in rig.sent if c.command == SERVO]
     assert len(first) == 6
-    for c in first[:5]:
+    for _ in first[:5]:
         rig.ack()
     rig.ack(FAILED)
     rig.statustext("ServoRelayEvent: Channel 14 is already in use")
@@ -194,7 +194,7 @@ def test_a_refused_output_stops_the_motion_reports_what_moved_and_the_next_step_
     assert status["outputs"][14]["state"] == "refused"
     moved = rig.servo(first)
     assert status["last_pwm_us"] == {o: moved[o] for o in (9, 10, 11, 12, 13)}
-    for j, output in enumerate((9, 10, 11, 12, 13)):
+    for j in range(5):
         assert status["current_deg"][j] == pytest.approx(PARK[j] + STEP_DEG)
     assert status["current_deg"][5] == PARK[5]
     # The next target steps from what was acknowledged: no joint moves more than a step.
