@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from companion.daemon.client import request  # the client half, re-exported
+from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 
 log = logging.getLogger("armbridge.control")
@@ -53,6 +54,7 @@ class ControlServer:
         self._sock = _listening_socket(self.path)
         self._sock.settimeout(0.2)
         self._clients: set[socket.socket] = set()
+        self._connections = 0
         self._thread = threading.Thread(
             target=self._accept_loop, name="armbridge-control-socket", daemon=True
         )
@@ -76,11 +78,15 @@ class ControlServer:
             except OSError:
                 return
             self._clients.add(conn)
+            self._connections += 1
             threading.Thread(
-                target=self._serve, args=(conn,), daemon=True, name="armbridge-control-client"
+                target=self._serve,
+                args=(conn, self._connections),
+                daemon=True,
+                name="armbridge-control-client",
             ).start()
 
-    def _serve(self, conn: socket.socket) -> None:
+    def _serve(self, conn: socket.socket, number: int = 0) -> None:
         conn.settimeout(0.2)
         buffer = b""
         try:
@@ -98,15 +104,16 @@ class ControlServer:
                 while b"\n" in buffer:
                     line, buffer = buffer.split(b"\n", 1)
                     if line.strip():
-                        conn.sendall(_line(self.handle_line(line)))
+                        conn.sendall(_line(self.handle_line(line, source=("socket", number))))
         except OSError as exc:
             log.info("control client went away: %s", exc)
         finally:
             self._clients.discard(conn)
             conn.close()
 
-    def handle_line(self, line: bytes) -> dict[str, Any]:
-        """One request line → one reply object (never raises)."""
+    def handle_line(self, line: bytes, source: tuple[Any, ...] = ("socket", 0)) -> dict[str, Any]:
+        """One request line → one reply object (never raises). ``source`` (the connection)
+        is what the daemon's per-source rate limits count."""
         try:
             request = json.loads(line)
         except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -140,10 +147,20 @@ class ControlServer:
                 "ok": False,
                 "error": f"unknown cmd {cmd!r}; valid: goto, trajectory, status, park, stop",
             }
+        request = self.daemon.new_request(cmd, payload, source=source)
+        future = self.daemon.submit_request(request)
         try:
-            reply = self.daemon.submit(cmd, payload).result(timeout=self.reply_timeout_s)
+            reply = future.result(timeout=self.reply_timeout_s)
         except TimeoutError:
-            return {"ok": False, "error": f"no answer within {self.reply_timeout_s} s"}
+            # Taken back while still waiting: it will never be carried out, say so. Otherwise
+            # the control thread has it and answers within its own bound: wait for that.
+            if self.daemon.withdraw(request):
+                reply = Reply(Outcome.CANCELLED, f"no answer within {self.reply_timeout_s} s")
+                request.answer(reply)
+            try:
+                reply = future.result(timeout=self.daemon.answer_bound_s())
+            except TimeoutError:
+                return {"ok": False, "error": f"no answer within {self.reply_timeout_s} s"}
         return {"ok": reply.outcome is Outcome.ACCEPTED, **reply.as_dict()}
 
 

@@ -87,7 +87,7 @@ class ArmDaemon:
         config: DaemonConfig,
         *,
         clock: Callable[[], float] = time.monotonic,
-        park_wait_s: float = 0.5,
+        park_wait_s: float = 0.4,
     ) -> None:
         self.config = config
         self.clock = clock
@@ -159,7 +159,7 @@ class ArmDaemon:
         alive = self._thread is not None and self._thread.is_alive()
         return alive and self.clock() - self._last_tick < 2.0 / self.config.rate_hz + 1.0
 
-    def close(self, *, park: bool = False, timeout_s: float = 0.9) -> None:
+    def close(self, *, park: bool = False, timeout_s: float = 0.7) -> None:
         """Stop: refuse and answer every request, park directly if asked (and configured),
         close the link. Never raises; returns within about ``timeout_s`` plus the link's
         close."""
@@ -260,6 +260,16 @@ class ArmDaemon:
             return request.future
         self.intake.submit(request)
         return request.future
+
+    def answer_bound_s(self) -> float:
+        """How long after the control thread took a request its answer may take, at most: its
+        solve, the update in flight before it, and its own first update, each command of which
+        is given ``command_retries + 1`` attempts of ``command_timeout_s``."""
+        link = self.config.link
+        update_s = (
+            (link.command_retries + 1) * link.command_timeout_s * len(self.config.calibration)
+        )
+        return self.config.budget_ms / 1000.0 + 2 * update_s + 1.0
 
     def withdraw(self, request: Request) -> bool:
         """Take back a request its sender gave up on, if the control thread has not taken it
