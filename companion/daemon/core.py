@@ -28,8 +28,9 @@ Rules:
   and never change; ACKs, STATUSTEXTs and SYSTEM_TIMEs from anyone else are counted and ignored.
 * **An autopilot reboot** (SYSTEM_TIME ``time_boot_ms`` going backwards, whatever the gap) is a
   link loss: the outputs' state is unknown, and every output is re-sent before moving on.
-* **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED; when it is
-  back, re-send every output at the acknowledged pose, then carry on towards the goal.
+* **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED (and drop
+  their goal); when it is back, re-send every output at the acknowledged pose, then carry on
+  towards the goal of a target that was already ACCEPTED.
 """
 
 from __future__ import annotations
@@ -630,9 +631,13 @@ class ControlCore:
         acknowledged pose before moving on; targets waiting are TEMPORARILY_REJECTED."""
         inflight, self._inflight = self._inflight, None
         rejected = Reply(Outcome.TEMPORARILY_REJECTED, reason)
-        for w in (inflight.waiting if inflight else []) + self._waiting:
+        unanswered = (inflight.waiting if inflight else []) + self._waiting
+        for w in unanswered:
             self._answer(actions, w.request, rejected)
         self._waiting.clear()
+        if unanswered:  # the goal is theirs: never carried out after that answer
+            self._goal = None
+            self._trajectory.clear()
         self._acked_pwm.clear()
         if inflight is not None or self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)

@@ -11,6 +11,8 @@ import math
 from types import SimpleNamespace
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
@@ -430,3 +432,71 @@ def test_px4_sends_one_frame_for_every_joint():
     rig.ack(command=mavlink.MAV_CMD_DO_SET_ACTUATOR)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
     assert frame.params[6] == 0.0
+
+
+# -- properties --------------------------------------------------------------------------------
+
+_EVENTS = st.one_of(
+    st.tuples(
+        st.just("goto"), st.lists(st.floats(1, 40) | st.floats(-40, -1), min_size=6, max_size=6)
+    ),
+    st.tuples(st.just("unreachable"), st.none()),
+    st.tuples(st.just("nan"), st.none()),
+    st.tuples(st.sampled_from(["stop", "park"]), st.none()),
+    st.tuples(st.just("ack"), st.sampled_from([ACCEPTED, ACCEPTED, ACCEPTED, FAILED, 1])),
+    st.tuples(st.just("advance"), st.sampled_from([0.001, 0.02, 0.05, 0.3, 0.6])),
+    st.tuples(st.just("link"), st.booleans()),
+    st.tuples(st.just("reboot"), st.none()),
+)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(events=st.lists(_EVENTS, max_size=60))
+def test_any_sequence_answers_every_request_once_keeps_the_limit_and_the_range(events):
+    rig = Rig()
+    rig.up()
+    boot_ms = 10_000
+    requests: list[tuple[Request, tuple | None]] = []
+    link_up = True
+    cal = rig.calibration
+    for kind, arg in events:
+        position = rig.core.status()["current_deg"]
+        before = len(rig.sent)
+        if kind == "goto":
+            q = tuple(p + a for p, a in zip(PARK, arg, strict=True))
+            requests.append((rig.goto(q), q))
+        elif kind == "unreachable":
+            requests.append((rig.goto((2000, 0, 0, 0, 0, 0)), None))
+        elif kind == "nan":
+            requests.append((rig.goto((math.nan,) * 6), None))
+        elif kind in ("stop", "park"):
+            requests.append((rig.request(kind), None))
+        elif kind == "ack":
+            rig.ack(arg)
+        elif kind == "advance":
+            rig.advance(arg, link_up)
+        elif kind == "link":
+            link_up = arg
+            rig.tick(link_up)
+        else:
+            boot_ms = 5 if boot_ms > 1000 else 100_000
+            rig.system_time(boot_ms)
+        for c in rig.sent[before:]:
+            if c.command != SERVO:
+                continue
+            output, pwm = int(c.params[0]), int(c.params[1])
+            low, high = cal.for_output(output).pwm_range_us
+            assert low <= pwm <= high
+            joint = cal.outputs.index(output)
+            # Never more than one step from what the autopilot acknowledged.
+            assert abs(rig.angle(output, pwm) - position[joint]) <= STEP_DEG + 0.2
+        goal = rig.core.status()["goal_deg"]
+        replies = [(rig.reply(r), q) for r, q in requests if q is not None]
+        live = {q for reply, q in replies if reply is None or reply.outcome is Outcome.ACCEPTED}
+        for reply, q in replies:
+            if reply is not None and reply.outcome is not Outcome.ACCEPTED and q not in live:
+                assert goal is None or tuple(goal) != q  # never carried out
+    rig.take(rig.core.shutdown(park=False))
+    rig.take(rig.core.finish())
+    for request, _ in requests:
+        assert len(rig.answers.get(id(request), [])) == 1, request
