@@ -87,9 +87,9 @@ class ControlServer:
             ).start()
 
     def _serve(self, conn: socket.socket, number: int = 0) -> None:
-        conn.settimeout(0.2)
         buffer = b""
         try:
+            conn.settimeout(0.2)  # inside: close() may have closed it already
             while not self._stop.is_set():
                 try:
                     chunk = conn.recv(65536)
