@@ -108,3 +108,17 @@ def test_valid_target_with_the_autopilot_silent_is_temporarily_rejected(server):
     reply = request(server.path, {"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]})
     assert (reply["ok"], reply["outcome"]) == (False, "temporarily_rejected")
     assert request(server.path, {"cmd": "park"})["outcome"] == "temporarily_rejected"
+
+
+def test_a_request_its_client_gave_up_on_is_never_carried_out(tmp_path):
+    # A goto whose client was told "no answer" used to wait in an unbounded queue and move the
+    # arm 55 s later. Here the control thread never runs (the daemon is not started): after
+    # the reply timeout the request is taken back, answered cancelled, and gone.
+    daemon = ArmDaemon(parse_config({"link": {"url": "udpout:127.0.0.1:9"}}))
+    srv = ControlServer(tmp_path / "c.sock", daemon, reply_timeout_s=0.2)
+    try:
+        reply = srv.handle_line(b'{"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]}')
+        assert reply["ok"] is False and reply["outcome"] == "cancelled", reply
+        assert daemon.intake.take() == []
+    finally:
+        srv.close()
