@@ -405,7 +405,9 @@ class ArmDaemon:
         link = self.link
         for action in actions:
             if isinstance(action, Answer):
-                action.request.answer(action.reply)
+                reply = action.reply
+                if action.request.answer(reply) and reply.outcome is not Outcome.ACCEPTED:
+                    self.intake.refusals.note(action.request.kind, reply.outcome, reply.message)
             elif isinstance(action, SendCommand):
                 if link is None:
                     continue
