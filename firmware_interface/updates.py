@@ -32,18 +32,14 @@ from dataclasses import dataclass, field
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from firmware_interface.commands import result_name
+
 #: "ServoRelayEvent: Channel 14 is already in use" (AP_ServoRelayEvents.cpp).
 _CHANNEL_IN_USE = re.compile(r"Channel\s+(\d+)\s+is already in use")
 #: Results that say "not done, and it will not be": the output is refused.
 _REFUSALS = frozenset(
     {mavlink.MAV_RESULT_DENIED, mavlink.MAV_RESULT_UNSUPPORTED, mavlink.MAV_RESULT_FAILED}
 )
-
-
-def result_name(result: int) -> str:
-    """``MAV_RESULT_FAILED`` for 4, or the number if unknown."""
-    entry = mavlink.enums["MAV_RESULT"].get(result)
-    return entry.name if entry is not None else str(result)
 
 
 @dataclass(frozen=True)
