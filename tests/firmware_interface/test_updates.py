@@ -61,10 +61,13 @@ def test_fewer_acks_by_the_deadline_leave_every_output_unknown():
 
 
 def test_one_ack_too_many_is_not_trusted():
+    # A forged FAILED first, then the six genuine ACKs: seven answers for six commands.
     t = tracker()
-    for _ in range(7):
-        t.on_ack(SERVO, ACCEPTED, 0.001)
-    assert t.poll(0.001).state is UpdateState.UNKNOWN
+    t.on_ack(SERVO, FAILED, 0.001)
+    for _ in range(6):
+        t.on_ack(SERVO, ACCEPTED, 0.002)
+    assert t.poll(0.002) is None  # waits out the grace for a STATUSTEXT or an extra ACK
+    assert t.poll(0.06).state is UpdateState.UNKNOWN
 
 
 def test_a_refusal_named_by_the_statustext_refuses_that_output_only():
