@@ -109,7 +109,7 @@ def report(name: str, **figures) -> None:
 
 # -- 1. loss and jitter -----------------------------------------------------------------------
 
-LOSSY_TARGETS = 20
+LOSSY_TARGETS = 12
 
 
 def test_every_accepted_target_reaches_the_servos_through_10_percent_loss_and_jitter(sims):
