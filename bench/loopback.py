@@ -11,7 +11,8 @@ Clocks: the client, the daemon's per-target timing (``status()["last_target"]["t
 ``Reply.timing``) and the simulator's event log (``t_s`` + the start event's ``monotonic_s``)
 are all CLOCK_MONOTONIC, which is system-wide on Linux, so their stamps can be subtracted.
 
-Used by ``bench/latency.py`` and ``bench/sustained.py``; not a module of the package.
+Used by the benches that run the real stack (``latency``, ``sustained``, ``flood``, ``races``,
+``shutdown``); not a module of the package.
 """
 
 from __future__ import annotations
@@ -298,6 +299,11 @@ class Stack:
         assert self.daemon is not None
         return self.daemon.pid
 
+    @property
+    def sim_pid(self) -> int:
+        assert self.sim is not None
+        return self.sim.proc.pid
+
     def stop(self) -> list[dict[str, Any]]:
         """Stop both processes and return the simulator's events (its log is complete then)."""
         if self._status_client is not None:
@@ -362,6 +368,27 @@ def rss_mb(pid: int) -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def udp_ports(pid: int) -> list[int]:
+    """The local ports of the UDP sockets process ``pid`` holds (from ``/proc``): the daemon's
+    ``udpout`` link socket is bound to an ephemeral port that nothing else tells."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:[") : -1])
+    ports = []
+    with open(f"/proc/{pid}/net/udp") as handle:
+        next(handle)  # header
+        for line in handle:
+            fields = line.split()
+            if fields[9] in inodes:
+                ports.append(int(fields[1].rsplit(":", 1)[1], 16))
+    return sorted(ports)
 
 
 def load_average() -> str:
