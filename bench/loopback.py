@@ -370,9 +370,10 @@ def rss_mb(pid: int) -> float:
     raise RuntimeError(f"no VmRSS for pid {pid}")
 
 
-def udp_ports(pid: int) -> list[int]:
-    """The local ports of the UDP sockets process ``pid`` holds (from ``/proc``): the daemon's
-    ``udpout`` link socket is bound to an ephemeral port that nothing else tells."""
+def udp_sockets(pid: int) -> dict[int, int]:
+    """The UDP sockets process ``pid`` holds (from ``/proc``): ``{local port: datagrams the
+    kernel dropped on it so far}`` (a full receive buffer). The daemon's ``udpout`` link socket
+    is bound to an ephemeral port that nothing else tells."""
     inodes = set()
     for fd in os.listdir(f"/proc/{pid}/fd"):
         try:
@@ -381,14 +382,19 @@ def udp_ports(pid: int) -> list[int]:
             continue
         if target.startswith("socket:["):
             inodes.add(target[len("socket:[") : -1])
-    ports = []
+    sockets = {}
     with open(f"/proc/{pid}/net/udp") as handle:
         next(handle)  # header
         for line in handle:
             fields = line.split()
             if fields[9] in inodes:
-                ports.append(int(fields[1].rsplit(":", 1)[1], 16))
-    return sorted(ports)
+                sockets[int(fields[1].rsplit(":", 1)[1], 16)] = int(fields[12])
+    return sockets
+
+
+def udp_ports(pid: int) -> list[int]:
+    """The local ports of the UDP sockets process ``pid`` holds."""
+    return sorted(udp_sockets(pid))
 
 
 def load_average() -> str:
