@@ -14,6 +14,8 @@ as subprocesses on UDP loopback (``bench/loopback.py``), then:
 * **flood**: the flood of ``bench/flood.py`` (``--rate-hz`` unsigned USER_1 a second straight
   at the daemon's UDP socket, reachable and unreachable poses mixed, seeded) runs; SIGTERM
   goes a seeded 1.0–2.5 s into it, while the flood and its backlog go on;
+  (the flood costs the daemon the autopilot's frames too, see ``bench/flood.py``: its link
+  may be down at that moment);
 * **withheld**: the simulator runs with ``--withhold-ack DO_SET_SERVO`` (it applies the PWM and
   never answers); a ``goto`` is written on the control socket, and SIGTERM goes a seeded
   0.1–2.0 s later, while its update is unconfirmed or after it FAILED.
@@ -21,7 +23,9 @@ as subprocesses on UDP loopback (``bench/loopback.py``), then:
 Measured per trial: the exit code (target 0); SIGTERM → exit (the process's pidfd becoming
 readable; target ≤ 1 s); parked — every arm output's PWM in the simulator's state query equal
 to the park PWM (through the daemon's calibration) within 1 s of the exit, and whether the arm
-was away from park when SIGTERM went (else "parked" proves nothing); whether a goto written
+was away from park when SIGTERM went (else "parked" proves nothing), the daemon's link state
+just before SIGTERM (its status), and the servo commands the simulator handled after SIGTERM
+(the park: 6 expected); whether a goto written
 before SIGTERM was answered; any ``Traceback`` in the daemon's stdout/stderr.
 """
 
@@ -63,8 +67,9 @@ def sim_pwm(stack: Stack, outputs: list[int]) -> dict[int, int]:
     return {o: state[str(o)]["pwm_us"] for o in outputs}
 
 
-def sigterm(stack: Stack) -> tuple[int, float]:
-    """SIGTERM the daemon; its exit code and the seconds until it exited (pidfd)."""
+def sigterm(stack: Stack) -> tuple[int, float, float]:
+    """SIGTERM the daemon; its exit code, the seconds until it exited (pidfd), and when the
+    signal went (CLOCK_MONOTONIC)."""
     assert stack.daemon is not None
     proc = stack.daemon.proc
     pidfd = os.pidfd_open(proc.pid)
@@ -77,7 +82,15 @@ def sigterm(stack: Stack) -> tuple[int, float]:
         os.close(pidfd)
     if not ready:
         proc.kill()
-    return proc.wait(5.0), elapsed
+    return proc.wait(5.0), elapsed, start
+
+
+def servo_commands_since(stack: Stack, since_s: float) -> int:
+    """Servo commands the simulator handled from ``since_s`` (CLOCK_MONOTONIC) on."""
+    assert stack.sim is not None
+    events = stack.sim.events()
+    t0 = next(e for e in events if e["event"] == "start")["monotonic_s"]
+    return sum(e["event"] == "servo" and t0 + e["t_s"] >= since_s for e in events)
 
 
 def trial(scenario: str, k: int, args: argparse.Namespace) -> dict[str, Any]:
@@ -117,10 +130,12 @@ def trial(scenario: str, k: int, args: argparse.Namespace) -> dict[str, Any]:
                 time.sleep(rec["delay_s"])
             before = sim_pwm(stack, outputs)
             rec["away"] = any(before[o] != park[o] for o in outputs)
-            rec["code"], rec["exit_s"] = sigterm(stack)
+            rec["link"] = stack.status()["link"]
+            rec["code"], rec["exit_s"], sigterm_s = sigterm(stack)
             rec["parked"] = wait_until(lambda: sim_pwm(stack, outputs) == park, PARKED_WAIT_S)
             after = sim_pwm(stack, outputs)
             rec["off_park_us"] = max(abs(after[o] - park[o]) for o in outputs)
+            rec["park_commands"] = servo_commands_since(stack, sigterm_s)
             if goto_conn is not None:
                 goto_conn.settimeout(1.0)
                 try:
@@ -160,21 +175,25 @@ def report(records: list[dict[str, Any]], args: argparse.Namespace, load: str) -
             f"{sum(r['code'] == 0 for r in recs)} ({sorted({r['code'] for r in recs})})",
             f"{np.median(exits):.0f} / {exits.max():.0f}",
             sum(r["exit_s"] <= EXIT_TARGET_S for r in recs),
-            sum(r["away"] for r in recs), sum(r["parked"] for r in recs),
-            sum(r["traceback"] for r in recs),
+            sum(r["away"] for r in recs), sum(r["link"] != "up" for r in recs),
+            sum(r["parked"] for r in recs), sum(r["traceback"] for r in recs),
+            sum(r.get("goto", "").startswith("no answer") for r in recs),
         ])  # fmt: skip
     lines += md_table(
         ["scenario", "trials", "exit 0 (codes)", "SIGTERM → exit ms median / max",
-         "exit ≤ 1 s", "away from park at SIGTERM", "parked", "traceback"],
+         "exit ≤ 1 s", "away from park at SIGTERM", "link not up at SIGTERM", "parked",
+         "traceback", "goto unanswered (EOF)"],
         rows,
     )  # fmt: skip
     lines += ["", "Per trial:", ""]
     for r in records:
         goto = f", goto answered {r['goto']}" if "goto" in r else ""
         lines.append(
-            f"- {r['scenario']} #{r['trial']}: SIGTERM {r['delay_s']:.2f} s in, exit {r['code']} "
+            f"- {r['scenario']} #{r['trial']}: SIGTERM {r['delay_s']:.2f} s in (link "
+            f"{r['link']}), exit {r['code']} "
             f"after {r['exit_s'] * 1e3:.0f} ms, away {r['away']}, parked {r['parked']} "
-            f"(max |PWM − park| {r['off_park_us']} µs){goto}; traceback {r['traceback']}; "
+            f"(max |PWM − park| {r['off_park_us']} µs, {r['park_commands']} servo commands after "
+            f"SIGTERM){goto}; traceback {r['traceback']}; "
             f"log: {' | '.join(r['log_tail'])}"
         )
     return lines
