@@ -2,7 +2,7 @@
 
     python -m bench.latency [--targets 300] [--dialects ardupilot px4] [--input mavlink|control]
                             [--budget-ms 20] [--rate-hz 20] [--gap-ms 50] [--seed 0]
-                            [--markdown bench/results/latency.md] [--no-plot]
+                            [--old-core DIR] [--markdown bench/results/latency.md] [--no-plot]
 
 The default run (300 targets per dialect) takes about 45 s; ``--targets 1000`` is the full-size
 run (about 2 min).
@@ -41,6 +41,11 @@ Per target, all on CLOCK_MONOTONIC (client, daemon ``Reply.timing`` / status
   handled: ardupilot's further DO_SET_SERVO, back-to-back; px4: 0), ``ACKs in`` (last command
   handled → the daemon has its ACK: the autopilot's link timing) and ``answer out`` (the
   daemon has the ACKs → the answer is at the client; for MAVLink, routed back by the autopilot).
+
+``--old-core DIR`` adds, as peers in the same run on the same targets, a daemon run from another
+checkout (e.g. the code before issue 13's core: ``git archive 22321ac | tar -x -C DIR``) for
+each dialect, each with its own simulator: "not worse than before" is then measured on the
+same simulator, the same machine and the same moment.
 
 Also the daemon's and the simulator's CPU time (utime + stime, all threads) over the run,
 beside its wall time.
@@ -100,48 +105,58 @@ def targets(arm: Arm, count: int, seed: int) -> list[Pose]:
 
 
 def run(poses: list[Pose], args: argparse.Namespace) -> list[dict]:
-    """Every dialect's stack at once, the same targets interleaved; per dialect the records,
-    the simulator's servo command times and the CPU seconds over the run."""
+    """Every peer's stack at once (each dialect; with ``--old-core`` each dialect again on the
+    old code), the same targets interleaved; per peer the records, the simulator's servo
+    command times and the CPU seconds over the run."""
     daemon = {
         "solver": {"budget_ms": args.budget_ms, "seed": args.seed},
         "control": {"rate_hz": args.rate_hz},
         "arm": {"joint_speed_deg_s": 1000.0},  # the config's maximum (the fastest servos)
     }
     rng = np.random.default_rng(args.seed + 1)
-    dialects = list(args.dialects)
-    records: dict[str, list[dict]] = {d: [] for d in dialects}
+    peers = [(d, d, None) for d in args.dialects]
+    if args.old_core is not None:
+        peers += [(f"{d} (old core)", d, args.old_core.resolve()) for d in args.dialects]
+    names = [name for name, _, _ in peers]
+    records: dict[str, list[dict]] = {name: [] for name in names}
     with contextlib.ExitStack() as stacks_open:
-        stacks = {d: stacks_open.enter_context(Stack(dialect=d, daemon=daemon)) for d in dialects}
-        sources = {d: INPUTS[args.input](stacks[d]) for d in dialects}
-        for d in dialects:
-            stacks_open.callback(sources[d].close)
-        pids = {d: (stacks[d].daemon_pid, stacks[d].sim_pid) for d in dialects}
-        cpu0 = {d: (cpu_s(pids[d][0]), cpu_s(pids[d][1])) for d in dialects}
+        stacks = {
+            name: stacks_open.enter_context(Stack(dialect=d, daemon=daemon, daemon_root=root))
+            for name, d, root in peers
+        }
+        sources = {name: INPUTS[args.input](stacks[name]) for name in names}
+        for name in names:
+            stacks_open.callback(sources[name].close)
+        pids = {name: (stacks[name].daemon_pid, stacks[name].sim_pid) for name in names}
+        cpu0 = {name: (cpu_s(pids[name][0]), cpu_s(pids[name][1])) for name in names}
         gc.collect()
         gc.freeze()
         gc.disable()  # the client's collector must not stall its own clock readings
         wall0 = time.monotonic()
         try:
             for k, pose in enumerate(poses):
-                for d in dialects if k % 2 == 0 else dialects[::-1]:
+                for name in names if k % 2 == 0 else names[::-1]:
                     time.sleep(rng.uniform(0.0, args.gap_ms / 1e3))
-                    records[d].append(answer_one(sources[d], pose.as_tuple()))
+                    records[name].append(answer_one(sources[name], pose.as_tuple()))
         finally:
             gc.enable()
         wall_s = time.monotonic() - wall0
         cpu = {
-            d: (cpu_s(pids[d][0]) - cpu0[d][0], cpu_s(pids[d][1]) - cpu0[d][1]) for d in dialects
+            name: (cpu_s(pids[name][0]) - cpu0[name][0], cpu_s(pids[name][1]) - cpu0[name][1])
+            for name in names
         }
-        events = {d: stacks[d].stop() for d in dialects}
+        events = {name: stacks[name].stop() for name in names}
     return [
         {
-            **measure(records[d], servo_command_times(events[d])),
-            "dialect": d,
+            **measure(records[name], servo_command_times(events[name])),
+            "dialect": name,
+            "base": d,
+            "old": root is not None,
             "wall_s": wall_s,
-            "daemon_cpu_s": cpu[d][0],
-            "sim_cpu_s": cpu[d][1],
+            "daemon_cpu_s": cpu[name][0],
+            "sim_cpu_s": cpu[name][1],
         }
-        for d in dialects
+        for name, d, root in peers
     ]
 
 
@@ -186,16 +201,28 @@ def measure(records: list[dict], sim_s: np.ndarray) -> dict:
     return {"rows": rows, "outcomes": outcomes, **counts}
 
 
-def _target(dialect: str, total: str, p50: float, p99: float) -> str:
-    if total == "→ last servo ACK" and dialect == "ardupilot":
-        return f"p99 ≤ {ISSUE13_ARDUPILOT_P99_MS:g}: " + (
-            "yes" if p99 <= ISSUE13_ARDUPILOT_P99_MS else "**no**"
-        )
-    if total in ("→ last servo ACK", "→ ACK") and dialect == "px4":
+def _target(r: dict, total: str, p50: float, p99: float, results: list[dict]) -> str:
+    """The issue's verdict for this row; beside it, the old core's figure from the same run."""
+    if r["old"]:
+        return ""
+    verdicts = []
+    if total == "→ last servo ACK" and r["base"] == "ardupilot":
+        met = p99 <= ISSUE13_ARDUPILOT_P99_MS
+        verdicts.append(f"p99 ≤ {ISSUE13_ARDUPILOT_P99_MS:g}: " + ("yes" if met else "**no**"))
+    old = next((o for o in results if o["old"] and o["base"] == r["base"]), None)
+    if old is not None:
+        o50, o99, _ = percentiles_ms([row[total] for row in old["rows"]])
+        worse = p50 > o50 or p99 > o99
+        verdict = ("**worse**" if worse else "not worse") if r["base"] == "px4" else ""
+        verdicts.append(f"old core, same run: {o50:.2f} / {o99:.2f} {verdict}".rstrip())
+    elif total == "→ ACK" and r["base"] == "px4":
         old50, old99 = OLD_PX4_ACK_MS
         worse = p50 > old50 or p99 > old99
-        return f"old → ACK {old50:g} / {old99:g}: " + ("**worse**" if worse else "not worse")
-    return ""
+        verdicts.append(
+            f"README's old row {old50:g} / {old99:g} (old simulator): "
+            + ("**worse**" if worse else "not worse")
+        )
+    return "; ".join(verdicts)
 
 
 def report(results: list[dict], args: argparse.Namespace, load_before: str) -> list[str]:
@@ -220,7 +247,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         for total in TOTALS:
             p50, p99, mx = percentiles_ms([row[total] for row in r["rows"]])
             rows.append([r["dialect"], f"target {total}", len(r["rows"]), p50, p99, mx,
-                         _target(r["dialect"], total, p50, p99)])  # fmt: skip
+                         _target(r, total, p50, p99, results)])  # fmt: skip
     lines += md_table(["dialect", "latency", "targets", "p50 ms", "p99 ms", "max ms", "target"],
                       rows)  # fmt: skip
     lines += ["", "Split (ms, p50 / p99 / max):", ""]
@@ -288,6 +315,11 @@ def main() -> int:
         "--gap-ms", type=float, default=50.0, help="random pause 0..GAP before each target (seeded)"
     )
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--old-core",
+        type=Path,
+        help="a checkout of older code whose daemon runs as a peer (e.g. git archive 22321ac)",
+    )
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/latency.md")
     parser.add_argument("--no-plot", action="store_true")
     args = parser.parse_args()

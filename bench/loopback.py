@@ -242,7 +242,8 @@ class Stack:
     :class:`~tests.support.daemon_process.DaemonProcess`).
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
-    ``sim_servo`` flags.
+    ``sim_servo`` flags; ``daemon_root`` runs the daemon from another checkout (an older
+    version of the code, as a peer in the same run).
     """
 
     def __init__(
@@ -251,6 +252,7 @@ class Stack:
         dialect: str,
         daemon: dict[str, dict[str, Any]] | None = None,
         sim_args: Sequence[str] = (),
+        daemon_root: Path | None = None,
     ) -> None:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
@@ -273,7 +275,12 @@ class Stack:
             }
             for name, values in (daemon or {}).items():
                 tables.setdefault(name, {}).update(values)
-            self.daemon = DaemonProcess(tmp / "daemon", tables, ready_timeout_s=WAIT_S)
+            self.daemon = DaemonProcess(
+                tmp / "daemon",
+                tables,
+                ready_timeout_s=WAIT_S,
+                **({} if daemon_root is None else {"root": daemon_root}),
+            )
             self.control_path = str(self.daemon.control_path)
             self.config_path = self.daemon.config_path
             self.daemon_log = self.daemon.log_path
