@@ -273,6 +273,11 @@ def report(out: dict[str, Any], args: argparse.Namespace, load_before: str) -> l
         f"- Journal lines the daemon wrote during the flood: {len(out['journal_during'])}; "
         f"after it: {len(out['journal_after'])}; tracebacks in the whole log: "
         f"{out['tracebacks']}.",
+        f"  During the flood: {sum('autopilot link lost' in x for x in out['journal_during'])} "
+        "autopilot link losses (heartbeats lost with the flood), "
+        f"{sum('SYSTEM_TIME stopped' in x for x in out['journal_during'])} SYSTEM_TIME "
+        f"silences, {sum('motion stopped' in x for x in out['journal_during'])} motions stopped "
+        "for unanswered servo updates.",
     ]
     if out["journal_during"]:
         lines += ["", "The journal during the flood:", "", "```"]

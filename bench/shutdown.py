@@ -25,7 +25,9 @@ readable; target ≤ 1 s); parked — every arm output's PWM in the simulator's 
 to the park PWM (through the daemon's calibration) within 1 s of the exit, and whether the arm
 was away from park when SIGTERM went (else "parked" proves nothing), the daemon's link state
 just before SIGTERM (its status), and the servo commands the simulator handled after SIGTERM
-(the park: 6 expected); whether a goto written
+(the park: 6 expected) and the datagrams the kernel dropped meanwhile on the simulator's
+sockets (a full receive buffer: under the flood the daemon answers every target, and those
+answers go to the autopilot too); whether a goto written
 before SIGTERM was answered; any ``Traceback`` in the daemon's stdout/stderr.
 """
 
@@ -46,7 +48,7 @@ from typing import Any
 import numpy as np
 
 from bench.flooder import Flooder, encode_targets, flood_poses
-from bench.loopback import Stack, load_average, udp_ports
+from bench.loopback import Stack, load_average, udp_ports, udp_sockets
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.config import load_config
 from companion.kinematics.arm import Arm, Pose
@@ -131,11 +133,13 @@ def trial(scenario: str, k: int, args: argparse.Namespace) -> dict[str, Any]:
             before = sim_pwm(stack, outputs)
             rec["away"] = any(before[o] != park[o] for o in outputs)
             rec["link"] = stack.status()["link"]
+            drops0 = sum(udp_sockets(stack.sim_pid).values())
             rec["code"], rec["exit_s"], sigterm_s = sigterm(stack)
             rec["parked"] = wait_until(lambda: sim_pwm(stack, outputs) == park, PARKED_WAIT_S)
             after = sim_pwm(stack, outputs)
             rec["off_park_us"] = max(abs(after[o] - park[o]) for o in outputs)
             rec["park_commands"] = servo_commands_since(stack, sigterm_s)
+            rec["sim_drops"] = sum(udp_sockets(stack.sim_pid).values()) - drops0
             if goto_conn is not None:
                 goto_conn.settimeout(1.0)
                 try:
@@ -193,7 +197,8 @@ def report(records: list[dict[str, Any]], args: argparse.Namespace, load: str) -
             f"{r['link']}), exit {r['code']} "
             f"after {r['exit_s'] * 1e3:.0f} ms, away {r['away']}, parked {r['parked']} "
             f"(max |PWM − park| {r['off_park_us']} µs, {r['park_commands']} servo commands after "
-            f"SIGTERM){goto}; traceback {r['traceback']}; "
+            f"SIGTERM, {r['sim_drops']} datagrams the kernel dropped at the simulator from "
+            f"SIGTERM to the check){goto}; traceback {r['traceback']}; "
             f"log: {' | '.join(r['log_tail'])}"
         )
     return lines
