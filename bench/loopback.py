@@ -11,7 +11,8 @@ Clocks: the client, the daemon's per-target timing (``status()["last_target"]["t
 ``Reply.timing``) and the simulator's event log (``t_s`` + the start event's ``monotonic_s``)
 are all CLOCK_MONOTONIC, which is system-wide on Linux, so their stamps can be subtracted.
 
-Used by ``bench/latency.py`` and ``bench/sustained.py``; not a module of the package.
+Used by the benches that run the real stack (``latency``, ``sustained``, ``flood``, ``races``,
+``shutdown``); not a module of the package.
 """
 
 from __future__ import annotations
@@ -241,7 +242,8 @@ class Stack:
     :class:`~tests.support.daemon_process.DaemonProcess`).
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
-    ``sim_servo`` flags.
+    ``sim_servo`` flags; ``daemon_root`` runs the daemon from another checkout (an older
+    version of the code, as a peer in the same run).
     """
 
     def __init__(
@@ -250,6 +252,7 @@ class Stack:
         dialect: str,
         daemon: dict[str, dict[str, Any]] | None = None,
         sim_args: Sequence[str] = (),
+        daemon_root: Path | None = None,
     ) -> None:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
@@ -272,7 +275,12 @@ class Stack:
             }
             for name, values in (daemon or {}).items():
                 tables.setdefault(name, {}).update(values)
-            self.daemon = DaemonProcess(tmp / "daemon", tables, ready_timeout_s=WAIT_S)
+            self.daemon = DaemonProcess(
+                tmp / "daemon",
+                tables,
+                ready_timeout_s=WAIT_S,
+                **({} if daemon_root is None else {"root": daemon_root}),
+            )
             self.control_path = str(self.daemon.control_path)
             self.config_path = self.daemon.config_path
             self.daemon_log = self.daemon.log_path
@@ -297,6 +305,11 @@ class Stack:
     def daemon_pid(self) -> int:
         assert self.daemon is not None
         return self.daemon.pid
+
+    @property
+    def sim_pid(self) -> int:
+        assert self.sim is not None
+        return self.sim.proc.pid
 
     def stop(self) -> list[dict[str, Any]]:
         """Stop both processes and return the simulator's events (its log is complete then)."""
@@ -362,6 +375,33 @@ def rss_mb(pid: int) -> float:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) / 1024
     raise RuntimeError(f"no VmRSS for pid {pid}")
+
+
+def udp_sockets(pid: int) -> dict[int, int]:
+    """The UDP sockets process ``pid`` holds (from ``/proc``): ``{local port: datagrams the
+    kernel dropped on it so far}`` (a full receive buffer). The daemon's ``udpout`` link socket
+    is bound to an ephemeral port that nothing else tells."""
+    inodes = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:  # closed meanwhile
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[len("socket:[") : -1])
+    sockets = {}
+    with open(f"/proc/{pid}/net/udp") as handle:
+        next(handle)  # header
+        for line in handle:
+            fields = line.split()
+            if fields[9] in inodes:
+                sockets[int(fields[1].rsplit(":", 1)[1], 16)] = int(fields[12])
+    return sockets
+
+
+def udp_ports(pid: int) -> list[int]:
+    """The local ports of the UDP sockets process ``pid`` holds."""
+    return sorted(udp_sockets(pid))
 
 
 def load_average() -> str:

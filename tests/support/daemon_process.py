@@ -50,8 +50,9 @@ class DaemonProcess:
     """``armbridge run`` on ``config`` (TOML tables as dicts) in ``directory``.
 
     ``control.socket`` defaults to ``directory/control.sock``. ``env`` replaces the
-    environment (e.g. to add ``NOTIFY_SOCKET``). A context manager; :meth:`stop` is
-    idempotent.
+    environment (e.g. to add ``NOTIFY_SOCKET``). ``root``: the checkout whose code runs (the
+    working directory, so its packages come first; default this one). A context manager;
+    :meth:`stop` is idempotent.
     """
 
     def __init__(
@@ -61,6 +62,7 @@ class DaemonProcess:
         *,
         env: Mapping[str, str] | None = None,
         ready_timeout_s: float = READY_S,
+        root: Path = ROOT,
     ) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         self.config: dict[str, Any] = copy.deepcopy(dict(config))
@@ -72,7 +74,7 @@ class DaemonProcess:
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
                 daemon_command(self.config_path),
-                cwd=ROOT,
+                cwd=root,
                 env=None if env is None else dict(env),
                 stdin=subprocess.DEVNULL,
                 stdout=log,
