@@ -25,6 +25,7 @@ import math
 import os
 import socket
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -54,16 +55,23 @@ class ControlServer:
         self._sock = _listening_socket(self.path)
         self._sock.settimeout(0.2)
         self._clients: set[socket.socket] = set()
+        self._threads: set[threading.Thread] = set()
         self._connections = 0
         self._thread = threading.Thread(
             target=self._accept_loop, name="armbridge-control-socket", daemon=True
         )
         self._thread.start()
 
-    def close(self) -> None:
+    def close(self, *, flush_s: float = 0.2) -> None:
+        """Stop accepting, give the connections up to ``flush_s`` to write the answers they
+        hold (the daemon answered everything before), then close them."""
         self._stop.set()
-        self._thread.join(timeout=1.0)
-        self._sock.close()
+        self._sock.close()  # no new connection from here
+        deadline = time.monotonic() + flush_s
+        for thread in list(self._threads):
+            if thread.ident is not None:  # started
+                thread.join(timeout=max(0.0, deadline - time.monotonic()))
+        self._thread.join(timeout=max(0.0, deadline - time.monotonic()))
         for client in list(self._clients):
             client.close()
         if os.path.exists(self.path):
@@ -79,12 +87,14 @@ class ControlServer:
                 return
             self._clients.add(conn)
             self._connections += 1
-            threading.Thread(
+            thread = threading.Thread(
                 target=self._serve,
                 args=(conn, self._connections),
                 daemon=True,
                 name="armbridge-control-client",
-            ).start()
+            )
+            self._threads.add(thread)
+            thread.start()
 
     def _serve(self, conn: socket.socket, number: int = 0) -> None:
         buffer = b""
@@ -109,6 +119,7 @@ class ControlServer:
             log.info("control client went away: %s", exc)
         finally:
             self._clients.discard(conn)
+            self._threads.discard(threading.current_thread())
             conn.close()
 
     def handle_line(self, line: bytes, source: tuple[Any, ...] = ("socket", 0)) -> dict[str, Any]:

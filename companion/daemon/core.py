@@ -64,6 +64,8 @@ SYSTEM_TIME_INTERVAL_S = 0.25
 #: A SYSTEM_TIME stream that fell silent this long is asked for again (a rebooted autopilot
 #: forgets the intervals it was asked for), and the outputs are re-sent in case it rebooted.
 SYSTEM_TIME_SILENT_S = 1.0
+#: At shutdown, the park update's commands are sent again after this long without an ACK.
+SHUTDOWN_RETRY_S = 0.1
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
 
@@ -115,6 +117,7 @@ class _InFlight:
     tracker: UpdateTracker
     sent_s: float
     waiting: list[_Waiting] = field(default_factory=list)  # targets whose first step this is
+    timeout_s: float = 0.5  # per attempt
     pending: list[ServoCommand] = field(default_factory=list)  # still to confirm, in order
     attempt: int = 0  # sends of the command being confirmed one at a time (0: the batch)
     accepted: dict[int, int] = field(default_factory=dict)
@@ -288,8 +291,15 @@ class ControlCore:
         actions: list[Action] = []
         self._stop_motion(actions, Reply(Outcome.CANCELLED, "daemon stopping"))
         if park and self.config.park_deg is not None and self._link_up:
-            self._send_direct(actions, tuple(self.config.park_deg), force=True)
+            # Little time is left: a lost frame is sent again after SHUTDOWN_RETRY_S, not
+            # after command_timeout_s.
+            timeout_s = min(self.config.link.command_timeout_s, SHUTDOWN_RETRY_S)
+            self._send_direct(actions, tuple(self.config.park_deg), force=True, timeout_s=timeout_s)
         return actions
+
+    @property
+    def link_up(self) -> bool:
+        return self._link_up
 
     def finish(self) -> list[Action]:
         """The daemon exits now: whatever still waits on an update is answered."""
@@ -453,6 +463,7 @@ class ControlCore:
         now: float,
         *,
         everything: bool = False,
+        timeout_s: float | None = None,
     ) -> None:
         try:
             pwm = self.config.calibration.angles_to_pwm_us(step)
@@ -468,14 +479,21 @@ class ControlCore:
             for w in waiting:
                 self._answer(actions, w.request, w.reply)
             return
-        tracker = UpdateTracker(commands, sent_s=now, timeout_s=self.config.link.command_timeout_s)
+        if timeout_s is None:
+            timeout_s = self.config.link.command_timeout_s
+        tracker = UpdateTracker(commands, sent_s=now, timeout_s=timeout_s)
         sent = frozenset(o for c in commands for o in c.outputs)
-        self._inflight = _InFlight(step, pwm, sent, tracker, now, waiting)
+        self._inflight = _InFlight(step, pwm, sent, tracker, now, waiting, timeout_s)
         self._last_step_s = now
         self._emit(actions, commands, 0)
 
     def _send_direct(
-        self, actions: list[Action], step: tuple[float, ...], *, force: bool = False
+        self,
+        actions: list[Action],
+        step: tuple[float, ...],
+        *,
+        force: bool = False,
+        timeout_s: float | None = None,
     ) -> None:
         """Everything to ``step`` at once, past the speed limit (park on shutdown)."""
         if self._inflight is not None:
@@ -487,7 +505,7 @@ class ControlCore:
                 self._acked_pwm.pop(o, None)
             self._inflight = None
         self._unconfirmed = None
-        self._send_step(actions, step, self.clock(), everything=force)
+        self._send_step(actions, step, self.clock(), everything=force, timeout_s=timeout_s)
 
     def _emit(self, actions: list[Action], commands: list[ServoCommand], attempt: int) -> None:
         assert self._pinned is not None  # the link is up only once an autopilot was heard
@@ -528,9 +546,7 @@ class ControlCore:
             inflight.attempt = 1
         if inflight.pending:
             command = inflight.pending.pop(0)
-            inflight.tracker = UpdateTracker(
-                [command], sent_s=now, timeout_s=self.config.link.command_timeout_s
-            )
+            inflight.tracker = UpdateTracker([command], sent_s=now, timeout_s=inflight.timeout_s)
             self._emit(actions, [command], inflight.attempt)
             return
         self._resolve_update(actions, inflight, now)

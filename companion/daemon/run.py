@@ -107,8 +107,10 @@ def run(config_path: str) -> int:
     finally:
         notifier.stopping()
         log.info("stopping%s", " (parking)" if config.park_on_stop else "")
+        # The daemon first: it refuses new requests and answers every waiting one (its socket
+        # client is still connected to read the answer); then the socket closes.
+        daemon.close(park=config.park_on_stop)
         if server is not None:
             server.close()
-        daemon.close(park=config.park_on_stop)
         notifier.close()
     return 0

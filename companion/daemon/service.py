@@ -450,6 +450,8 @@ class ArmDaemon:
         if park:
             if core.parked():
                 log.info("parked")
+            elif not core.link_up:
+                log.warning("not parked: the autopilot link is down")
             else:
                 log.warning("park not acknowledged within %.2f s", self.park_wait_s)
         self._carry_out(core.finish())

@@ -222,12 +222,6 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="found by bench/shutdown.py: a control-socket goto still waiting for its servo ACKs "
-    "at SIGTERM gets EOF instead of an answer; run() closes the control server, and with it "
-    "the client connections, before daemon.close() answers the waiting requests",
-)
 def test_a_goto_waiting_at_sigterm_is_answered(sims, daemons):
     """Every request gets one answer, also at shutdown: a goto whose servo update is still
     unconfirmed (the autopilot applies DO_SET_SERVO but withholds the ACKs) when SIGTERM comes
