@@ -34,6 +34,8 @@ from companion.daemon.requests import MOTION_KINDS, Outcome, Reply, Request
 log = logging.getLogger("armbridge")
 
 Clock = Callable[[], float]
+#: How a rate-limited request's answer begins.
+RATE_LIMITED = "rate limited"
 
 
 class TokenBucket:
@@ -146,7 +148,7 @@ class Intake:
                             request,
                             Reply(
                                 Outcome.TEMPORARILY_REJECTED,
-                                f"rate limited: at most {self.rate_hz:g} targets/s per source",
+                                f"{RATE_LIMITED}: at most {self.rate_hz:g} targets/s per source",
                             ),
                         )
                     )

@@ -11,6 +11,7 @@ from __future__ import annotations
 import gc
 import logging
 import signal
+import sys
 import threading
 
 from companion import ik
@@ -47,6 +48,10 @@ def run(config_path: str) -> int:
     # collector's full passes skip it: one took ~55 ms here, long enough to stall the control
     # thread past a 20 ms target slot; after the freeze it takes microseconds.
     gc.freeze()
+    # The GIL is handed between threads every 5 ms by default: under a flood the reader thread
+    # would keep a `stop` on the control socket waiting in 5 ms slices. 1 ms costs nothing
+    # while only one thread has work (measured: python -m bench.flood).
+    sys.setswitchinterval(0.001)
     stop = threading.Event()
     reload = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -44,7 +44,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion import ik
 from companion.daemon.config import DaemonConfig
 from companion.daemon.core import Action, Answer, ControlCore, SendCommand
-from companion.daemon.intake import Intake, RefusalLog, TokenBucket
+from companion.daemon.intake import RATE_LIMITED, Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import (
     KINDS,
     MAV_CMD_USER_1,
@@ -73,6 +73,13 @@ STATUSTEXT_RATE_HZ = 2.0
 #: station streaming targets at 50 Hz stays well inside it.
 SOURCE_RATE_HZ = 100.0
 SOURCE_BURST = 20.0
+#: A MAVLink source over its rate limit gets at most this many TEMPORARILY_REJECTED ACKs a
+#: second; the rest of its flood goes unanswered (counted in ``flood_unanswered``): answering
+#: 5 000 frames a second would turn the daemon into the flood's amplifier on the link to the
+#: autopilot, and cost the reader thread the time it needs for the autopilot's own frames.
+FLOOD_ANSWERS_HZ = 2 * SOURCE_RATE_HZ
+#: Sources whose flood answers are counted (least recently used beyond it forgotten).
+FLOOD_SOURCES_MAX = 256
 
 
 class ArmDaemon:
@@ -105,7 +112,16 @@ class ArmDaemon:
         self._frames_lock = threading.Lock()
         self._counts_lock = threading.Lock()
         # Counted here, added to the core's counters in status(): refused before the core.
-        self._counts = {"not_for_us": 0, "frames_dropped": 0, "denied": 0, "targets": 0}
+        self._counts = {
+            "not_for_us": 0,
+            "frames_dropped": 0,
+            "denied": 0,
+            "targets": 0,
+            "flood_unanswered": 0,
+        }
+        self._flood_answers: collections.OrderedDict[tuple[int, int], TokenBucket] = (
+            collections.OrderedDict()
+        )
         self._status: dict[str, Any] = self._core.status()
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
@@ -323,6 +339,10 @@ class ArmDaemon:
         link = self.link
         if link is None:
             return
+        if reply.message.startswith(RATE_LIMITED) and not self._flood_answer_allowed(source):
+            with self._counts_lock:
+                self._counts["flood_unanswered"] += 1
+            return
         try:
             if reply.outcome in (Outcome.FAILED, Outcome.DENIED) and self._statustexts.take(
                 self.clock()
@@ -341,6 +361,19 @@ class ArmDaemon:
             )
         except LinkError as exc:
             log.warning("could not answer %d/%d: %s", *source, exc)
+
+    def _flood_answer_allowed(self, source: tuple[int, int]) -> bool:
+        """Runs on the reader thread only."""
+        now = self.clock()
+        bucket = self._flood_answers.get(source)
+        if bucket is None:
+            bucket = TokenBucket(FLOOD_ANSWERS_HZ, FLOOD_ANSWERS_HZ / 10, now)
+            self._flood_answers[source] = bucket
+            if len(self._flood_answers) > FLOOD_SOURCES_MAX:
+                self._flood_answers.popitem(last=False)
+        else:
+            self._flood_answers.move_to_end(source)
+        return bucket.take(now)
 
     # -- control thread ---------------------------------------------------------------------
 
