@@ -500,7 +500,11 @@ class ControlCore:
             # Its answers would be counted into this update; the autopilot handles frames in
             # order, so the direct step lands last whatever happens to the one in flight.
             for w in self._inflight.waiting:
-                self._answer(actions, w.request, Reply(Outcome.CANCELLED, "overridden by park"))
+                self._answer(
+                    actions,
+                    w.request,
+                    Reply(Outcome.FAILED, "interrupted by a park before it was confirmed"),
+                )
             for o in self._inflight.sent_outputs:
                 self._acked_pwm.pop(o, None)
             self._inflight = None

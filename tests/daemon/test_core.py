@@ -416,8 +416,8 @@ def test_shutdown_answers_everything_and_parks_every_output_directly(rig):
     waiting = rig.goto(tuple(p + 20.0 for p in PARK))
     rig.sent.clear()
     rig.take(rig.core.shutdown(park=True))
-    assert rig.reply(waiting).outcome is Outcome.CANCELLED
-    assert rig.reply(first).outcome is Outcome.CANCELLED
+    assert rig.reply(waiting).outcome is Outcome.CANCELLED  # never sent
+    assert rig.reply(first).outcome is Outcome.FAILED  # sent, then overridden by the park
     assert rig.servo() == rig.calibration.angles_to_pwm_us(PARK)  # all six, past the limit
     rig.ack_all(rig.sent)
     assert rig.core.parked() and rig.core.idle
