@@ -431,24 +431,33 @@ class MavlinkLink:
         Raises :class:`LinkClosed` after close, :class:`TransportError` while the transport is
         down (it is being reopened in the background).
         """
+        return self.send_many([msg])
+
+    def send_many(self, msgs: Iterable[MavMessage]) -> bytes:
+        """Pack several messages and write them in **one** write (one UDP datagram, one serial
+        or TCP write): an autopilot reading the link once per main-loop pass then meets them
+        all in the same pass. Returns the bytes written; raises as :meth:`send`."""
         with self._write_lock:
             self._raise_if_closed()
             transport = self._transport
             if transport is None:
                 raise TransportError(f"{self.description}: transport down, reconnecting")
-            if self._keeper is not None:
-                try:
-                    self._encoder.signing.timestamp = self._keeper.next_timestamp(
-                        max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
-                    )
-                except OSError as exc:
-                    # Signing past the stored reservation could replay timestamps after a
-                    # restart: refuse to send rather than sign unsafely.
-                    raise SigningStateError(
-                        f"{self.description}: cannot store the signing timestamp: {exc}"
-                    ) from exc
-            buf = msg.pack(self._encoder)
-            self._encoder.seq = (self._encoder.seq + 1) % 256
+            frames = []
+            for msg in msgs:
+                if self._keeper is not None:
+                    try:
+                        self._encoder.signing.timestamp = self._keeper.next_timestamp(
+                            max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
+                        )
+                    except OSError as exc:
+                        # Signing past the stored reservation could replay timestamps after a
+                        # restart: refuse to send rather than sign unsafely.
+                        raise SigningStateError(
+                            f"{self.description}: cannot store the signing timestamp: {exc}"
+                        ) from exc
+                frames.append(msg.pack(self._encoder))
+                self._encoder.seq = (self._encoder.seq + 1) % 256
+            buf = b"".join(frames)
             try:
                 transport.write(buf)
             except TransportError:
@@ -456,7 +465,7 @@ class MavlinkLink:
                 self._heard_on_transport = False  # lost from now on, as after a read error
                 self._counts["transport_errors"] += 1
                 raise
-            self._counts["tx_messages"] += 1
+            self._counts["tx_messages"] += len(frames)
             return buf
 
     def _send_heartbeat(self) -> None:

@@ -435,25 +435,26 @@ class ArmDaemon:
         return self._core.tick(link.poll_state() is LinkState.UP, pinned)
 
     def _carry_out(self, actions: list[Action]) -> None:
+        # The commands go first, all in one write (one datagram): the autopilot then reads an
+        # update's commands in one main-loop pass. Answers after: ACCEPTED comes from the
+        # core only once the autopilot acknowledged, so nothing is answered early.
+        commands = [a for a in actions if isinstance(a, SendCommand)]
         link = self.link
+        if commands and link is not None:
+            try:
+                link.send_many(
+                    link.mav.command_long_encode(*c.target, c.command, c.confirmation, *c.params)
+                    for c in commands
+                )
+            except LinkError as exc:
+                # The update then goes unanswered and the core treats it so; a transport
+                # error also drops the link to LOST, which makes the core hold.
+                log.warning("servo commands not sent: %s", exc)
         for action in actions:
             if isinstance(action, Answer):
                 reply = action.reply
                 if action.request.answer(reply) and reply.outcome is not Outcome.ACCEPTED:
                     self.intake.refusals.note(action.request.kind, reply.outcome, reply.message)
-            elif isinstance(action, SendCommand):
-                if link is None:
-                    continue
-                try:
-                    link.send(
-                        link.mav.command_long_encode(
-                            *action.target, action.command, action.confirmation, *action.params
-                        )
-                    )
-                except LinkError as exc:
-                    # The update then goes unanswered and the core treats it so; a transport
-                    # error also drops the link to LOST, which makes the core hold.
-                    log.warning("servo command not sent: %s", exc)
 
     def _guarded(self, where: str, request: Request | None, work: Callable[[], None]) -> None:
         """Run ``work``; a bug in it must not kill the thread that guards the servos: it is
