@@ -294,3 +294,26 @@ def test_tcp_peer_closing_is_survived_by_reconnecting():
             link.close()
             if second is not None:
                 second.close()
+
+
+def test_send_many_writes_its_messages_in_one_datagram(clock):
+    # An autopilot reading its link once per main-loop pass then sees a whole servo update in
+    # one pass.
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    peer.bind(("127.0.0.1", 0))
+    peer.settimeout(5.0)
+    link = MavlinkLink.open(f"udpout:127.0.0.1:{peer.getsockname()[1]}", LinkConfig(**FAST))
+    try:
+        texts = [b"one", b"two", b"three"]
+        link.send_many(link.mav.statustext_encode(6, t) for t in texts)
+        decoder = mavlink.MAVLink(None)
+        while True:
+            datagram, _ = peer.recvfrom(65535)
+            msgs = decoder.parse_buffer(datagram) or []
+            if msgs and msgs[0].get_type() == "STATUSTEXT":
+                break
+        assert [m.text for m in msgs] == ["one", "two", "three"]
+        assert [m.get_seq() for m in msgs] == [(msgs[0].get_seq() + i) % 256 for i in range(3)]
+    finally:
+        link.close()
+        peer.close()
