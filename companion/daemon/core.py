@@ -267,13 +267,15 @@ class ControlCore:
             self._pin(autopilot)
         # The link may report UP a moment before its HEARTBEAT reached us: pinned first.
         self._set_link(actions, link_up and self._pinned is not None)
+        due = now >= self._next_tick_s
+        if due:  # also while the link is down: the next wake is a period away, not now
+            period = 1.0 / self.config.rate_hz
+            self._next_tick_s = max(self._next_tick_s + period, now)
         if not self._link_up:
             return actions
         self._poll_update(actions)
         self._watch_system_time(actions, now)
-        if now >= self._next_tick_s:
-            period = 1.0 / self.config.rate_hz
-            self._next_tick_s = max(self._next_tick_s + period, now)
+        if due:
             if self._trajectory:
                 self._due_trajectory_point(actions)
             self._maybe_send(actions, immediate=False)

@@ -500,3 +500,11 @@ def test_any_sequence_answers_every_request_once_keeps_the_limit_and_the_range(e
     rig.take(rig.core.finish())
     for request, _ in requests:
         assert len(rig.answers.get(id(request), [])) == 1, request
+
+
+def test_the_next_wake_moves_on_while_the_link_is_down():
+    # It stayed in the past while no autopilot was heard: the control thread spun at 100 % CPU.
+    rig = Rig()
+    for _ in range(3):
+        rig.advance(0.01, link_up=False)
+        assert rig.core.next_wake_s() > rig.clock()
