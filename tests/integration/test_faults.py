@@ -439,3 +439,42 @@ def test_withheld_acks_fail_the_target_in_bounded_time_and_a_rebooted_autopilot_
         )
     finally:
         daemon.close()
+
+
+# -- 5. a quick autopilot reboot -----------------------------------------------------------------
+
+
+def test_a_reboot_shorter_than_the_loss_timeout_is_seen_and_every_output_resent(sims):
+    # Seen by an adversarial review: an autopilot restarted within loss_timeout_s (0.36 s of
+    # silence) went unnoticed, status "up" with the old PWMs while its outputs were at 0 µs.
+    sim = sims("--udp", "127.0.0.1:0", "--slew-s-per-60deg", "0")
+    daemon = start_daemon(sim.url)
+    calibration = daemon.config.calibration
+    try:
+        [target] = poses(daemon.config, 1, seed=21)
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
+        # The daemon asked for SYSTEM_TIME (ArduCopter streams none by default) and has it.
+        assert wait_until(lambda: sim.state()["streams"].get("SYSTEM_TIME", 0) > 0, WAIT_S), (
+            sim.state()["streams"]
+        )
+        held = daemon.status()["last_pwm_us"]
+        assert sim.reboot()
+        assert wait_until(lambda: daemon.status()["counters"]["autopilot_reboots"] == 1, WAIT_S)
+        [booted] = sim.events("fault", fault="booted")
+        # Every output back at its acknowledged PWM, with no new target asked for.
+        assert wait_until(lambda: sim_pwm(sim.state(), calibration.outputs) == held, WAIT_S)
+        resent = [
+            e
+            for e in sim.events("servo")
+            if e["t_s"] >= booted["t_s"] and held.get(e["output"]) == e["pwm_us"]
+        ]
+        assert sorted({e["output"] for e in resent}) == sorted(calibration.outputs)
+        assert wait_until(lambda: daemon.status()["last_pwm_us"] == held, WAIT_S)  # ACKs back
+        assert daemon.status()["link"] == "up"
+        report(
+            "reboot",
+            detected_s=round(min(e["t_s"] for e in resent) - booted["t_s"], 3),
+        )
+    finally:
+        daemon.close()
