@@ -14,6 +14,7 @@ import time
 import pytest
 
 from companion.daemon.cli import main
+from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request
 from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
 from companion.kinematics.arm import Pose
@@ -246,6 +247,11 @@ def test_a_goto_waiting_at_sigterm_is_answered(sims, daemons):
             reply += chunk
     assert reply.endswith(b"\n"), f"no answer, the connection ended after {reply!r}"
     assert json.loads(reply)["outcome"] in ("cancelled", "failed")
+    # Parked all the same (the autopilot applies what it does not acknowledge), no traceback.
+    park_pwm = parse_config(daemon.config).calibration.angles_to_pwm_us([0, 90, 0, 0, 0, 0])
+    outputs = sim.state()["outputs"]
+    assert {o: outputs[str(o)]["pwm_us"] for o in park_pwm} == park_pwm
+    assert "Traceback" not in daemon.log()
 
 
 @pytest.mark.slow

@@ -26,12 +26,9 @@ def config(url: str) -> dict:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("withhold", [False, True], ids=["backlog", "withheld-acks"])
-def test_sigterm_parks_answers_and_exits_0(sims, daemons, withhold):
-    flags = ["--udp", "127.0.0.1:0", "--slew-s-per-60deg", "0"]
-    if withhold:
-        flags += ["--withhold-ack", "DO_SET_SERVO"]  # executed, never acknowledged
-    sim = sims(*flags)
+def test_sigterm_under_a_backlog_parks_answers_and_exits_0(sims, daemons):
+    # With withheld ACKs: tests/daemon/test_cli.py::test_a_goto_waiting_at_sigterm_is_answered.
+    sim = sims("--udp", "127.0.0.1:0", "--slew-s-per-60deg", "0")
     daemon = daemons(config(sim.url))
     daemon.wait_link("up", WAIT_S)
     arm = parse_config(daemon.config).arm
