@@ -1,4 +1,6 @@
-"""The JSON-lines event log: one JSON object per line, flushed as written.
+"""The JSON-lines event log: one JSON object per line, flushed by :meth:`EventLog.flush` (the
+server flushes once per loop pass, after the frames of that pass have left, and before it
+answers a query: a frame never waits for the log, and a reader who asked sees everything).
 
 Every event has ``t_s`` (seconds since the simulator started, monotonic) and ``event``; the other
 fields depend on the event (see ``docs/sim_servo.md``). The last ``keep`` events are also kept in
@@ -31,11 +33,14 @@ class EventLog:
         self.recent.append(event)
         if self._file is not None:
             self._file.write(json.dumps(event, separators=(",", ":"), default=str) + "\n")
+
+    def flush(self) -> None:
+        if self._file is not None:
             self._file.flush()
 
     def close(self) -> None:
         if self._file is not None:
-            self._file.close()
+            self._file.close()  # flushes
             self._file = None
 
 

@@ -76,6 +76,12 @@ class SimServer:
             pass
 
     def _respond(self, request: str) -> dict[str, Any]:
+        try:
+            return self._answer(request)
+        finally:
+            self.events.flush()  # what the asker reads next includes what it just caused
+
+    def _answer(self, request: str) -> dict[str, Any]:
         if request == "state":
             state = self.autopilot.snapshot(self.clock())
             state["link"] = {
@@ -143,6 +149,7 @@ class SimServer:
             self.autopilot.emit(now, "fault", fault=fault, url=self.endpoint.url)
         for channel, frame in self.autopilot.poll(now):
             self.links[channel].write(frame)
+        self.events.flush()  # after the frames: they never wait for the log
 
     def close(self) -> None:
         for link in self.links:

@@ -13,6 +13,7 @@ def test_lines_are_json_and_flushed(tmp_path):
     log = EventLog(path, keep=2)
     log({"t_s": 0.0, "event": "start"})
     log({"t_s": 0.5, "event": "servo", "output": 9, "pwm_us": 1500})
+    log.flush()  # the server's, once per loop pass
     assert read_events(path)[1]["pwm_us"] == 1500  # readable before close
     log({"t_s": 1.0, "event": "stop", "odd": b"bytes"})
     log.close()
