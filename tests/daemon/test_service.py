@@ -105,15 +105,14 @@ def test_unreachable_g_is_refused_and_nothing_moves(sim):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "bad", [(1, 2, math.nan, 0, 0, 0), (1, 2, 3, math.inf, 0, 0), (1, 2, 3), "x"]
-)
-def test_invalid_target_is_denied(sim, bad):
+def test_invalid_targets_are_denied(sim):
     url, _ = sim()
     daemon = make_daemon(url)
+    bad = [(1, 2, math.nan, 0, 0, 0), (1, 2, 3, math.inf, 0, 0), (1, 2, 3), "x"]
     try:
-        assert daemon.submit("goto", bad).result(WAIT_S).outcome is Outcome.DENIED
-        assert daemon.status()["counters"]["denied"] == 1
+        for payload in bad:
+            assert daemon.submit("goto", payload).result(WAIT_S).outcome is Outcome.DENIED
+        assert daemon.status()["counters"]["denied"] == len(bad)
     finally:
         daemon.close()
 

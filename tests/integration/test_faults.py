@@ -25,7 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
-from tests.support.sim_process import SimProcess, hand_errors
+from tests.support.sim_process import SimProcess, assert_within_quantisation, hand_errors
 from tests.support.timing import wait_until
 
 pytestmark = pytest.mark.slow  # a simulator process per test, faults that take seconds
@@ -277,7 +277,7 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
 
 
 def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, tmp_path):
-    # A USB serial adapter unplugged at 6 s (time enough for the first move on a loaded
+    # A USB serial adapter unplugged at 4 s (time enough for the first move on a loaded
     # machine) and re-enumerated 3.2 s later under the same udev name. With a backoff
     # doubling to 5 s the daemon's reopen attempts would fall 3.1 s and 6.3 s after the
     # hang-up: 3 s late. The loss timeout (5 s) outlasts the gap, so only the
@@ -288,7 +288,7 @@ def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, 
         "--pty-link",
         str(link),
         "--hangup-after",
-        "6",
+        "4",
         "--hangup-for",
         "3.2",
         "--slew-s-per-60deg",
@@ -423,8 +423,8 @@ def test_withheld_acks_fail_the_target_in_bounded_time_and_a_rebooted_autopilot_
         assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
         state = fixed.state()
         assert sim_pwm(state, calibration.outputs) == daemon.status()["last_pwm_us"]
-        pos_cm, ori_deg = hand_errors(targets[2], state["hand"])
-        assert pos_cm < QUANT_POS_CM and ori_deg < QUANT_ORI_DEG
+        # The bound for the joints it is at (a fixed one was 0.009 cm short for one solution).
+        assert_within_quantisation(targets[2], state["hand"], daemon.status()["current_deg"])
         checked += assert_pwm_within_calibration(fixed, calibration)
         assert daemon.healthy
         report(
