@@ -26,8 +26,9 @@ Rules:
   first step is already on its way is not cancelled: it is answered with what happened.
 * **A pinned autopilot**: its ids come from the config or from the first autopilot HEARTBEAT,
   and never change; ACKs, STATUSTEXTs and SYSTEM_TIMEs from anyone else are counted and ignored.
-* **An autopilot reboot** (SYSTEM_TIME ``time_boot_ms`` going backwards, whatever the gap) is a
-  link loss: the outputs' state is unknown, and every output is re-sent before moving on.
+* **An autopilot reboot** (SYSTEM_TIME ``time_boot_ms`` going backwards, or falling behind the
+  time elapsed, whatever the gap) is a link loss: the outputs' state is unknown, and every
+  output is re-sent before moving on.
 * **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED (and drop
   their goal); when it is back, re-send every output at the acknowledged pose, then carry on
   towards the goal of a target that was already ACCEPTED.
@@ -66,6 +67,9 @@ SYSTEM_TIME_INTERVAL_S = 0.25
 SYSTEM_TIME_SILENT_S = 1.0
 #: At shutdown, the park update's commands are sent again after this long without an ACK.
 SHUTDOWN_RETRY_S = 0.1
+#: ``time_boot_ms`` behind the time since the previous SYSTEM_TIME by more than this is a
+#: reboot (less: a frame delayed on its way).
+REBOOT_LAG_MS = 750
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
 
@@ -165,6 +169,7 @@ class ControlCore:
         self._pin_config = (config.link.target_system, config.link.target_component)
         self._pinned: tuple[int, int] | None = None
         self._boot_ms: int | None = None
+        self._boot_seen_s = 0.0  # when _boot_ms came
         self._system_time_s: float | None = None  # when the last SYSTEM_TIME came
         self._system_time_asked_s = -math.inf
         self.counters = {
@@ -686,10 +691,17 @@ class ControlCore:
         )
 
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
-        previous = self._boot_ms
-        self._boot_ms = boot_ms
-        self._system_time_s = self.clock()
-        if previous is not None and boot_ms + REBOOT_BACKSTEP_MS < previous:
+        previous, previous_s = self._boot_ms, self._boot_seen_s
+        now = self.clock()
+        self._boot_ms, self._boot_seen_s = boot_ms, now
+        self._system_time_s = now
+        # Backwards, or far behind where the time since the last one says it should be: a
+        # reboot soon after the previous boot may not take time_boot_ms below its old value
+        # by the time the stream, asked for again, comes back.
+        if previous is not None and (
+            boot_ms + REBOOT_BACKSTEP_MS < previous
+            or boot_ms < previous + (now - previous_s) * 1000.0 - REBOOT_LAG_MS
+        ):
             self.counters["autopilot_reboots"] += 1
             log.warning(
                 "autopilot rebooted (time_boot_ms %d → %d): re-sending every output",

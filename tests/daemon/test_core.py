@@ -508,3 +508,21 @@ def test_the_next_wake_moves_on_while_the_link_is_down():
     for _ in range(3):
         rig.advance(0.01, link_up=False)
         assert rig.core.next_wake_s() > rig.clock()
+
+
+def test_a_reboot_soon_after_boot_is_seen_by_time_boot_falling_behind(rig):
+    # Up 1 s, rebooted, its SYSTEM_TIME back 1.2 s later reading 900 ms: not below 1000, but
+    # 1.3 s behind where it should be.
+    rig.system_time(1_000)
+    rig.clock.advance(1.2)
+    rig.system_time(900)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+
+
+def test_a_late_system_time_is_not_a_reboot(rig):
+    rig.system_time(60_000)
+    rig.clock.advance(0.25)
+    rig.system_time(60_000)  # arrived 250 ms late
+    rig.clock.advance(0.25)
+    rig.system_time(60_500)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 0
