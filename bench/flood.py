@@ -44,8 +44,16 @@ from typing import Any
 import numpy as np
 
 from bench.flooder import DRAIN_S, Flooder, encode_targets, flood_poses
-from bench.loopback import Stack, cpu_s, load_average, percentiles_ms, rss_mb, udp_sockets
-from bench.report import machine, md_table, write_markdown
+from bench.loopback import (
+    Stack,
+    cpu_s,
+    load_average,
+    percentiles_ms,
+    rss_mb,
+    run_and_report,
+    udp_sockets,
+)
+from bench.report import machine, md_table
 from companion.daemon.client import request
 from companion.kinematics.arm import Arm, Pose
 from tests.support.timing import wait_until
@@ -298,13 +306,7 @@ def main() -> int:
     parser.add_argument("--dialect", choices=["ardupilot", "px4"], default="ardupilot")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/flood.md")
-    args = parser.parse_args()
-    load_before = load_average()
-    out = run(args)
-    text = "\n".join(report(out, args, load_before)) + "\n"
-    print(text)
-    write_markdown(args.markdown, text)
-    return 0
+    return run_and_report(run, report, parser.parse_args())
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ Used by the benches that run the real stack (``latency``, ``sustained``, ``flood
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from bench.report import write_markdown
 from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
@@ -417,3 +419,17 @@ def percentiles_ms(values_s: Sequence[float]) -> tuple[float, float, float]:
     if arr.size == 0:
         return (math.nan, math.nan, math.nan)
     return (float(np.percentile(arr, 50)), float(np.percentile(arr, 99)), float(arr.max()))
+
+
+def run_and_report(
+    run: Callable[[argparse.Namespace], Any],
+    report: Callable[[Any, argparse.Namespace, str], list[str]],
+    args: argparse.Namespace,
+) -> int:
+    """A bench's ``main`` tail: note the load, run, print the report, write its markdown."""
+    load_before = load_average()
+    out = run(args)
+    text = "\n".join(report(out, args, load_before)) + "\n"
+    print(text)
+    write_markdown(args.markdown, text)
+    return 0

@@ -63,8 +63,8 @@ from typing import Any
 
 import numpy as np
 
-from bench.loopback import Stack, cpu_s, load_average, percentiles_ms
-from bench.report import machine, md_table, write_markdown
+from bench.loopback import Stack, cpu_s, load_average, percentiles_ms, run_and_report
+from bench.report import machine, md_table
 from companion.daemon.config import load_config
 from companion.kinematics.arm import Arm, Pose
 from tests.support.timing import wait_until
@@ -376,13 +376,7 @@ def main() -> int:
     parser.add_argument("--joint-speed-deg-s", type=float, default=1000.0)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/races.md")
-    args = parser.parse_args()
-    load_before = load_average()
-    out = run(args)
-    text = "\n".join(report(out, args, load_before)) + "\n"
-    print(text)
-    write_markdown(args.markdown, text)
-    return 0
+    return run_and_report(run, report, parser.parse_args())
 
 
 if __name__ == "__main__":
