@@ -750,6 +750,8 @@ class ControlCore:
         position = tuple(self._position)
         return {
             "autopilot": list(self._pinned) if self._pinned else None,
+            # Its uptime by the last SYSTEM_TIME (None until one came): reboots are seen from it.
+            "autopilot_boot_ms": self._boot_ms,
             "holding": not self._link_up and self._last_step_s > -math.inf,
             "current_deg": list(position),
             "goal_deg": list(self._goal) if self._goal is not None else None,
