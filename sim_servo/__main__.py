@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--query-socket",
         metavar="PATH",
         help="answer 'state' / 'events' / 'ping' (and the 'pause_heartbeat', "
-        "'resume_heartbeat', 'reboot' requests) lines on this Unix socket",
+        "'resume_heartbeat', 'reboot', 'hangup' requests) lines on this Unix socket",
     )
     report.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
 
@@ -256,13 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--hangup-after",
         type=_non_negative,
         metavar="S",
-        help="close the port (pty, socket) S seconds after start",
+        help="close the port (pty, socket) S seconds after start (the query 'hangup' does it "
+        "on demand)",
     )
     faults.add_argument(
         "--hangup-for",
         type=_non_negative,
         metavar="S",
-        help="with --pty: open a new pty S seconds after the hang-up and point "
+        help="with --pty: open a new pty S seconds after a hang-up and point "
         "--pty-link at it (default: the port never comes back)",
     )
     faults.add_argument(

@@ -193,8 +193,6 @@ class FaultConfig:
         _optional_real(self.heartbeat_pause_for_s, "heartbeat_pause_for_s", 0.0, 1e6)
         _optional_real(self.hangup_after_s, "hangup_after_s", 0.0, 1e6)
         _optional_real(self.hangup_for_s, "hangup_for_s", 0.0, 1e6)
-        if self.hangup_for_s is not None and self.hangup_after_s is None:
-            raise SimConfigError("hangup_for_s needs hangup_after_s (when the port goes away)")
         _optional_real(self.reboot_after_s, "reboot_after_s", 0.0, 1e6)
         _real(self.reboot_gap_s, "reboot_gap_s", 0.0, 600.0)
         for command in self.withhold_ack_commands:

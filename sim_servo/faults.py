@@ -60,9 +60,10 @@ class FaultInjector:
 
 
 class HangupSchedule:
-    """When the port goes away (``hangup_after_s`` after ``start_s``) and, if ``hangup_for_s``
-    is set, when it comes back: a USB serial adapter unplugged and re-enumerated. Each fault
-    happens once; the server applies them to its endpoint."""
+    """When the port goes away (``hangup_after_s`` after ``start_s``, or on demand with
+    :meth:`hang_up_now`) and, if ``hangup_for_s`` is set, when it comes back: a USB serial
+    adapter unplugged and re-enumerated. Each fault happens once; the server applies them to
+    its endpoint."""
 
     HANGUP = "hangup"
     REOPEN = "reopen"
@@ -71,11 +72,23 @@ class HangupSchedule:
         self, start_s: float, hangup_after_s: float | None, hangup_for_s: float | None = None
     ) -> None:
         self._due: list[tuple[float, str]] = []
+        self._for_s = hangup_for_s
+        self._down = False  # between a hang-up and its reopen (for good without one)
         if hangup_after_s is not None:
             hangup_at_s = start_s + hangup_after_s
             self._due.append((hangup_at_s, self.HANGUP))
             if hangup_for_s is not None:
                 self._due.append((hangup_at_s + hangup_for_s, self.REOPEN))
+
+    def hang_up_now(self, now_s: float) -> bool:
+        """Hang up at ``now_s`` (and come back ``hangup_for_s`` later, if set) instead of at the
+        scheduled time; False (nothing changes) while the port is away."""
+        if self._down:
+            return False
+        self._due = [(now_s, self.HANGUP)]  # replaces the scheduled one
+        if self._for_s is not None:
+            self._due.append((now_s + self._for_s, self.REOPEN))
+        return True
 
     def next_s(self) -> float:
         """The time of the next fault (``inf`` when none is left)."""
@@ -85,4 +98,6 @@ class HangupSchedule:
         """The faults due by ``now_s``, in order (``HANGUP``, ``REOPEN``); each only once."""
         faults = [fault for at_s, fault in self._due if at_s <= now_s]
         self._due = self._due[len(faults) :]
+        for fault in faults:
+            self._down = fault == self.HANGUP
         return faults

@@ -14,6 +14,9 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
 * ``reboot`` – reboot the autopilot now (silent for ``--reboot-gap`` seconds, then back with
   time_boot from 0; ``--reboot-after`` schedules one instead); ``{"ok": true}``, or
   ``{"ok": false}`` while it is already rebooting.
+* ``hangup`` – close the port now (with ``--hangup-for``, a new pty comes back that much later;
+  ``--hangup-after`` schedules one instead); ``{"ok": true}``, or ``{"ok": false}`` while the
+  port is away.
 
 An unknown request gets ``{"error": "..."}`` naming the valid ones.
 """
@@ -31,7 +34,7 @@ from typing import Any
 from sim_servo.errors import SimIOError
 
 Responder = Callable[[str], dict[str, Any]]
-QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat", "reboot")
+QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat", "reboot", "hangup")
 _MAX_LINE = 65536
 
 

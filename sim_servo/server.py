@@ -102,6 +102,8 @@ class SimServer:
             self.autopilot.pause_heartbeat(request == "pause_heartbeat", self.clock())
         if request == "reboot":
             return {"ok": self.autopilot.reboot(self.clock())}
+        if request == "hangup":
+            return {"ok": self._hangup.hang_up_now(self.clock())}
         return {"ok": True}
 
     def run(self) -> int:

@@ -277,8 +277,8 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
 
 
 def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, tmp_path):
-    # A USB serial adapter unplugged at 4 s (time enough for the first move on a loaded
-    # machine) and re-enumerated 3.2 s later under the same udev name. With a backoff
+    # A USB serial adapter unplugged once the first move is done (the simulator's query
+    # ``hangup``) and re-enumerated 3.2 s later under the same udev name. With a backoff
     # doubling to 5 s the daemon's reopen attempts would fall 3.1 s and 6.3 s after the
     # hang-up: 3 s late. The loss timeout (5 s) outlasts the gap, so only the
     # port's failure can tell the daemon to hold, and to re-send its PWMs when it is back.
@@ -287,8 +287,6 @@ def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, 
         "--pty",
         "--pty-link",
         str(link),
-        "--hangup-after",
-        "4",
         "--hangup-for",
         "3.2",
         "--slew-s-per-60deg",
@@ -303,7 +301,7 @@ def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, 
         assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
         assert sim_pwm(sim.state(), calibration.outputs) == daemon.status()["last_pwm_us"]
         updates = daemon.status()["counters"]["servo_updates"]
-        assert not sim.events("fault", fault="hangup"), "the first move ended after the hang-up"
+        assert sim.hangup()
 
         assert wait_until(lambda: daemon.status()["holding"], WAIT_S)
         held_sim_s = sim.state()["t_s"]
@@ -442,6 +440,46 @@ def test_withheld_acks_fail_the_target_in_bounded_time_and_a_rebooted_autopilot_
             sends=len(sends),
             counters=daemon.status()["counters"],
             pwm_checked=checked,
+        )
+    finally:
+        daemon.close()
+
+
+# -- 5. a quick autopilot reboot -----------------------------------------------------------------
+
+
+def test_a_reboot_shorter_than_the_loss_timeout_is_seen_and_every_output_resent(sims):
+    # Seen by an adversarial review: an autopilot restarted within loss_timeout_s (0.36 s of
+    # silence) went unnoticed, status "up" with the old PWMs while its outputs were at 0 µs.
+    sim = sims("--udp", "127.0.0.1:0", "--slew-s-per-60deg", "0")
+    daemon = start_daemon(sim.url)
+    calibration = daemon.config.calibration
+    try:
+        [target] = poses(daemon.config, 1, seed=21)
+        assert daemon.submit("goto", target).result(WAIT_S).outcome is Outcome.ACCEPTED
+        assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
+        # The daemon asked for SYSTEM_TIME (ArduCopter streams none by default) and has one: a
+        # reboot before the first could not be told from a first boot.
+        assert wait_until(lambda: daemon.status()["autopilot_boot_ms"] is not None, WAIT_S)
+        held = daemon.status()["last_pwm_us"]
+        assert sim.reboot()
+        seen = wait_until(lambda: daemon.status()["counters"]["autopilot_reboots"] == 1, WAIT_S)
+        # (A failure once, in a full run: kept with what explains it, should it come back.)
+        assert seen, (daemon.status(), sim.events("fault"), sim.state()["time_boot_ms"])
+        [booted] = sim.events("fault", fault="booted")
+        # Every output back at its acknowledged PWM, with no new target asked for.
+        assert wait_until(lambda: sim_pwm(sim.state(), calibration.outputs) == held, WAIT_S)
+        resent = [
+            e
+            for e in sim.events("servo")
+            if e["t_s"] >= booted["t_s"] and held.get(e["output"]) == e["pwm_us"]
+        ]
+        assert sorted({e["output"] for e in resent}) == sorted(calibration.outputs)
+        assert wait_until(lambda: daemon.status()["last_pwm_us"] == held, WAIT_S)  # ACKs back
+        assert daemon.status()["link"] == "up"
+        report(
+            "reboot",
+            detected_s=round(min(e["t_s"] for e in resent) - booted["t_s"], 3),
         )
     finally:
         daemon.close()

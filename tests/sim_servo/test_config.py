@@ -60,7 +60,7 @@ def test_validation_names_value_and_range(kwargs, message):
     [
         (FaultConfig, {"drop_in": 1.5}, "drop_in=1.5 outside [0.0, 1.0]"),
         (FaultConfig, {"nack_outputs": frozenset({0})}, "nack_output=0 outside [1, 16]"),
-        (FaultConfig, {"hangup_for_s": 1.0}, "hangup_for_s needs hangup_after_s"),
+        (FaultConfig, {"hangup_for_s": -1.0}, "hangup_for_s=-1.0 outside [0.0, 1000000.0]"),
         (FaultConfig, {"reboot_after_s": -1.0}, "reboot_after_s=-1.0 outside [0.0, 1000000.0]"),
         (FaultConfig, {"reboot_gap_s": 601}, "reboot_gap_s=601 outside [0.0, 600.0]"),
         (ServoConfig, {"deadband_us": -1}, "deadband_us=-1 outside [0.0, 100.0]"),

@@ -60,3 +60,16 @@ def test_hangup_schedule_hangs_up_once_and_reopens_once():
     assert late.due(9.0) == [HangupSchedule.HANGUP, HangupSchedule.REOPEN]  # in order
     assert HangupSchedule(0.0, hangup_after_s=1.0).due(1e9) == [HangupSchedule.HANGUP]
     assert HangupSchedule(0.0, None).next_s() == math.inf
+
+
+def test_an_on_demand_hangup_replaces_the_scheduled_one_and_not_while_away():
+    schedule = HangupSchedule(0.0, hangup_after_s=50.0, hangup_for_s=3.0)
+    assert schedule.hang_up_now(10.0)
+    assert schedule.due(10.0) == [HangupSchedule.HANGUP]
+    assert not schedule.hang_up_now(11.0)  # the port is away
+    assert schedule.due(12.9) == [] and schedule.due(13.0) == [HangupSchedule.REOPEN]
+    assert schedule.due(100.0) == []  # the scheduled hang-up at 50 s was replaced
+    assert schedule.hang_up_now(100.0) and schedule.due(100.0) == [HangupSchedule.HANGUP]
+    for_good = HangupSchedule(0.0, None)
+    assert for_good.hang_up_now(1.0) and for_good.due(1.0) == [HangupSchedule.HANGUP]
+    assert not for_good.hang_up_now(2.0) and for_good.next_s() == math.inf

@@ -292,8 +292,9 @@ def _pty_exchange(port: serial.Serial, mav, dec, msg, want, timeout_s=WAIT_S):
 
 @pytest.mark.slow
 def test_pty_link_and_hangup(tmp_path):
-    # The hang-up comes after the three exchanges below, with room for a loaded machine.
-    sim = SimProcess(tmp_path, "--pty", "--hangup-after", "4")
+    # The hang-up is asked for (query ``hangup``) after the three exchanges below; it replaces
+    # the one scheduled for much later.
+    sim = SimProcess(tmp_path, "--pty", "--hangup-after", "600")
     try:
         device, _, baud = sim.url.rpartition(",")
         assert device.startswith("/dev/") and baud == "115200"
@@ -315,7 +316,9 @@ def test_pty_link_and_hangup(tmp_path):
                 port, mav, dec, mav.heartbeat_encode(18, 8, 0, 0, 0), is_type("STATUSTEXT")
             )
             assert text.text == "ServoRelayEvent: Channel 3 is already in use"
+            assert sim.hangup()
             assert wait_until(lambda: sim.state()["link"]["closed"])
+            assert not sim.hangup()  # away for good: no second hang-up
 
             def read_fails() -> bool:
                 try:

@@ -99,6 +99,11 @@ class SimProcess:
         HEARTBEAT) to know it is back."""
         return bool(query(self.query_path, "reboot").get("ok"))
 
+    def hangup(self) -> bool:
+        """Close the port now (with ``--hangup-for``, a new pty comes back that much later);
+        False while it is away. Wait for the ``fault`` events ``hangup``/``reopen``."""
+        return bool(query(self.query_path, "hangup").get("ok"))
+
     def events(self, event: str | None = None, **fields) -> list[dict]:
         """The event log so far, optionally only ``event`` entries with these field values."""
         return [
