@@ -11,6 +11,7 @@ SIGINT stops the simulator cleanly (exit status 0).
 from __future__ import annotations
 
 import argparse
+import gc
 import logging
 import signal
 import sys
@@ -436,6 +437,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(endpoint.url, flush=True)
     if gcs is not None:
         print(f"gcs {gcs.url}", flush=True)
+    # A flight controller has no garbage collector. Ours must not pause the autopilot for tens
+    # of ms: the start-up heap (pymavlink's dialect, ~100k objects) never dies, so frozen, the
+    # collector's full passes skip it.
+    gc.freeze()
     try:
         status = server.run()
     finally:

@@ -6,23 +6,30 @@
   prints per target: solve time, errors, PWM sent and the hand pose the simulator reports.
   With matplotlib installed it also writes a PNG (``--plot PATH``, default
   ``armbridge-demo.png`` in the current directory): targets against the simulator's hand.
-* ``goto X Y Z ROLL PITCH YAW``, ``status``, ``park``, ``stop``: clients of a running daemon's
-  control socket.
+* ``goto X Y Z ROLL PITCH YAW [--wait]``, ``trajectory FILE [--wait]``, ``status [--json]
+  [--watch [S]]``, ``park``, ``stop``: clients of a running daemon's control socket.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK, no daemon.
 * ``check-config FILE``: validate a daemon config and exit.
 
-Exit codes: 0 success; 1 refused (unreachable target, daemon said no); 2 bad input or
-configuration; 3 daemon not reachable.
+Exit codes: 0 success; 1 refused (unreachable target, daemon said no, ``--wait`` timed out);
+2 bad input or configuration; 3 daemon not reachable. ``-v``/``-q``/``--log-level`` work before
+or after the verb.
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import io
 import json
 import logging
+import math
 import os
 import sys
+import time
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
 from companion import __version__
 from companion.errors import ConfigError
@@ -80,16 +87,172 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 # -- control-socket clients ---------------------------------------------------------------------
 
 
-def _client(args: argparse.Namespace, obj: dict) -> int:
+class _Unreachable(Exception):
+    """The daemon's socket could not be reached (exit 3)."""
+
+
+def _ask(args: argparse.Namespace, obj: dict[str, Any]) -> dict[str, Any]:
     from companion.daemon.client import request
 
     try:
-        reply = request(args.socket, obj, timeout_s=args.timeout_s)
+        return request(args.socket, obj, timeout_s=args.timeout_s)
     except (OSError, ConnectionError) as exc:
-        print(f"armbridge: cannot reach the daemon at {args.socket}: {exc}", file=sys.stderr)
-        return 3
+        raise _Unreachable(f"cannot reach the daemon at {args.socket}: {exc}") from exc
+
+
+def _client(args: argparse.Namespace, obj: dict[str, Any]) -> int:
+    reply = _ask(args, obj)
     print(json.dumps(reply, indent=2))
+    if reply.get("ok") and getattr(args, "wait", False):
+        return _wait_until_still(args)
     return 0 if reply.get("ok") else 1
+
+
+def _wait_until_still(args: argparse.Namespace) -> int:
+    """``--wait``: poll status until the arm stops moving with no trajectory point left (exit
+    0, the hand printed) or ``--timeout-s`` passes (exit 1)."""
+    deadline = time.monotonic() + args.timeout_s
+    while True:
+        status = _ask(args, {"cmd": "status"}).get("status") or {}
+        if not status.get("moving", True) and not status.get("trajectory_points_left"):
+            print(f"still: hand {_fmt_hand(status.get('hand'))}")
+            return 0
+        if time.monotonic() >= deadline:
+            print(f"armbridge: still moving after {args.timeout_s:g} s", file=sys.stderr)
+            return 1
+        time.sleep(0.05)
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    while True:
+        reply = _ask(args, {"cmd": "status"})
+        if args.json:
+            print(json.dumps(reply, indent=2), flush=True)
+        else:
+            if args.watch is not None and sys.stdout.isatty():
+                print("\033[H\033[J", end="")  # clear the screen between frames
+            print(format_status(reply.get("status") or {}), flush=True)
+        if args.watch is None:
+            return 0 if reply.get("ok") else 1
+        try:
+            time.sleep(args.watch)
+        except KeyboardInterrupt:
+            return 0
+
+
+def _fmt_hand(hand: dict[str, float] | None) -> str:
+    if not hand:
+        return "unknown"
+    return "  ".join(f"{k.split('_')[0]} {v:8.2f} {k.split('_')[1]}" for k, v in hand.items())
+
+
+def _fmt(value: Any, spec: str) -> str:
+    if value is None:
+        return "-".rjust(len(format(0.0, spec)))  # as wide as a number would be
+    return format(value, spec)
+
+
+def format_status(status: dict[str, Any]) -> str:
+    """The daemon's status for a person: link and autopilot, the hand, per joint its angle,
+    goal, output, acknowledged PWM and state, the last target and the counters."""
+    autopilot = status.get("autopilot")
+    boot_ms = status.get("autopilot_boot_ms")
+    flags = [name for name in ("moving", "holding") if status.get(name)] or ["still"]
+    lines = [
+        f"link {status.get('link', '?')}  autopilot "
+        + (f"{autopilot[0]}/{autopilot[1]}" if autopilot else "none yet")
+        + (f" (up {boot_ms / 1000:.1f} s)" if boot_ms is not None else "")
+        + f"  {' '.join(flags)}",
+        f"hand  {_fmt_hand(status.get('hand'))}",
+        "joint  angle_deg   goal_deg  output  pwm_us  state",
+    ]
+    current = status.get("current_deg") or []
+    goal = status.get("goal_deg") or [None] * len(current)
+    outputs = list((status.get("outputs") or {}).items())
+    for i, angle in enumerate(current):
+        output, state = outputs[i] if i < len(outputs) else ("?", {})
+        reason = f" ({state['reason']})" if state.get("reason") else ""
+        lines.append(
+            f"{i + 1:>5}  {_fmt(angle, '9.2f')}  {_fmt(goal[i], '9.2f')}  {output:>6}  "
+            f"{_fmt(state.get('pwm_us'), '>6')}  {state.get('state', '?')}{reason}"
+        )
+    last = status.get("last_target")
+    if last:
+        timing = last.get("timing") or {}
+        took = ""
+        if "acked_s" in timing and "received_s" in timing:
+            took_ms = (timing["acked_s"] - timing["received_s"]) * 1e3
+            took = f", received → acknowledged {took_ms:.1f} ms"
+        lines.append(
+            "last target  ("
+            + ", ".join(f"{v:.2f}" for v in last.get("pose", []))
+            + f")  {'reached' if last.get('converged') else 'NOT reachable'}, "
+            f"solve {last.get('solve_ms', math.nan):.2f} ms{took}"
+        )
+    counters = status.get("counters") or {}
+    shown = [f"{k} {v}" for k, v in counters.items() if v]
+    lines.append("counters  " + (", ".join(shown) if shown else "all 0"))
+    return "\n".join(lines)
+
+
+def read_trajectory(path: str) -> list[list[float]]:
+    """A trajectory file: JSON (a list of ``[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg,
+    yaw_deg]`` rows, or ``{"points": [...]}``) or CSV (the same seven columns per row; a header
+    row, blank lines and ``#`` comments are skipped). Times are seconds from receipt,
+    increasing. ``ValueError`` names the row and the column."""
+    text = Path(path).read_text(encoding="utf-8")
+    rows: list[tuple[str, list[Any]]]
+    if text.lstrip().startswith(("[", "{")):
+        data = json.loads(text)
+        if isinstance(data, dict):
+            data = data.get("points")
+        if not isinstance(data, list):
+            raise ValueError(f'{path}: JSON must be a list of rows or {{"points": [...]}}')
+        rows = [(f"point {i}", row) for i, row in enumerate(data)]
+    else:
+        rows = []
+        for number, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+                continue
+            if not rows and not _numeric(row[0]):
+                continue  # a header
+            rows.append((f"line {number}", row))
+    points: list[list[float]] = []
+    for where, row in rows:
+        if not isinstance(row, list) or len(row) != 7:
+            raise ValueError(f"{path}: {where}: expected 7 values ({TRAJECTORY_COLUMNS})")
+        point: list[float] = []
+        for name, value in zip(TRAJECTORY_COLUMNS.split(", "), row, strict=True):
+            try:
+                coordinate = float(value)
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}: {where}: {name} = {value!r} is not a number") from None
+            if not math.isfinite(coordinate):
+                raise ValueError(f"{path}: {where}: {name} = {value!r} is not finite")
+            point.append(coordinate)
+        points.append(point)
+    if not points:
+        raise ValueError(f"{path}: no points")
+    return points
+
+
+TRAJECTORY_COLUMNS = "t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg"
+
+
+def _numeric(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _cmd_trajectory(args: argparse.Namespace) -> int:
+    try:
+        points = read_trajectory(args.file)
+    except OSError as exc:
+        raise ValueError(f"cannot read {args.file}: {exc.strerror}") from None
+    return _client(args, {"cmd": "trajectory", "points": points})
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -111,11 +274,40 @@ def _pose(args: argparse.Namespace) -> list[float]:
 # -- parser -------------------------------------------------------------------------------------
 
 
+def _logging_options(defaults: bool) -> argparse.ArgumentParser:
+    """-v/-q/--log-level, accepted before the verb (``defaults``) and after it (there they
+    leave the value alone unless given)."""
+    parent = argparse.ArgumentParser(add_help=False)
+    unset: dict[str, Any] = {} if defaults else {"default": argparse.SUPPRESS}
+    group = parent.add_argument_group("logging")
+    group.add_argument(
+        "-v", "--verbose", action="store_true", help="debug logging (--log-level DEBUG)", **unset
+    )
+    group.add_argument(
+        "-q", "--quiet", action="store_true", help="warnings and errors only", **unset
+    )
+    group.add_argument(
+        "--log-level",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        type=str.upper,
+        help="log level (default INFO)",
+        **unset,
+    )
+    return parent
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="armbridge", description=(__doc__ or "").split("\n")[0])
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser = argparse.ArgumentParser(
+        prog="armbridge",
+        description=(__doc__ or "").split("\n")[0],
+        parents=[_logging_options(defaults=True)],
+    )
     parser.add_argument("--version", action="version", version=f"armbridge {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    logging_after = _logging_options(defaults=False)
+
+    def verb(name: str, help_text: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, help=help_text, description=help_text, parents=[logging_after])
 
     def pose_args(p: argparse.ArgumentParser) -> None:
         # Six named positionals rather than nargs=6 with a tuple metavar, which argparse cannot
@@ -129,14 +321,27 @@ def build_parser() -> argparse.ArgumentParser:
             default=DEFAULT_SOCKET,
             help=f"daemon control socket (default {DEFAULT_SOCKET}; $ARMBRIDGE_SOCKET)",
         )
-        p.add_argument("--timeout-s", type=float, default=10.0)
+        p.add_argument(
+            "--timeout-s",
+            type=_positive_seconds,
+            default=10.0,
+            help="give up waiting for the daemon (and for --wait) after this long "
+            "(default %(default)s)",
+        )
 
-    p = sub.add_parser("run", help="run the daemon")
+    def wait_arg(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--wait",
+            action="store_true",
+            help="once accepted, wait until the arm stops moving and print where the hand is",
+        )
+
+    p = verb("run", "run the daemon (the systemd service, or in the foreground)")
     p.add_argument("--config", required=True, help="daemon config TOML")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("demo", help="simulator + daemon on loopback, a tour of targets")
-    p.add_argument("--seed", type=int, default=0)
+    p = verb("demo", "simulator + daemon on loopback, a tour of targets")
+    p.add_argument("--seed", type=int, default=0, help="the solver's seed (default 0)")
     p.add_argument(
         "--plot",
         default="armbridge-demo.png",
@@ -146,34 +351,72 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_demo)
 
-    p = sub.add_parser("check-config", help="validate a daemon config")
-    p.add_argument("config")
+    p = verb("check-config", "validate a daemon config as `run` would, then exit")
+    p.add_argument("config", help="daemon config TOML")
     p.set_defaults(func=_cmd_check_config)
 
-    p = sub.add_parser("solve", help="one-off IK for a target pose (no daemon)")
+    p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)
     p.add_argument("--arm", help="arm TOML file (default: the papers' arm)")
-    p.add_argument("--tol-pos-cm", type=float, default=1e-3)
-    p.add_argument("--tol-ori-deg", type=float, default=1e-3)
-    p.add_argument("--budget-ms", type=float, default=20.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
+    p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
+    p.add_argument("--budget-ms", type=float, default=20.0, help="default %(default)s")
+    p.add_argument("--seed", type=int, default=0, help="the solver's seed (default 0)")
     p.set_defaults(func=_cmd_solve)
 
-    p = sub.add_parser("goto", help="send the hand to a pose (running daemon)")
+    p = verb("goto", "send the hand to a pose (running daemon)")
     pose_args(p)
     client_args(p)
+    wait_arg(p)
     p.set_defaults(func=lambda a: _client(a, {"cmd": "goto", "pose": _pose(a)}))
-    for name in ("status", "park", "stop"):
-        p = sub.add_parser(name, help=f"{name} (running daemon)")
+
+    p = verb("trajectory", "send a timed list of hand poses (running daemon)")
+    p.add_argument(
+        "file",
+        help=f"CSV or JSON, one row per point: {TRAJECTORY_COLUMNS} (t_s from receipt)",
+    )
+    client_args(p)
+    wait_arg(p)
+    p.set_defaults(func=_cmd_trajectory)
+
+    p = verb("status", "what the daemon and the autopilot report (running daemon)")
+    client_args(p)
+    p.add_argument("--json", action="store_true", help="the raw reply, as JSON")
+    p.add_argument(
+        "--watch",
+        type=_positive_seconds,
+        nargs="?",
+        const=1.0,
+        metavar="S",
+        help="refresh every S seconds (default 1) until Ctrl-C",
+    )
+    p.set_defaults(func=_cmd_status)
+
+    for name, help_text in (
+        ("park", "move the arm to its park pose (running daemon)"),
+        ("stop", "halt the arm where it is (running daemon; the daemon keeps running)"),
+    ):
+        p = verb(name, help_text)
         client_args(p)
         p.set_defaults(func=lambda a, name=name: _client(a, {"cmd": name}))
     return parser
 
 
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a positive number of seconds")
+    return value
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    level = args.log_level or ("DEBUG" if args.verbose else "WARNING" if args.quiet else "INFO")
     logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
+        level=level,
         format="%(levelname)s %(name)s: %(message)s",  # one line per event; journald timestamps
         stream=sys.stderr,
     )
@@ -182,6 +425,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, ValueError) as exc:
         print(f"armbridge: error: {exc}", file=sys.stderr)
         return 2
+    except _Unreachable as exc:
+        print(f"armbridge: {exc}", file=sys.stderr)
+        return 3
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

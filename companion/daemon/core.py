@@ -188,6 +188,7 @@ class ControlCore:
             "internal_errors": 0,
         }
         self.last_target: dict[str, Any] | None = None
+        self._hand_at: tuple[tuple[float, ...], dict[str, float]] | None = None
 
     # -- events -----------------------------------------------------------------------------
 
@@ -733,6 +734,14 @@ class ControlCore:
 
     def _answer(self, actions: list[Action], request: Request, reply: Reply) -> None:
         actions.append(Answer(request, reply))
+        if reply.outcome is Outcome.ACCEPTED:
+            # One line per request carried out (refusals are summarised by the intake).
+            target = ""
+            if request.kind == "goto" and self.last_target is not None:
+                target = " (" + ", ".join(f"{v:.2f}" for v in self.last_target["pose"]) + ")"
+            log.info(
+                "%s%s from %s accepted: %s", request.kind, target, _source(request), reply.message
+            )
         if request.kind != "stop":
             self.counters[reply.outcome.value] += 1
 
@@ -748,12 +757,17 @@ class ControlCore:
                 state = {"state": "unknown"}
             outputs[output] = {"pwm_us": self._acked_pwm.get(output), **state}
         position = tuple(self._position)
+        if self._hand_at is None or self._hand_at[0] != position:
+            hand = self.config.arm.fk(position)
+            self._hand_at = (position, dict(zip(POSE_KEYS, hand.as_tuple(), strict=True)))
         return {
             "autopilot": list(self._pinned) if self._pinned else None,
             # Its uptime by the last SYSTEM_TIME (None until one came): reboots are seen from it.
             "autopilot_boot_ms": self._boot_ms,
             "holding": not self._link_up and self._last_step_s > -math.inf,
             "current_deg": list(position),
+            # The hand where the acknowledged joints put it (forward kinematics of current_deg).
+            "hand": dict(self._hand_at[1]),
             "goal_deg": list(self._goal) if self._goal is not None else None,
             "moving": self._inflight is not None
             or (self._goal is not None and (self._goal != position or not self._settled())),
@@ -763,3 +777,13 @@ class ControlCore:
             "trajectory_points_left": len(self._trajectory),
             "counters": dict(self.counters),
         }
+
+
+#: The keys of a pose in status and replies, in ``Pose`` order.
+POSE_KEYS = ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg")
+
+
+def _source(request: Request) -> str:
+    """Who asked, for a log line: ``mavlink 255/190``, ``socket 3``."""
+    kind, *ids = request.source or ("unknown",)
+    return f"{kind} {'/'.join(str(i) for i in ids)}".strip()

@@ -6,6 +6,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import signal
 import socket
 import sys
@@ -13,11 +14,11 @@ import time
 
 import pytest
 
-from companion.daemon.cli import main
+from companion.daemon.cli import format_status, main, read_trajectory
 from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request
 from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
-from companion.kinematics.arm import Pose
+from companion.kinematics.arm import Arm, Pose
 from tests.support.config import write_config
 from tests.support.daemon_process import run_daemon
 from tests.support.timing import wait_until
@@ -114,6 +115,94 @@ def test_check_config_and_run_refuse_the_same_out_of_bounds_values(tmp_path, cap
         listener.close()
 
 
+VERBS = ("run", "demo", "check-config", "solve", "goto", "trajectory", "status", "park", "stop")
+
+
+@pytest.mark.parametrize(
+    ("argv", "code", "says"),
+    [
+        *[([verb, "--help"], 0, "usage: armbridge") for verb in VERBS],
+        (["--help"], 0, "usage: armbridge"),
+        (["--version"], 0, "armbridge "),
+        ([], 2, "required: COMMAND"),
+        (["solve"], 2, "required: x_cm"),
+        (["solve", "1", "2", "3"], 2, "required: roll_deg, pitch_deg, yaw_deg"),
+        (["solve", "45,10,20,0,45,0"], 2, "invalid float value: '45,10,20,0,45,0'"),
+        (["goto", "1", "2", "3"], 2, "required: roll_deg"),
+        (["goto", "1", "2", "3", "4", "5", "x"], 2, "yaw_deg: invalid float value: 'x'"),
+        (["status", "--timeout-s", "0"], 2, "'0' must be a positive number of seconds"),
+        (["status", "--watch", "nan"], 2, "'nan' must be a positive number of seconds"),
+        (["status", "--log-level", "LOUD"], 2, "invalid choice: 'LOUD'"),
+        (["trajectory"], 2, "required: file"),
+        (["trajectory", "/nonexistent/path.csv"], 2, "cannot read /nonexistent/path.csv"),
+        (["check-config"], 2, "required: config"),
+        (["check-config", "/nonexistent.toml"], 2, "/nonexistent.toml"),
+        (["run"], 2, "required: --config"),
+        (["frobnicate"], 2, "invalid choice: 'frobnicate'"),
+    ],
+)
+def test_a_newcomer_meets_no_traceback(argv, code, says, capsys):
+    # Issue 15: --help of every verb, and the mistakes a first-day user makes, each end in a
+    # clear message and an exit code, never a traceback.
+    try:
+        got = main(argv)
+    except SystemExit as exc:  # argparse: --help, --version, usage errors
+        got = exc.code
+    out, err = capsys.readouterr()
+    assert got == code, (out, err)
+    assert says in out + err
+    assert "Traceback" not in out + err
+
+
+def test_log_options_work_before_and_after_the_verb(tmp_path, capsys):
+    sock = str(tmp_path / "none.sock")
+    for argv in (["-q", "status", "--socket", sock], ["status", "--socket", sock, "-v"],
+                 ["status", "--log-level", "debug", "--socket", sock]):  # fmt: skip
+        assert main(argv) == 3
+        assert "cannot reach the daemon" in capsys.readouterr().err
+
+
+def test_trajectory_files_csv_and_json_and_their_errors(tmp_path):
+    good = [[0, 60, 10, 5, 0, 20, 10], [0.5, 61, 10, 5, 0, 20, 10]]
+    csv_path = tmp_path / "a.csv"
+    csv_path.write_text("# comment\nt_s,x_cm,y_cm,z_cm,roll_deg,pitch_deg,yaw_deg\n\n"
+                        "0,60,10,5,0,20,10\n0.5, 61, 10, 5, 0, 20, 10\n")  # fmt: skip
+    assert read_trajectory(str(csv_path)) == good
+    for text in (json.dumps(good), json.dumps({"points": good})):
+        (tmp_path / "a.json").write_text(text)
+        assert read_trajectory(str(tmp_path / "a.json")) == good
+    for text, says in (
+        ("0,60,10,5,0,20\n", "line 1: expected 7 values"),
+        ("0,60,10,5,0,20,10\n1,60,ten,5,0,20,10\n", "line 2: y_cm = 'ten' is not a number"),
+        ("0,60,10,5,0,20,nan\n", "line 1: yaw_deg = 'nan' is not finite"),
+        ("# nothing\n", "no points"),
+        ('{"pts": []}', 'JSON must be a list of rows or {"points": [...]}'),
+        ("[[0, 1, 2, 3, 4, 5, null]]", "point 0: yaw_deg = None is not a number"),
+    ):
+        (tmp_path / "bad.txt").write_text(text)
+        with pytest.raises(ValueError, match=re.escape(says)):
+            read_trajectory(str(tmp_path / "bad.txt"))
+
+
+def test_status_for_people_names_a_refused_output():
+    status = {
+        "link": "up", "autopilot": [1, 1], "autopilot_boot_ms": 12_345, "moving": False,
+        "hand": {"x_cm": 1.0, "y_cm": 2.0, "z_cm": 3.0, "roll_deg": 4.0, "pitch_deg": 5.0,
+                 "yaw_deg": 6.0},
+        "current_deg": [10.0, 20.0], "goal_deg": None,
+        "outputs": {"9": {"pwm_us": 1500, "state": "acknowledged"},
+                    "1": {"pwm_us": None, "state": "refused",
+                          "reason": "Set SERVO1_FUNCTION = 0"}},
+        "last_target": None, "counters": {"targets": 2, "failed": 0},
+    }  # fmt: skip
+    text = format_status(status)
+    assert text.splitlines()[0] == "link up  autopilot 1/1 (up 12.3 s)  still"
+    assert "x     1.00 cm" in text
+    assert "    1      10.00          -       9    1500  acknowledged" in text
+    assert "refused (Set SERVO1_FUNCTION = 0)" in text
+    assert text.endswith("counters  targets 2")
+
+
 def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
     assert "cannot reach the daemon" in capsys.readouterr().err
@@ -157,7 +246,7 @@ def test_demo_plot_is_a_png(tmp_path):
 
 
 @pytest.mark.slow
-def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
+def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons, capsys):
     """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
     control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -176,6 +265,7 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
         messages = []
         while not any(m.startswith(b"READY=1") for m in messages):
             messages.append(notify.recv(4096))  # each recv bounded by the socket timeout
+        _cli_clients_against_a_live_daemon(str(control), tmp_path, capsys)
         reply = request(
             control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
         )
@@ -186,6 +276,7 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
         )
         status = request(control, {"cmd": "status"})["status"]
         assert status["link"] == "up" and status["counters"]["failed"] == 1
+        assert "goto (62.14, 22.25, -3.32, 17.24, -1.47, 19.70) from socket" in daemon.log()
         notify.settimeout(3.0)
         assert any(notify.recv(4096) == b"WATCHDOG=1" for _ in range(20))
         # SIGHUP: a new budget applies at once; a new link URL needs a restart and is kept.
@@ -220,6 +311,36 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons):
         assert "reloaded" in log
     finally:
         notify.close()
+
+
+def _cli_clients_against_a_live_daemon(control: str, tmp_path, capsys) -> None:
+    """``goto --wait``, ``trajectory FILE --wait`` and ``status`` (for people and ``--json``)."""
+    arm = Arm.default()
+    park = [0, 90, 0, 0, 0, 0]  # where the daemon starts: short moves from there
+    near = [[g + k * d for g, d in zip(park, (2, -2, 2, 1, 2, 1), strict=True)] for k in (1, 2)]
+    there = arm.fk(near[0])
+    capsys.readouterr()
+    assert main(["goto", *map(str, there.as_tuple()), "--socket", control, "--wait", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert '"outcome": "accepted"' in out and "still: hand" in out
+    path = tmp_path / "path.csv"
+    rows = [(0.0, there), (0.2, arm.fk(near[1]))]
+    path.write_text(
+        "# a short path\nt_s,x_cm,y_cm,z_cm,roll_deg,pitch_deg,yaw_deg\n"
+        + "".join(f"{t},{','.join(map(str, pose.as_tuple()))}\n" for t, pose in rows)
+    )
+    assert main(["trajectory", str(path), "--socket", control, "--wait"]) == 0
+    assert "trajectory of 2 points" in capsys.readouterr().out
+    assert main(["status", "--socket", control]) == 0
+    human = capsys.readouterr().out
+    assert human.startswith("link up  autopilot 1/1") and "hand " in human
+    assert human.count("acknowledged") >= 6 and "last target" in human
+    assert main(["status", "--json", "--socket", control]) == 0
+    hand = json.loads(capsys.readouterr().out)["status"]["hand"]
+    final = arm.fk(near[1])  # where the trajectory ends, up to PWM steps
+    assert list(hand) == ["x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg"]
+    assert math.dist(list(hand.values())[:3], final.as_tuple()[:3]) < 0.2, hand
+    assert f"x {hand['x_cm']:8.2f} cm" in human
 
 
 @pytest.mark.slow
