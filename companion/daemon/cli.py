@@ -81,7 +81,32 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
         f"{args.config}: OK (link {cfg.link.url} {cfg.link.dialect}, arm {cfg.arm.name}, "
         f"outputs {list(cfg.calibration.outputs)})"
     )
+    for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
+        print(f"{args.config}: warning: {warning}", file=sys.stderr)
     return 0
+
+
+#: ArduCopter's default output functions: motors on outputs 1-4 (quad), 1-6 (hexa), 1-8 (octa).
+_MOTOR_FRAMES = ((4, "quad"), (6, "hexa"), (8, "octa"))
+
+
+def motor_output_warnings(dialect: str, outputs: Sequence[int]) -> list[str]:
+    """ArduPilot: a joint on an output that is a motor by default on a common multirotor frame.
+    The autopilot refuses DO_SET_SERVO there ("Channel N is already in use") unless
+    SERVOn_FUNCTION = 0, and on a vehicle where it is a motor, it must not be an arm joint.
+    (PX4 outputs are actuator slots 1-6 mapped by PWM_MAIN_FUNCn: nothing to tell here.)"""
+    if dialect != "ardupilot":
+        return []
+    warnings = []
+    for output in outputs:
+        frames = [name for count, name in _MOTOR_FRAMES if output <= count]
+        if frames:
+            warnings.append(
+                f"output {output} drives a motor by default on a {'/'.join(frames)} frame: "
+                f"only if this vehicle has none there, set SERVO{output}_FUNCTION = 0; "
+                "otherwise map this joint to an output above 8"
+            )
+    return warnings
 
 
 # -- control-socket clients ---------------------------------------------------------------------

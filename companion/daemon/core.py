@@ -592,8 +592,16 @@ class ControlCore:
                 if self.config.link.dialect == "ardupilot"
             )
             log.error("%s; motion stopped. %s", reason, hint)
+            first = min(inflight.refused)
+            more = f"+{len(inflight.refused) - 1}" if len(inflight.refused) > 1 else ""
+            brief = (
+                f"Arm: set SERVO{first}_FUNCTION=0{more} (output in use)"
+                if self.config.link.dialect == "ardupilot"
+                else f"Arm: output {first}{more} refused by the autopilot"
+            )
             for w in inflight.waiting:
-                self._answer(actions, w.request, Reply(Outcome.FAILED, f"{reason}. {hint}".strip()))
+                reply = Reply(Outcome.FAILED, f"{reason}. {hint}".strip(), brief=brief)
+                self._answer(actions, w.request, reply)
             self._fail_motion(actions, reason)
             return
         if not unknown:

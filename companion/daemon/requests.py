@@ -65,6 +65,19 @@ class Reply:
     message: str
     solve: ik.IKResult | None = None
     timing: dict[str, float] | None = None
+    #: For a ground station's STATUSTEXT (50 characters): the essentials first. None: the
+    #: message, shortened at a word.
+    brief: str | None = None
+
+    def statustext(self) -> str:
+        """At most :data:`STATUSTEXT_MAX` ASCII characters, cut at a word with ``...``."""
+        text = (self.brief or self.message).encode("ascii", "replace").decode()
+        if len(text) <= STATUSTEXT_MAX:
+            return text
+        cut = text[: STATUSTEXT_MAX - 3]
+        if " " in cut[STATUSTEXT_MAX // 2 :]:
+            cut = cut[: cut.rindex(" ")]
+        return cut.rstrip(" ,;:.") + "..."
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"outcome": self.outcome.value, "message": self.message}

@@ -49,7 +49,6 @@ from companion.daemon.requests import (
     KINDS,
     MAV_CMD_USER_1,
     MAV_RESULT,
-    STATUSTEXT_MAX,
     Outcome,
     Reply,
     Request,
@@ -352,8 +351,7 @@ class ArmDaemon:
                     if reply.outcome is Outcome.FAILED
                     else mavlink.MAV_SEVERITY_NOTICE
                 )
-                text = reply.message[:STATUSTEXT_MAX].encode("ascii", "replace")
-                link.send(link.mav.statustext_encode(severity, text))
+                link.send(link.mav.statustext_encode(severity, reply.statustext().encode()))
             link.send(
                 link.mav.command_ack_encode(
                     MAV_CMD_USER_1, MAV_RESULT[reply.outcome], 0, 0, source[0], source[1]

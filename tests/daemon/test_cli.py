@@ -49,6 +49,21 @@ def test_check_config(tmp_path, capsys):
     assert str(bad) in err and "solver.budget_ms" in err
 
 
+def test_check_config_warns_of_a_joint_on_a_default_motor_output(tmp_path, capsys):
+    # Issue 15: on real ArduCopter, output 1 of a quad is refused at the first target.
+    joints = "".join(f"[[joint]]\noutput = {o}\n" for o in (3, 10, 11, 12, 13, 14))
+    path = tmp_path / "motor.toml"
+    path.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n' + joints)
+    assert main(["check-config", str(path)]) == 0  # a warning: the vehicle may have no motor 3
+    err = capsys.readouterr().err
+    assert "output 3 drives a motor by default on a quad/hexa/octa frame" in err
+    assert "SERVO3_FUNCTION = 0" in err and "output 10" not in err
+    px4 = tmp_path / "px4.toml"
+    px4.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\ndialect = "px4"\n' + joints)
+    assert main(["check-config", str(px4)]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_run_with_broken_config_exits_2_and_sends_nothing(tmp_path, capsys):
     listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     listener.bind(("127.0.0.1", 0))

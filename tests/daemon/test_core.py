@@ -191,6 +191,9 @@ def test_a_refused_output_stops_the_motion_reports_what_moved_and_the_next_step_
     reply = rig.reply(request)
     assert reply.outcome is Outcome.FAILED
     assert "output 14" in reply.message and "SERVO14_FUNCTION = 0" in reply.message
+    # A ground station shows 50 characters: the fix first, whole (real ArduPilot's
+    # STATUSTEXT cut the old message mid-word).
+    assert reply.statustext() == "Arm: set SERVO14_FUNCTION=0 (output in use)"
     status = rig.core.status()
     assert status["goal_deg"] is None and not status["moving"]
     assert status["outputs"][14]["state"] == "refused"

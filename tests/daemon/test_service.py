@@ -17,6 +17,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
+from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from sim_servo.query import query
@@ -411,3 +412,14 @@ def test_reload_keeps_a_park_the_running_arm_cannot_reach(tmp_path):
         for w in daemon.reload(dataclasses.replace(new, park_deg=(0, 120, 0, 0, 0, 0)))
     )
     assert daemon.config.park_deg == (0, 120, 0, 0, 0, 0)
+
+
+def test_statustext_fits_in_50_characters_cut_at_a_word():
+    # Issue 15: a ground station's STATUSTEXT holds 50 characters; a longer message is cut at
+    # a word, marked, ASCII only.
+    long = Reply(Outcome.FAILED, "unreachable: pos 30.02cm ori 10.2deg, and a much longer tail")
+    text = long.statustext()
+    assert len(text) <= 50 and text == "unreachable: pos 30.02cm ori 10.2deg, and a..."
+    assert Reply(Outcome.DENIED, "x" * 80).statustext() == "x" * 47 + "..."
+    assert Reply(Outcome.FAILED, "pose ±1°").statustext() == "pose ?1?"
+    assert Reply(Outcome.FAILED, "long " * 20, brief="short").statustext() == "short"
