@@ -368,6 +368,15 @@ def _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w):
 
 
 @nb.njit(cache=CACHE)
+def _min(values):
+    # A loop, not ``values.min()``: numba's generic reduction costs ~3 s of the first compile.
+    smallest = np.inf
+    for v in values:
+        smallest = min(smallest, v)
+    return smallest
+
+
+@nb.njit(cache=CACHE)
 def _draw_population(pop, lo, hi, rng, first):
     for i in range(first, pop.shape[0]):
         for j in range(pop.shape[1]):
@@ -480,7 +489,7 @@ def generation(
     rot = np.empty((3, 3))
     pos = np.empty(3)
     res = np.empty(6)
-    best_before = cost.min()
+    best_before = _min(cost)
     for i in range(n_pop):
         r1 = _randint(rng, n_pop - 1)
         r1 += r1 >= i
@@ -516,13 +525,14 @@ def generation(
     )
     if done:
         return True
-    if cost.min() < best_before * (1.0 - 1e-9):
+    if _min(cost) < best_before * (1.0 - 1e-9):
         st[S_STALE] = 0
     else:
         st[S_STALE] += 1
         if st[S_STALE] >= ip[I_STALL_GENS]:
             # Restart: the record keeps the best so far; the whole population is drawn anew.
-            _draw_population(pop, lo, hi, rng, 0)
+            # intp(0), not the literal 0: numba would compile a second specialisation.
+            _draw_population(pop, lo, hi, rng, np.intp(0))
             _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w)
             st[S_EVALUATIONS] += n_pop
             stuck[:] = False
