@@ -213,7 +213,7 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
         raise t.fail("url", str(exc)) from exc
     signing = None
     if "signing_key" in t:
-        key_path = base / t.string("signing_key")
+        key_path = _signing_key_path(t, base)
         state = base / t.string("signing_state") if "signing_state" in t else None
         try:
             signing = SigningConfig.from_key_file(
@@ -249,6 +249,36 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
         command_retries=command_retries,
         signing=signing,
     )
+
+
+#: ``link.signing_key = "credential:NAME"``: the key systemd passed with
+#: ``LoadCredential=NAME:PATH`` (the shipped unit: ``signing.key``), read from
+#: ``$CREDENTIALS_DIRECTORY/NAME``. The key file itself stays root-only; the service's dynamic
+#: user reads systemd's copy.
+CREDENTIAL_PREFIX = "credential:"
+
+
+def _signing_key_path(t: Table, base: Path) -> Path:
+    """``link.signing_key``: a path (relative to the config's directory), or
+    ``credential:NAME`` for ``$CREDENTIALS_DIRECTORY/NAME``."""
+    value = t.string("signing_key")
+    if not value.startswith(CREDENTIAL_PREFIX):
+        return base / value
+    name = value.removeprefix(CREDENTIAL_PREFIX)
+    if not name or "/" in name or name in (".", ".."):
+        raise t.fail(
+            "signing_key",
+            f"credential name {name!r} must be a file name, as in LoadCredential=NAME:PATH",
+        )
+    directory = os.environ.get("CREDENTIALS_DIRECTORY")
+    if not directory:
+        raise t.fail(
+            "signing_key",
+            f"{value!r} is read from $CREDENTIALS_DIRECTORY, which is not set: systemd sets it "
+            f"for a unit with LoadCredential={name}:PATH; outside the service set it to the "
+            f"directory that holds {name} (e.g. CREDENTIALS_DIRECTORY=/etc/armbridge)",
+        )
+    return Path(directory) / name
 
 
 def _mavlink_id(t: Table, key: str) -> int | None:

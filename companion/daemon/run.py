@@ -1,7 +1,9 @@
 """``armbridge run``: the daemon as a systemd ``Type=notify`` service or in the foreground.
 
-Start-up order: the config (a bad one exits 2 with nothing opened), the IK kernels (compiled the
-first time, loaded from numba's cache after), the control socket, the autopilot link; READY=1
+Start-up order: the config (a bad one exits 2 with nothing opened), the instance lock (a second
+``run`` for the same control socket exits 2, "already running (pid N)", having touched nothing:
+see :mod:`companion.daemon.instance_lock`), the IK kernels (compiled the first time, loaded from
+numba's cache after), the control socket, the autopilot link; READY=1
 once the autopilot's heartbeat is heard. SIGTERM/SIGINT stop (parking if configured), SIGHUP
 re-reads the config.
 """
@@ -15,8 +17,9 @@ import sys
 import threading
 
 from companion import ik
-from companion.daemon.config import load_config
+from companion.daemon.config import DaemonConfig, load_config
 from companion.daemon.control_socket import ControlServer
+from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_path
 from companion.daemon.service import ArmDaemon
 from companion.daemon.systemd import Notifier
 from companion.errors import ConfigError
@@ -41,6 +44,27 @@ def reload_config(daemon: ArmDaemon, config_path: str) -> bool:
 def run(config_path: str) -> int:
     """``armbridge run``: the service until SIGTERM/SIGINT; returns the exit code."""
     config = load_config(config_path)  # ConfigError → exit 2, nothing opened or sent
+    # Before anything is touched (the kernel cache, the socket, the link, the signing state):
+    # a second instance must leave the first one's socket and link alone. Held until exit.
+    lock = InstanceLock(lock_path(config_path, config.control_socket))
+    try:
+        lock.acquire()
+    except AlreadyRunning as exc:
+        log.error("%s", exc)
+        return 2
+    except OSError as exc:
+        raise ConfigError(
+            config.source,
+            "control.socket",  # the lock sits beside it (without one: in the runtime directory)
+            f"cannot lock {lock.path}: {exc.strerror or exc}",
+        ) from exc
+    try:
+        return _run(config, config_path)
+    finally:
+        lock.release()
+
+
+def _run(config: DaemonConfig, config_path: str) -> int:
     # Compile (first start) or load (later starts) the IK kernels now, before the link opens
     # and long before READY, so that no target pays for it.
     log.info("IK kernels ready in %.2f s", ik.warm_up())

@@ -310,3 +310,45 @@ def test_every_default_end_maps_exactly_onto_the_servo_range():
     for joint, cal in zip(cfg.arm.joints, cfg.calibration.joints, strict=True):
         ends = (math.degrees(joint.min_rad), math.degrees(joint.max_rad))
         assert [cal.angle_to_pwm_us(a) for a in ends] == [1000, 2000]
+
+
+# -- link.signing_key = "credential:NAME" (systemd's LoadCredential=, the shipped unit) ----------
+
+CREDENTIAL_CONFIG = '[link]\nurl = "tcp:127.0.0.1:5760"\nsigning_key = "credential:signing.key"\n'
+
+
+def test_a_credential_key_is_read_from_the_credentials_directory(tmp_path, monkeypatch):
+    creds = tmp_path / "creds"
+    creds.mkdir()
+    (creds / "signing.key").write_bytes(bytes(range(32)))
+    monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(creds))
+    cfg = load_config(write(tmp_path, CREDENTIAL_CONFIG))
+    assert cfg.link.signing is not None and cfg.link.signing.key == bytes(range(32))
+
+
+def test_a_credential_key_without_the_credentials_directory_names_the_way_out(
+    tmp_path, monkeypatch
+):
+    monkeypatch.delenv("CREDENTIALS_DIRECTORY", raising=False)
+    with pytest.raises(ConfigError) as refused:
+        load_config(write(tmp_path, CREDENTIAL_CONFIG))
+    assert refused.value.field == "link.signing_key"
+    assert "LoadCredential=signing.key:" in str(refused.value)
+    assert "CREDENTIALS_DIRECTORY=" in str(refused.value)
+
+
+@pytest.mark.parametrize("name", ["", "../signing.key", "a/b", ".."])
+def test_a_credential_name_must_be_a_file_name(tmp_path, monkeypatch, name):
+    monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(tmp_path))
+    text = CREDENTIAL_CONFIG.replace("credential:signing.key", f"credential:{name}")
+    with pytest.raises(ConfigError, match="must be a file name") as refused:
+        load_config(write(tmp_path, text))
+    assert refused.value.field == "link.signing_key"
+
+
+def test_a_missing_credential_is_named_like_a_missing_key_file(tmp_path, monkeypatch):
+    monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(tmp_path / "empty"))
+    with pytest.raises(ConfigError) as refused:
+        load_config(write(tmp_path, CREDENTIAL_CONFIG))
+    assert refused.value.field == "link.signing_key"
+    assert "signing.key" in str(refused.value)
