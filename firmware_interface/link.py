@@ -30,8 +30,13 @@ signing is on (an unsigned RADIO_STATUS let through by ``allow_unsigned_msg_ids`
 count). Once a peer is chosen, datagrams from other addresses are dropped (counted in
 ``rx_foreign_address``), except a valid autopilot frame after the current peer has sent none for
 ``PEER_HOLD_S``: an autopilot that came back from another port (a reboot) is followed, a
-spoofer racing a live one is not. Without signing, a host that forges the autopilot's ids can
-still take its place once the autopilot falls silent: sign links other hosts can reach.
+spoofer racing a live one is not. With signing, until a peer is confirmed (an accepted
+autopilot frame came from it), a correctly signed autopilot frame refused only for being older
+than our start also chooses the peer: the autopilot must hear our newer timestamp to adopt it
+(``signing`` module docstring), and on udpin it hears us only once we send to it. A replayer
+can delay that bootstrap, not move the arm. Without signing, a host that forges the
+autopilot's ids can still take its place once the autopilot falls silent: sign links other
+hosts can reach.
 """
 
 from __future__ import annotations
@@ -276,6 +281,8 @@ class _Codec(mavlink.MAVLink):
         super().__init__(*args, **kwargs)
         self.rejections = {"signature": 0, "future": 0, "replay": 0}
         self.last_future: tuple[int, int, float] | None = None  # system, component, s ahead
+        #: Sources of frames refused *only* for being older than our start (see take_stale).
+        self._stale: list[tuple[int, int]] = []
 
     def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
         signing = self.signing
@@ -297,16 +304,25 @@ class _Codec(mavlink.MAVLink):
         if last is not None:
             fresh = timestamp > last
         else:
-            fresh = (
-                timestamp > self.stream_floor
-                and timestamp + NEW_STREAM_WINDOW_TICKS >= signing.timestamp
-            )
+            fresh = timestamp > self.stream_floor
+            if timestamp + NEW_STREAM_WINDOW_TICKS < signing.timestamp:
+                fresh = False
+            elif not fresh:
+                self._stale.append((srcSystem, srcComponent))
         if not fresh:
             self.rejections["replay"] += 1
             return False
         signing.stream_timestamps[stream] = timestamp
         signing.timestamp = max(signing.timestamp, timestamp)
         return True
+
+    def take_stale(self) -> list[tuple[int, int]]:
+        """The ``(system, component)`` of correctly signed frames refused since the last call
+        only because they are older than our start (a peer that has not yet adopted our
+        timestamp, or a replay): a udpin link may send to their address meanwhile, so that
+        the peer hears our timestamp (``MavlinkLink._receive``)."""
+        stale, self._stale = self._stale, []
+        return stale
 
     def reset_parser(self) -> None:
         """Forget any partial frame (a datagram transport: each datagram stands alone)."""
@@ -684,16 +700,47 @@ class MavlinkLink:
             return False
         return self._keeper is None or bool(getattr(msg, "_signed", False))
 
+    def _may_be_autopilot(self, source: tuple[int, int]) -> bool:
+        """``source`` is the pinned autopilot, or (none pinned yet) matches the configured
+        target ids."""
+        if self._autopilot is not None:
+            return source == (self._autopilot.system_id, self._autopilot.component_id)
+        wanted = (self.config.target_system, self.config.target_component)
+        return all(want in (None, got) for want, got in zip(wanted, source, strict=True))
+
+    def _set_peer(self, transport: UdpInTransport, sender: Address, why: str) -> None:
+        was = transport.peer
+        log.warning(
+            "%s: sending to %s:%d (%s)%s",
+            self.description,
+            *sender,
+            why,
+            "" if was is None else f", was {was[0]}:{was[1]}",
+        )
+        transport.set_peer(sender)
+        self._counts["peer_changes"] += 1
+
     def _receive(self, transport: Transport, data: bytes, sender: Address | None) -> None:
         """Decode and dispatch what one read returned (udpin: choose the peer; module
         docstring)."""
         if transport.datagrams:
             self._decoder.reset_parser()
         msgs = self._decoder.parse_buffer(data) or []
+        stale = self._decoder.take_stale()
         if not isinstance(transport, UdpInTransport) or sender is None:
             for msg in msgs:
                 self._handle(msg)
             return
+        confirmed = self._peer_heard_at > -float("inf")
+        if (
+            not confirmed
+            and sender != transport.peer
+            and any(self._may_be_autopilot(s) for s in stale)
+        ):
+            # Signed by the autopilot's key holder but older than our start: the autopilot
+            # has not heard our (newer) timestamp yet, and on udpin it never will unless we
+            # send to it. Provisional: the first accepted autopilot frame confirms a peer.
+            self._set_peer(transport, sender, "a signed autopilot frame older than our start")
         peer = transport.peer
         if peer is not None and sender != peer:
             now = self.clock()
@@ -709,19 +756,11 @@ class MavlinkLink:
                 return
         for msg in msgs:
             self._handle(msg)  # a HEARTBEAT may pin the autopilot here
-            if sender != transport.peer and self._is_autopilot_frame(msg):
-                log.warning(
-                    "%s: autopilot at %s:%d%s",
-                    self.description,
-                    *sender,
-                    ""
-                    if transport.peer is None
-                    else f" (was {transport.peer[0]}:{transport.peer[1]})",
-                )
-                transport.set_peer(sender)
-                self._counts["peer_changes"] += 1
-            if sender == transport.peer and self._is_autopilot_frame(msg):
-                self._peer_heard_at = self.clock()
+            if not self._is_autopilot_frame(msg):
+                continue
+            if sender != transport.peer:
+                self._set_peer(transport, sender, "autopilot frame")
+            self._peer_heard_at = self.clock()
 
     def _handle_heartbeat(self, msg: MavMessage) -> None:
         if not is_autopilot_heartbeat(msg):
