@@ -116,10 +116,14 @@ def test_a_signing_state_that_cannot_be_stored_holds_the_arm_and_says_why(tmp_pa
     try:
         full["disk"] = True
         wall[0] += 45.0  # the next signed frame needs a new reservation
-        assert wait_until(lambda: daemon.status()["link"] == "fault")
-        status = daemon.status()
-        assert "No space left on device" in status["link_fault"]
-        assert status["link_counters"]["signing_state_errors"] >= 1
+        # The heartbeat thread meets the fault first, and counts it right after.
+        assert wait_until(
+            lambda: (
+                daemon.status()["link"] == "fault"
+                and daemon.status()["link_counters"]["signing_state_errors"] >= 1
+            )
+        )
+        assert "No space left on device" in daemon.status()["link_fault"]
         reply = daemon.submit("park").result(10.0)
         assert reply.outcome is Outcome.TEMPORARILY_REJECTED
         assert all(m.command != mavlink.MAV_CMD_DO_SET_SERVO for m in peer.messages("COMMAND_LONG"))
