@@ -18,12 +18,31 @@ pymavlink's generated MAVLink 2 codec (``pymavlink.dialects.v20.ardupilotmega``)
 Link state (:class:`LinkState`) is computed from the injected ``clock``: UP while the autopilot's
 HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. It is
 also LOST while the transport is down, and after a reopen until a HEARTBEAT arrives on the new
-port: a serial adapter that re-enumerated often means a flight controller that rebooted.
+port: a serial adapter that re-enumerated often means a flight controller that rebooted. It is
+FAULT while signing is on and its state cannot be stored (:attr:`MavlinkLink.fault` says why):
+nothing signed goes out then, so the link is as unusable as a lost one.
+
+**Datagrams and the UDP peer.** On a datagram transport each datagram is parsed on its own (a
+partial frame left by one sender never swallows the start of the next datagram). On ``udpin``
+the link chooses where to send: the sender of a datagram holding a valid frame from the pinned
+autopilot (its HEARTBEAT pins it: configured ids, else the first autopilot heard), signed when
+signing is on (an unsigned RADIO_STATUS let through by ``allow_unsigned_msg_ids`` does not
+count). Once a peer is chosen, datagrams from other addresses are dropped (counted in
+``rx_foreign_address``), except a valid autopilot frame after the current peer has sent none for
+``PEER_HOLD_S``: an autopilot that came back from another port (a reboot) is followed, a
+spoofer racing a live one is not. With signing, until a peer is confirmed (an accepted
+autopilot frame came from it), a correctly signed autopilot frame refused only for being older
+than our start also chooses the peer: the autopilot must hear our newer timestamp to adopt it
+(``signing`` module docstring), and on udpin it hears us only once we send to it. A replayer
+can delay that bootstrap, not move the arm. Without signing, a host that forges the
+autopilot's ids can still take its place once the autopilot falls silent: sign links other
+hosts can reach.
 """
 
 from __future__ import annotations
 
 import enum
+import hashlib
 import logging
 import queue
 import threading
@@ -42,8 +61,20 @@ from firmware_interface.errors import (
     SigningStateError,
     TransportError,
 )
-from firmware_interface.signing import SigningConfig, TimestampKeeper
-from firmware_interface.transport import Transport, open_transport, parse_url
+from firmware_interface.signing import (
+    FUTURE_LIMIT_S,
+    NEW_STREAM_WINDOW_TICKS,
+    TICKS_PER_S,
+    SigningConfig,
+    TimestampKeeper,
+)
+from firmware_interface.transport import (
+    Address,
+    Transport,
+    UdpInTransport,
+    open_transport,
+    parse_url,
+)
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +101,10 @@ _NOT_AN_AUTOPILOT_TYPES = frozenset(
     {mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_TYPE_GIMBAL}
 )
 _MAVLINK_IFLAG_SIGNED = 0x01
+#: On udpin, a valid autopilot frame from a new address moves the peer there only once the
+#: current peer has sent none for this long: longer than the autopilot's 1 Hz HEARTBEAT period,
+#: shorter than the shortest loss timeout (2 s).
+PEER_HOLD_S = 1.5
 
 
 def is_autopilot_heartbeat(msg: MavMessage) -> bool:
@@ -85,6 +120,7 @@ class LinkState(enum.Enum):
     WAITING = "waiting"  # no autopilot HEARTBEAT heard yet
     UP = "up"
     LOST = "lost"  # heard before, but nothing for loss_timeout_s
+    FAULT = "fault"  # the link cannot send safely (see MavlinkLink.fault)
     CLOSED = "closed"
 
 
@@ -100,7 +136,14 @@ class AutopilotInfo:
 
 @dataclass(frozen=True)
 class LinkStats:
-    """Counters since the link started."""
+    """Counters since the link started.
+
+    ``rejected_replay``: correctly signed, but not newer than its stream's last frame, older
+    than our start (after a restart) or over a minute behind; ``rejected_future``: correctly
+    signed but over ``FUTURE_LIMIT_S`` ahead of our clock; ``rx_foreign_datagrams``: UDP
+    datagrams dropped for their source address (udpout); ``rx_foreign_address``: frames from
+    an address that is not the udpin peer, dropped; ``peer_changes``: udpin peer moves.
+    """
 
     rx_messages: int
     rx_bad_frames: int
@@ -109,6 +152,12 @@ class LinkStats:
     tx_messages: int
     reconnects: int
     transport_errors: int
+    rejected_replay: int = 0
+    rejected_future: int = 0
+    rx_foreign_datagrams: int = 0
+    rx_foreign_address: int = 0
+    peer_changes: int = 0
+    signing_state_errors: int = 0
 
 
 @dataclass(frozen=True)
@@ -208,24 +257,79 @@ class MessageQueue:
 
 
 class _Codec(mavlink.MAVLink):
-    """pymavlink's codec, with one fix: a *bad* signature must not advance the stream timestamp.
+    """pymavlink's codec, with our incoming signature rules (``signing`` module docstring).
 
-    pymavlink's ``check_signature`` records the incoming timestamp before comparing the
-    signature, so one forged frame with a far-future timestamp would make every genuine frame
-    of that stream look replayed. We restore the previous value when the check fails.
+    pymavlink's ``check_signature`` (2.4.x) records the incoming timestamp for its stream
+    *before* comparing the signature, so one forged frame with a far-future timestamp would
+    make every genuine frame of that stream look replayed. Here the signature is checked first,
+    and nothing is recorded for a frame that fails any rule. The rules, in order:
+
+    1. the 48-bit signature, ``sha256(key + frame without signature)[:6]`` (spec "Signature");
+    2. with a ``keeper``: not more than ``FUTURE_LIMIT_S`` ahead of its local clock;
+    3. a known stream ``(link id, system, component)``: newer than its last timestamp;
+       a new stream: newer than ``stream_floor`` (just below our start timestamp), at most a minute
+       behind our current timestamp (spec "Timestamp Handling");
+    4. accepted: the stream's timestamp is recorded, ours moves up to it (spec, and pymavlink).
+
+    Rejections are counted in :attr:`rejections` (``signature``, ``future``, ``replay``).
     """
 
+    keeper: TimestampKeeper | None = None
+    stream_floor = 0
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.rejections = {"signature": 0, "future": 0, "replay": 0}
+        self.last_future: tuple[int, int, float] | None = None  # system, component, s ahead
+        #: Sources of frames refused *only* for being older than our start (see take_stale).
+        self._stale: list[tuple[int, int]] = []
+
     def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
-        stream_key = (msgbuf[-13], srcSystem, srcComponent)
-        streams = self.signing.stream_timestamps
-        previous = streams.get(stream_key)
-        ok = super().check_signature(msgbuf, srcSystem, srcComponent)
-        if not ok:
-            if previous is None:
-                streams.pop(stream_key, None)
-            else:
-                streams[stream_key] = previous
-        return ok
+        signing = self.signing
+        assert signing.secret_key is not None
+        if hashlib.sha256(signing.secret_key + msgbuf[:-6]).digest()[:6] != msgbuf[-6:]:
+            self.rejections["signature"] += 1
+            return False
+        link_id = msgbuf[-13]
+        timestamp = int.from_bytes(msgbuf[-12:-6], "little")
+        keeper = self.keeper
+        if keeper is not None:
+            ahead = timestamp - keeper.local_ticks()
+            if ahead > FUTURE_LIMIT_S * TICKS_PER_S:
+                self.rejections["future"] += 1
+                self.last_future = (srcSystem, srcComponent, ahead / TICKS_PER_S)
+                return False
+        stream = (link_id, srcSystem, srcComponent)
+        last = signing.stream_timestamps.get(stream)
+        if last is not None:
+            fresh = timestamp > last
+        else:
+            fresh = timestamp > self.stream_floor
+            if timestamp + NEW_STREAM_WINDOW_TICKS < signing.timestamp:
+                fresh = False
+            elif not fresh:
+                self._stale.append((srcSystem, srcComponent))
+        if not fresh:
+            self.rejections["replay"] += 1
+            return False
+        signing.stream_timestamps[stream] = timestamp
+        signing.timestamp = max(signing.timestamp, timestamp)
+        return True
+
+    def take_stale(self) -> list[tuple[int, int]]:
+        """The ``(system, component)`` of correctly signed frames refused since the last call
+        only because they are older than our start (a peer that has not yet adopted our
+        timestamp, or a replay): a udpin link may send to their address meanwhile, so that
+        the peer hears our timestamp (``MavlinkLink._receive``)."""
+        stale, self._stale = self._stale, []
+        return stale
+
+    def reset_parser(self) -> None:
+        """Forget any partial frame (a datagram transport: each datagram stands alone)."""
+        self.buf = bytearray()
+        self.buf_index = 0
+        self.expected_length = mavlink.HEADER_LEN_V1 + 2
+        self.have_prefix_error = False
 
 
 class MavlinkLink:
@@ -252,6 +356,9 @@ class MavlinkLink:
         self._decoder = _Codec(None, own_system, self.config.component_id)
         self._decoder.robust_parsing = True  # garbage on a serial line is counted, not fatal
         self._keeper: TimestampKeeper | None = None
+        self._fault_logged = False
+        self._peer_heard_at = -float("inf")  # udpin: when the peer last sent an autopilot frame
+        self._foreign_datagrams_closed = 0  # of transports already dropped
         if self.config.signing is not None:
             self._setup_signing(self.config.signing)
 
@@ -279,6 +386,9 @@ class MavlinkLink:
                 "tx_messages",
                 "reconnects",
                 "transport_errors",
+                "rx_foreign_address",
+                "peer_changes",
+                "signing_state_errors",
             ),
             0,
         )
@@ -369,6 +479,8 @@ class MavlinkLink:
         """The link state now, by the injected clock (does not fire callbacks)."""
         if self.closed:
             return LinkState.CLOSED
+        if self.fault is not None:
+            return LinkState.FAULT
         last = self._last_heartbeat_at
         if last is None:
             return LinkState.WAITING
@@ -413,9 +525,24 @@ class MavlinkLink:
         return self._autopilot
 
     @property
+    def fault(self) -> str | None:
+        """Why the link cannot send safely now (the signing state cannot be stored), or None.
+        The state is FAULT meanwhile; it clears by itself once the state can be stored."""
+        return self._keeper.fault if self._keeper is not None else None
+
+    @property
     def stats(self) -> LinkStats:
         """A snapshot of the link counters."""
-        return LinkStats(**self._counts)
+        transport = self._transport
+        live = transport.foreign_datagrams if transport is not None else 0
+        rejections = self._decoder.rejections
+        counts = {**self._counts, "rejected_bad_signature": rejections["signature"]}
+        return LinkStats(
+            **counts,
+            rejected_replay=rejections["replay"],
+            rejected_future=rejections["future"],
+            rx_foreign_datagrams=self._foreign_datagrams_closed + live,
+        )
 
     # ----- sending ------------------------------------------------------------------------
 
@@ -449,12 +576,11 @@ class MavlinkLink:
                         self._encoder.signing.timestamp = self._keeper.next_timestamp(
                             max(self._encoder.signing.timestamp, self._decoder.signing.timestamp)
                         )
-                    except OSError as exc:
+                    except SigningStateError as exc:
                         # Signing past the stored reservation could replay timestamps after a
-                        # restart: refuse to send rather than sign unsafely.
-                        raise SigningStateError(
-                            f"{self.description}: cannot store the signing timestamp: {exc}"
-                        ) from exc
+                        # restart: refuse to send rather than sign unsafely (state FAULT).
+                        self._counts["signing_state_errors"] += 1
+                        raise SigningStateError(f"{self.description}: {exc}") from exc
                 frames.append(msg.pack(self._encoder))
                 self._encoder.seq = (self._encoder.seq + 1) % 256
             buf = b"".join(frames)
@@ -481,7 +607,8 @@ class MavlinkLink:
         except TransportError as exc:
             log.debug("%s: heartbeat not sent: %s", self.description, exc)
         except SigningStateError as exc:
-            log.warning("heartbeat not sent: %s", exc)
+            # The keeper logged the fault once; a line a second would fill the journal.
+            log.debug("heartbeat not sent: %s", exc)
 
     # ----- receiving ----------------------------------------------------------------------
 
@@ -526,17 +653,114 @@ class MavlinkLink:
                 and data[0] == mavlink.PROTOCOL_MARKER_V2
                 and (data[2] & _MAVLINK_IFLAG_SIGNED)
             )
-            key = "rejected_bad_signature" if signed else "rejected_unsigned"
-            self._counts[key] += 1
+            if signed:
+                self._log_signed_rejection()
+                return
+            self._counts["rejected_unsigned"] += 1
             log.warning(
-                "%s: %s frame rejected (%d so far)",
+                "%s: unsigned frame rejected (%d so far)",
                 self.description,
-                key.removeprefix("rejected_").replace("_", " "),
-                self._counts[key],
+                self._counts["rejected_unsigned"],
             )
         else:
             self._counts["rx_bad_frames"] += 1
             log.debug("%s: bad frame: %s", self.description, reason)
+
+    def _log_signed_rejection(self) -> None:
+        rejections = self._decoder.rejections
+        total = sum(rejections.values())
+        if total & (total - 1):  # log the 1st, 2nd, 4th, 8th …: a flood cannot fill the journal
+            return
+        future = ""
+        if self._decoder.last_future is not None:
+            system, component, ahead_s = self._decoder.last_future
+            future = (
+                f"; latest future frame: {system}/{component}, {ahead_s:.0f} s ahead of our "
+                "clock (a key holder's clock is wrong?)"
+            )
+        log.warning(
+            "%s: signed frames rejected: %d bad signature, %d replayed or too old, %d from the "
+            "future%s",
+            self.description,
+            rejections["signature"],
+            rejections["replay"],
+            rejections["future"],
+            future,
+        )
+
+    def _is_autopilot_frame(self, msg: MavMessage) -> bool:
+        """A valid frame from the pinned autopilot (signed, when signing is on)."""
+        autopilot = self._autopilot
+        if autopilot is None or isinstance(msg, mavlink.MAVLink_bad_data):
+            return False
+        if (msg.get_srcSystem(), msg.get_srcComponent()) != (
+            autopilot.system_id,
+            autopilot.component_id,
+        ):
+            return False
+        return self._keeper is None or bool(getattr(msg, "_signed", False))
+
+    def _may_be_autopilot(self, source: tuple[int, int]) -> bool:
+        """``source`` is the pinned autopilot, or (none pinned yet) matches the configured
+        target ids."""
+        if self._autopilot is not None:
+            return source == (self._autopilot.system_id, self._autopilot.component_id)
+        wanted = (self.config.target_system, self.config.target_component)
+        return all(want in (None, got) for want, got in zip(wanted, source, strict=True))
+
+    def _set_peer(self, transport: UdpInTransport, sender: Address, why: str) -> None:
+        was = transport.peer
+        log.warning(
+            "%s: sending to %s:%d (%s)%s",
+            self.description,
+            *sender,
+            why,
+            "" if was is None else f", was {was[0]}:{was[1]}",
+        )
+        transport.set_peer(sender)
+        self._counts["peer_changes"] += 1
+
+    def _receive(self, transport: Transport, data: bytes, sender: Address | None) -> None:
+        """Decode and dispatch what one read returned (udpin: choose the peer; module
+        docstring)."""
+        if transport.datagrams:
+            self._decoder.reset_parser()
+        msgs = self._decoder.parse_buffer(data) or []
+        stale = self._decoder.take_stale()
+        if not isinstance(transport, UdpInTransport) or sender is None:
+            for msg in msgs:
+                self._handle(msg)
+            return
+        confirmed = self._peer_heard_at > -float("inf")
+        if (
+            not confirmed
+            and sender != transport.peer
+            and any(self._may_be_autopilot(s) for s in stale)
+        ):
+            # Signed by the autopilot's key holder but older than our start: the autopilot
+            # has not heard our (newer) timestamp yet, and on udpin it never will unless we
+            # send to it. Provisional: the first accepted autopilot frame confirms a peer.
+            self._set_peer(transport, sender, "a signed autopilot frame older than our start")
+        peer = transport.peer
+        if peer is not None and sender != peer:
+            now = self.clock()
+            if not (
+                now - self._peer_heard_at > PEER_HOLD_S
+                and any(self._is_autopilot_frame(m) for m in msgs)
+            ):
+                for msg in msgs:
+                    if isinstance(msg, mavlink.MAVLink_bad_data):
+                        self._count_bad(msg)
+                    else:
+                        self._counts["rx_foreign_address"] += 1
+                return
+        for msg in msgs:
+            self._handle(msg)  # a HEARTBEAT may pin the autopilot here
+            if not self._is_autopilot_frame(msg):
+                continue
+            if sender != transport.peer:
+                self._set_peer(transport, sender, "autopilot frame")
+            self._peer_heard_at = self.clock()
 
     def _handle_heartbeat(self, msg: MavMessage) -> None:
         if not is_autopilot_heartbeat(msg):
@@ -583,7 +807,7 @@ class MavlinkLink:
                         backoff_s = self.config.reconnect_initial_s
                     continue
                 try:
-                    data = transport.read(self.config.read_timeout_s)
+                    data, sender = transport.read_from(self.config.read_timeout_s)
                 except TransportError as exc:
                     # Drop the port first: whoever sees the error counted sees the link lost.
                     self._drop_transport()
@@ -591,8 +815,7 @@ class MavlinkLink:
                     log.warning("%s: %s; reopening", self.description, exc)
                     continue
                 if data:
-                    for msg in self._decoder.parse_buffer(data) or ():
-                        self._handle(msg)
+                    self._receive(transport, data, sender)
         except Exception as exc:  # protocol or subscriber bug: end the link, keep the cause
             log.exception("%s: link ended by an error in protocol code", self.description)
             self.failure = exc
@@ -624,6 +847,8 @@ class MavlinkLink:
         with self._write_lock:
             transport, self._transport = self._transport, None
             self._heard_on_transport = False
+            if transport is not None:
+                self._foreign_datagrams_closed += transport.foreign_datagrams
         if transport is not None:
             transport.close()
 
@@ -640,7 +865,11 @@ class MavlinkLink:
     # ----- signing ------------------------------------------------------------------------
 
     def _setup_signing(self, config: SigningConfig) -> None:
-        self._keeper = TimestampKeeper(config)
+        self._keeper = TimestampKeeper(config, clock=self.clock)
+        self._decoder.keeper = self._keeper
+        # Every timestamp signed before this start is below the stored reservation, hence
+        # below initial_timestamp; a peer that adopted our first frame's may send it back.
+        self._decoder.stream_floor = self._keeper.initial_timestamp - 1
         allowed = config.allow_unsigned_msg_ids
         for codec in (self._encoder, self._decoder):
             codec.signing.secret_key = config.key

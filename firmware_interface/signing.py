@@ -1,24 +1,58 @@
 """MAVLink 2 message signing: key file, link id and a timestamp that never goes backwards.
 
-The signing timestamp counts 10 µs units since 2015-01-01 00:00 UTC (MAVLink signing spec;
-pymavlink's ``mavutil.setup_signing`` computes the same). A receiver rejects a stream whose
-timestamp does not increase, so after a restart we must not reuse old values even when the
-companion has no RTC and boots with a clock in the past. :class:`TimestampKeeper` therefore
-persists a *reservation* — a value ahead of anything sent so far — to a state file and starts
-from ``max(wall clock, reservation)``. It rewrites the reservation only when half of it has been
-used, so the file is written rarely, yet a crash can never make timestamps repeat.
+What we rely on from the MAVLink signing spec (mavlink.io/en/guide/message_signing.html,
+"Timestamp Handling" and "Accepting Signed Packets"):
+
+* the timestamp counts 10 µs units since 2015-01-01 00:00 GMT (Unix offset 1 420 070 400 s);
+  pymavlink's ``mavutil.setup_signing`` computes the same;
+* a *stream* is ``(link id, system id, component id)``; on it, a frame whose timestamp is not
+  newer than the last accepted one is rejected (pymavlink's ``MAVLink.check_signature`` rejects
+  ``<=``), and a stream not heard before is accepted only if its timestamp is at most one minute
+  (6 000 000 ticks) behind ours;
+* a sender's timestamp starts at ``max(clock, stored value)``, the stored value being written
+  regularly (at least once a minute), and moves up to a correctly signed incoming timestamp
+  that is greater than its own (the C library and pymavlink both do this).
+
+:class:`TimestampKeeper` persists a *reservation*, a value ahead of anything sent so far, and
+starts from ``max(wall clock, reservation)``, so a restart on a board without RTC continues
+above everything sent. It rewrites the reservation when half of it is used. The in-memory
+reservation moves only once the new value is on disk (written, fsynced, renamed): if the state
+cannot be written (disk full, read-only file or directory), no timestamp past the stored one
+is ever used — :meth:`TimestampKeeper.next_timestamp` raises :class:`SigningStateError`, and
+keeps :attr:`TimestampKeeper.fault` until a later write succeeds (tried at most once per
+``RETRY_S``). A state file without write permission is refused, never silently replaced.
+
+Incoming frames (checked in ``link._Codec``), two rules beyond the spec's:
+
+* **not from the future.** A frame stamped more than ``FUTURE_LIMIT_S`` (60 s) ahead of our
+  :meth:`local clock <TimestampKeeper.local_ticks>` is refused (and counted) instead of
+  adopted: adopting it would move that stream, our own timestamp and the stored reservation
+  a year ahead, after which a sender with a correct clock is refused as a replay, and after a
+  restart every stream is refused as more than a minute behind. The local clock is
+  ``max(wall clock, start timestamp + time since start)``: it never adopts incoming values, so
+  accepting frames near the limit cannot walk it forward.
+* **not from before our start.** After a restart the per-stream memory is gone, and the spec
+  would accept a captured frame up to a minute old as a "new stream". We refuse a new stream's
+  frame if it is older than our start timestamp ``max(wall clock, stored reservation)``.
+  The reservation is above every timestamp we signed, and each of those is at least the
+  newest incoming timestamp accepted before it (we adopt incoming timestamps): a target that
+  moved the arm was followed by our signed servo commands, so its replay is refused. A peer
+  following the spec adopts our (newer) timestamp from our first signed frame after the
+  restart, and is accepted from then on; until then its frames are refused and counted.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
+import stat
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from firmware_interface.errors import ConfigurationError
+from firmware_interface.errors import ConfigurationError, SigningStateError
 
 log = logging.getLogger(__name__)
 
@@ -27,6 +61,12 @@ SIGNING_EPOCH_UNIX_S = 1_420_070_400
 #: Signing timestamps tick every 10 µs.
 TICKS_PER_S = 100_000
 KEY_LEN = 32
+#: Incoming timestamps further ahead of our local clock than this are refused (module docstring).
+FUTURE_LIMIT_S = 60.0
+#: The spec's "new stream" window: one minute, in ticks.
+NEW_STREAM_WINDOW_TICKS = 60 * TICKS_PER_S
+#: After a failed write of the state, the next attempt waits at least this long (monotonic).
+RETRY_S = 1.0
 #: ArduPilot accepts these unsigned even with signing on (GCS_Signing.cpp accept_list).
 MAVLINK_MSG_ID_RADIO_STATUS = 109
 
@@ -56,13 +96,53 @@ def wall_to_ticks(unix_s: float) -> int:
     return max(0, int((unix_s - SIGNING_EPOCH_UNIX_S) * TICKS_PER_S))
 
 
+def write_state_file(path: Path, reserved_until: int) -> None:
+    """Store ``reserved_until`` in ``path`` durably: refuse a file without write permission
+    (it was made read-only on purpose, or belongs to someone else: never replace it), write a
+    temporary file, fsync it, rename it over ``path`` and fsync the directory. Raises
+    ``OSError`` (``EACCES`` for a read-only file, ``ENOSPC`` for a full disk …)."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        pass
+    else:
+        if not mode & stat.S_IWUSR or not os.access(path, os.W_OK):
+            raise PermissionError(
+                errno.EACCES,
+                f"signing state file is read-only (mode {stat.S_IMODE(mode):04o}); refusing to "
+                "replace it: make it writable by the daemon's user, or remove it only if the "
+                "wall clock is known to be right",
+                str(path),
+            )
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "w", encoding="ascii") as file:
+            file.write(f"{reserved_until}\n")
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
 @dataclass(frozen=True)
 class SigningConfig:
     """Optional MAVLink 2 signing for a link.
 
     ``key`` is the 32-byte secret, ``link_id`` (0–255) tags our outgoing stream, ``state_path``
     keeps the timestamp monotonic across restarts (None: wall clock only). Unsigned incoming
-    messages are rejected except ids in ``allow_unsigned_msg_ids``.
+    messages are rejected except ids in ``allow_unsigned_msg_ids``. ``wall_clock`` and
+    ``write_state`` (how the state file is written, :func:`write_state_file`) are seams for
+    tests.
     """
 
     key: bytes
@@ -71,6 +151,7 @@ class SigningConfig:
     allow_unsigned_msg_ids: frozenset[int] = frozenset({MAVLINK_MSG_ID_RADIO_STATUS})
     wall_clock: Callable[[], float] = field(default=time.time, repr=False)
     reservation_s: float = 60.0
+    write_state: Callable[[Path, int], None] = field(default=write_state_file, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.key, bytes) or len(self.key) != KEY_LEN:
@@ -97,14 +178,27 @@ class SigningConfig:
 
 
 class TimestampKeeper:
-    """Hands out signing timestamps that only increase, across restarts too."""
+    """Hands out signing timestamps that only increase, across restarts too, and never past
+    the reservation stored on disk (module docstring). ``clock``: monotonic seconds, for the
+    local clock and the write retries.
 
-    def __init__(self, config: SigningConfig) -> None:
+    Raises ``OSError`` at construction if the state cannot be written (nothing was signed yet:
+    the caller refuses to start), :class:`ConfigurationError` if it cannot be read.
+    """
+
+    def __init__(self, config: SigningConfig, *, clock: Callable[[], float] = time.monotonic):
         self._config = config
+        self._clock = clock
         self._reservation_ticks = int(config.reservation_s * TICKS_PER_S)
         stored = self._load()
+        #: The reservation stored by the previous run (0 if none): see the module docstring.
+        self.stored_at_start = stored
         self._reserved_until = stored
         self.initial_timestamp = max(wall_to_ticks(config.wall_clock()), stored)
+        self._started_s = clock()
+        #: Why signing is stopped (the state cannot be written), or None.
+        self.fault: str | None = None
+        self._retry_at_s = -float("inf")
         self._reserve(self.initial_timestamp)
 
     def _load(self) -> int:
@@ -120,22 +214,48 @@ class TimestampKeeper:
             ) from exc
 
     def _reserve(self, timestamp: int) -> None:
-        self._reserved_until = timestamp + self._reservation_ticks
+        reserved_until = timestamp + self._reservation_ticks
         path = self._config.state_path
-        if path is None:
-            return
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(f"{self._reserved_until}\n")
-        os.replace(tmp, path)
+        if path is not None:
+            self._config.write_state(path, reserved_until)
+        # Only now: a reservation that is not on disk is no reservation.
+        self._reserved_until = reserved_until
 
     @property
     def reserved_until(self) -> int:
         """The value persisted in the state file (next start begins at least here)."""
         return self._reserved_until
 
+    def local_ticks(self) -> int:
+        """Our own clock in ticks: ``max(wall clock, start timestamp + time since start)``.
+        It never adopts incoming timestamps (the future limit is measured from it)."""
+        elapsed_ticks = int((self._clock() - self._started_s) * TICKS_PER_S)
+        return max(wall_to_ticks(self._config.wall_clock()), self.initial_timestamp + elapsed_ticks)
+
     def next_timestamp(self, current: int) -> int:
-        """The timestamp to sign the next message with, given the codec's ``current`` value."""
+        """The timestamp to sign the next message with, given the codec's ``current`` value.
+
+        Raises :class:`SigningStateError` (and sets :attr:`fault`) when that timestamp would
+        need a new reservation that cannot be stored; it clears once one could be.
+        """
         timestamp = max(current, wall_to_ticks(self._config.wall_clock()))
         if timestamp >= self._reserved_until - self._reservation_ticks // 2:
-            self._reserve(timestamp)
+            now_s = self._clock()
+            if self.fault is not None and now_s < self._retry_at_s:
+                raise SigningStateError(self.fault)
+            try:
+                self._reserve(timestamp)
+            except OSError as exc:
+                first = self.fault is None
+                self.fault = (
+                    f"cannot store the signing timestamp in {str(self._config.state_path)!r}: "
+                    f"{exc.strerror or exc}; nothing is signed past the stored reservation"
+                )
+                self._retry_at_s = now_s + RETRY_S
+                if first:
+                    log.error("%s; holding until it can be stored", self.fault)
+                raise SigningStateError(self.fault) from exc
+            if self.fault is not None:
+                log.warning("signing state stored again: signing resumes")
+                self.fault = None
         return timestamp

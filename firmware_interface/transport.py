@@ -8,10 +8,26 @@ Accepted URLs (the forms MAVProxy / pymavlink users already type)::
 
     /dev/ttyACM0,921600                serial device and baud
     serial:///dev/ttyACM0?baud=921600  the same as a URL
-    udpin:0.0.0.0:14550                listen on UDP; replies go to the last sender
+    udpin:0.0.0.0:14550                listen on UDP; replies go to the autopilot's address
     udp:0.0.0.0:14550                  alias of udpin (as in pymavlink)
-    udpout:192.168.1.10:14550          send to this address; read from our ephemeral port
+    udpout:192.168.1.10:14550          send to this address; accept datagrams from it only
     tcp:127.0.0.1:5760                 TCP client
+
+**Who may talk to us over UDP.** A datagram socket hears anyone who can reach its port, so:
+
+* ``udpout`` binds the local address the kernel would send from towards the peer (found with a
+  ``connect()`` of a probe socket, which sends nothing): ``127.0.0.1`` for a peer on loopback,
+  the right interface's address otherwise, never ``0.0.0.0``; and it keeps only datagrams whose
+  source is exactly the configured ``HOST:PORT`` (ArduPilot's, MAVProxy's and mavlink-router's
+  UDP servers answer from the port they listen on). Others are dropped and counted in
+  :attr:`Transport.foreign_datagrams`. The socket is not ``connect()``-ed itself: a connected
+  UDP socket reports ICMP "port unreachable" as errors on later calls, which would turn an
+  autopilot not yet listening into transport failures and reopen cycles.
+* ``udpin`` cannot know its peer in advance. It never changes its peer by itself:
+  :meth:`UdpInTransport.read_from` returns each datagram with its sender, and the link (which
+  decodes) calls :meth:`UdpInTransport.set_peer` only for a valid frame from the pinned
+  autopilot (correctly signed when signing is on); see ``link.MavlinkLink``. Garbage, or frames
+  from anyone else, never change where we send.
 
 Every OS-level failure is re-raised as :class:`~firmware_interface.errors.TransportError` with the
 original ``serial.SerialException`` / ``OSError`` as its ``__cause__``.
@@ -45,11 +61,20 @@ MAX_BAUD = 12_000_000
 _READ_CHUNK = 4096
 
 
+Address = tuple[str, int]
+
+
 class Transport(abc.ABC):
     """A bidirectional byte pipe. Not thread-safe by itself: the link serialises writers and
-    keeps a single reader."""
+    keeps a single reader.
+
+    ``datagrams``: each read returns whole datagrams, one at a time (a frame never spans two,
+    so the link parses each on its own). ``foreign_datagrams`` counts datagrams dropped because
+    they came from an address we do not talk to."""
 
     description: str = "transport"
+    datagrams: bool = False
+    foreign_datagrams: int = 0
 
     @abc.abstractmethod
     def write(self, data: bytes) -> None:
@@ -58,6 +83,11 @@ class Transport(abc.ABC):
     @abc.abstractmethod
     def read(self, timeout_s: float) -> bytes:
         """Return the bytes available within ``timeout_s`` (``b""`` if none arrived)."""
+
+    def read_from(self, timeout_s: float) -> tuple[bytes, Address | None]:
+        """As :meth:`read`, with the sender's address for a datagram transport (None for a
+        byte stream, or when nothing arrived)."""
+        return self.read(timeout_s), None
 
     @abc.abstractmethod
     def close(self) -> None:
@@ -212,11 +242,16 @@ class _SocketTransport(Transport):
 
 
 class UdpInTransport(_SocketTransport):
-    """Listen on a UDP port; send to whoever sent to us last (as MAVProxy's ``udpin``)."""
+    """Listen on a UDP port; send to the peer the link chose (:meth:`set_peer`).
+
+    Unlike MAVProxy's ``udpin``, a datagram never moves the peer by itself: only the link,
+    having decoded a valid frame from the pinned autopilot in it, does (module docstring)."""
+
+    datagrams = True
 
     def __init__(self, host: str, port: int) -> None:
         self.description = f"udpin:{host}:{port}"
-        self._peer: tuple[str, int] | None = None
+        self._peer: Address | None = None
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -226,9 +261,13 @@ class UdpInTransport(_SocketTransport):
             raise TransportError(f"cannot bind {self.description}: {exc}") from exc
 
     @property
-    def peer(self) -> tuple[str, int] | None:
-        """The last sender, where our writes go; None until someone has sent to us."""
+    def peer(self) -> Address | None:
+        """Where our writes go; None until the link chose one."""
         return self._peer
+
+    def set_peer(self, address: Address) -> None:
+        """Send to ``address`` from now on (the link calls this; see the module docstring)."""
+        self._peer = (address[0], address[1])
 
     def write(self, data: bytes) -> None:
         if self._peer is None:
@@ -240,24 +279,43 @@ class UdpInTransport(_SocketTransport):
             raise TransportError(f"send on {self.description} failed: {exc}") from exc
 
     def read(self, timeout_s: float) -> bytes:
+        return self.read_from(timeout_s)[0]
+
+    def read_from(self, timeout_s: float) -> tuple[bytes, Address | None]:
         data, sender = self._recv_datagram(timeout_s)
-        if sender is not None:
-            self._peer = sender
-        return data
+        return data, (sender[0], sender[1]) if sender is not None else None
+
+
+def local_address_towards(host: str, port: int) -> str:
+    """The local IPv4 address the kernel sends from towards ``host:port`` (a ``connect()`` on
+    a UDP probe socket picks the route and sends nothing)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect((host, port))
+        return str(probe.getsockname()[0])
 
 
 class UdpOutTransport(_SocketTransport):
-    """Send to a fixed UDP address; read replies on our own ephemeral port."""
+    """Send to a fixed UDP address; read only the datagrams that come from it.
+
+    Bound to the local address that routes to the peer, on an ephemeral port (module
+    docstring); datagrams from any other address are dropped and counted."""
+
+    datagrams = True
 
     def __init__(self, host: str, port: int) -> None:
         self.description = f"udpout:{host}:{port}"
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
-            self._target = (socket.gethostbyname(host), port)
-            self._sock.bind(("0.0.0.0", 0))
+            self._target: Address = (socket.gethostbyname(host), port)
+            self._sock.bind((local_address_towards(*self._target), 0))
         except OSError as exc:
             self._sock.close()
             raise TransportError(f"cannot set up {self.description}: {exc}") from exc
+
+    @property
+    def peer(self) -> Address:
+        """The configured peer: where we send, and the only source we read."""
+        return self._target
 
     def write(self, data: bytes) -> None:
         try:
@@ -266,7 +324,17 @@ class UdpOutTransport(_SocketTransport):
             raise TransportError(f"send on {self.description} failed: {exc}") from exc
 
     def read(self, timeout_s: float) -> bytes:
-        return self._recv_datagram(timeout_s)[0]
+        return self.read_from(timeout_s)[0]
+
+    def read_from(self, timeout_s: float) -> tuple[bytes, Address | None]:
+        data, sender = self._recv_datagram(timeout_s)
+        if sender is None:
+            return b"", None
+        if (sender[0], sender[1]) != self._target:
+            self.foreign_datagrams += 1
+            log.debug("%s: datagram from %s:%d dropped", self.description, *sender[:2])
+            return b"", None
+        return data, self._target
 
 
 class TcpTransport(_SocketTransport):

@@ -350,6 +350,8 @@ class SimAutopilot:
 
     def _send(self, msg: mavlink.MAVLink_message, now_s: float, channel: int | None = None) -> None:
         """Send ``msg`` on every link, or only on ``channel``."""
+        if self.config.signing_key is not None:
+            self._enc.signing.timestamp = self._signing_timestamp(now_s)
         frame = msg.pack(self._enc)
         self._enc.seq = (self._enc.seq + 1) % 256
         self._enc.total_packets_sent += 1
@@ -366,6 +368,17 @@ class SimAutopilot:
         links = self._links if channel is None else [self._link(channel)]
         for link in links:
             link.write(corrupted, now_s, delay_s)
+
+    def _signing_timestamp(self, now_s: float) -> int:
+        """The timestamp our next signed frame carries, as the MAVLink signing spec asks
+        ("Timestamp Handling"): never below the last one sent (pymavlink adds 1 per frame),
+        the system clock's, or any correctly signed incoming one (each link's decoder keeps the
+        highest it accepted, as the C library does). Without the last rule, a companion that
+        restarts over a minute after we booted (its clock then ahead of our frames by more)
+        refuses every frame of ours as a stream more than a minute old, and never reconnects."""
+        wall_ticks = (self._time_unix_us(now_s) - SIGNING_EPOCH_UNIX_S * 1_000_000) // 10
+        seen = max((d.signing.timestamp for d in self._decoders.values()), default=0)
+        return max(self._enc.signing.timestamp, wall_ticks, seen)
 
     def _defer(self, msg: mavlink.MAVLink_message, now_s: float) -> None:
         """Send on the next main-loop pass, as ArduPilot does for STATUSTEXT and PARAM_VALUE."""

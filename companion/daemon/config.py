@@ -86,6 +86,8 @@ class LinkSettings:
     command_timeout_s: float = 0.5
     command_retries: int = 2
     signing: SigningConfig | None = None
+    #: Who may send MAVLink targets: (system id, component id) pairs; None: anyone routed to us.
+    allowed_senders: frozenset[tuple[int, int]] | None = None
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,7 @@ _LINK_KEYS = (
     "signing_key",
     "signing_link_id",
     "signing_state",
+    "allowed_senders",
 )
 _ARM_KEYS = ("file", "park_deg", "park_on_stop", "joint_speed_deg_s")
 _SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed")
@@ -237,6 +240,7 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
             f"{command_timeout_s:g} s = {wait_s:g} s outside (0, {COMMAND_WAIT_MAX_S:g}] s: "
             "a target waiting on an unanswered servo command is answered only after that",
         )
+    allowed = _allowed_senders(t) if "allowed_senders" in t else None
     return LinkSettings(
         url=url,
         dialect=t.string("dialect", "ardupilot", choices=tuple(SERVO_DIALECTS)),
@@ -248,6 +252,7 @@ def _parse_link(t: Table, base: Path) -> LinkSettings:
         command_timeout_s=command_timeout_s,
         command_retries=command_retries,
         signing=signing,
+        allowed_senders=allowed,
     )
 
 
@@ -279,6 +284,27 @@ def _signing_key_path(t: Table, base: Path) -> Path:
             f"directory that holds {name} (e.g. CREDENTIALS_DIRECTORY=/etc/armbridge)",
         )
     return Path(directory) / name
+
+
+def _allowed_senders(t: Table) -> frozenset[tuple[int, int]]:
+    """``link.allowed_senders``: a list of ``[system_id, component_id]`` pairs, each 1-255
+    (an empty list: no MAVLink sender may move the arm, only the control socket)."""
+    value = t.data["allowed_senders"]
+    if not isinstance(value, list):
+        raise t.fail(
+            "allowed_senders",
+            f"must be a list of [system_id, component_id] pairs, got {value!r}",
+        )
+    pairs = []
+    for index, entry in enumerate(value):
+        key = f"allowed_senders[{index}]"
+        if not isinstance(entry, list) or len(entry) != 2:
+            raise t.fail(key, f"must be a [system_id, component_id] pair, got {entry!r}")
+        for part, label in zip(entry, ("system_id", "component_id"), strict=True):
+            if isinstance(part, bool) or not isinstance(part, int) or not 1 <= part <= 255:
+                raise t.fail(key, f"{label}={part!r} must be an integer in [1, 255]")
+        pairs.append((entry[0], entry[1]))
+    return frozenset(pairs)
 
 
 def _mavlink_id(t: Table, key: str) -> int | None:

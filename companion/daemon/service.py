@@ -20,7 +20,10 @@ our system / component id, params 1–6 = x_cm, y_cm, z_cm, roll_deg, pitch_deg,
 commands towards it, ``DENIED`` for non-finite params, ``FAILED`` when it is out of reach (with a
 STATUSTEXT giving both errors) or the servos refused, ``TEMPORARILY_REJECTED`` while the
 autopilot link is down or over the per-source rate limit, ``CANCELLED`` when a newer target or a
-stop replaced it before it moved.
+stop replaced it before it moved. With ``link.allowed_senders`` set, a target from a (system,
+component) not in it is answered ``DENIED`` (with a STATUSTEXT naming the sender and the
+setting), counted in ``not_allowed``, never queued; those answers share the flood limit of
+rate-limited refusals (beyond it: unanswered, counted in ``flood_unanswered``).
 
 Shutdown (:meth:`ArmDaemon.close`): the intake refuses new requests and answers the waiting ones,
 the core answers its own, parks directly if asked (one update, every output, past the speed
@@ -113,6 +116,7 @@ class ArmDaemon:
         # Counted here, added to the core's counters in status(): refused before the core.
         self._counts = {
             "not_for_us": 0,
+            "not_allowed": 0,
             "frames_dropped": 0,
             "denied": 0,
             "targets": 0,
@@ -306,6 +310,10 @@ class ArmDaemon:
         counters.update(early)
         status["counters"] = counters
         status["link"] = link.state.value if link is not None else "closed"
+        # Why the link cannot be used although it may be up (e.g. the signing state cannot be
+        # stored), and its counters (signatures refused, foreign datagrams ...).
+        status["link_fault"] = link.fault if link is not None else None
+        status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 
     # -- link input (reader thread: never waits) ----------------------------------------------
@@ -320,6 +328,21 @@ class ArmDaemon:
                 self._counts["not_for_us"] += 1
             return
         source = (msg.get_srcSystem(), msg.get_srcComponent())
+        allowed = self.config.link.allowed_senders
+        if allowed is not None and source not in allowed:
+            with self._counts_lock:
+                self._counts["not_allowed"] += 1
+            reply = Reply(
+                Outcome.DENIED,
+                f"sender {source[0]}/{source[1]} not in link.allowed_senders",
+            )
+            self.intake.refusals.note("goto", Outcome.DENIED, reply.message)
+            if self._flood_answer_allowed(source):
+                self._answer_mavlink(source, reply)
+            else:
+                with self._counts_lock:
+                    self._counts["flood_unanswered"] += 1
+            return
         params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6)
         request = self.new_request("goto", params, source=("mavlink", *source))
         request.future.add_done_callback(lambda f: self._answer_mavlink(source, f.result()))

@@ -604,6 +604,42 @@ def test_signing_required_rejects_unsigned_and_signs_replies():
     assert acks(wrong.run_for(0.1)) == []
 
 
+def own_timestamps(h: Harness) -> list[int]:
+    """The signing timestamps of our own frames on link 0, in the order sent."""
+    own = (h.config.system_id, h.config.component_id)
+    return [
+        int.from_bytes(f[-12:-6], "little")
+        for _, ch, f in h.wire
+        if ch == 0 and frame_source(f) == own and f[2] & 0x01
+    ]
+
+
+def test_signing_timestamp_follows_the_clock_and_adopts_newer_signed_incoming_ones():
+    """The signing spec's "Timestamp Handling": our timestamp is at least the system clock's
+    and moves up to a correctly signed incoming one. Without it, a companion restarted over a
+    minute after the simulator booted refused every frame of ours, for ever."""
+    h = Harness(SimConfig(signing_key=KEY), signing_key=KEY)
+    h.run_for(5.0)
+    wall_ticks = int((WALL_S - 1_420_070_400) * 100_000)
+    assert own_timestamps(h)[-1] >= wall_ticks + 4 * 100_000  # 4 s of clock, not 4 frames
+    # A companion restarted with its clock two minutes ahead of ours.
+    ahead = own_timestamps(h)[-1] + 120 * 100_000
+    h.gcs.signing.timestamp = ahead
+    h.send(h.gcs.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 4))
+    sent_before = len(own_timestamps(h))
+    h.run_for(1.5)
+    later = own_timestamps(h)[sent_before:]
+    assert later and all(t >= ahead for t in later)
+    assert later == sorted(later)
+    # Such a companion (its own timestamp at `ahead`) takes our frames as a fresh stream.
+    restarted = mavlink.MAVLink(None)
+    restarted.signing.secret_key = KEY
+    restarted.signing.timestamp = ahead
+    own = (h.config.system_id, h.config.component_id)
+    frames = [f for _, ch, f in h.wire if ch == 0 and frame_source(f) == own][sent_before:]
+    assert all(restarted.parse_buffer(f) for f in frames)
+
+
 # -- event log content ----------------------------------------------------------------------
 
 

@@ -827,6 +827,19 @@ _WRONG_TYPES: dict[str, tuple[Any, ...]] = {
         [0, 90, 0, 0, 0, True],
         [[0], 90, 0, 0, 0, 0],
     ),
+    "pairs": (
+        "255,190",
+        5,
+        True,
+        {"a": 1},
+        _DATETIME,
+        [255, 190],
+        [[255, "190"]],
+        [[255, 190.0]],
+        [[True, 190]],
+        [[255, 190, 1]],
+        [[255, 190], []],
+    ),
 }
 #: Kind of every field, and values of the right type that are still out of range.
 FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
@@ -855,6 +868,7 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     # Out of range only at run time: systemd creates its StateDirectory= when the service
     # starts, so check-config cannot demand the directory (tests/test_config_fuzz.py runs it).
     "link.signing_state": ("string", ()),
+    "link.allowed_senders": ("pairs", ([[0, 190]], [[255, 0]], [[256, 190]], [[255, -1]])),
     "arm.file": ("string", ("no-such-arm.toml", "broken-arm.toml", ".")),
     "arm.park_deg": (
         "numbers",

@@ -43,6 +43,27 @@ class UdpEndpoint:
         self.sock.close()
 
 
+class UdpClientEndpoint:
+    """The autopilot's side of a ``udpin`` link: it sends first, to ``address`` (ArduPilot's
+    ``udpclient``), from its own port on 127.0.0.1; it reads whatever comes back to that port."""
+
+    def __init__(self, address: tuple[str, int]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        self.peer = address
+
+    def read(self, timeout_s: float) -> bytes:
+        ready, _, _ = select.select([self.sock], [], [], timeout_s)
+        return self.sock.recvfrom(65535)[0] if ready else b""
+
+    def write(self, data: bytes) -> None:
+        self.sock.sendto(data, self.peer)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
 class PtyEndpoint:
     """The autopilot's side of a serial link: the master of a pty pair."""
 
