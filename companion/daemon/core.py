@@ -70,6 +70,11 @@ SHUTDOWN_RETRY_S = 0.1
 #: ``time_boot_ms`` behind the time since the previous SYSTEM_TIME by more than this is a
 #: reboot (less: a frame delayed on its way).
 REBOOT_LAG_MS = 750
+#: The same, for the first SYSTEM_TIME after the stream fell silent (a rebooted autopilot
+#: forgets the interval it was asked for). Silence and lag together are the evidence: a reboot
+#: costs at least its gap (0.36 s measured), but one soon after the previous boot may lag by
+#: little more, under REBOOT_LAG_MS (seen: up 0.22 s, rebooted, 0.58 s behind).
+REBOOT_LAG_AFTER_SILENCE_MS = 250
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
 
@@ -702,14 +707,16 @@ class ControlCore:
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
         previous, previous_s = self._boot_ms, self._boot_seen_s
         now = self.clock()
+        after_silence = self._system_time_s is None and previous is not None
         self._boot_ms, self._boot_seen_s = boot_ms, now
         self._system_time_s = now
         # Backwards, or far behind where the time since the last one says it should be: a
         # reboot soon after the previous boot may not take time_boot_ms below its old value
         # by the time the stream, asked for again, comes back.
+        lag_ms = REBOOT_LAG_AFTER_SILENCE_MS if after_silence else REBOOT_LAG_MS
         if previous is not None and (
             boot_ms + REBOOT_BACKSTEP_MS < previous
-            or boot_ms < previous + (now - previous_s) * 1000.0 - REBOOT_LAG_MS
+            or boot_ms < previous + (now - previous_s) * 1000.0 - lag_ms
         ):
             self.counters["autopilot_reboots"] += 1
             log.warning(
@@ -731,11 +738,15 @@ class ControlCore:
         if now - heard < SYSTEM_TIME_SILENT_S:
             return
         # The stream stopped while the autopilot still beats: it may have rebooted and
-        # forgotten the interval. Ask again, and take no output for granted meanwhile: the
-        # next update re-sends them all.
-        log.info("SYSTEM_TIME stopped: asking again; every output will be re-sent")
+        # forgotten the interval. Ask again, and take no output for granted: every output is
+        # re-sent at the acknowledged pose now, even with the arm still (a reboot left them
+        # at their boot values), then the motion goes on.
+        log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
         self._acked_pwm.clear()
+        if self._inflight is None and self._last_step_s > -math.inf:
+            self._unconfirmed = tuple(self._position)
+            self._resend_now = True
         self._ask_system_time(actions)
 
     # -- answers and status -----------------------------------------------------------------
