@@ -6,19 +6,22 @@ Used by ``bench/papers.py`` and the tests; the daemon never imports it. It depen
 """
 
 from companion.papers import constants
-from companion.papers.base import SolverResult, StopReason
+from companion.papers.base import Boundary, SolverResult, StopReason
 from companion.papers.de import differential_evolution
 from companion.papers.hs import harmony_search
-from companion.papers.msfla import shuffled_frog_leaping
-from companion.papers.objective import IKObjective, OrientationMetric
+from companion.papers.msfla import classic_shuffled_frog_leaping, shuffled_frog_leaping
+from companion.papers.objective import IKObjective, OrientationMetric, pose_objective
 
 __all__ = [
+    "Boundary",
     "IKObjective",
     "OrientationMetric",
     "SolverResult",
     "StopReason",
+    "classic_shuffled_frog_leaping",
     "constants",
     "differential_evolution",
     "harmony_search",
+    "pose_objective",
     "shuffled_frog_leaping",
 ]

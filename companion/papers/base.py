@@ -49,6 +49,51 @@ class Steppable(Protocol):
     def step(self) -> None: ...
 
 
+class Boundary(Enum):
+    """What happens to a coordinate that an update puts outside the box ``[lower, upper]``."""
+
+    CLAMP = "clamp"
+    """Set it to the nearest edge: the papers' rule (§4: "clamping each dimension within these
+    bounds at each iteration immediately after it is updated")."""
+    WRAP = "wrap"
+    """Periodic coordinates: ``lower + (x − lower) mod (upper − lower)``. For a joint without
+    limits and a box of one turn (±π) this is the angle modulo 2π, which is what a free
+    revolute joint does."""
+    REDRAW = "redraw"
+    """Draw it again uniformly in ``[lower, upper]`` (from the solver's generator)."""
+
+
+def apply_boundary(
+    x: FloatArray,
+    lower: FloatArray,
+    upper: FloatArray,
+    boundary: Boundary,
+    rng: np.random.Generator,
+) -> FloatArray:
+    """``x`` (any shape ending in ``n``) brought into the box by ``boundary``. Coordinates
+    already inside are returned unchanged, bit for bit, under every rule; ``rng`` is drawn from
+    only by ``REDRAW`` and only when some coordinate is outside."""
+    x = np.asarray(x, float)
+    if boundary is Boundary.CLAMP:
+        return np.clip(x, lower, upper)
+    outside = (x < lower) | (x > upper)
+    if not outside.any():
+        return x
+    if boundary is Boundary.WRAP:
+        wrapped = lower + np.mod(x - lower, upper - lower)
+        return np.where(outside, wrapped, x)
+    if boundary is Boundary.REDRAW:
+        fresh = lower + rng.random(x.shape) * (upper - lower)
+        return np.where(outside, fresh, x)
+    raise ValueError(f"boundary={boundary!r} is not one of {[b.value for b in Boundary]}")
+
+
+def check_boundary(boundary: Boundary) -> Boundary:
+    if not isinstance(boundary, Boundary):
+        raise ValueError(f"boundary={boundary!r} is not one of {[b.value for b in Boundary]}")
+    return boundary
+
+
 class StopReason(Enum):
     """Why a solver stopped. Not converging is a result, not an exception."""
 
@@ -117,9 +162,10 @@ def initial_population(
 
 
 class PopulationSolver:
-    """What DE, MSFLA and HS share: the problem's box, the RNG, a population (one candidate per
-    row, uniform in the box or ``initial`` clamped into it) with its costs, and the counters.
-    Subclasses add ``step()``."""
+    """What DE, MSFLA and HS share: the problem's box, the boundary rule, the RNG, a population
+    (one candidate per row, uniform in the box or ``initial`` clamped into it) with its costs,
+    and the counters. Subclasses add ``step()`` and bring each update into the box with
+    :meth:`bound`."""
 
     def __init__(
         self,
@@ -127,14 +173,20 @@ class PopulationSolver:
         pop_size: int,
         rng: np.random.Generator | int | None,
         initial: FloatArray | None,
+        boundary: Boundary = Boundary.CLAMP,
     ) -> None:
         self.problem = problem
+        self.boundary = check_boundary(boundary)
         self.rng = make_rng(rng)
         self.lower, self.upper = check_bounds(problem)
         self.pop = initial_population(self.lower, self.upper, pop_size, self.rng, initial)
         self.cost = np.asarray(problem.cost(self.pop), float)
         self.evaluations = pop_size
         self.iteration = 0
+
+    def bound(self, x: FloatArray) -> FloatArray:
+        """``x`` brought into the box by this solver's boundary rule."""
+        return apply_boundary(x, self.lower, self.upper, self.boundary, self.rng)
 
     @property
     def best_index(self) -> int:

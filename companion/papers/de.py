@@ -10,8 +10,10 @@ population:
 * crossover ``(target (NP, n), donor (NP, n), u (NP, n), h (NP,), Cr) -> trial (NP, n)``, where
   ``u`` are uniform draws and ``h`` a random coordinate per row.
 
-Trials are clamped into the bounds right after they are made (papers §4), and selection is
-greedy one-to-one: a trial replaces its target when its cost is not worse.
+Trials are clamped into the bounds right after they are made (papers §4) — or, with
+``boundary=Boundary.WRAP``, wrapped (joints without limits: angles modulo one turn), or re-drawn
+(``Boundary.REDRAW``, which draws from the solver's generator) — and selection is greedy
+one-to-one: a trial replaces its target when its cost is not worse.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from numpy.typing import NDArray
 from companion.kinematics import FloatArray
 from companion.papers.base import (
     DEFAULT_CLOCK,
+    Boundary,
     Clock,
     PopulationSolver,
     Problem,
@@ -159,6 +162,7 @@ class DifferentialEvolution(PopulationSolver):
         params: DEParams | None = None,
         rng: np.random.Generator | int | None = None,
         initial: FloatArray | None = None,
+        boundary: Boundary = Boundary.CLAMP,
     ) -> None:
         self.mutation = _lookup(MUTATIONS, "mutation", mutation)
         self.crossover = _lookup(CROSSOVERS, "crossover", crossover)
@@ -168,13 +172,14 @@ class DifferentialEvolution(PopulationSolver):
                 f"needs at least {self.mutation.n_random + 1}"
             )
         self.params = params or DEParams()
-        super().__init__(problem, pop_size, rng, initial)
+        super().__init__(problem, pop_size, rng, initial, boundary)
 
     def trials(self, r: IntArray, a: FloatArray, u: FloatArray, h: IntArray) -> FloatArray:
-        """Mutation, crossover and clamping for given random draws (no evaluation)."""
+        """Mutation, crossover and the boundary rule for given random draws (no evaluation;
+        with ``Boundary.REDRAW`` the re-drawn coordinates come from the solver's generator)."""
         donors = self.mutation.donor(self.pop, self.best_index, r, a, self.params)
         trial = self.crossover(self.pop, donors, u, h, self.params.Cr)
-        return np.clip(trial, self.lower, self.upper)
+        return self.bound(trial)
 
     def select(self, trials: FloatArray) -> None:
         """Evaluate ``trials`` and keep each one that is not worse than its target."""
@@ -210,9 +215,10 @@ def differential_evolution(
     budget_s: float | None = None,
     clock: Clock = DEFAULT_CLOCK,
     initial: FloatArray | None = None,
+    boundary: Boundary = Boundary.CLAMP,
 ) -> SolverResult:
     """Minimise ``problem`` with DE. Defaults are the papers' choice (Table 4/5 test 9:
-    rand/1/bin, F 0.9, Cr 0.95, NP 12, 400 generations).
+    rand/1/bin, F 0.9, Cr 0.95, NP 12, 400 generations, trials clamped into the box).
 
     Stops at ``generations``, when the best cost ≤ ``tol``, or when ``budget_s`` seconds on
     ``clock`` have passed since the call began — checked between generations.
@@ -226,6 +232,7 @@ def differential_evolution(
         params=DEParams(F=F, Cr=Cr, p_f=p_f, K=K),
         rng=seed,
         initial=initial,
+        boundary=boundary,
     )
     return run(
         solver,

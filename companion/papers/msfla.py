@@ -1,4 +1,15 @@
-"""Modified shuffled frog-leaping (MSFLA), papers §4.2 and Table 6.
+"""Modified shuffled frog-leaping (MSFLA), papers §4.2 and Table 6, and the classic SFLA.
+
+Two papers describe it: the DE/MSFLA comparison (§4.2, Tables 6–7) and paper 001, "Obtaining
+the kinematics solution of an aerial manipulator using the shuffled frog-leaping algorithm"
+(Ibrahim 2018, Vestnik IzhGTU 21(4), DOI 10.22213/2413-1172-2018-4-28-34). Despite its title,
+paper 001's body says its algorithm is the MSFLA, with the same settings (its Table 2) and the
+same results (its Table 3 is the comparison's Table 7, rounded).
+
+The "modification" is the leap factor ``C_L`` (Table 6: 1.3). The classic SFLA of Eusuff &
+Lansey (2003, 2006) is the same loop with ``C_L = 1``; :func:`classic_shuffled_frog_leaping`
+offers it by name. (Eusuff & Lansey also evolve a random sub-memeplex of ``q`` frogs; neither
+paper mentions one, and here the whole memeplex is used, ``q = n``, for both variants.)
 
 One :meth:`ShuffledFrogLeaping.step` is one shuffle (the papers' outer loop, ``iN`` of them):
 
@@ -13,7 +24,9 @@ One :meth:`ShuffledFrogLeaping.step` is one shuffle (the papers' outer loop, ``i
 
 ``rand`` is one uniform number per leap, as the papers write it. The papers give no ``D_max``;
 ours defaults to half of each coordinate's range. All memeplexes leap together, so each local
-iteration costs one batched evaluation of ``m`` frogs plus the fall-backs.
+iteration costs one batched evaluation of ``m`` frogs plus the fall-backs. A leap that leaves
+the box is clamped into it (papers §4), or wrapped or re-drawn (``boundary``, see
+:class:`~companion.papers.base.Boundary`).
 """
 
 from __future__ import annotations
@@ -23,6 +36,7 @@ import numpy as np
 from companion.kinematics import FloatArray
 from companion.papers.base import (
     DEFAULT_CLOCK,
+    Boundary,
     Clock,
     PopulationSolver,
     Problem,
@@ -30,7 +44,11 @@ from companion.papers.base import (
     check_bounds,
     run,
 )
-from companion.papers.constants import MSFLA_LEAP_FACTOR, MSFLA_MEMEPLEXES
+from companion.papers.constants import (
+    MSFLA_LEAP_FACTOR,
+    MSFLA_MEMEPLEXES,
+    SFLA_CLASSIC_LEAP_FACTOR,
+)
 
 
 class ShuffledFrogLeaping(PopulationSolver):
@@ -47,6 +65,7 @@ class ShuffledFrogLeaping(PopulationSolver):
         max_leap: FloatArray | float | None = None,
         rng: np.random.Generator | int | None = None,
         initial: FloatArray | None = None,
+        boundary: Boundary = Boundary.CLAMP,
     ) -> None:
         if n_memeplexes < 1 or pop_size < 2 * n_memeplexes or pop_size % n_memeplexes:
             raise ValueError(
@@ -65,7 +84,7 @@ class ShuffledFrogLeaping(PopulationSolver):
         self.n_memeplexes = n_memeplexes
         self.local_iterations = local_iterations
         self.leap_factor = leap_factor
-        super().__init__(problem, pop_size, rng, initial)
+        super().__init__(problem, pop_size, rng, initial, boundary)
 
     def memeplexes(self) -> np.ndarray:
         """Frog indices per memeplex, shape ``(m, n)``: ranked frog ``k + m·i`` → memeplex ``k``."""
@@ -78,7 +97,7 @@ class ShuffledFrogLeaping(PopulationSolver):
         jump = np.clip(
             self.leap_factor * draw * (towards - self.pop[frogs]), -self.max_leap, self.max_leap
         )
-        moved = np.clip(self.pop[frogs] + jump, self.lower, self.upper)
+        moved = self.bound(self.pop[frogs] + jump)
         self.evaluations += frogs.size
         return moved, np.asarray(self.problem.cost(moved), float)
 
@@ -129,9 +148,11 @@ def shuffled_frog_leaping(
     budget_s: float | None = None,
     clock: Clock = DEFAULT_CLOCK,
     initial: FloatArray | None = None,
+    boundary: Boundary = Boundary.CLAMP,
 ) -> SolverResult:
     """Minimise ``problem`` with MSFLA: ``shuffles`` = the papers' iN, ``local_iterations`` = iM,
-    ``leap_factor`` = C_L (Table 6: 1.3), ``n_memeplexes`` = m (Table 6: 3), ``pop_size`` = NP.
+    ``leap_factor`` = C_L (Table 6: 1.3; 1 is the classic SFLA), ``n_memeplexes`` = m
+    (Table 6: 3), ``pop_size`` = NP.
 
     ``generations`` in the result counts shuffles.
     """
@@ -145,6 +166,7 @@ def shuffled_frog_leaping(
         max_leap=max_leap,
         rng=seed,
         initial=initial,
+        boundary=boundary,
     )
     return run(
         solver,
@@ -153,4 +175,39 @@ def shuffled_frog_leaping(
         budget_s=budget_s,
         clock=clock,
         started_at=started_at,
+    )
+
+
+def classic_shuffled_frog_leaping(
+    problem: Problem,
+    *,
+    pop_size: int = 30,
+    n_memeplexes: int = MSFLA_MEMEPLEXES,
+    shuffles: int = 90,
+    local_iterations: int = 40,
+    max_leap: FloatArray | float | None = None,
+    seed: int | np.random.Generator | None = None,
+    tol: float | None = None,
+    budget_s: float | None = None,
+    clock: Clock = DEFAULT_CLOCK,
+    initial: FloatArray | None = None,
+    boundary: Boundary = Boundary.CLAMP,
+) -> SolverResult:
+    """The classic SFLA (Eusuff & Lansey): :func:`shuffled_frog_leaping` with the leap factor
+    ``C_L = 1`` (``D = rand·(Θ_b − Θ_w)``), every other setting and the random draws the same,
+    so the same seed gives the same run as ``shuffled_frog_leaping(..., leap_factor=1)``."""
+    return shuffled_frog_leaping(
+        problem,
+        pop_size=pop_size,
+        n_memeplexes=n_memeplexes,
+        shuffles=shuffles,
+        local_iterations=local_iterations,
+        leap_factor=SFLA_CLASSIC_LEAP_FACTOR,
+        max_leap=max_leap,
+        seed=seed,
+        tol=tol,
+        budget_s=budget_s,
+        clock=clock,
+        initial=initial,
+        boundary=boundary,
     )

@@ -128,3 +128,16 @@ class IKObjective:
         pos_err = np.linalg.norm(t[:, :3, 3] - self._goal_pos, axis=1)
         ori_err = np.degrees(rotation_angle(self._goal_rot, t[:, :3, :3]))
         return PoseErrors(pos_err_cm=pos_err, ori_err_deg=ori_err)
+
+
+def pose_objective(
+    target: Pose, reached: Pose, *, sigma: float = 0.3, epsilon: float = 0.7
+) -> float:
+    """The papers' J (Eq. 1) of a reached pose rather than of joints: ``σ·‖ΔP‖ (cm) +
+    ε·‖ΔO‖`` with ΔO the roll/pitch/yaw differences in radians, each wrapped to [−π, π).
+
+    Used to check the papers' printed J against their own printed reached poses.
+    """
+    d_pos = np.linalg.norm(reached.position_cm - target.position_cm)
+    d_rpy = wrap_angle(reached.rpy_rad - target.rpy_rad)
+    return float(sigma * d_pos + epsilon * np.linalg.norm(d_rpy))

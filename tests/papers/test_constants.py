@@ -35,3 +35,12 @@ def test_table5_and_table7_rows_are_complete_and_in_order():
     # Table 5 test 9 is the authors' pick, the DE defaults.
     test9 = constants.TABLE5_DE[8]
     assert (test9[1], test9[2]) == (constants.DE_POP_SIZE, constants.DE_GENERATIONS)
+
+
+def test_printed_poses_parse_and_a_bad_one_is_named():
+    import pytest
+
+    assert constants.parse_pose("(-20, 3, 40, -1.40416e-9, 10, 15)").yaw_deg == 15.0
+    with pytest.raises(ValueError, match="x, y, z"):
+        constants.parse_pose("(-20, 3, forty, 0, 10, 15)")
+    assert len(constants.TABLE5_TOTAL_ERROR) == 14 and len(constants.TABLE7_TOTAL_ERROR) == 20

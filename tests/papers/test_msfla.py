@@ -96,3 +96,26 @@ def test_tolerance_and_budget_stop_the_loop():
 def test_bad_settings(kwargs, words):
     with pytest.raises(ValueError, match=words):
         shuffled_frog_leaping(Sphere(), **kwargs)
+
+
+def test_the_classic_sfla_is_the_same_loop_with_leap_factor_one():
+    from companion.papers.constants import SFLA_CLASSIC_LEAP_FACTOR
+    from companion.papers.msfla import classic_shuffled_frog_leaping
+
+    assert SFLA_CLASSIC_LEAP_FACTOR == 1.0
+    kw = dict(pop_size=9, shuffles=4, local_iterations=3, seed=5)
+    classic = classic_shuffled_frog_leaping(Sphere(3), **kw)
+    same = shuffled_frog_leaping(Sphere(3), leap_factor=1.0, **kw)
+    modified = shuffled_frog_leaping(Sphere(3), **kw)
+    np.testing.assert_array_equal(classic.cost_history, same.cost_history)
+    assert not np.array_equal(classic.cost_history, modified.cost_history)
+
+
+def test_wrapped_msfla_is_repeatable_and_stays_in_the_box():
+    from companion.papers.base import Boundary
+
+    kw = dict(pop_size=9, shuffles=3, local_iterations=3, seed=2, boundary=Boundary.WRAP)
+    a = shuffled_frog_leaping(Sphere(3), leap_factor=3.0, **kw)
+    b = shuffled_frog_leaping(Sphere(3), leap_factor=3.0, **kw)
+    np.testing.assert_array_equal(a.x, b.x)
+    assert np.all(np.abs(a.x) <= 1.0)

@@ -97,3 +97,17 @@ def test_vectorised_equals_one_by_one():
 def test_bad_settings_are_refused(kwargs, name):
     with pytest.raises(ValueError, match=name):
         IKObjective(ARM, Pose(0, 0, 50, 0, 0, 0), **kwargs)
+
+
+def test_pose_objective_recomputes_the_papers_j_from_a_printed_pose():
+    from companion.papers import constants
+    from companion.papers.objective import pose_objective
+
+    g = constants.TARGET_G
+    assert pose_objective(g, g) == 0.0
+    # Table 5 row 1 prints J = 4.60 beside a pose whose J is 0.21.
+    row1 = constants.parse_pose(constants.TABLE5_DE[0][5])
+    assert pose_objective(g, row1) == pytest.approx(0.2071, abs=1e-4)
+    # A yaw of 15° − 359° is 16° away from 15°, not 344°.
+    near = Pose(g.x_cm, g.y_cm, g.z_cm, g.roll_deg, g.pitch_deg, g.yaw_deg - 359.0)
+    assert pose_objective(g, near) == pytest.approx(0.7 * np.radians(1.0))
