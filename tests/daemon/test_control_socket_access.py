@@ -79,7 +79,12 @@ def as_nobody(path: Path, line: bytes, groups: Sequence[int] = ()) -> dict:
             try:
                 sock.connect(str(path))
             except OSError as exc:
-                os.write(write_end, json.dumps({"errno": errno.errorcode[exc.errno]}).encode())
+                try:  # and what the client (armbridge status) says about it
+                    request(path, {"cmd": "status"}, timeout_s=5.0)
+                except OSError as client_exc:
+                    said = str(client_exc)
+                result = {"errno": errno.errorcode[exc.errno], "client": said}
+                os.write(write_end, json.dumps(result).encode())
             else:
                 try:
                     sock.sendall(line + b"\n")
@@ -150,7 +155,10 @@ def test_the_configured_group_comes_from_the_config(tmp_path):
 def test_a_user_outside_the_group_cannot_connect(public_dir, daemon):
     srv = umask_0_server(public_dir / "c.sock", daemon)
     try:
-        assert as_nobody(public_dir / "c.sock", b'{"cmd": "status"}') == {"errno": "EACCES"}
+        result = as_nobody(public_dir / "c.sock", b'{"cmd": "status"}')
+        assert result["errno"] == "EACCES"
+        group = grp.getgrgid(os.getegid()).gr_name
+        assert f"(mode 0660, group {group}): the daemon's operators are" in result["client"]
     finally:
         srv.close()
 
