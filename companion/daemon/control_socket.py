@@ -34,9 +34,8 @@ stop serving others):
   its further requests wait, and a client that then reads nothing is closed as idle;
 * a connection that completes no request for ``idle_timeout_s`` is closed (a request line sent
   a byte at a time does not count until it is complete);
-* JSON: nesting at most :data:`MAX_DEPTH` deep, integers of at most :data:`MAX_INT_DIGITS`
-  digits, finite floats of at most :data:`MAX_FLOAT_CHARS` characters, no NaN or Infinity, no
-  duplicate key.
+* JSON: nesting at most :data:`MAX_DEPTH` deep, numbers of at most :data:`MAX_INT_DIGITS`
+  digits in a row, finite floats (no NaN, Infinity or overflow to it), no duplicate key.
 
 One request at a time per connection: the next line is read once the previous one is answered,
 so replies come in request order and a ``stop`` after a ``goto`` on one connection is asked
@@ -48,6 +47,7 @@ from __future__ import annotations
 
 import errno
 import grp
+import itertools
 import json
 import logging
 import math
@@ -85,11 +85,10 @@ MAX_LINE_BYTES = 64 * 1024
 MAX_QUEUED_REPLY_BYTES = 64 * 1024
 #: Nesting of JSON arrays and objects: a request needs 3 (object, points, point).
 MAX_DEPTH = 32
-#: Digits of a JSON integer: 20 hold any 64-bit integer; Python would parse 4 300 at a cost
+#: Digits in a row in a JSON number (an integer, or a float's parts): 20 hold any 64-bit
+#: integer and more than a double's 17 significant digits; Python would parse 4 300 at a cost
 #: that grows with the square of the length.
 MAX_INT_DIGITS = 20
-#: Characters of a JSON float: a double needs 17 significant digits and an exponent.
-MAX_FLOAT_CHARS = 64
 DEFAULT_MAX_CONNECTIONS = 32
 DEFAULT_IDLE_TIMEOUT_S = 30.0
 #: Pending connections the kernel queues before connect() blocks or fails.
@@ -403,9 +402,6 @@ class ControlServer:
             conn.active_s = now
             if line.strip():
                 self._handle(conn, line, now)
-        if conn.waiting is None and not conn.outbox and (conn.eof or stopping):
-            self._close(conn, "done")  # everything it sent is answered
-            return
         if conn.waiting is None and now - conn.active_s >= self.idle_timeout_s:
             if conn.outbox:
                 self._close(conn, f"read no reply for {self.idle_timeout_s:g} s")
@@ -418,6 +414,9 @@ class ControlServer:
             return
         self._flush(conn)
         if conn.closed:
+            return
+        if conn.waiting is None and not conn.outbox and (conn.eof or stopping):
+            self._close(conn, "done")  # everything it sent is answered
             return
         events = 0
         if not conn.eof and not stopping and len(conn.inbox) <= MAX_LINE_BYTES:
@@ -586,33 +585,15 @@ class _Refused(Exception):
 
 #: A JSON string, escapes included (the unrolled form: linear time, no backtracking blow-up).
 _JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"', re.S)
-_BRACKET = re.compile(r"[\[\]{}]")
-
-
-def _too_deep(text: str) -> bool:
-    """Whether ``text`` nests arrays and objects more than :data:`MAX_DEPTH` deep, counted
-    outside strings before parsing (the parser recurses once per level)."""
-    depth = 0
-    for match in _BRACKET.finditer(_JSON_STRING.sub("", text)):
-        if match.group() in "[{":
-            depth += 1
-            if depth > MAX_DEPTH:
-                return True
-        else:
-            depth -= 1
-    return False
-
-
-def _parse_int(text: str) -> int:
-    digits = len(text) - text.startswith("-")
-    if digits > MAX_INT_DIGITS:
-        raise _Refused(f"an integer of {digits} digits (at most {MAX_INT_DIGITS})")
-    return int(text)
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+_NESTING = {"[": 1, "{": 1, "]": -1, "}": -1}
+_DIGIT_RUN = re.compile(f"[0-9]{{{MAX_INT_DIGITS + 1},}}")
+#: Only a float with an exponent of 3 digits or more can overflow to infinity (the digits
+#: before it are bounded by _DIGIT_RUN).
+_BIG_EXPONENT = re.compile(r"[eE][+-]?[0-9]{3,}")
 
 
 def _parse_float(text: str) -> float:
-    if len(text) > MAX_FLOAT_CHARS:
-        raise _Refused(f"a number of {len(text)} characters (at most {MAX_FLOAT_CHARS})")
     value = float(text)
     if not math.isfinite(value):
         raise _Refused(f"the number {text} is out of a float's range")
@@ -633,19 +614,31 @@ def _object(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 
 def _loads(line: bytes) -> Any:
-    """One request line → a JSON value within the limits; ``_Refused`` or ``ValueError``."""
+    """One request line → a JSON value within the limits; ``_Refused`` or ``ValueError``.
+
+    Nesting and digits are counted on the line with its strings taken out, before parsing:
+    the parser recurses once per level, and Python's ``int()`` takes time quadratic in the
+    digits (it refuses only past 4 300). Per-number hooks would cost a Python call per number
+    of a trajectory; only a float that may overflow goes through one.
+    """
     text = line.decode("utf-8")
-    if _too_deep(text):
+    bare = _JSON_STRING.sub('""', text)  # what is left: structure, numbers, literals
+    steps = map(_NESTING.__getitem__, _NOT_BRACKET.sub("", bare))
+    if max(itertools.accumulate(steps), default=0) > MAX_DEPTH:
         raise _Refused(f"nested more than {MAX_DEPTH} deep")
+    run = _DIGIT_RUN.search(bare)
+    if run is not None:
+        raise _Refused(
+            f"a number with {len(run.group())} digits in a row (at most {MAX_INT_DIGITS})"
+        )
     try:
         return json.loads(
             text,
             object_pairs_hook=_object,
-            parse_int=_parse_int,
-            parse_float=_parse_float,
+            parse_float=_parse_float if _BIG_EXPONENT.search(bare) else float,
             parse_constant=_parse_constant,
         )
-    except RecursionError:  # not reached past _too_deep; kept as the last guard
+    except RecursionError:  # not reached past the nesting count; kept as the last guard
         raise _Refused(f"nested more than {MAX_DEPTH} deep") from None
 
 

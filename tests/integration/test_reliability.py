@@ -209,7 +209,7 @@ def test_control_socket_survives_an_integer_too_big_for_a_float(sims, daemons):
             reply += chunk
     assert json.loads(reply) == {
         "ok": False,
-        "error": "refused: an integer of 400 digits (at most 20)",
+        "error": "refused: a number with 400 digits in a row (at most 20)",
     }
     target = Arm.default().fk([20, 70, 50, 20, 30, 10]).as_tuple()
     assert daemon.request("goto", pose=list(target))["ok"]
