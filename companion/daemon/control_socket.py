@@ -212,8 +212,8 @@ class ControlServer:
                     self._event(key.data, mask)
                 now = time.monotonic()
                 stopping = self._stopping.is_set()
-                if stopping:
-                    self._stop_accepting()
+                if stopping and self._sock.fileno() >= 0:
+                    self._last_round()
                 elif self._accept_paused_until and now >= self._accept_paused_until:
                     self._accept_paused_until = 0.0
                     self._selector.register(self._sock, selectors.EVENT_READ, _LISTENER)
@@ -382,7 +382,7 @@ class ControlServer:
         if waiting is not None:
             self._follow(conn, waiting, now)
         stopping = self._stopping.is_set()
-        while conn.waiting is None and not stopping and len(conn.outbox) < MAX_QUEUED_REPLY_BYTES:
+        while conn.waiting is None and len(conn.outbox) < MAX_QUEUED_REPLY_BYTES:
             end = conn.inbox.find(b"\n", conn.scanned)
             if end < 0 and conn.eof and conn.inbox:
                 end = len(conn.inbox)  # the last request, sent without its newline
@@ -507,6 +507,18 @@ class ControlServer:
         log.debug("control connection %d closed: %s", conn.number, why)
 
     # -- stopping --------------------------------------------------------------------------------
+
+    def _last_round(self) -> None:
+        """Closing: take the connections still in the kernel's backlog and what every
+        connection sent so far, so that each request sent before the close is answered (the
+        daemon, closed first, answers at once); then stop listening."""
+        for _ in range(BACKLOG // _ACCEPTS_PER_ROUND + 1):
+            if self._accept_paused_until:
+                break
+            self._accept()
+        for conn in list(self._connections.values()):
+            self._guarded(conn, self._read)
+        self._stop_accepting()
 
     def _stop_accepting(self) -> None:
         if self._sock.fileno() < 0:

@@ -203,3 +203,28 @@ def test_one_thread_serves_every_connection(tmp_path, unstarted):
         for sock in socks:
             sock.close()
         srv.close()
+
+
+def test_requests_sent_before_close_are_answered(tmp_path, unstarted):
+    """Shutdown closes the daemon first (it answers everything at once), then the socket: a
+    request already sent, whether its connection was accepted yet or still in the kernel's
+    backlog, gets its answer before the connection closes."""
+    unstarted.close()
+    srv = ControlServer(tmp_path / "c.sock", unstarted)
+    socks = [socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) for _ in range(8)]
+    try:
+        for sock in socks:
+            sock.settimeout(5)
+            sock.connect(srv.path)
+            sock.sendall(b'{"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]}\n')
+        srv.close()
+        for sock in socks:
+            reply = json.loads(sock.recv(65536).split(b"\n")[0])
+            assert (reply["outcome"], reply["message"]) == (
+                "temporarily_rejected",
+                "daemon stopping",
+            )
+            assert sock.recv(65536) == b""
+    finally:
+        for sock in socks:
+            sock.close()
