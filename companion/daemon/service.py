@@ -450,11 +450,15 @@ class ArmDaemon:
                 # The update then goes unanswered and the core treats it so; a transport
                 # error also drops the link to LOST, which makes the core hold.
                 log.warning("servo commands not sent: %s", exc)
-        for action in actions:
-            if isinstance(action, Answer):
-                reply = action.reply
-                if action.request.answer(reply) and reply.outcome is not Outcome.ACCEPTED:
-                    self.intake.refusals.note(action.request.kind, reply.outcome, reply.message)
+        answers = [a for a in actions if isinstance(a, Answer)]
+        if answers:
+            # Before the answers: a client that asks for status once answered sees its request
+            # counted (the snapshot is otherwise refreshed only at the end of the step).
+            self._status = self._core.status()
+        for action in answers:
+            reply = action.reply
+            if action.request.answer(reply) and reply.outcome is not Outcome.ACCEPTED:
+                self.intake.refusals.note(action.request.kind, reply.outcome, reply.message)
 
     def _guarded(self, where: str, request: Request | None, work: Callable[[], None]) -> None:
         """Run ``work``; a bug in it must not kill the thread that guards the servos: it is
