@@ -95,6 +95,8 @@ DEFAULT_IDLE_TIMEOUT_S = 30.0
 BACKLOG = 64
 #: New connections taken per round of the loop, so that the ones already open are served too.
 _ACCEPTS_PER_ROUND = 16
+#: Failures in a row of the loop itself (not of one connection) before the socket gives up.
+_LOOP_FAILURES_MAX = 10
 #: After accept() failed for lack of file descriptors, it is retried after this.
 _ACCEPT_PAUSE_S = 0.1
 _SUN_PATH_MAX = 107  # bytes of a Unix socket path (sockaddr_un.sun_path, less its NUL)
@@ -205,26 +207,42 @@ class ControlServer:
 
     # -- the loop (its own thread) ---------------------------------------------------------------
 
+    @property
+    def alive(self) -> bool:
+        """Whether the socket is served (its thread runs and was not asked to stop)."""
+        return self._thread.is_alive() and not self._stopping.is_set()
+
     def _loop(self) -> None:
+        failures = 0
         try:
             while True:
-                for key, mask in self._selector.select(self._timeout_s(time.monotonic())):
-                    self._event(key.data, mask)
-                now = time.monotonic()
-                stopping = self._stopping.is_set()
-                if stopping and self._sock.fileno() >= 0:
-                    self._last_round()
-                elif self._accept_paused_until and now >= self._accept_paused_until:
-                    self._accept_paused_until = 0.0
-                    self._selector.register(self._sock, selectors.EVENT_READ, _LISTENER)
-                for conn in list(self._connections.values()):
-                    self._guarded(conn, self._service, now)
-                if stopping and (not self._connections or now >= self._flush_deadline):
-                    break
-        except Exception:  # pragma: no cover - a bug: say so, then close what is open
-            log.exception("the control socket's loop failed; the socket is closed")
+                try:
+                    if self._round():
+                        return
+                    failures = 0
+                except Exception:  # a bug outside any one connection: say so, serve on
+                    failures += 1
+                    log.exception("the control socket's loop failed (%d in a row)", failures)
+                    if failures >= _LOOP_FAILURES_MAX:
+                        log.error("the control socket is closed: its loop keeps failing")
+                        return
         finally:
             self._shutdown()
+
+    def _round(self) -> bool:
+        """One pass: the events, then every connection; True once stopped."""
+        for key, mask in self._selector.select(self._timeout_s(time.monotonic())):
+            self._event(key.data, mask)
+        now = time.monotonic()
+        stopping = self._stopping.is_set()
+        if stopping and self._sock.fileno() >= 0:
+            self._last_round()
+        elif self._accept_paused_until and now >= self._accept_paused_until:
+            self._accept_paused_until = 0.0
+            self._selector.register(self._sock, selectors.EVENT_READ, _LISTENER)
+        for conn in list(self._connections.values()):
+            self._guarded(conn, self._service, now)
+        return stopping and (not self._connections or now >= self._flush_deadline)
 
     def _event(self, data: Any, mask: int) -> None:
         if data is _LISTENER:

@@ -228,3 +228,28 @@ def test_requests_sent_before_close_are_answered(tmp_path, unstarted):
     finally:
         for sock in socks:
             sock.close()
+
+
+def test_a_bug_in_the_loop_is_logged_and_the_socket_keeps_serving(
+    tmp_path, unstarted, monkeypatch, caplog
+):
+    """The issue saw the accept thread die for good (socket dead, MAVLink still moving the
+    arm): a failure of the loop itself is logged and the next round serves again."""
+    srv = ControlServer(tmp_path / "c.sock", unstarted)
+    real_accept = srv._accept
+    failed = []
+
+    def accept_once_failing():
+        if not failed:
+            failed.append(True)
+            raise RuntimeError("a bug")
+        real_accept()
+
+    monkeypatch.setattr(srv, "_accept", accept_once_failing)
+    try:
+        assert request(srv.path, {"cmd": "status"})["ok"]
+        assert failed and srv.alive
+        assert "the control socket's loop failed (1 in a row)" in caplog.text
+    finally:
+        srv.close()
+    assert not srv.alive
