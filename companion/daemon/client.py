@@ -7,8 +7,13 @@ solver and pymavlink are never imported for them). The server side is
 
 from __future__ import annotations
 
+import errno
+import grp
 import json
+import os
 import socket
+import stat
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +26,8 @@ def json_line_request(path: str | Path, obj: Any, *, timeout_s: float = 10.0) ->
     decoded. ``ConnectionError`` if the peer closes first or the reply exceeds
     :data:`MAX_REPLY_BYTES`; ``OSError`` (``TimeoutError`` …) from the socket itself."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        _connect(sock, path, timeout_s)
         sock.settimeout(timeout_s)
-        sock.connect(str(path))
         sock.sendall((json.dumps(obj) + "\n").encode())
         buffer = b""
         while b"\n" not in buffer:
@@ -33,6 +38,42 @@ def json_line_request(path: str | Path, obj: Any, *, timeout_s: float = 10.0) ->
                 raise ConnectionError(f"{path} closed the connection without a reply")
             buffer += chunk
     return json.loads(buffer.split(b"\n", 1)[0])
+
+
+def _connect(sock: socket.socket, path: str | Path, timeout_s: float) -> None:
+    """Connect, waiting in the kernel's queue while the server's backlog is full (a busy
+    server) for up to ``timeout_s``: a non-blocking connect to a Unix socket fails at once with
+    EAGAIN instead, and Python's socket timeouts make it non-blocking; ``SO_SNDTIMEO`` bounds
+    the blocking one. ``PermissionError`` says which group the socket wants."""
+    whole_s = int(timeout_s)
+    sock.setsockopt(
+        socket.SOL_SOCKET,
+        socket.SO_SNDTIMEO,
+        struct.pack("@ll", whole_s, int((timeout_s - whole_s) * 1e6)),
+    )
+    try:
+        sock.connect(str(path))
+    except BlockingIOError as exc:  # SO_SNDTIMEO expired
+        raise TimeoutError(
+            errno.ETIMEDOUT, f"{path} accepted no connection within {timeout_s:g} s"
+        ) from exc
+    except PermissionError as exc:
+        raise PermissionError(exc.errno, _permission_hint(path), str(path)) from exc
+
+
+def _permission_hint(path: str | Path) -> str:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return "Permission denied"
+    try:
+        group = grp.getgrgid(st.st_gid).gr_name
+    except KeyError:
+        group = str(st.st_gid)
+    return (
+        f"Permission denied (mode {stat.S_IMODE(st.st_mode):04o}, group {group}): the daemon's "
+        f"operators are the members of group {group!r}; ask to be added (then log in again)"
+    )
 
 
 def request(path: str | Path, obj: dict[str, Any], *, timeout_s: float = 10.0) -> dict[str, Any]:

@@ -9,8 +9,10 @@ example ``companion/daemon/examples/armbridge.toml``.
 
 from __future__ import annotations
 
+import grp
 import math
 import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -67,6 +69,14 @@ TOL_POS_CM = (1e-6, 10.0)
 TOL_ORI_DEG = (1e-6, 180.0)
 #: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing.
 JOINT_SPEED_DEG_S = (None, 1000.0)
+#: The control socket's connections: each holds at most a 64 KiB request line and 64 KiB of
+#: queued replies (control_socket.MAX_LINE_BYTES, MAX_QUEUED_REPLY_BYTES), so 256 bound the
+#: socket's buffers to 32 MiB; onboard software needs a handful.
+MAX_CONNECTIONS = (1, 256)
+#: A connection that completes no request for this long is closed. 0.1 s is already shorter
+#: than a loaded board may take between connecting and sending; past an hour a dead client
+#: holds its slot all day.
+IDLE_TIMEOUT_S = (0.1, 3600.0)
 #: A trim corrects a horn's mounting (one spline tooth is 80-130 us); past 500 us, half a
 #: standard 1000-2000 us servo's travel, it is a different calibration: set pwm_min/max_us.
 TRIM_US_MAX = 500
@@ -106,7 +116,14 @@ class DaemonConfig:
     joint_speed_deg_s: float = 60.0
     park_deg: tuple[float, ...] | None = None
     park_on_stop: bool = False
+    #: The control socket's absolute path (a relative one in the file counts from the file's
+    #: directory); None: no socket.
     control_socket: str | None = None
+    #: The group the socket belongs to (mode 0660): its members may use it, and so may root
+    #: and the daemon's own user. None: the daemon's primary group.
+    control_socket_group: str | None = None
+    control_max_connections: int = 32
+    control_idle_timeout_s: float = 30.0
 
 
 _SECTIONS = ("link", "arm", "solver", "control", "joint")
@@ -127,7 +144,7 @@ _LINK_KEYS = (
 )
 _ARM_KEYS = ("file", "park_deg", "park_on_stop", "joint_speed_deg_s")
 _SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed")
-_CONTROL_KEYS = ("rate_hz", "socket")
+_CONTROL_KEYS = ("rate_hz", "socket", "socket_group", "max_connections", "idle_timeout_s")
 _JOINT_KEYS = (
     "name",
     "output",
@@ -169,6 +186,10 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
 
     solver = root.table("solver", allowed=_SOLVER_KEYS)
     control = root.table("control", allowed=_CONTROL_KEYS)
+    if "socket" not in control:
+        for key in ("socket_group", "max_connections", "idle_timeout_s"):
+            if key in control:
+                raise control.fail(key, "set without control.socket (there is no socket)")
     calibration = _parse_calibration(root, arm)
     _check_pwm_covers_arm(source, arm, calibration, park)
     return DaemonConfig(
@@ -184,7 +205,12 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
-        control_socket=_socket_path(control) if "socket" in control else None,
+        control_socket=_socket_path(control, base) if "socket" in control else None,
+        control_socket_group=_group(control, "socket_group") if "socket_group" in control else None,
+        control_max_connections=control.integer(
+            "max_connections", 32, min_value=MAX_CONNECTIONS[0], max_value=MAX_CONNECTIONS[1]
+        ),
+        control_idle_timeout_s=_bounded(control, "idle_timeout_s", 30.0, IDLE_TIMEOUT_S),
     )
 
 
@@ -197,15 +223,67 @@ def _bounded(t: Table, key: str, default: float, bounds: tuple[float | None, flo
 SOCKET_PATH_MAX_BYTES = 107
 
 
-def _socket_path(t: Table) -> str:
-    path = t.string("socket")
+def _socket_path(t: Table, base: Path) -> str:
+    """``control.socket``, absolute (a relative path counts from the config file's directory,
+    like every other path in it), checked as ``run`` would use it: it fits ``sun_path``, its
+    directory exists, and whatever is at the path already is a socket (``run`` replaces only a
+    stale socket of its own; it also refuses one that a live daemon listens on, which a
+    static check cannot tell from a stale one)."""
+    path = os.path.abspath(base / t.string("socket"))
     size = len(os.fsencode(path))
     if size > SOCKET_PATH_MAX_BYTES:
         raise t.fail(
             "socket",
-            f"path is {size} bytes, a Unix socket path takes at most {SOCKET_PATH_MAX_BYTES}",
+            f"path {path} is {size} bytes, a Unix socket path takes at most "
+            f"{SOCKET_PATH_MAX_BYTES}",
+        )
+    directory = os.path.dirname(path)
+    if not os.path.isdir(directory):
+        # systemd's RuntimeDirectory= makes /run/NAME when the service starts (and removes it
+        # when it stops): a check before the first start must not refuse the shipped layout.
+        if os.path.dirname(directory) != "/run":
+            raise t.fail("socket", f"directory {directory} does not exist (for {path})")
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return path
+    except OSError as exc:
+        raise t.fail("socket", f"cannot check {path}: {exc.strerror or exc}") from exc
+    if not stat.S_ISSOCK(mode):
+        raise t.fail(
+            "socket",
+            f"{path} exists and is not a socket ({file_kind(mode)}): the daemon replaces only a "
+            "stale socket of its own; move it away or choose another path",
         )
     return path
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` is, in words (for messages)."""
+    for test, kind in (
+        (stat.S_ISREG, "a regular file"),
+        (stat.S_ISDIR, "a directory"),
+        (stat.S_ISLNK, "a symbolic link"),
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return kind
+    return f"mode {mode:o}"
+
+
+def _group(t: Table, key: str) -> str:
+    """A group name that exists on this system (the daemon gives its socket to it)."""
+    name = t.string(key)
+    try:
+        grp.getgrnam(name)
+    except KeyError:
+        raise t.fail(
+            key, f"no group {name!r} on this system (create it: groupadd {name})"
+        ) from None
+    return name
 
 
 def _parse_link(t: Table, base: Path) -> LinkSettings:

@@ -473,7 +473,8 @@ class ArmDaemon:
                 log.warning("servo commands not sent: %s", exc)
         answers = [a for a in actions if isinstance(a, Answer)]
         if answers:
-            # A client that got its answer and then asks for status sees what the answer said.
+            # Before the answers: a client that asks for status once answered sees its request
+            # counted (the snapshot is otherwise refreshed only at the end of the step).
             self._status = self._core.status()
         for action in answers:
             reply = action.reply

@@ -106,6 +106,24 @@ def test_unreachable_g_is_refused_and_nothing_moves(sim):
 
 
 @pytest.mark.slow
+def test_status_asked_once_answered_counts_the_answer(sim):
+    """The status snapshot is refreshed before the answers go out: a client that asks for
+    status as soon as it has its answer (the control socket serves it within microseconds)
+    sees its request counted. Read from the answer's own callback, the snapshot was the step's
+    old one."""
+    url, _ = sim()
+    daemon = make_daemon(url)
+    try:
+        seen = []
+        future = daemon.submit("goto", G)
+        future.add_done_callback(lambda _: seen.append(daemon.status()["counters"]["failed"]))
+        assert future.result(WAIT_S).outcome is Outcome.FAILED
+        assert seen == [1]
+    finally:
+        daemon.close()
+
+
+@pytest.mark.slow
 def test_invalid_targets_are_denied(sim):
     url, _ = sim()
     daemon = make_daemon(url)

@@ -881,7 +881,13 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "solver.tol_ori_deg": ("number", (0, -0.1, 9e-7, 180.5)),
     "solver.seed": ("integer", (-1,)),
     "control.rate_hz": ("number", (0, -20, 1e-10, 0.999, 400.5, 1e9)),
-    "control.socket": ("string", ("/tmp/" + "s" * 120 + ".sock",)),
+    "control.socket": (
+        "string",
+        ("/tmp/" + "s" * 120 + ".sock", "/nonexistent-armbridge-dir/c.sock", ".", "good.key"),
+    ),
+    "control.socket_group": ("string", ("no-such-group-armbridge",)),
+    "control.max_connections": ("integer", (0, -1, 257, 2**40)),
+    "control.idle_timeout_s": ("number", (0, -1.0, 0.09, 3600.5, 1e300)),
     "joint.name": ("string", ()),
     "joint.output": ("integer", (0, 17, -9)),
     "joint.pwm_min_us": ("integer", (499, 2501, 2000, 2**40)),
@@ -898,6 +904,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
 _NEEDS = {
     "link.signing_link_id": {"signing_key": "good.key"},
     "link.signing_state": {"signing_key": "good.key"},
+    "control.socket_group": {"socket": "/tmp/armbridge-fuzz.sock"},
+    "control.max_connections": {"socket": "/tmp/armbridge-fuzz.sock"},
+    "control.idle_timeout_s": {"socket": "/tmp/armbridge-fuzz.sock"},
 }
 
 
