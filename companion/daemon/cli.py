@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import io
 import json
 import logging
@@ -437,8 +438,13 @@ def _positive_seconds(text: str) -> float:
     return value
 
 
+@functools.cache
+def _parser() -> argparse.ArgumentParser:
+    return build_parser()  # ~10 ms to build (a parser per verb): once per process
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = _parser().parse_args(argv)
     level = args.log_level or ("DEBUG" if args.verbose else "WARNING" if args.quiet else "INFO")
     logging.basicConfig(
         level=level,

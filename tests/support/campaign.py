@@ -23,7 +23,9 @@ a Markdown report. It lives here, not in ``bench/``, because tests never import 
 from __future__ import annotations
 
 import contextlib
+import copy
 import datetime
+import functools
 import io
 import math
 import os
@@ -926,6 +928,12 @@ class ConfigCase:
 
 
 def _base_config() -> dict[str, Any]:
+    """A fresh copy (callers break it in place) of the parsed example with every joint key."""
+    return copy.deepcopy(_base_config_once())
+
+
+@functools.cache
+def _base_config_once() -> dict[str, Any]:
     data = tomllib.loads(EXAMPLE_TEXT)
     # Give every joint row every key (at its default), so each can be broken in place.
     arm = Arm.default()
