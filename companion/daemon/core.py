@@ -48,7 +48,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig
 from companion.daemon.motion import limit_step
-from companion.daemon.requests import Outcome, Reply, Request, as_pose, parse_trajectory
+from companion.daemon.requests import (
+    MOTION_KINDS,
+    Outcome,
+    Reply,
+    Request,
+    as_pose,
+    parse_trajectory,
+)
 from companion.kinematics.arm import Pose
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
@@ -194,6 +201,8 @@ class ControlCore:
         }
         self.last_target: dict[str, Any] | None = None
         self._hand_at: tuple[tuple[float, ...], dict[str, float]] | None = None
+        #: (kind, source) → (when its last "accepted" line was logged, how many since)
+        self._accept_log: dict[tuple[str, Any], tuple[float, int]] = {}
 
     # -- events -----------------------------------------------------------------------------
 
@@ -754,15 +763,35 @@ class ControlCore:
     def _answer(self, actions: list[Action], request: Request, reply: Reply) -> None:
         actions.append(Answer(request, reply))
         if reply.outcome is Outcome.ACCEPTED:
-            # One line per request carried out (refusals are summarised by the intake).
-            target = ""
-            if request.kind == "goto" and self.last_target is not None:
-                target = " (" + ", ".join(f"{v:.2f}" for v in self.last_target["pose"]) + ")"
-            log.info(
-                "%s%s from %s accepted: %s", request.kind, target, _source(request), reply.message
-            )
+            self._log_accepted(request, reply)
         if request.kind != "stop":
             self.counters[reply.outcome.value] += 1
+
+    def _log_accepted(self, request: Request, reply: Reply) -> None:
+        """One line per request carried out (refusals are summarised by the intake), but a
+        stream of targets (50 Hz from a ground station) at most one line per second per kind
+        and source, saying how many it stood for: the journal of a board on an SD card."""
+        key = (request.kind, request.source)
+        now = self.clock()
+        last_s, skipped = self._accept_log.get(key, (-math.inf, 0))
+        if request.kind in MOTION_KINDS and now - last_s < ACCEPT_LOG_INTERVAL_S:
+            self._accept_log[key] = (last_s, skipped + 1)
+            return
+        if len(self._accept_log) >= 256:  # bounded: sources come and go
+            self._accept_log.clear()
+        self._accept_log[key] = (now, 0)
+        target = ""
+        if request.kind == "goto" and self.last_target is not None:
+            target = " (" + ", ".join(f"{v:.2f}" for v in self.last_target["pose"]) + ")"
+        more = f" (and {skipped} more since the last line)" if skipped else ""
+        log.info(
+            "%s%s from %s accepted: %s%s",
+            request.kind,
+            target,
+            _source(request),
+            reply.message,
+            more,
+        )
 
     def status(self) -> dict[str, Any]:
         """A JSON-ready snapshot (build it on the driving thread)."""
@@ -797,6 +826,9 @@ class ControlCore:
             "counters": dict(self.counters),
         }
 
+
+#: At most one "accepted" log line per second per kind and source for motion requests.
+ACCEPT_LOG_INTERVAL_S = 1.0
 
 #: The keys of a pose in status and replies, in ``Pose`` order.
 POSE_KEYS = ("x_cm", "y_cm", "z_cm", "roll_deg", "pitch_deg", "yaw_deg")
