@@ -2,6 +2,7 @@
 
     python -m bench.flood [--rate-hz 5000] [--duration-s 10] [--unreachable 0.5]
                           [--stop-every-s 0.2] [--baseline-s 3] [--dialect ardupilot]
+                          [--via autopilot|direct]
                           [--seed 0] [--markdown bench/results/flood.md]
 
 About 25 s with the defaults (the issue's size: 5 000 targets/s for 10 s).
@@ -10,9 +11,12 @@ The daemon (``armbridge run``, shipped defaults plus a control socket) and the s
 controller (``python -m sim_servo``, ArduCopter link timing, a ground-station link) run as
 subprocesses on UDP loopback (``bench/loopback.py``). A child process (``bench/flooder.py``)
 sends ``--rate-hz`` COMMAND_LONG ``MAV_CMD_USER_1`` a second for ``--duration-s``, unsigned,
-from 255/190, straight to the daemon's UDP socket (which accepts datagrams from anyone: issue
-14), addressed to the daemon (the autopilot's system id, component 191); the poses are seeded,
-a fraction ``--unreachable`` of them out of reach (their solve runs the whole budget). The
+from 255/190, addressed to the daemon (the autopilot's system id, component 191), with
+``--via autopilot`` (the default) to the simulator's ground-station link, which routes them to
+the daemon as a ground station's targets are; with ``--via direct`` straight to the daemon's UDP
+socket, which since issue 14 reads only its autopilot (the flood is dropped and counted there);
+the poses are seeded, a fraction ``--unreachable`` of them out of reach (their solve runs the
+whole budget). The
 flooder heartbeats to the simulator's ground-station link, so the daemon's ACKs, sent to the
 autopilot, are routed back to it and counted per MAV_RESULT.
 
@@ -139,6 +143,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         flooder = Flooder(
             encode_targets(poses, system_id),
             daemon_port=ports[0],
+            via_autopilot=args.via == "autopilot",
             gcs_url=stack.gcs_url,
             rate_hz=args.rate_hz,
         )
@@ -236,8 +241,13 @@ def report(out: dict[str, Any], args: argparse.Namespace, load_before: str) -> l
         f"after: {out['load_after']}.",
         "",
         f"{out['count']} COMMAND_LONG USER_1 ({out['unreachable']} unreachable, seed "
-        f"{args.seed}) at {args.rate_hz:g}/s from 255/190, unsigned, straight to the daemon's "
-        f"UDP socket ({args.dialect} dialect, shipped defaults). Sent {r.sent} in "
+        f"{args.seed}) at {args.rate_hz:g}/s from 255/190, unsigned, "
+        + (
+            "to the simulated autopilot's ground-station link, routed to the daemon "
+            if args.via == "autopilot"
+            else "straight to the daemon's UDP socket (which reads only its autopilot) "
+        )
+        + f"({args.dialect} dialect, shipped defaults). Sent {r.sent} in "
         f"{out['flood_wall_s']:.2f} s ({r.sent / out['flood_wall_s']:.0f}/s), "
         f"{r.send_errors} send errors.",
         "",
@@ -304,6 +314,14 @@ def main() -> int:
     parser.add_argument("--stop-every-s", type=float, default=0.2)
     parser.add_argument("--baseline-s", type=float, default=3.0)
     parser.add_argument("--dialect", choices=["ardupilot", "px4"], default="ardupilot")
+    parser.add_argument(
+        "--via",
+        choices=["autopilot", "direct"],
+        default="autopilot",
+        help="autopilot: to the simulator's ground-station link, routed to the daemon (a ground "
+        "station's path); direct: to the daemon's UDP socket, which reads only its autopilot "
+        "(issue 14): the flood is dropped there",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/flood.md")
     return run_and_report(run, report, parser.parse_args())

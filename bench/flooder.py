@@ -180,6 +180,7 @@ class Flooder:
         daemon_port: int,
         gcs_url: str | None,
         rate_hz: float,
+        via_autopilot: bool = False,
     ) -> None:
         gcs_addr = None
         if gcs_url:
@@ -189,7 +190,13 @@ class Flooder:
         self._conn, child_conn = ctx.Pipe()
         self._proc = ctx.Process(
             target=_child,
-            args=(child_conn, list(frames), ("127.0.0.1", daemon_port), gcs_addr, rate_hz),
+            args=(
+                child_conn,
+                list(frames),
+                gcs_addr if via_autopilot and gcs_addr else ("127.0.0.1", daemon_port),
+                gcs_addr,
+                rate_hz,
+            ),
             name="armbridge-flooder",
             daemon=True,
         )
