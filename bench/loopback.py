@@ -122,7 +122,7 @@ class ControlSocketInput:
         update (inf if not accepted): the last servo command it handled between the daemon
         starting that update (``timing.first_out_s``) and having all its ACKs
         (``timing.acked_s``). An update with nothing to send (ardupilot, no PWM changed) ends
-        at ``acked_s``."""
+        at ``acked_s``; a target already reached (no update at all) at ``solved_s``."""
         sim_s = np.array([t for t, kind in _servo_and_acks(events, since_s) if kind == "servo"])
         ends = []
         for answer in answers:
@@ -133,6 +133,8 @@ class ControlSocketInput:
                 last = int(np.searchsorted(sim_s, timing["acked_s"])) - 1
                 if last >= 0 and sim_s[last] >= timing["first_out_s"]:
                     end = float(sim_s[last])
+            elif answer["outcome"] == "accepted" and "solved_s" in timing:
+                end = timing["solved_s"]  # nothing to send: the servos were already there
             ends.append(end)
         return ends
 
