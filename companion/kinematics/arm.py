@@ -1,14 +1,32 @@
-"""Arm description (DH table, joint limits, tool) and hand poses.
+"""Arm description (a serial chain of revolute and prismatic joints, limits, base and tool) and
+hand poses.
 
-An arm is read from a TOML file (schema in the README, "Arm files")::
+An arm is read from a TOML file of Denavit–Hartenberg rows (schema in the README, "Arm files") or
+from a URDF (:mod:`companion.kinematics.urdf`)::
 
     from companion.kinematics.arm import Arm, Pose
     arm = Arm.default()                    # the papers' 6-DOF arm, standard DH + Table 2 limits
     arm = Arm.from_toml("my_arm.toml")
-    pose = arm.fk([q1, ..., q6])           # joint angles in degrees -> Pose
+    arm = Arm.from_urdf("my_arm.urdf")
+    pose = arm.fk([q1, ..., q6])           # degrees (cm for prismatic joints) -> Pose
 
 Centimetres and degrees live at this boundary (the papers' units); inside, angles are radians
 and lengths centimetres.
+
+The model every arm compiles to (and the compiled solver uses), whatever it was written in: a
+chain of ``n + 1`` fixed transforms ``F_0 … F_n`` (cm) and ``n`` joint motions ``M_i``::
+
+    T(q) = F_0 · M_1(q_1) · F_1 · M_2(q_2) · … · M_n(q_n) · F_n
+
+where ``M_i`` is ``Rz(s_i·q_i + offset_i)`` for a revolute joint and ``Tz(s_i·q_i + offset_i)``
+for a prismatic one (``s_i`` = ``direction``, ±1): every joint moves about or along the z axis of
+the frame it acts in. The base transform is folded into ``F_0`` and the tool into ``F_n``; a DH
+row splits into the fixed part before and after its variable (:func:`dh.split_dh_row`); a URDF
+joint's origin and axis become ``F`` with a rotation taking z onto the axis.
+
+Joint coordinates ``q``: radians for a revolute joint, centimetres for a prismatic joint
+(degrees and cm at :meth:`Arm.fk` and in arm files; prismatic limits are in the file's
+``length_unit``).
 """
 
 from __future__ import annotations
@@ -18,6 +36,7 @@ import numbers
 import tomllib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -26,8 +45,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from companion.errors import ArmConfigError, JointLimitError
-from companion.kinematics.dh import DHConvention, chain, link_transforms
+from companion.errors import ArmConfigError, JointLimitError, KinematicsError
+from companion.kinematics.dh import DHConvention, split_dh_row
 from companion.kinematics.rotations import FloatArray, matrix_to_rpy, rpy_to_matrix
 from companion.tomltable import Table, load_toml
 
@@ -35,6 +54,9 @@ LENGTH_UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
 """Units accepted for ``length_unit`` and their size in centimetres."""
 
 DEFAULT_ARM_FILE = "paper_arm.toml"
+
+Matrix = tuple[tuple[float, ...], ...]
+"""A 4×4 homogeneous transform, row by row (hashable, so an :class:`Arm` compares by value)."""
 
 
 @dataclass(frozen=True)
@@ -108,28 +130,131 @@ class Pose:
         return (self.x_cm, self.y_cm, self.z_cm, self.roll_deg, self.pitch_deg, self.yaw_deg)
 
 
-@dataclass(frozen=True)
-class Joint:
-    """One DH row. Angles in radians, lengths in cm; limits apply to ``q`` (before the offset)."""
+class JointKind(Enum):
+    """How a joint moves: about (REVOLUTE) or along (PRISMATIC) its axis."""
 
-    name: str
+    REVOLUTE = "revolute"
+    PRISMATIC = "prismatic"
+
+
+@dataclass(frozen=True)
+class DHRow:
+    """The DH parameters a joint came from (None for URDF joints). Radians and cm.
+
+    ``d_cm`` is the fixed offset of a revolute joint, ``theta_rad`` the fixed angle of a
+    prismatic one (the other is the joint variable, plus the joint's ``offset``).
+    """
+
     alpha_rad: float
     a_cm: float
-    d_cm: float
-    offset_rad: float
-    min_rad: float
-    max_rad: float
+    d_cm: float = 0.0
+    theta_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class Joint:
+    """One joint: kind, limits, direction and offset, in joint units (rad, or cm if prismatic).
+
+    The joint variable is ``s·q + offset`` (``s`` = ``direction``); limits apply to ``q``.
+    """
+
+    name: str
+    lower: float
+    upper: float
+    kind: JointKind = JointKind.REVOLUTE
+    direction: int = 1
+    offset: float = 0.0
+    dh: DHRow | None = None
+
+    @property
+    def revolute(self) -> bool:
+        return self.kind is JointKind.REVOLUTE
+
+    def _need_revolute(self, what: str) -> None:
+        if not self.revolute:
+            raise KinematicsError(f"joint {self.name} is prismatic: {what} is for revolute joints")
+
+    def _need_dh(self, what: str) -> DHRow:
+        if self.dh is None:
+            raise KinematicsError(f"joint {self.name} has no DH row (a URDF joint): no {what}")
+        return self.dh
+
+    @property
+    def min_rad(self) -> float:
+        """Lower limit in radians (revolute joints only)."""
+        self._need_revolute("min_rad")
+        return self.lower
+
+    @property
+    def max_rad(self) -> float:
+        """Upper limit in radians (revolute joints only)."""
+        self._need_revolute("max_rad")
+        return self.upper
+
+    @property
+    def offset_rad(self) -> float:
+        self._need_revolute("offset_rad")
+        return self.offset
+
+    @property
+    def alpha_rad(self) -> float:
+        return self._need_dh("alpha_rad").alpha_rad
+
+    @property
+    def a_cm(self) -> float:
+        return self._need_dh("a_cm").a_cm
+
+    @property
+    def d_cm(self) -> float:
+        return self._need_dh("d_cm").d_cm
+
+    def to_user(self, q: float) -> float:
+        """Joint coordinate → degrees (revolute) or cm (prismatic)."""
+        return math.degrees(q) if self.revolute else q
+
+    def from_user(self, value: float) -> float:
+        """Degrees (revolute) or cm (prismatic) → joint coordinate."""
+        return math.radians(value) if self.revolute else value
+
+
+def transform(
+    xyz: Sequence[float] | FloatArray, rpy_rad: Sequence[float] | FloatArray
+) -> FloatArray:
+    """4×4 transform: translation ``xyz`` after the rotation ``Rz(yaw)·Ry(pitch)·Rx(roll)``."""
+    out = np.eye(4)
+    out[:3, :3] = rpy_to_matrix(*rpy_rad)
+    out[:3, 3] = xyz
+    return out
+
+
+def as_matrix_tuple(matrix: FloatArray) -> Matrix:
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(matrix, float))
 
 
 @dataclass(frozen=True)
 class Arm:
-    """A serial arm: DH table, joint limits and an optional fixed tool transform (cm)."""
+    """A serial arm: joints, the fixed transforms between them (cm), base and tool.
+
+    ``frames`` holds ``F_0 … F_n`` of the module docstring, base and tool folded in. ``base``
+    and ``tool`` are kept for reference (None = identity); ``convention`` is the DH convention
+    of an arm built from DH rows, None for one built from a URDF.
+    """
 
     name: str
-    convention: DHConvention
     joints: tuple[Joint, ...]
-    tool: tuple[tuple[float, ...], ...] | None = None
-    """Fixed 4×4 transform from the last DH frame to the hand (cm), row by row; None = identity."""
+    frames: tuple[Matrix, ...]
+    convention: DHConvention | None = None
+    base: Matrix | None = None
+    tool: Matrix | None = None
+
+    def __post_init__(self) -> None:
+        if not self.joints:
+            raise ValueError("an arm needs at least one joint")
+        if len(self.frames) != len(self.joints) + 1:
+            raise ValueError(
+                f"an arm of {len(self.joints)} joints needs {len(self.joints) + 1} frames, "
+                f"got {len(self.frames)}"
+            )
 
     # -- construction -------------------------------------------------------------------------
 
@@ -140,9 +265,14 @@ class Arm:
 
     @classmethod
     def from_package_file(cls, name: str) -> Arm:
-        """Load one of the arm files shipped in ``companion/kinematics/arms/``."""
+        """Load one of the arm files shipped in ``companion/kinematics/arms/`` (TOML or URDF)."""
         ref = resources.files("companion.kinematics") / "arms" / name
-        return cls.from_dict(tomllib.loads(ref.read_text(encoding="utf-8")), source=name)
+        text = ref.read_text(encoding="utf-8")
+        if name.endswith(".urdf"):
+            from companion.kinematics.urdf import parse_urdf
+
+            return parse_urdf(text, source=name)
+        return cls.from_dict(tomllib.loads(text), source=name)
 
     @classmethod
     def from_toml(cls, path: str | Path, *, dof: int | None = None) -> Arm:
@@ -151,11 +281,74 @@ class Arm:
         return cls.from_dict(data, source=str(path), dof=dof)
 
     @classmethod
+    def from_urdf(cls, path: str | Path, *, tip_link: str | None = None) -> Arm:
+        """Load the serial chain of a URDF file (see :mod:`companion.kinematics.urdf`)."""
+        from companion.kinematics.urdf import load_urdf
+
+        return load_urdf(path, tip_link=tip_link)
+
+    @classmethod
     def from_dict(
         cls, data: Mapping[str, Any], *, source: str = "<dict>", dof: int | None = None
     ) -> Arm:
         """Build an arm from the parsed TOML structure; every problem names source and field."""
         return _parse_arm(data, source, dof)
+
+    @classmethod
+    def from_dh(
+        cls,
+        name: str,
+        convention: DHConvention,
+        joints: Sequence[Joint],
+        *,
+        base: FloatArray | None = None,
+        tool: FloatArray | None = None,
+    ) -> Arm:
+        """An arm from joints that each carry a :class:`DHRow` (the frames are computed)."""
+        pre, post = [], []
+        for joint in joints:
+            if joint.dh is None:
+                raise ValueError(f"joint {joint.name}: a DH arm needs a DH row for every joint")
+            before, after = split_dh_row(
+                convention,
+                joint.revolute,
+                joint.dh.alpha_rad,
+                joint.dh.a_cm,
+                joint.dh.d_cm,
+                joint.dh.theta_rad,
+            )
+            pre.append(before)
+            post.append(after)
+        return cls.from_parts(name, joints, pre, post, base=base, tool=tool, convention=convention)
+
+    @classmethod
+    def from_parts(
+        cls,
+        name: str,
+        joints: Sequence[Joint],
+        before: Sequence[FloatArray],
+        after: Sequence[FloatArray],
+        *,
+        base: FloatArray | None = None,
+        tool: FloatArray | None = None,
+        convention: DHConvention | None = None,
+    ) -> Arm:
+        """An arm whose joint ``i`` is ``before[i] · M_i(q_i) · after[i]`` (cm)."""
+        n = len(joints)
+        frames = []
+        left = np.eye(4) if base is None else np.asarray(base, float)
+        for i in range(n):
+            frames.append(left @ before[i])
+            left = np.asarray(after[i], float)
+        frames.append(left if tool is None else left @ tool)
+        return cls(
+            name=name,
+            joints=tuple(joints),
+            frames=tuple(as_matrix_tuple(f) for f in frames),
+            convention=convention,
+            base=None if base is None else as_matrix_tuple(base),
+            tool=None if tool is None else as_matrix_tuple(tool),
+        )
 
     # -- derived arrays (radians / cm), computed once ----------------------------------------
 
@@ -164,12 +357,57 @@ class Arm:
         return len(self.joints)
 
     @cached_property
-    def lower_rad(self) -> FloatArray:
-        return np.array([j.min_rad for j in self.joints])
+    def revolute(self) -> NDArray[np.bool_]:
+        """Per joint: True for revolute, False for prismatic."""
+        return np.array([j.revolute for j in self.joints])
 
     @cached_property
+    def all_revolute(self) -> bool:
+        return bool(self.revolute.all())
+
+    @cached_property
+    def lower_q(self) -> FloatArray:
+        """Lower limits in joint units (rad, cm for prismatic joints)."""
+        return np.array([j.lower for j in self.joints])
+
+    @cached_property
+    def upper_q(self) -> FloatArray:
+        """Upper limits in joint units (rad, cm for prismatic joints)."""
+        return np.array([j.upper for j in self.joints])
+
+    @property
+    def lower_rad(self) -> FloatArray:
+        """Lower limits in radians; an arm with a prismatic joint raises (use ``lower_q``)."""
+        self._need_all_revolute("lower_rad")
+        return self.lower_q
+
+    @property
     def upper_rad(self) -> FloatArray:
-        return np.array([j.max_rad for j in self.joints])
+        """Upper limits in radians; an arm with a prismatic joint raises (use ``upper_q``)."""
+        self._need_all_revolute("upper_rad")
+        return self.upper_q
+
+    def _need_all_revolute(self, what: str) -> None:
+        if not self.all_revolute:
+            joint = next(j for j in self.joints if not j.revolute)
+            raise KinematicsError(
+                f"arm {self.name}: joint {joint.name} is prismatic; {what} is for all-revolute arms"
+            )
+
+    @cached_property
+    def frames_array(self) -> FloatArray:
+        """``F_0 … F_n`` as a read-only ``(n + 1, 4, 4)`` array (cm)."""
+        out = np.array(self.frames, dtype=float)
+        out.setflags(write=False)
+        return out
+
+    @cached_property
+    def directions(self) -> FloatArray:
+        return np.array([float(j.direction) for j in self.joints])
+
+    @cached_property
+    def offsets(self) -> FloatArray:
+        return np.array([j.offset for j in self.joints])
 
     @cached_property
     def tool_matrix(self) -> FloatArray | None:
@@ -181,62 +419,168 @@ class Arm:
         return matrix
 
     @cached_property
-    def _dh(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        return (
-            np.array([j.alpha_rad for j in self.joints]),
-            np.array([j.a_cm for j in self.joints]),
-            np.array([j.d_cm for j in self.joints]),
-            np.array([j.offset_rad for j in self.joints]),
-        )
+    def base_matrix(self) -> FloatArray | None:
+        """The base transform as a read-only 4×4 array, or None."""
+        if self.base is None:
+            return None
+        matrix = np.array(self.base, dtype=float)
+        matrix.setflags(write=False)
+        return matrix
 
     # -- kinematics ---------------------------------------------------------------------------
 
-    def fk_batch(self, q_rad: FloatArray) -> FloatArray:
-        """Hand transforms ``(S, 4, 4)`` (translation in cm) for joint vectors ``(S, dof)`` rad."""
-        q = np.asarray(q_rad, float)
+    def joint_frames(self, q: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """For joint vectors ``q`` ``(S, n)``: the frame each joint moves in, ``(S, n, 4, 4)``
+        (its z axis is the joint axis), and the hand transform ``(S, 4, 4)``; base frame, cm."""
+        q = np.asarray(q, float)
         if q.ndim != 2 or q.shape[1] != self.dof:
-            raise ValueError(f"q_rad must have shape (S, {self.dof}), got {q.shape}")
-        alpha, a, d, offset = self._dh
-        return chain(link_transforms(q, alpha, a, d, offset, self.convention), self.tool_matrix)
+            raise ValueError(f"q must have shape (S, {self.dof}), got {q.shape}")
+        f = self.frames_array
+        value = q * self.directions + self.offsets
+        s, n = q.shape
+        axes_frames = np.empty((s, n, 4, 4))
+        t = np.broadcast_to(f[0], (s, 4, 4)).copy()
+        c, sn = np.cos(value), np.sin(value)
+        for i in range(n):
+            axes_frames[:, i] = t
+            if self.joints[i].revolute:
+                r0 = t[:, :, 0].copy()
+                t[:, :, 0] = r0 * c[:, i, None] + t[:, :, 1] * sn[:, i, None]
+                t[:, :, 1] = t[:, :, 1] * c[:, i, None] - r0 * sn[:, i, None]
+            else:
+                t[:, :, 3] += t[:, :, 2] * value[:, i, None]
+            t = t @ f[i + 1]
+        return axes_frames, t
+
+    def fk_batch(self, q_rad: FloatArray) -> FloatArray:
+        """Hand transforms ``(S, 4, 4)`` (translation in cm) for joint vectors ``(S, dof)``
+        (radians; cm for prismatic joints)."""
+        return self.joint_frames(q_rad)[1]
 
     def fk_matrix(self, q_rad: Sequence[float] | FloatArray) -> FloatArray:
-        """Hand transform 4×4 for one joint vector in radians."""
+        """Hand transform 4×4 for one joint vector (radians; cm for prismatic joints)."""
         return self.fk_batch(np.asarray(q_rad, float).reshape(1, -1))[0]
 
+    def q_from_user(self, values: Sequence[float] | FloatArray) -> FloatArray:
+        """Degrees (cm for prismatic joints) → joint units (rad, cm)."""
+        v = np.asarray(values, float)
+        return np.where(self.revolute, np.radians(v), v)
+
+    def q_to_user(self, q: FloatArray) -> FloatArray:
+        """Joint units (rad, cm) → degrees (cm for prismatic joints)."""
+        q = np.asarray(q, float)
+        return np.where(self.revolute, np.degrees(q), q)
+
     def fk(self, q_deg: Sequence[float]) -> Pose:
-        """Hand pose for one joint vector in degrees (limits are not checked; see check_limits)."""
+        """Hand pose for one joint vector in degrees (cm for prismatic joints); limits are not
+        checked (see check_limits)."""
         q = np.asarray(q_deg, float)
         if q.shape != (self.dof,):
             raise ValueError(f"q_deg must have {self.dof} values, got shape {q.shape}")
-        return Pose.from_matrix(self.fk_matrix(np.radians(q)))
+        return Pose.from_matrix(self.fk_matrix(self.q_from_user(q)))
 
     def within_limits(
         self, q_rad: FloatArray, tol_rad: float = 1e-9
     ) -> NDArray[np.bool_] | np.bool_:
-        """Per row of ``q_rad`` ``(S, dof)`` (a scalar for ``(dof,)``) with every joint in range."""
+        """Per row of ``q_rad`` ``(S, dof)`` (a scalar for ``(dof,)``) with every joint in range
+        (joint units; ``tol_rad`` is in cm for prismatic joints)."""
         q = np.asarray(q_rad, float)
-        ok = (q >= self.lower_rad - tol_rad) & (q <= self.upper_rad + tol_rad)
+        ok = (q >= self.lower_q - tol_rad) & (q <= self.upper_q + tol_rad)
         return ok.all(axis=-1)
 
     def check_limits(self, q_deg: Sequence[float]) -> None:
-        """Raise :class:`JointLimitError` naming the first joint outside its range (or NaN)."""
+        """Raise :class:`JointLimitError` naming the first joint outside its range (or NaN);
+        degrees, cm for prismatic joints."""
         for joint, value in zip(self.joints, q_deg, strict=True):
-            lo, hi = math.degrees(joint.min_rad), math.degrees(joint.max_rad)
+            lo, hi = joint.to_user(joint.lower), joint.to_user(joint.upper)
+            field = "angle_deg" if joint.revolute else "position_cm"
             if not (lo - 1e-9 <= value <= hi + 1e-9):
                 raise JointLimitError(
-                    f"joint {joint.name}: angle_deg={value!r} outside [{lo:g}, {hi:g}]"
+                    f"joint {joint.name}: {field}={value!r} outside [{lo:g}, {hi:g}]"
                 )
 
     def random_q_rad(self, rng: np.random.Generator, count: int) -> FloatArray:
         """``count`` joint vectors drawn uniformly within the limits, shape ``(count, dof)``."""
-        return self.lower_rad + rng.random((count, self.dof)) * (self.upper_rad - self.lower_rad)
+        return self.lower_q + rng.random((count, self.dof)) * (self.upper_q - self.lower_q)
 
 
 # -- TOML parsing ---------------------------------------------------------------------------------
 
-_TOP_FIELDS = ("name", "convention", "length_unit", "dof", "joint", "tool")
-_JOINT_FIELDS = ("name", "alpha_deg", "a", "d", "offset_deg", "min_deg", "max_deg")
-_TOOL_FIELDS = ("xyz", "rpy_deg")
+_TOP_FIELDS = ("name", "convention", "length_unit", "dof", "joint", "base", "tool")
+_REVOLUTE_FIELDS = (
+    "name",
+    "type",
+    "direction",
+    "alpha_deg",
+    "a",
+    "d",
+    "offset_deg",
+    "min_deg",
+    "max_deg",
+)
+_PRISMATIC_FIELDS = (
+    "name",
+    "type",
+    "direction",
+    "alpha_deg",
+    "a",
+    "theta_deg",
+    "offset",
+    "min",
+    "max",
+)
+_FRAME_FIELDS = ("xyz", "rpy_deg")
+
+
+def _parse_frame(root: Table, key: str, to_cm: float) -> FloatArray | None:
+    if key not in root:
+        return None
+    table = root.table(key, allowed=_FRAME_FIELDS)
+    xyz = table.numbers("xyz", [0.0, 0.0, 0.0], length=3)
+    rpy = table.numbers("rpy_deg", [0.0, 0.0, 0.0], length=3)
+    return transform(np.asarray(xyz) * to_cm, np.radians(rpy))
+
+
+def _parse_joint(row: Table, index: int, to_cm: float) -> Joint:
+    kind_text = row.string("type", "revolute", choices=tuple(k.value for k in JointKind))
+    kind = JointKind(kind_text)
+    name = row.string("name", f"q{index}")
+    if kind is JointKind.REVOLUTE:
+        Table(row.data, row.source, row.prefix, allowed=_REVOLUTE_FIELDS, error=row.error)
+        lo_key, hi_key = "min_deg", "max_deg"
+        lo, hi = row.number(lo_key), row.number(hi_key)
+        scale = math.pi / 180.0
+        dh = DHRow(
+            alpha_rad=math.radians(row.number("alpha_deg")),
+            a_cm=row.number("a") * to_cm,
+            d_cm=row.number("d") * to_cm,
+        )
+        offset = math.radians(row.number("offset_deg", 0.0))
+    else:
+        Table(row.data, row.source, row.prefix, allowed=_PRISMATIC_FIELDS, error=row.error)
+        lo_key, hi_key = "min", "max"
+        lo, hi = row.number(lo_key), row.number(hi_key)
+        scale = to_cm
+        dh = DHRow(
+            alpha_rad=math.radians(row.number("alpha_deg")),
+            a_cm=row.number("a") * to_cm,
+            theta_rad=math.radians(row.number("theta_deg", 0.0)),
+        )
+        offset = row.number("offset", 0.0) * to_cm
+    if not lo < hi:
+        raise row.fail(lo_key, f"{lo_key}={lo:g} must be less than {hi_key}={hi:g}")
+    direction = row.integer("direction", 1)
+    if direction not in (1, -1):
+        raise row.fail("direction", f"{direction!r} is not one of 1, -1")
+    return Joint(
+        name=name,
+        lower=lo * scale,
+        upper=hi * scale,
+        kind=kind,
+        direction=direction,
+        offset=offset,
+        dh=dh,
+    )
 
 
 def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
@@ -247,7 +591,7 @@ def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
     to_cm = LENGTH_UNITS_TO_CM[root.string("length_unit", "cm", choices=tuple(LENGTH_UNITS_TO_CM))]
     name = root.string("name", Path(source).stem or "arm")
 
-    rows = root.tables("joint", allowed=_JOINT_FIELDS)
+    rows = root.tables("joint")
     if "dof" in root:
         declared = root.integer("dof", min_value=1)
         if declared != len(rows):
@@ -255,33 +599,7 @@ def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
     if dof is not None and len(rows) != dof:
         raise root.fail("joint", f"{len(rows)} joints given, this use needs {dof}")
 
-    joints = []
-    for i, row in enumerate(rows, start=1):
-        lo, hi = row.number("min_deg"), row.number("max_deg")
-        if not lo < hi:
-            raise row.fail("min_deg", f"min_deg={lo:g} must be less than max_deg={hi:g}")
-        if hi - lo > 360.0:
-            raise row.fail("max_deg", f"range [{lo:g}, {hi:g}] spans more than 360 degrees")
-        joints.append(
-            Joint(
-                name=row.string("name", f"q{i}"),
-                alpha_rad=math.radians(row.number("alpha_deg")),
-                a_cm=row.number("a") * to_cm,
-                d_cm=row.number("d") * to_cm,
-                offset_rad=math.radians(row.number("offset_deg", 0.0)),
-                min_rad=math.radians(lo),
-                max_rad=math.radians(hi),
-            )
-        )
-
-    tool = None
-    if "tool" in root:
-        tool_table = root.table("tool", allowed=_TOOL_FIELDS)
-        xyz = tool_table.numbers("xyz", [0.0, 0.0, 0.0], length=3)
-        rpy = tool_table.numbers("rpy_deg", [0.0, 0.0, 0.0], length=3)
-        matrix = np.eye(4)
-        matrix[:3, :3] = rpy_to_matrix(*np.radians(rpy))
-        matrix[:3, 3] = np.asarray(xyz) * to_cm
-        tool = tuple(tuple(float(v) for v in row) for row in matrix)
-
-    return Arm(name=name, convention=convention, joints=tuple(joints), tool=tool)
+    joints = [_parse_joint(row, i, to_cm) for i, row in enumerate(rows, start=1)]
+    base = _parse_frame(root, "base", to_cm)
+    tool = _parse_frame(root, "tool", to_cm)
+    return Arm.from_dh(name, convention, joints, base=base, tool=tool)

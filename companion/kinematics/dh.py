@@ -102,3 +102,51 @@ def chain(links: FloatArray, tool: FloatArray | None = None) -> FloatArray:
     if tool is not None:
         t = t @ tool
     return t
+
+
+def _rot_x(angle_rad: float) -> FloatArray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0, 0, 0], [0, c, -s, 0], [0, s, c, 0], [0, 0, 0, 1.0]])
+
+
+def _rot_z(angle_rad: float) -> FloatArray:
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]])
+
+
+def _trans(x: float, y: float, z: float) -> FloatArray:
+    out = np.eye(4)
+    out[:3, 3] = (x, y, z)
+    return out
+
+
+def split_dh_row(
+    convention: DHConvention,
+    revolute: bool,
+    alpha_rad: float,
+    a: float,
+    d: float,
+    theta_rad: float,
+) -> tuple[FloatArray, FloatArray]:
+    """The fixed transforms ``(before, after)`` around a DH row's joint motion.
+
+    The row's transform is ``before · M(v) · after``, where ``M`` is ``Rz(v)`` for a revolute
+    joint (``v`` = θ; ``d`` is fixed, ``theta_rad`` unused) and ``Tz(v)`` for a prismatic one
+    (``v`` = d; ``theta_rad`` is the fixed θ, ``d`` unused):
+
+    * standard, revolute: ``I · Rz(θ) · Tz(d)·Tx(a)·Rx(α)``;
+    * standard, prismatic: ``Rz(θ) · Tz(d) · Tx(a)·Rx(α)``;
+    * modified, revolute: ``Rx(α)·Tx(a) · Rz(θ) · Tz(d)``;
+    * modified, prismatic: ``Rx(α)·Tx(a)·Rz(θ) · Tz(d) · I``.
+    """
+    if convention is DHConvention.STANDARD:
+        tail = _trans(a, 0.0, 0.0) @ _rot_x(alpha_rad)
+        if revolute:
+            return np.eye(4), _trans(0.0, 0.0, d) @ tail
+        return _rot_z(theta_rad), tail
+    if convention is DHConvention.MODIFIED:
+        head = _rot_x(alpha_rad) @ _trans(a, 0.0, 0.0)
+        if revolute:
+            return head, _trans(0.0, 0.0, d)
+        return head @ _rot_z(theta_rad), np.eye(4)
+    raise ValueError(f"unknown DH convention {convention!r}")  # pragma: no cover

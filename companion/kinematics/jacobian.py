@@ -23,7 +23,8 @@ which turns with ``ω_{i−1} = Σ_{k<i} a_k q̇_k``:
 * ``J̇_v,i = ȧ_i × (p_e − p_i) + a_i × (ṗ_e − ṗ_i)``, ``J̇_ω,i = ȧ_i``.
 
 So the hand's linear acceleration is ``ẍ = J_v q̈ + J̇_v q̇`` (Siciliano et al., *Robotics*,
-§3.1 and eq. 3.107). Only revolute joints exist in :class:`~companion.kinematics.arm.Arm`.
+§3.1 and eq. 3.107). The geometric Jacobian takes prismatic joints too (column ``(a_i, 0)``);
+the derivative is for all-revolute arms.
 """
 
 from __future__ import annotations
@@ -31,40 +32,35 @@ from __future__ import annotations
 import numpy as np
 
 from companion.kinematics.arm import Arm
-from companion.kinematics.dh import DHConvention, link_transforms
 from companion.kinematics.rotations import FloatArray
 
 
 def joint_axes(arm: Arm, q_rad: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Joint axes ``(S, n, 3)``, points on them ``(S, n, 3)`` (cm) and hand position ``(S, 3)``
-    (cm), all in the base frame, for joint vectors ``q_rad`` ``(S, n)``."""
+    (cm), all in the base frame, for joint vectors ``q_rad`` ``(S, n)``.
+
+    The axis is the z axis of the frame the joint moves in (:meth:`Arm.joint_frames`), signed by
+    the joint's ``direction``, so that it is the axis of a positive ``q``."""
     q = _check_q(arm, q_rad)
-    alpha, a, d, offset = arm._dh
-    links = link_transforms(q, alpha, a, d, offset, arm.convention)
-    s, n = q.shape
-    frames = np.empty((s, n + 1, 4, 4))  # frames[:, k] = base → frame k
-    frames[:, 0] = np.eye(4)
-    for k in range(n):
-        frames[:, k + 1] = frames[:, k] @ links[:, k]
-    hand = frames[:, n] @ arm.tool if arm.tool is not None else frames[:, n]
-    if arm.convention is DHConvention.STANDARD:
-        axis_frames = frames[:, :n]
-    elif arm.convention is DHConvention.MODIFIED:
-        axis_frames = frames[:, 1:]
-    else:  # pragma: no cover - the Enum has exactly two members
-        raise ValueError(f"unknown DH convention {arm.convention!r}")
-    return axis_frames[..., :3, 2], axis_frames[..., :3, 3], hand[:, :3, 3]
+    frames, hand = arm.joint_frames(q)
+    axes = frames[..., :3, 2] * arm.directions[None, :, None]
+    return axes, frames[..., :3, 3], hand[:, :3, 3]
 
 
 def geometric_jacobian(arm: Arm, q_rad: FloatArray) -> FloatArray:
     """Geometric Jacobian ``(S, 6, n)`` of ``arm`` at ``q_rad`` ``(S, n)``.
 
-    Rows 0–2: hand-point linear velocity in cm/rad; rows 3–5: angular velocity in rad/rad;
-    both in the base frame (see the module docstring for the formulas).
+    Rows 0–2: hand-point linear velocity in cm/rad (cm/cm for a prismatic joint, whose column
+    is ``(a_i, 0)``); rows 3–5: angular velocity in rad/rad; both in the base frame (see the
+    module docstring for the formulas).
     """
     axes, points, p_e = joint_axes(arm, q_rad)
     j_v = np.cross(axes, p_e[:, None, :] - points)
-    return np.concatenate([j_v, axes], axis=2).transpose(0, 2, 1)
+    j_w = axes.copy()
+    prismatic = ~arm.revolute
+    j_v[:, prismatic] = axes[:, prismatic]
+    j_w[:, prismatic] = 0.0
+    return np.concatenate([j_v, j_w], axis=2).transpose(0, 2, 1)
 
 
 def jacobian_and_derivative(
@@ -73,7 +69,9 @@ def jacobian_and_derivative(
     """``(J, J̇)``, each ``(S, 6, n)``, at joints ``q_rad`` and joint rates ``qd_rad_s`` ``(S, n)``.
 
     ``J̇`` is analytic (module docstring); its linear rows are in cm/(rad·s), angular in 1/s.
+    Revolute joints only: an arm with a prismatic joint raises ``KinematicsError``.
     """
+    arm.lower_rad  # noqa: B018 - raises for an arm with a prismatic joint
     axes, points, p_e = joint_axes(arm, q_rad)
     qd = np.asarray(qd_rad_s, float)
     if qd.shape != axes.shape[:2]:

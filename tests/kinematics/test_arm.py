@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import math
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from companion.errors import ArmConfigError, JointLimitError
-from companion.kinematics import DHConvention
-from companion.kinematics.arm import Arm, Pose
+from companion.errors import ArmConfigError, JointLimitError, KinematicsError
+from companion.kinematics import DHConvention, rpy_to_matrix
+from companion.kinematics.arm import Arm, JointKind, Pose
 
 PAPER_TOML = (resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text()
 
@@ -185,3 +187,91 @@ def test_pose_takes_numpy_numbers():
     pose = Pose(*np.arange(6, dtype=np.float32))
     assert pose.as_tuple() == (0.0, 1.0, 2.0, 3.0, 4.0, 5.0)
     assert Pose(*np.arange(6)).x_cm == 0.0
+
+
+# -- the general arm model: rtb's arms, prismatic joints, base, direction, wide ranges -------------
+
+RTB_FK = json.loads((Path(__file__).parent / "data" / "rtb_fk.json").read_text())
+
+
+@pytest.mark.parametrize("name", sorted(RTB_FK["arms"]))
+def test_arm_file_matches_roboticstoolbox_fk(name):
+    # References written by bench/arm_references.py from rtb's DH models (metres).
+    arm = Arm.from_package_file(f"{name}.toml")
+    for case in RTB_FK["arms"][name]:
+        t = arm.fk_matrix(case["q"])
+        t[:3, 3] /= 100.0
+        np.testing.assert_allclose(t, case["T"], rtol=0, atol=1e-9)
+
+
+def test_puma560_keeps_its_full_range():
+    arm = Arm.from_package_file("puma560.toml")
+    assert np.degrees(arm.upper_q[5] - arm.lower_q[5]) == pytest.approx(532.0, abs=0.01)
+
+
+def test_stanford_prismatic_joint_has_limits_in_cm():
+    arm = Arm.from_package_file("stanford.toml")
+    joint = arm.joints[2]
+    assert joint.kind is JointKind.PRISMATIC
+    assert (joint.lower, joint.upper) == pytest.approx((30.48, 127.0))
+    q = np.zeros(6)
+    q[2] = 50.0
+    t0 = arm.fk_matrix(q)
+    q[2] = 60.0
+    moved = arm.fk_matrix(q)[:3, 3] - t0[:3, 3]
+    assert np.linalg.norm(moved) == pytest.approx(10.0)
+    with pytest.raises(KinematicsError, match="joint q3 is prismatic"):
+        arm.lower_rad  # noqa: B018
+    with pytest.raises(JointLimitError, match=r"joint q3: position_cm=20"):
+        arm.check_limits([0, 0, 20, 0, 0, 0])
+
+
+def test_direction_minus_one_negates_the_joint(tmp_path):
+    flipped = PAPER_TOML.replace('name = "q3"\n', 'name = "q3"\ndirection = -1\n')
+    arm = Arm.from_toml(_write(tmp_path, flipped))
+    q = np.radians([10, 40, -20, 30, 15, -5])
+    q_neg = q.copy()
+    q_neg[2] = -q[2]
+    np.testing.assert_allclose(arm.fk_matrix(q), Arm.default().fk_matrix(q_neg), atol=1e-12)
+
+
+def test_bad_direction_is_named(tmp_path):
+    text = PAPER_TOML.replace('name = "q2"\n', 'name = "q2"\ndirection = 0\n')
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_toml(_write(tmp_path, text))
+    assert info.value.field == "joint[2].direction"
+
+
+def test_base_transform_moves_the_whole_arm(tmp_path):
+    text = PAPER_TOML + "\n[base]\nxyz = [1, 2, 3]\nrpy_deg = [180, 0, 90]\n"
+    arm = Arm.from_toml(_write(tmp_path, text))
+    q = np.radians([10, 40, -20, 30, 15, -5])
+    base = np.eye(4)
+    base[:3, :3] = rpy_to_matrix(np.pi, 0.0, np.pi / 2)
+    base[:3, 3] = (1, 2, 3)
+    np.testing.assert_allclose(arm.fk_matrix(q), base @ Arm.default().fk_matrix(q), atol=1e-12)
+
+
+def test_range_beyond_a_turn_is_taken(tmp_path):
+    text = PAPER_TOML.replace("min_deg = -70\nmax_deg = 90", "min_deg = -400\nmax_deg = 400")
+    arm = Arm.from_toml(_write(tmp_path, text))
+    assert np.degrees(arm.upper_q[5]) == pytest.approx(400.0)
+    np.testing.assert_allclose(
+        arm.fk_matrix(np.radians([0, 90, 0, 0, 0, 370])),
+        arm.fk_matrix(np.radians([0, 90, 0, 0, 0, 10])),
+        atol=1e-12,
+    )
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda t: t.replace('name = "q2"\n', 'name = "q2"\ntype = "slider"\n'), "joint[2].type"),
+        # a prismatic joint's limits are min/max in the length unit, not min_deg/max_deg
+        (lambda t: t.replace('name = "q2"\n', 'name = "q2"\ntype = "prismatic"\n'), "joint[2].d"),
+    ],
+)
+def test_joint_type_errors_name_the_field(tmp_path, edit, field):
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_toml(_write(tmp_path, edit(PAPER_TOML)))
+    assert info.value.field == field

@@ -1,0 +1,211 @@
+"""Serial chains from URDF: :func:`load_urdf` / :func:`parse_urdf` → :class:`~.arm.Arm`.
+
+Parsed with the standard library's ``xml.etree.ElementTree``. A URDF parser package
+(urdf_parser_py, yourdfpy) was not worth a runtime dependency: what we read is five elements
+(``robot``, ``link``, ``joint`` with ``origin``, ``axis``, ``limit``, ``mimic``), the tree walk is a
+dozen lines, and those packages pull in lxml, trimesh or ROS-era code for meshes and
+transmissions we never use. The XML comes from the operator's own arm file, not from the network,
+but it is still read as untrusted text: ElementTree expands no external entities.
+
+What is taken:
+
+* the chain from the root link (the one link that is no joint's child) to ``tip_link`` (default:
+  the end of the only path; a link with two child joints on the way is refused, naming them);
+* ``revolute`` (``<limit lower upper>`` required, radians), ``continuous`` (limits [−π, π]: every
+  orientation once) and ``prismatic`` (``<limit>`` required, metres) joints; ``fixed`` joints are
+  folded into the transforms around them (or the base and tool at either end);
+* ``floating`` and ``planar`` joints, ``<mimic>``, a zero axis and unknown types are refused with
+  an :class:`~companion.errors.ArmConfigError` naming the joint.
+
+Each moving joint ``origin · Rot(axis, q)`` becomes ``(origin · R_a) · Rz(q) · R_aᵀ`` with
+``R_a`` taking z onto the axis, so the arm has the one form the solver uses (module docstring of
+:mod:`~.arm`). Lengths go from metres to centimetres.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+
+from companion.errors import ArmConfigError
+from companion.kinematics.arm import Arm, Joint, JointKind, transform
+from companion.kinematics.rotations import FloatArray
+
+M_TO_CM = 100.0
+_MOVING = {"revolute": JointKind.REVOLUTE, "continuous": JointKind.REVOLUTE}
+_MOVING["prismatic"] = JointKind.PRISMATIC
+_REFUSED = ("floating", "planar")
+
+
+def load_urdf(path: str | Path, *, tip_link: str | None = None) -> Arm:
+    """Read a URDF file; problems raise :class:`ArmConfigError` naming the file and joint."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ArmConfigError(str(path), "<file>", f"cannot read: {exc}") from exc
+    return parse_urdf(text, source=str(path), tip_link=tip_link)
+
+
+def _floats(source: str, field: str, text: str | None, default: str) -> list[float]:
+    parts = (text if text is not None else default).split()
+    try:
+        values = [float(p) for p in parts]
+    except ValueError as exc:
+        raise ArmConfigError(source, field, f"must be 3 numbers, got {text!r}") from exc
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ArmConfigError(source, field, f"must be 3 finite numbers, got {text!r}")
+    return values
+
+
+def _limit(source: str, field: str, element: ET.Element | None, key: str) -> float:
+    text = None if element is None else element.get(key)
+    if text is None:
+        raise ArmConfigError(source, field, f"<limit {key}=...> is required for this joint type")
+    try:
+        value = float(text)
+    except ValueError as exc:
+        raise ArmConfigError(source, field, f"{key}={text!r} is not a number") from exc
+    if not math.isfinite(value):
+        raise ArmConfigError(source, field, f"{key}={text!r} must be finite")
+    return value
+
+
+def _z_onto(axis: FloatArray) -> FloatArray:
+    """A rotation (4×4) taking the z axis onto the unit vector ``axis``."""
+    out = np.eye(4)
+    z = np.array([0.0, 0.0, 1.0])
+    c = float(axis @ z)
+    if c > 1.0 - 1e-15:
+        return out
+    if c < -1.0 + 1e-15:
+        out[:3, :3] = np.diag([1.0, -1.0, -1.0])  # half a turn about x
+        return out
+    v = np.cross(z, axis)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    out[:3, :3] = np.eye(3) + vx + vx @ vx / (1.0 + c)
+    return out
+
+
+def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None) -> Arm:
+    """Build an :class:`Arm` from URDF text (see the module docstring for what is accepted)."""
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise ArmConfigError(source, "<file>", f"not valid XML: {exc}") from exc
+    if root.tag != "robot":
+        raise ArmConfigError(source, "<file>", f"the root element is <{root.tag}>, not <robot>")
+    name = root.get("name") or Path(source).stem or "arm"
+    links = {link.get("name") or "" for link in root.findall("link")}
+    joints = root.findall("joint")
+    by_child: dict[str, ET.Element] = {}
+    by_parent: dict[str, list[ET.Element]] = {}
+    parent_of: dict[str, str] = {}  # child link -> parent link
+    child_of: dict[int, str] = {}  # id(joint element) -> child link
+    for j in joints:
+        jname = j.get("name") or "?"
+        parent, child = j.find("parent"), j.find("child")
+        if parent is None or child is None:
+            raise ArmConfigError(source, f"joint {jname}", "needs <parent link=...> and <child>")
+        p, c = parent.get("link") or "", child.get("link") or ""
+        for link in (p, c):
+            if link not in links:
+                raise ArmConfigError(source, f"joint {jname}", f"link {link!r} is not defined")
+        if c in by_child:
+            raise ArmConfigError(
+                source, f"joint {jname}", f"link {c!r} is already the child of another joint"
+            )
+        by_child[c] = j
+        by_parent.setdefault(p, []).append(j)
+        parent_of[c] = p
+        child_of[id(j)] = c
+    roots = sorted(link for link in links if link not in by_child)
+    if len(roots) != 1:
+        raise ArmConfigError(source, "<robot>", f"needs exactly one root link, found {roots}")
+
+    if tip_link is not None:
+        if tip_link not in links:
+            raise ArmConfigError(source, "tip_link", f"link {tip_link!r} is not defined")
+        path: list[ET.Element] = []
+        link = tip_link
+        while link in by_child:
+            path.append(by_child[link])
+            link = parent_of[link]
+        path.reverse()
+    else:
+        path = []
+        link = roots[0]
+        while link in by_parent:
+            children = by_parent[link]
+            if len(children) > 1:
+                names = ", ".join(c.get("name") or "?" for c in children)
+                raise ArmConfigError(
+                    source,
+                    f"joint {children[1].get('name')}",
+                    f"the chain branches at link {link!r} (joints {names}); only serial chains "
+                    "are taken (give tip_link to pick one branch)",
+                )
+            path.append(children[0])
+            link = child_of[id(children[0])]
+
+    arm_joints: list[Joint] = []
+    before: list[FloatArray] = []
+    after: list[FloatArray] = []
+    pending = np.eye(4)
+    for j in path:
+        jname = j.get("name") or "?"
+        field = f"joint {jname}"
+        kind_text = j.get("type") or ""
+        if j.find("mimic") is not None:
+            raise ArmConfigError(source, field, "mimic joints are not supported")
+        if kind_text in _REFUSED:
+            raise ArmConfigError(source, field, f"{kind_text} joints are not supported")
+        origin = j.find("origin")
+        xyz = _floats(
+            source, f"{field}.origin.xyz", None if origin is None else origin.get("xyz"), "0 0 0"
+        )
+        rpy = _floats(
+            source, f"{field}.origin.rpy", None if origin is None else origin.get("rpy"), "0 0 0"
+        )
+        placed = pending @ transform(np.asarray(xyz) * M_TO_CM, rpy)
+        if kind_text == "fixed":
+            pending = placed
+            continue
+        if kind_text not in _MOVING:
+            allowed = "revolute, continuous, prismatic, fixed"
+            raise ArmConfigError(source, f"{field}.type", f"{kind_text!r} is not one of {allowed}")
+        axis_el = j.find("axis")
+        axis = np.asarray(
+            _floats(
+                source, f"{field}.axis", None if axis_el is None else axis_el.get("xyz"), "1 0 0"
+            )
+        )
+        norm = float(np.linalg.norm(axis))
+        if norm < 1e-9:
+            raise ArmConfigError(source, f"{field}.axis", "the axis is zero")
+        rot = _z_onto(axis / norm)
+        kind = _MOVING[kind_text]
+        limit = j.find("limit")
+        if kind_text == "continuous":
+            lower, upper = -math.pi, math.pi
+        else:
+            lower = _limit(source, f"{field}.limit", limit, "lower")
+            upper = _limit(source, f"{field}.limit", limit, "upper")
+            if not lower < upper:
+                raise ArmConfigError(
+                    source, f"{field}.limit", f"lower={lower:g} must be less than upper={upper:g}"
+                )
+            if kind is JointKind.PRISMATIC:
+                lower, upper = lower * M_TO_CM, upper * M_TO_CM
+        arm_joints.append(Joint(name=jname, lower=lower, upper=upper, kind=kind))
+        before.append(placed @ rot)
+        after.append(rot.T.copy())
+        pending = np.eye(4)
+    if not arm_joints:
+        raise ArmConfigError(source, "<robot>", "no moving joint on the chain")
+    if len(after) > 0:
+        after[-1] = after[-1] @ pending
+    return Arm.from_parts(name, arm_joints, before, after)
