@@ -111,7 +111,9 @@ def multistart_lm(arm: Arm, budget_ms: float) -> Solver:
         best, best_cost = None, math.inf
         while time.perf_counter() - started < budget_ms / 1e3:
             q = k.lower + rng.random(arm.dof) * (k.upper - k.lower)
-            kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 20, out)
+            kernels.lm_refine(
+                q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 20, out
+            )
             if out[0] < best_cost:
                 best, best_cost = q, out[0]
             if out[1] <= TOL_POS_CM and out[2] <= TOL_ORI_DEG:

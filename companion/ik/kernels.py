@@ -73,8 +73,10 @@ DEG_PER_RAD = 180.0 / math.pi
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0 = range(6)
 N_FPARAMS = 6
 # Layout of the integer parameter vector ``ip``.
-I_LM_ITERS, I_STALL_GENS, I_HAS_PREV = range(3)
-N_IPARAMS = 3
+I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
+N_IPARAMS = 4
+# Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
+MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
 # Layout of the integer state vector ``st`` (counters the Python loop reads).
 S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
 N_STATE = 5
@@ -107,60 +109,46 @@ def _randint(rng, n):
 
 
 @nb.njit(cache=CACHE)
-def fk_frames(q, dh, modified, tool, rot, pos, axes, points, want_axes):
+def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
-    ``dh`` rows: cos α, sin α, a (cm), d (cm), offset (rad). With ``want_axes``, also each joint's
-    rotation axis and a point on it (world frame), for the geometric Jacobian.
+    The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm;
+    see :mod:`companion.kinematics.arm`); ``jp`` rows: direction, offset, 1.0 for a revolute
+    joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``). With ``want_axes``, also each
+    joint's axis (the z axis it moves about or along, signed by its direction) and a point on
+    it, in the base frame, for the geometric Jacobian.
     """
     n = q.shape[0]
     for r in range(3):
-        pos[r] = 0.0
+        pos[r] = frames[0, r, 3]
         for c in range(3):
-            rot[r, c] = 1.0 if r == c else 0.0
+            rot[r, c] = frames[0, r, c]
     for i in range(n):
-        theta = q[i] + dh[4, i]
-        ct = math.cos(theta)
-        st = math.sin(theta)
-        ca = dh[0, i]
-        sa = dh[1, i]
-        a = dh[2, i]
-        d = dh[3, i]
-        if modified:
-            # Rx(α)·Tx(a)·Rz(θ)·Tz(d); the joint turns about z after Rx(α), through p + R·(a,0,0).
-            a00, a01, a02 = ct, -st, 0.0
-            a10, a11, a12 = st * ca, ct * ca, -sa
-            a20, a21, a22 = st * sa, ct * sa, ca
-            t0, t1, t2 = a, -d * sa, d * ca
-            if want_axes:
-                for k in range(3):
-                    axes[i, k] = rot[k, 1] * a12 + rot[k, 2] * a22
-                    points[i, k] = pos[k] + rot[k, 0] * a
+        v = jp[0, i] * q[i] + jp[1, i]
+        if want_axes:
+            for k in range(3):
+                axes[i, k] = rot[k, 2] * jp[0, i]
+                points[i, k] = pos[k]
+        if jp[2, i] > 0.5:
+            cv = math.cos(v)
+            sv = math.sin(v)
+            for k in range(3):
+                r0 = rot[k, 0]
+                r1 = rot[k, 1]
+                rot[k, 0] = r0 * cv + r1 * sv
+                rot[k, 1] = r1 * cv - r0 * sv
         else:
-            # Rz(θ)·Tz(d)·Tx(a)·Rx(α); the joint turns about the current z through the origin.
-            a00, a01, a02 = ct, -st * ca, st * sa
-            a10, a11, a12 = st, ct * ca, -ct * sa
-            a20, a21, a22 = 0.0, sa, ca
-            t0, t1, t2 = a * ct, a * st, d
-            if want_axes:
-                for k in range(3):
-                    axes[i, k] = rot[k, 2]
-                    points[i, k] = pos[k]
+            for k in range(3):
+                pos[k] += rot[k, 2] * v
+        f = frames[i + 1]
         for k in range(3):
             r0 = rot[k, 0]
             r1 = rot[k, 1]
             r2 = rot[k, 2]
-            pos[k] += r0 * t0 + r1 * t1 + r2 * t2
-            rot[k, 0] = r0 * a00 + r1 * a10 + r2 * a20
-            rot[k, 1] = r0 * a01 + r1 * a11 + r2 * a21
-            rot[k, 2] = r0 * a02 + r1 * a12 + r2 * a22
-    for k in range(3):
-        r0 = rot[k, 0]
-        r1 = rot[k, 1]
-        r2 = rot[k, 2]
-        pos[k] += r0 * tool[0, 3] + r1 * tool[1, 3] + r2 * tool[2, 3]
-        for c in range(3):
-            rot[k, c] = r0 * tool[0, c] + r1 * tool[1, c] + r2 * tool[2, c]
+            pos[k] += r0 * f[0, 3] + r1 * f[1, 3] + r2 * f[2, 3]
+            rot[k, 0] = r0 * f[0, 0] + r1 * f[1, 0] + r2 * f[2, 0]
+            rot[k, 1] = r0 * f[0, 1] + r1 * f[1, 1] + r2 * f[2, 1]
+            rot[k, 2] = r0 * f[0, 2] + r1 * f[1, 2] + r2 * f[2, 2]
 
 
 @nb.njit(cache=CACHE)
@@ -233,6 +221,55 @@ def pose_residual(rot, pos, goal, res):
 
 
 @nb.njit(cache=CACHE)
+def axis_residual(rot, pos, goal, res):
+    """POSITION_AXIS: ``res`` = ``(p_goal − p [cm], rotation vector [deg] turning the hand's
+    axis onto the target direction)``; the hand axis (hand frame) is ``goal[:3, 0]``, the target
+    direction (base frame) ``goal[:3, 2]``, both unit. Returns ``(pos err cm, angle deg)``."""
+    for k in range(3):
+        res[k] = goal[k, 3] - pos[k]
+    wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
+    wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
+    wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
+    dx, dy, dz = goal[0, 2], goal[1, 2], goal[2, 2]
+    cx = wy * dz - wz * dy
+    cy = wz * dx - wx * dz
+    cz = wx * dy - wy * dx
+    s = math.sqrt(cx * cx + cy * cy + cz * cz)
+    c = wx * dx + wy * dy + wz * dz
+    theta = math.atan2(s, c)
+    if s < 1e-12:
+        if c > 0.0:
+            cx, cy, cz, s = 0.0, 0.0, 0.0, 1.0
+        else:
+            # Pointing the opposite way: turn about any axis perpendicular to w.
+            if abs(wx) < 0.9:
+                cx, cy, cz = 0.0, wz, -wy
+            else:
+                cx, cy, cz = -wz, 0.0, wx
+            s = math.sqrt(cx * cx + cy * cy + cz * cz)
+    scale = theta / s * DEG_PER_RAD
+    res[3] = cx * scale
+    res[4] = cy * scale
+    res[5] = cz * scale
+    pos_err = math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
+    return pos_err, theta * DEG_PER_RAD
+
+
+@nb.njit(cache=CACHE)
+def residual(rot, pos, goal, mode, res):
+    """The residual of ``mode`` (MODE_POSE, MODE_POSITION, MODE_AXIS) into ``res`` (6,);
+    returns ``(pos err cm, the mode's angle error deg)`` (0 for MODE_POSITION)."""
+    if mode == MODE_POSE:
+        return pose_residual(rot, pos, goal, res)
+    if mode == MODE_AXIS:
+        return axis_residual(rot, pos, goal, res)
+    for k in range(3):
+        res[k] = goal[k, 3] - pos[k]
+        res[k + 3] = 0.0
+    return math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2]), 0.0
+
+
+@nb.njit(cache=CACHE)
 def _movement(q, q_prev):
     m = 0.0
     for j in range(q.shape[0]):
@@ -241,10 +278,10 @@ def _movement(q, q_prev):
 
 
 @nb.njit(cache=CACHE)
-def candidate_cost(q, dh, modified, tool, goal, q_prev, move_w, rot, pos, res):
+def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
-    fk_frames(q, dh, modified, tool, rot, pos, rot, rot, False)  # no axes wanted
-    pos_err, ori_err = pose_residual(rot, pos, goal, res)
+    fk_frames(q, frames, jp, rot, pos, rot, rot, False)  # no axes wanted
+    pos_err, ori_err = residual(rot, pos, goal, mode, res)
     cost = pos_err * pos_err + ori_err * ori_err
     if move_w > 0.0:
         cost += move_w * _movement(q, q_prev)
@@ -280,7 +317,7 @@ def _cholesky_solve(a, b, n):
 
 
 @nb.njit(cache=CACHE)
-def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
+def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     """Damped least squares on the pose residual from ``q`` (modified in place).
 
     Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``, clamps ``q + Δq`` into the
@@ -303,23 +340,42 @@ def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
     tol_ori = fp[F_TOL_ORI]
     lam = fp[F_LM_LAMBDA0]
 
-    fk_frames(q, dh, modified, tool, rot, pos, axes, points, True)
-    pos_err, ori_err = pose_residual(rot, pos, goal, res)
+    fk_frames(q, frames, jp, rot, pos, axes, points, True)
+    pos_err, ori_err = residual(rot, pos, goal, mode, res)
     cost = pos_err * pos_err + ori_err * ori_err
     steps = 0
     while steps < iters and not (pos_err <= tol_pos and ori_err <= tol_ori):
         steps += 1
+        if mode == MODE_AXIS:
+            # The hand axis in the base frame: a turn about it leaves the residual alone, so
+            # the angular rows are projected onto the plane perpendicular to it.
+            wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
+            wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
+            wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
         for j in range(n):
             zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
-            dx = pos[0] - points[j, 0]
-            dy = pos[1] - points[j, 1]
-            dz = pos[2] - points[j, 2]
-            jac[0, j] = zy * dz - zz * dy
-            jac[1, j] = zz * dx - zx * dz
-            jac[2, j] = zx * dy - zy * dx
-            jac[3, j] = zx * DEG_PER_RAD
-            jac[4, j] = zy * DEG_PER_RAD
-            jac[5, j] = zz * DEG_PER_RAD
+            if jp[2, j] > 0.5:
+                dx = pos[0] - points[j, 0]
+                dy = pos[1] - points[j, 1]
+                dz = pos[2] - points[j, 2]
+                jac[0, j] = zy * dz - zz * dy
+                jac[1, j] = zz * dx - zx * dz
+                jac[2, j] = zx * dy - zy * dx
+                if mode == MODE_POSITION:
+                    zx, zy, zz = 0.0, 0.0, 0.0
+                elif mode == MODE_AXIS:
+                    along = zx * wx + zy * wy + zz * wz
+                    zx, zy, zz = zx - along * wx, zy - along * wy, zz - along * wz
+                jac[3, j] = zx * DEG_PER_RAD
+                jac[4, j] = zy * DEG_PER_RAD
+                jac[5, j] = zz * DEG_PER_RAD
+            else:
+                jac[0, j] = zx
+                jac[1, j] = zy
+                jac[2, j] = zz
+                jac[3, j] = 0.0
+                jac[4, j] = 0.0
+                jac[5, j] = 0.0
         for r in range(n):
             s = 0.0
             for k in range(6):
@@ -338,8 +394,8 @@ def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
             continue
         for j in range(n):
             q_new[j] = min(max(q[j] + g[j], lo[j]), hi[j])
-        fk_frames(q_new, dh, modified, tool, rot, pos, axes, points, True)
-        new_pos, new_ori = pose_residual(rot, pos, goal, res_new)
+        fk_frames(q_new, frames, jp, rot, pos, axes, points, True)
+        new_pos, new_ori = residual(rot, pos, goal, mode, res_new)
         new_cost = new_pos * new_pos + new_ori * new_ori
         if new_cost < cost:
             for j in range(n):
@@ -353,7 +409,7 @@ def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
             if lam > 1e8:
                 break
             # Frames must describe q again, not the rejected q_new.
-            fk_frames(q, dh, modified, tool, rot, pos, axes, points, True)
+            fk_frames(q, frames, jp, rot, pos, axes, points, True)
     out[0] = cost
     out[1] = pos_err
     out[2] = ori_err
@@ -361,12 +417,12 @@ def lm_refine(q, lo, hi, dh, modified, tool, goal, fp, iters, out):
 
 
 @nb.njit(cache=CACHE)
-def _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w):
+def _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w):
     rot = np.empty((3, 3))
     pos = np.empty(3)
     res = np.empty(6)
     for i in range(pop.shape[0]):
-        cost[i] = candidate_cost(pop[i], dh, modified, tool, goal, q_prev, move_w, rot, pos, res)
+        cost[i] = candidate_cost(pop[i], frames, jp, goal, mode, q_prev, move_w, rot, pos, res)
 
 
 @nb.njit(cache=CACHE)
@@ -398,9 +454,7 @@ def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
 
 
 @nb.njit(cache=CACHE)
-def _refine_best(
-    pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
-):
+def _refine_best(pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q):
     """LM on the best individual not marked stuck; returns True once the tolerances are met."""
     best = -1
     for i in range(pop.shape[0]):
@@ -410,7 +464,9 @@ def _refine_best(
         return False
     q = pop[best].copy()
     out = np.empty(3)
-    st[S_LM_ITERATIONS] += lm_refine(q, lo, hi, dh, modified, tool, goal, fp, ip[I_LM_ITERS], out)
+    st[S_LM_ITERATIONS] += lm_refine(
+        q, lo, hi, frames, jp, goal, ip[I_MODE], fp, ip[I_LM_ITERS], out
+    )
     st[S_EVALUATIONS] += 1
     pose_cost, pos_err, ori_err = out[0], out[1], out[2]
     new_cost = pose_cost
@@ -435,9 +491,8 @@ def init_population(
     stuck,
     lo,
     hi,
-    dh,
-    modified,
-    tool,
+    frames,
+    jp,
     goal,
     q_prev,
     fp,
@@ -465,18 +520,18 @@ def init_population(
                 pop[i, j] = min(max(q_start[j] + noise, lo[j]), hi[j])
         first = n_local
     _draw_population(pop, lo, hi, rng, first)
-    _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV])
+    _evaluate_all(pop, cost, frames, jp, goal, ip[I_MODE], q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV])
     st[S_EVALUATIONS] += n_pop
     stuck[:] = False
     record[R_COST] = np.inf
     return _refine_best(
-        pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
+        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
     )
 
 
 @nb.njit(cache=CACHE)
 def generation(
-    pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, rng, st, record, record_q
+    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q
 ):
     """One memetic generation: DE rand/1/bin with greedy selection, then LM on the best
     unstuck individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
@@ -485,6 +540,7 @@ def generation(
     f_scale = fp[F_SCALE]
     cr = fp[F_CR]
     move_w = fp[F_MOVE_W] * ip[I_HAS_PREV]
+    mode = ip[I_MODE]
     trial = np.empty(n)
     trials = np.empty((n_pop, n))
     trial_cost = np.empty(n_pop)
@@ -508,9 +564,7 @@ def generation(
                 trial[j] = min(max(v, lo[j]), hi[j])
             else:
                 trial[j] = pop[i, j]
-        trial_cost[i] = candidate_cost(
-            trial, dh, modified, tool, goal, q_prev, move_w, rot, pos, res
-        )
+        trial_cost[i] = candidate_cost(trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res)
         for j in range(n):
             trials[i, j] = trial[j]
     for i in range(n_pop):
@@ -523,7 +577,7 @@ def generation(
     st[S_GENERATIONS] += 1
     st[S_EVALUATIONS] += n_pop
     done = _refine_best(
-        pop, cost, stuck, lo, hi, dh, modified, tool, goal, q_prev, fp, ip, st, record, record_q
+        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
     )
     if done:
         return True
@@ -535,7 +589,7 @@ def generation(
             # Restart: the record keeps the best so far; the whole population is drawn anew.
             # intp(0), not the literal 0: numba would compile a second specialisation.
             _draw_population(pop, lo, hi, rng, np.intp(0))
-            _evaluate_all(pop, cost, dh, modified, tool, goal, q_prev, move_w)
+            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
             st[S_EVALUATIONS] += n_pop
             stuck[:] = False
             st[S_STALE] = 0

@@ -36,7 +36,7 @@ from enum import Enum
 import numpy as np
 
 from companion.ik import kernels
-from companion.kinematics import Arm, DHConvention, FloatArray, Pose
+from companion.kinematics import Arm, FloatArray, Pose
 
 Clock = Callable[[], float]
 """A monotonic clock in seconds (``time.perf_counter`` by default; tests pass a fake one)."""
@@ -102,8 +102,10 @@ DEFAULT_SETTINGS = SolverSettings()
 class IKResult:
     """Outcome of :func:`solve`.
 
-    ``q_deg`` is the best joint vector found, always within the limits. ``pos_err_cm`` and
-    ``ori_err_deg`` are its errors; the latter is the rotation angle of ``R_goalᵀ·R``. ``cost`` is
+    ``q_deg`` is the best joint vector found, always within the limits, in degrees (cm for a
+    prismatic joint); ``q`` the same in joint units (rad, cm). ``pos_err_cm`` and
+    ``ori_err_deg`` are its errors; the latter is the angle the target mode checks
+    (:class:`TargetMode`: the rotation angle of ``R_goalᵀ·R`` for a whole pose). ``cost`` is
     what the solver minimised: ``pos_err_cm² + ori_err_deg²``. ``elapsed_ms`` is measured on
     the solver's clock, from the call to the return.
     """
@@ -119,20 +121,45 @@ class IKResult:
     lm_iterations: int
     restarts: int
     stop_reason: StopReason
+    q: tuple[float, ...] = ()
 
     @property
     def q_rad(self) -> FloatArray:
-        return np.radians(self.q_deg)
+        """The joints in joint units: radians (cm for a prismatic joint)."""
+        return np.array(self.q) if self.q else np.radians(self.q_deg)
+
+
+class TargetMode(Enum):
+    """What of the target :func:`solve` must meet (per call).
+
+    The result's ``ori_err_deg`` is the angle the mode checks.
+    """
+
+    POSE = "pose"
+    """Position and orientation; the angle is that of ``R_goalᵀ·R``."""
+    POSITION = "position"
+    """Position only; the angle is 0 (orientation free)."""
+    POSITION_AXIS = "position_axis"
+    """Position, and the hand's ``tool_axis`` (hand frame) pointing along a direction (base
+    frame); roll about it is free. The angle is that between the axis and the direction."""
 
 
 @dataclass(frozen=True)
 class _ArmArrays:
-    dh: FloatArray
-    modified: bool
-    tool: FloatArray
+    frames: FloatArray
+    jp: FloatArray
     lower: FloatArray
     upper: FloatArray
+    to_joint: FloatArray
+    """Per joint, degrees → rad (or 1 for a prismatic joint's cm)."""
+    to_user: FloatArray
 
+
+_MODE_IDS = {
+    TargetMode.POSE: kernels.MODE_POSE,
+    TargetMode.POSITION: kernels.MODE_POSITION,
+    TargetMode.POSITION_AXIS: kernels.MODE_AXIS,
+}
 
 # The daemon solves for one arm over and over: remember the last one. A tuple swapped whole, so
 # a reader in another thread never sees one arm paired with another's arrays.
@@ -143,7 +170,7 @@ _warmed_up = False
 
 
 def kernel_arrays(arm: Arm) -> _ArmArrays:
-    """The arm's DH table, tool and limits as the compiled kernels take them."""
+    """The arm's fixed frames, joint parameters and limits as the compiled kernels take them."""
     global _last_arm
     last = _last_arm
     if last is not None and last[0] is arm:
@@ -154,23 +181,20 @@ def kernel_arrays(arm: Arm) -> _ArmArrays:
 
 
 def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
-    joints = arm.joints
-    dh = np.array(
+    jp = np.array(
         [
-            [math.cos(j.alpha_rad) for j in joints],
-            [math.sin(j.alpha_rad) for j in joints],
-            [j.a_cm for j in joints],
-            [j.d_cm for j in joints],
-            [j.offset_rad for j in joints],
+            [float(j.direction) for j in arm.joints],
+            [j.offset for j in arm.joints],
+            [1.0 if j.revolute else 0.0 for j in arm.joints],
         ]
     )
-    tool = np.eye(4) if arm.tool_matrix is None else np.array(arm.tool_matrix)
     return _ArmArrays(
-        dh=dh,
-        modified=arm.convention is DHConvention.MODIFIED,
-        tool=tool,
-        lower=arm.lower_rad.copy(),
-        upper=arm.upper_rad.copy(),
+        frames=np.array(arm.frames_array),
+        jp=jp,
+        lower=arm.lower_q.copy(),
+        upper=arm.upper_q.copy(),
+        to_joint=np.where(arm.revolute, math.pi / 180.0, 1.0),
+        to_user=np.where(arm.revolute, 180.0 / math.pi, 1.0),
     )
 
 
@@ -197,6 +221,14 @@ def _positive(name: str, value: float) -> float:
     return number
 
 
+def _unit(name: str, values: Sequence[float]) -> FloatArray:
+    v = np.asarray(values, dtype=float)
+    norm = float(np.linalg.norm(v)) if v.shape == (3,) else 0.0
+    if not (math.isfinite(norm) and norm > 1e-9):
+        raise ValueError(f"{name}={values!r} must be 3 finite numbers, not all zero")
+    return v / norm
+
+
 def _as_pose(target: Pose | Sequence[float]) -> Pose:
     if isinstance(target, Pose):
         return target
@@ -217,14 +249,23 @@ def solve(
     tol_ori_deg: float = 1e-3,
     settings: SolverSettings = DEFAULT_SETTINGS,
     clock: Clock = time.perf_counter,
+    mode: TargetMode = TargetMode.POSE,
+    tool_axis: Sequence[float] = (0.0, 0.0, 1.0),
+    direction: Sequence[float] | None = None,
 ) -> IKResult:
     """Joint angles that put ``arm``'s hand at ``target``, within ``budget_ms``.
 
     ``target`` is a :class:`Pose` (or 6 numbers: x, y, z in cm; roll, pitch, yaw in degrees).
     ``q_start_deg`` is the joint vector to start from and stay close to (the previous
-    command), or None for a cold start. ``seed`` makes the search repeatable (same seed, same
-    inputs → same result, as long as the budget doesn't cut it short). Bad input raises
-    ``ValueError`` naming the argument.
+    command), or None for a cold start; degrees, cm for a prismatic joint. ``seed`` makes the
+    search repeatable (same seed, same inputs → same result, as long as the budget doesn't cut
+    it short). Bad input raises ``ValueError`` naming the argument.
+
+    ``mode`` (:class:`TargetMode`) says what must be met: the whole pose (default), the
+    position only (the target's orientation is ignored), or the position and a pointing
+    direction: the hand's ``tool_axis`` (hand frame, default its z axis) must point along
+    ``direction`` (base frame; default: the target orientation's ``tool_axis``, i.e.
+    ``R_target · tool_axis``), roll about it free. Neither vector needs to be unit length.
 
     The first call in a process that has not run :func:`warm_up` runs it first, before the
     clock starts: the budget is for the search, never for numba's compiler.
@@ -238,14 +279,18 @@ def solve(
     tol_ori = _positive("tol_ori_deg", tol_ori_deg)
     k = kernel_arrays(arm)
     n = arm.dof
+    mode_id = _MODE_IDS.get(mode)
+    if mode_id is None:
+        raise ValueError(f"mode={mode!r} must be one of {', '.join(m.name for m in TargetMode)}")
 
     if q_start_deg is None:
         has_prev = 0
         q_start = np.zeros(n)
     else:
-        q_start = np.radians(np.asarray(q_start_deg, dtype=float))
+        q_start = np.asarray(q_start_deg, dtype=float)
         if q_start.shape != (n,) or not np.all(np.isfinite(q_start)):
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
+        q_start = q_start * k.to_joint
         q_start = np.clip(q_start, k.lower, k.upper)
         has_prev = 1
 
@@ -260,6 +305,7 @@ def solve(
     ip[kernels.I_LM_ITERS] = settings.lm_iterations
     ip[kernels.I_STALL_GENS] = settings.stall_generations
     ip[kernels.I_HAS_PREV] = has_prev
+    ip[kernels.I_MODE] = mode_id
     st = np.zeros(kernels.N_STATE, dtype=np.int64)
     pop = np.empty((settings.pop_size, n))
     cost = np.empty(settings.pop_size)
@@ -280,15 +326,20 @@ def solve(
         math.radians(pose.yaw_deg),
         goal,
     )
+    if mode_id == kernels.MODE_AXIS:
+        hand_axis = _unit("tool_axis", tool_axis)
+        goal[:3, 2] = (
+            goal[:3, :3] @ hand_axis if direction is None else _unit("direction", direction)
+        )
+        goal[:3, 0] = hand_axis
     args = (
         pop,
         cost,
         stuck,
         k.lower,
         k.upper,
-        k.dh,
-        k.modified,
-        k.tool,
+        k.frames,
+        k.jp,
         goal,
         q_start,
         fp,
@@ -300,7 +351,11 @@ def solve(
     )
 
     done = kernels.init_population(*args, q_start, math.radians(settings.warm_spread_deg))
-    slowest_s = 0.0
+    # The cost of the next generation: a moving average of the past ones, each sample capped at
+    # 4× the estimate, so one generation preempted by another process moves it by at most 75 %
+    # (and that wears off), instead of "the slowest so far" ending the search at half the budget
+    # on a busy machine. The first sample is taken whole.
+    estimate_s = -1.0
     while True:
         if done:
             reason = StopReason.CONVERGED
@@ -309,14 +364,18 @@ def solve(
             reason = StopReason.ITERATION_LIMIT
             break
         before = clock()
-        if before - started + slowest_s > budget_s:
+        if before - started + estimate_s > budget_s:
             reason = StopReason.DEADLINE
             break
         done = kernels.generation(*args)
-        slowest_s = max(slowest_s, clock() - before)
+        took_s = clock() - before
+        if estimate_s < 0.0:
+            estimate_s = took_s
+        else:
+            estimate_s += 0.25 * (min(took_s, 4.0 * estimate_s) - estimate_s)
 
     return IKResult(
-        q_deg=tuple(float(v) for v in np.degrees(record_q)),
+        q_deg=tuple(float(v) for v in record_q * k.to_user),
         pos_err_cm=float(record[kernels.R_POS_CM]),
         ori_err_deg=float(record[kernels.R_ORI_DEG]),
         cost=float(record[kernels.R_COST]),
@@ -327,6 +386,7 @@ def solve(
         lm_iterations=int(st[kernels.S_LM_ITERATIONS]),
         restarts=int(st[kernels.S_RESTARTS]),
         stop_reason=reason,
+        q=tuple(float(v) for v in record_q),
     )
 
 

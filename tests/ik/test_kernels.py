@@ -27,20 +27,44 @@ TOOLED = Arm.from_dict(
         "tool": {"xyz": [1, 2, 3], "rpy_deg": [10, 20, 30]},
     }
 )
-ARMS = pytest.mark.parametrize("arm", [PAPER, MODIFIED, TOOLED], ids=["std", "modified", "tool"])
+FLIPPED = Arm.from_dict(
+    {
+        "convention": "standard",
+        "joint": [
+            {"alpha_deg": 90, "a": 2, "d": 3, "min_deg": -90, "max_deg": 90, "direction": -1},
+            {"type": "prismatic", "alpha_deg": -90, "a": 1, "theta_deg": 30, "min": 0, "max": 9},
+            {"alpha_deg": 0, "a": 5, "d": 1, "min_deg": -400, "max_deg": 400},
+        ],
+        "base": {"xyz": [1, -2, 3], "rpy_deg": [180, 10, 90]},
+    }
+)
+ARMS = pytest.mark.parametrize(
+    "arm",
+    [
+        PAPER,
+        MODIFIED,
+        TOOLED,
+        FLIPPED,
+        Arm.from_package_file("stanford.toml"),
+        Arm.from_package_file("baxter.toml"),
+        Arm.from_package_file("panda.toml"),
+        Arm.from_package_file("ur5.urdf"),
+    ],
+    ids=["std", "modified", "tool", "flip-prismatic-base", "stanford", "baxter", "panda", "urdf"],
+)
 
 
 def kernel_fk(arm, q, want_axes=False):
     k = kernel_arrays(arm)
     rot, pos = np.empty((3, 3)), np.empty(3)
     axes, points = np.empty((arm.dof, 3)), np.empty((arm.dof, 3))
-    kernels.fk_frames(q, k.dh, k.modified, k.tool, rot, pos, axes, points, want_axes)
+    kernels.fk_frames(q, k.frames, k.jp, rot, pos, axes, points, want_axes)
     return rot, pos, axes, points
 
 
 @ARMS
 def test_compiled_fk_equals_numpy_fk(arm):
-    q = np.random.default_rng(1).uniform(-np.pi, np.pi, (100, arm.dof))
+    q = arm.random_q_rad(np.random.default_rng(1), 100)
     expected = arm.fk_batch(q)
     for qi, ti in zip(q, expected, strict=True):
         rot, pos, _, _ = kernel_fk(arm, qi)
@@ -52,7 +76,7 @@ def test_compiled_fk_equals_numpy_fk(arm):
 def test_joint_axes_give_the_geometric_jacobian(arm):
     # Velocity of the hand for a small turn of joint j equals z_j × (p − p_j); the hand's
     # rotation turns about z_j. Checked against central differences of the numpy FK.
-    q = np.random.default_rng(2).uniform(-1.0, 1.0, arm.dof)
+    q = arm.random_q_rad(np.random.default_rng(2), 1)[0]
     _, pos, axes, points = kernel_fk(arm, q, want_axes=True)
     h = 1e-6
     for j in range(arm.dof):
@@ -60,10 +84,14 @@ def test_joint_axes_give_the_geometric_jacobian(arm):
         dq[j] = h
         t_plus, t_minus = arm.fk_matrix(q + dq), arm.fk_matrix(q - dq)
         v = (t_plus[:3, 3] - t_minus[:3, 3]) / (2 * h)
-        np.testing.assert_allclose(np.cross(axes[j], pos - points[j]), v, atol=1e-6)
         omega_hat = (t_plus[:3, :3] - t_minus[:3, :3]) / (2 * h) @ arm.fk_matrix(q)[:3, :3].T
         omega = np.array([omega_hat[2, 1], omega_hat[0, 2], omega_hat[1, 0]])
-        np.testing.assert_allclose(omega, axes[j], atol=1e-6)
+        if arm.joints[j].revolute:
+            np.testing.assert_allclose(np.cross(axes[j], pos - points[j]), v, atol=1e-6)
+            np.testing.assert_allclose(omega, axes[j], atol=1e-6)
+        else:  # a slider moves the hand along its axis and turns nothing
+            np.testing.assert_allclose(axes[j], v, atol=1e-6)
+            np.testing.assert_allclose(omega, 0.0, atol=1e-6)
 
 
 def test_pose_residual_is_position_and_rotation_vector():
@@ -101,7 +129,9 @@ def test_lm_converges_from_nearby_and_stays_in_limits():
     k, fp, q_true, goal = _lm_inputs(PAPER, 5)
     q = np.clip(q_true + 0.1, k.lower, k.upper)
     out = np.empty(3)
-    steps = kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 30, out)
+    steps = kernels.lm_refine(
+        q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 30, out
+    )
     assert 0 < steps <= 30
     assert out[1] < 1e-9 and out[2] < 1e-9
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
@@ -113,7 +143,7 @@ def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
     goal = PAPER.fk_matrix(q_outside)
     q = np.radians([0.0, 10.0, 0.0, 0.0, 0.0, 0.0])
     out = np.empty(3)
-    kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 50, out)
+    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 50, out)
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
@@ -122,7 +152,10 @@ def test_lm_with_zero_iterations_leaves_q_alone():
     q = q_true * 0.5
     before = q.copy()
     out = np.empty(3)
-    assert kernels.lm_refine(q, k.lower, k.upper, k.dh, k.modified, k.tool, goal, fp, 0, out) == 0
+    assert (
+        kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 0, out)
+        == 0
+    )
     np.testing.assert_array_equal(q, before)
 
 
