@@ -595,3 +595,66 @@ def generation(
             st[S_STALE] = 0
             st[S_RESTARTS] += 1
     return False
+
+
+@nb.njit(cache=CACHE)
+def run(
+    pop,
+    cost,
+    stuck,
+    lo,
+    hi,
+    frames,
+    jp,
+    goal,
+    q_prev,
+    fp,
+    ip,
+    rng,
+    st,
+    record,
+    record_q,
+    spread_rad,
+    start,
+    max_gens,
+):
+    """The entry point :func:`companion.ik.solve` calls: with ``start``, reset the record and
+    initialise the population (:func:`init_population`, around ``q_prev`` when
+    ``ip[I_HAS_PREV]``); then up to ``max_gens`` generations. Returns True once the tolerances
+    are met. One call per chunk of generations keeps the per-call cost of Python and of numba's
+    dispatch (~2 µs for these 18 arguments) off every generation."""
+    if start:
+        record[R_COST] = np.inf
+        record[R_POS_CM] = np.inf
+        record[R_ORI_DEG] = np.inf
+        for k in range(st.shape[0]):
+            st[k] = 0
+        # "Nothing found yet": infinite errors at the start (or mid-range) configuration.
+        for j in range(record_q.shape[0]):
+            record_q[j] = q_prev[j] if ip[I_HAS_PREV] else 0.5 * (lo[j] + hi[j])
+        if init_population(
+            pop,
+            cost,
+            stuck,
+            lo,
+            hi,
+            frames,
+            jp,
+            goal,
+            q_prev,
+            fp,
+            ip,
+            rng,
+            st,
+            record,
+            record_q,
+            q_prev,
+            spread_rad,
+        ):
+            return True
+    for _ in range(max_gens):
+        if generation(
+            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q
+        ):
+            return True
+    return False
