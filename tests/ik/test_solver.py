@@ -236,7 +236,7 @@ def test_target_beyond_float_range_reports_infinite_errors_and_an_in_limit_start
     assert ARM.within_limits(np.radians(cold.q_deg))
 
 
-# -- any arm, target modes, the deadline under load -------------------------------------------------
+# -- any arm, target modes, the deadline under load ------------------------------------------------
 
 SHIPPED = ["puma560.toml", "ur5.toml", "ur10.toml", "panda.toml", "stanford.toml", "baxter.toml"]
 SHIPPED += ["ur5.urdf"]
