@@ -70,8 +70,8 @@ if not CACHE:
 DEG_PER_RAD = 180.0 / math.pi
 
 # Layout of the float parameter vector ``fp``.
-F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0 = range(6)
-N_FPARAMS = 6
+F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
+N_FPARAMS = 8
 # Layout of the integer parameter vector ``ip``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
 N_IPARAMS = 4
@@ -317,13 +317,66 @@ def _cholesky_solve(a, b, n):
 
 
 @nb.njit(cache=CACHE)
+def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr):
+    """Fill ``jac`` (6×n, the residual's Jacobian), ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
+    n = jac.shape[1]
+    wx = wy = wz = 0.0
+    if mode == MODE_AXIS:
+        # The hand axis in the base frame: a turn about it leaves the residual alone, so the
+        # angular rows are projected onto the plane perpendicular to it.
+        wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
+        wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
+        wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
+    for j in range(n):
+        zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
+        if jp[2, j] > 0.5:
+            dx = pos[0] - points[j, 0]
+            dy = pos[1] - points[j, 1]
+            dz = pos[2] - points[j, 2]
+            jac[0, j] = zy * dz - zz * dy
+            jac[1, j] = zz * dx - zx * dz
+            jac[2, j] = zx * dy - zy * dx
+            if mode == MODE_POSITION:
+                zx, zy, zz = 0.0, 0.0, 0.0
+            elif mode == MODE_AXIS:
+                along = zx * wx + zy * wy + zz * wz
+                zx, zy, zz = zx - along * wx, zy - along * wy, zz - along * wz
+            jac[3, j] = zx * DEG_PER_RAD
+            jac[4, j] = zy * DEG_PER_RAD
+            jac[5, j] = zz * DEG_PER_RAD
+        else:
+            jac[0, j] = zx
+            jac[1, j] = zy
+            jac[2, j] = zz
+            jac[3, j] = 0.0
+            jac[4, j] = 0.0
+            jac[5, j] = 0.0
+    for r in range(n):
+        s = 0.0
+        for k in range(6):
+            s += jac[k, r] * res[k]
+        jtr[r] = s
+        for c in range(r + 1):
+            s = 0.0
+            for k in range(6):
+                s += jac[k, r] * jac[k, c]
+            jtj[r, c] = s
+            jtj[c, r] = s
+
+
+@nb.njit(cache=CACHE)
 def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
-    """Damped least squares on the pose residual from ``q`` (modified in place).
+    """Damped least squares on the target residual from ``q`` (modified in place).
 
     Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``, clamps ``q + Δq`` into the
-    limits and keeps it only if ``‖r‖`` drops (λ shrinks on success, grows on failure). Stops
-    at the tolerances, after ``iters`` steps, or when λ explodes. ``out`` receives
+    limits and keeps it only if ``‖r‖`` drops (λ shrinks on success; on failure it grows and
+    the same normal equations are solved again). Stops at the tolerances, after ``iters``
+    steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a window of steps did not bring
+    the cost below ``fp[F_LM_PROGRESS]`` times what it was. ``out`` receives
     ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps taken.
+
+    One call site of the FK and of the residual: compiling each inlined copy of them cost
+    seconds of the first compile.
     """
     n = q.shape[0]
     rot = np.empty((3, 3))
@@ -332,84 +385,63 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     points = np.empty((n, 3))
     res = np.empty(6)
     jac = np.empty((6, n))
+    jtj = np.empty((n, n))
+    jtr = np.empty(n)
     a = np.empty((n, n))
     g = np.empty(n)
-    q_new = np.empty(n)
-    res_new = np.empty(6)
+    q_try = q.copy()
     tol_pos = fp[F_TOL_POS]
     tol_ori = fp[F_TOL_ORI]
     lam = fp[F_LM_LAMBDA0]
-
-    fk_frames(q, frames, jp, rot, pos, axes, points, True)
-    pos_err, ori_err = residual(rot, pos, goal, mode, res)
-    cost = pos_err * pos_err + ori_err * ori_err
+    window = int(fp[F_LM_WINDOW])
+    progress = fp[F_LM_PROGRESS]
+    cost = np.inf
+    pos_err = np.inf
+    ori_err = np.inf
+    checkpoint = np.inf
     steps = 0
-    while steps < iters and not (pos_err <= tol_pos and ori_err <= tol_ori):
-        steps += 1
-        if mode == MODE_AXIS:
-            # The hand axis in the base frame: a turn about it leaves the residual alone, so
-            # the angular rows are projected onto the plane perpendicular to it.
-            wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
-            wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
-            wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
-        for j in range(n):
-            zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
-            if jp[2, j] > 0.5:
-                dx = pos[0] - points[j, 0]
-                dy = pos[1] - points[j, 1]
-                dz = pos[2] - points[j, 2]
-                jac[0, j] = zy * dz - zz * dy
-                jac[1, j] = zz * dx - zx * dz
-                jac[2, j] = zx * dy - zy * dx
-                if mode == MODE_POSITION:
-                    zx, zy, zz = 0.0, 0.0, 0.0
-                elif mode == MODE_AXIS:
-                    along = zx * wx + zy * wy + zz * wz
-                    zx, zy, zz = zx - along * wx, zy - along * wy, zz - along * wz
-                jac[3, j] = zx * DEG_PER_RAD
-                jac[4, j] = zy * DEG_PER_RAD
-                jac[5, j] = zz * DEG_PER_RAD
+    evaluate = True
+    while True:
+        if evaluate:
+            fk_frames(q_try, frames, jp, rot, pos, axes, points, True)
+            new_pos, new_ori = residual(rot, pos, goal, mode, res)
+            new_cost = new_pos * new_pos + new_ori * new_ori
+            if new_cost < cost or steps == 0:
+                if steps > 0:
+                    lam = max(lam * 0.2, 1e-12)
+                for j in range(n):
+                    q[j] = q_try[j]
+                cost, pos_err, ori_err = new_cost, new_pos, new_ori
+                if (pos_err <= tol_pos and ori_err <= tol_ori) or steps >= iters:
+                    break
+                _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr)
             else:
-                jac[0, j] = zx
-                jac[1, j] = zy
-                jac[2, j] = zz
-                jac[3, j] = 0.0
-                jac[4, j] = 0.0
-                jac[5, j] = 0.0
+                lam *= 8.0
+                if lam > 1e8 or steps >= iters:
+                    break
+        elif steps >= iters:
+            break
+        if window > 0 and steps > 0 and steps % window == 0:
+            # Slow progress over the last window: a local minimum, or far from the basin.
+            # Give up early; DE supplies other starts.
+            if cost > progress * checkpoint:
+                break
+            checkpoint = cost
+        elif steps == 0:
+            checkpoint = cost
+        steps += 1
         for r in range(n):
-            s = 0.0
-            for k in range(6):
-                s += jac[k, r] * res[k]
-            g[r] = s
-            for c in range(r + 1):
-                s = 0.0
-                for k in range(6):
-                    s += jac[k, r] * jac[k, c]
-                a[r, c] = s
-                a[c, r] = s
-        for r in range(n):
-            a[r, r] += lam * a[r, r] + 1e-9
+            g[r] = jtr[r]
+            for c in range(n):
+                a[r, c] = jtj[r, c]
+            a[r, r] += lam * jtj[r, r] + 1e-9
         if not _cholesky_solve(a, g, n):
             lam *= 10.0
+            evaluate = False
             continue
+        evaluate = True
         for j in range(n):
-            q_new[j] = min(max(q[j] + g[j], lo[j]), hi[j])
-        fk_frames(q_new, frames, jp, rot, pos, axes, points, True)
-        new_pos, new_ori = residual(rot, pos, goal, mode, res_new)
-        new_cost = new_pos * new_pos + new_ori * new_ori
-        if new_cost < cost:
-            for j in range(n):
-                q[j] = q_new[j]
-            for k in range(6):
-                res[k] = res_new[k]
-            cost, pos_err, ori_err = new_cost, new_pos, new_ori
-            lam = max(lam * 0.2, 1e-12)
-        else:
-            lam *= 8.0
-            if lam > 1e8:
-                break
-            # Frames must describe q again, not the rejected q_new.
-            fk_frames(q, frames, jp, rot, pos, axes, points, True)
+            q_try[j] = min(max(q[j] + g[j], lo[j]), hi[j])
     out[0] = cost
     out[1] = pos_err
     out[2] = ori_err

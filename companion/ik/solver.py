@@ -66,10 +66,15 @@ class SolverSettings:
     """DE scale factor."""
     Cr: float = 0.9
     """DE crossover probability (binomial)."""
-    lm_iterations: int = 10
-    """Damped-least-squares steps per refinement of DE's best."""
+    lm_iterations: int = 30
+    """Damped-least-squares steps per refinement of DE's best (at most)."""
     lm_lambda0: float = 1e-3
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
+    lm_window: int = 4
+    """LM gives up when the cost has not dropped below ``lm_progress`` × its value
+    ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
+    lm_progress: float = 0.3
+    """See ``lm_window``."""
     stall_generations: int = 3
     """Generations without improvement before the population is drawn anew."""
     movement_weight: float = 1.0
@@ -86,6 +91,8 @@ class SolverSettings:
             ("Cr", 0.0 <= self.Cr <= 1.0, "in [0, 1]"),
             ("lm_iterations", self.lm_iterations >= 0, ">= 0"),
             ("lm_lambda0", self.lm_lambda0 > 0.0, "> 0"),
+            ("lm_window", self.lm_window >= 0, ">= 0"),
+            ("lm_progress", 0.0 < self.lm_progress <= 1.0, "in (0, 1]"),
             ("stall_generations", self.stall_generations >= 1, ">= 1"),
             ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
             ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
@@ -381,6 +388,8 @@ class _Workspace:
         self.fp[kernels.F_CR] = settings.Cr
         self.fp[kernels.F_MOVE_W] = settings.movement_weight
         self.fp[kernels.F_LM_LAMBDA0] = settings.lm_lambda0
+        self.fp[kernels.F_LM_WINDOW] = settings.lm_window
+        self.fp[kernels.F_LM_PROGRESS] = settings.lm_progress
         self.ip = np.zeros(kernels.N_IPARAMS, dtype=np.int64)
         self.ip[kernels.I_LM_ITERS] = settings.lm_iterations
         self.ip[kernels.I_STALL_GENS] = settings.stall_generations
