@@ -6,20 +6,25 @@ refine the best individual that is not yet known to be stuck. The result is clam
 limits, accepted only if the pose error drops, and written back into the population. On
 stagnation the population is re-drawn and the best found so far is kept aside ("record").
 
-Everything here is compiled with numba on first use, with the on-disk cache: the first call
-after an install compiles (a few seconds), later processes load the cache. The daemon calls
-:func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
-writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the kernels still work,
-compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
-out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
+Everything here is compiled by numba's JIT on first use (no explicit signatures: numba infers
+the types from the arrays :class:`companion.ik.solver` passes), with the on-disk cache: the
+first call after an install compiles (about 17 s of CPU; ``python -m companion.ik`` does it
+ahead of time), later processes load the cache. :func:`init_population` and
+:func:`generation` are the entry points the solver calls; they hold every other kernel, compiled
+into them. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays for
+it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
+home), the kernels still work, compiled at every start, and a warning says how to fix it. The
+kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
 Twins: compiled code cannot call numpy's vectorised helpers, so some kernels re-implement a
 numpy function of :mod:`companion.kinematics`. Each twin and the test that keeps the two equal
 (in ``tests/ik/test_kernels.py``):
 
-* :func:`fk_frames` ↔ ``Arm.fk_batch`` (``dh.link_transforms`` + ``dh.chain`` + the tool), both
-  DH conventions: ``test_compiled_fk_equals_numpy_fk``; its joint axes ↔ central differences of
-  ``Arm.fk_matrix``: ``test_joint_axes_give_the_geometric_jacobian``;
+* :func:`fk_frames` ↔ ``Arm.fk_batch`` (the general chain ``F_0·M_1(q_1)·F_1·…``: DH arms of
+  both conventions, prismatic joints, base, direction, URDF):
+  ``test_compiled_fk_equals_numpy_fk``;
+  its joint axes ↔ central differences of ``Arm.fk_matrix``:
+  ``test_joint_axes_give_the_geometric_jacobian``;
 * :func:`goal_matrix` ↔ ``Pose.as_matrix`` (``rotations.rpy_to_matrix``):
   ``test_goal_matrix_equals_pose_as_matrix``;
 * :func:`pose_residual`'s orientation error ↔ ``rotations.rotation_angle``:
@@ -176,13 +181,52 @@ def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
 
 
 @nb.njit(cache=CACHE)
-def pose_residual(rot, pos, goal, res):
-    """Fill ``res`` (6,) with ``(p_goal − p [cm], rotvec(R_goal·Rᵀ) [deg])``.
+def residual(rot, pos, goal, mode, res):
+    """The residual of ``mode`` into ``res`` (6,): ``(p_goal − p [cm], a rotation vector
+    [deg])``; returns ``(position error cm, the mode's angle error deg)``.
 
-    Returns ``(position error cm, orientation error deg)``; the latter is the rotation angle.
+    * MODE_POSE: ``rotvec(R_goal·Rᵀ)``, the angle is the rotation angle;
+    * MODE_AXIS: the rotation vector turning the hand's axis onto the target direction; the
+      hand axis (hand frame) is ``goal[:3, 0]``, the direction (base frame) ``goal[:3, 2]``,
+      both unit; the angle is the one between them;
+    * MODE_POSITION: zero, and the angle 0.
+
+    One function, not three: each level of compiled calls costs first-compile time.
     """
     for k in range(3):
         res[k] = goal[k, 3] - pos[k]
+    pos_err = math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
+    if mode == MODE_POSITION:
+        res[3] = 0.0
+        res[4] = 0.0
+        res[5] = 0.0
+        return pos_err, 0.0
+    if mode == MODE_AXIS:
+        wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
+        wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
+        wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
+        dx, dy, dz = goal[0, 2], goal[1, 2], goal[2, 2]
+        cx = wy * dz - wz * dy
+        cy = wz * dx - wx * dz
+        cz = wx * dy - wy * dx
+        s = math.sqrt(cx * cx + cy * cy + cz * cz)
+        c = wx * dx + wy * dy + wz * dz
+        theta = math.atan2(s, c)
+        if s < 1e-12:
+            if c > 0.0:
+                cx, cy, cz, s = 0.0, 0.0, 0.0, 1.0
+            else:
+                # Pointing the opposite way: turn about any axis perpendicular to w.
+                if abs(wx) < 0.9:
+                    cx, cy, cz = 0.0, wz, -wy
+                else:
+                    cx, cy, cz = -wz, 0.0, wx
+                s = math.sqrt(cx * cx + cy * cy + cz * cz)
+        scale = theta / s * DEG_PER_RAD
+        res[3] = cx * scale
+        res[4] = cy * scale
+        res[5] = cz * scale
+        return pos_err, theta * DEG_PER_RAD
     # E = R_goal · Rᵀ, the rotation still to apply, in the world frame.
     e00 = goal[0, 0] * rot[0, 0] + goal[0, 1] * rot[0, 1] + goal[0, 2] * rot[0, 2]
     e01 = goal[0, 0] * rot[1, 0] + goal[0, 1] * rot[1, 1] + goal[0, 2] * rot[1, 2]
@@ -216,57 +260,12 @@ def pose_residual(rot, pos, goal, res):
         res[3] = theta * ax / norm * DEG_PER_RAD
         res[4] = theta * ay / norm * DEG_PER_RAD
         res[5] = theta * az / norm * DEG_PER_RAD
-    pos_err = math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
     return pos_err, theta * DEG_PER_RAD
 
 
-@nb.njit(cache=CACHE)
-def axis_residual(rot, pos, goal, res):
-    """POSITION_AXIS: ``res`` = ``(p_goal − p [cm], rotation vector [deg] turning the hand's
-    axis onto the target direction)``; the hand axis (hand frame) is ``goal[:3, 0]``, the target
-    direction (base frame) ``goal[:3, 2]``, both unit. Returns ``(pos err cm, angle deg)``."""
-    for k in range(3):
-        res[k] = goal[k, 3] - pos[k]
-    wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
-    wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
-    wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
-    dx, dy, dz = goal[0, 2], goal[1, 2], goal[2, 2]
-    cx = wy * dz - wz * dy
-    cy = wz * dx - wx * dz
-    cz = wx * dy - wy * dx
-    s = math.sqrt(cx * cx + cy * cy + cz * cz)
-    c = wx * dx + wy * dy + wz * dz
-    theta = math.atan2(s, c)
-    if s < 1e-12:
-        if c > 0.0:
-            cx, cy, cz, s = 0.0, 0.0, 0.0, 1.0
-        else:
-            # Pointing the opposite way: turn about any axis perpendicular to w.
-            if abs(wx) < 0.9:
-                cx, cy, cz = 0.0, wz, -wy
-            else:
-                cx, cy, cz = -wz, 0.0, wx
-            s = math.sqrt(cx * cx + cy * cy + cz * cz)
-    scale = theta / s * DEG_PER_RAD
-    res[3] = cx * scale
-    res[4] = cy * scale
-    res[5] = cz * scale
-    pos_err = math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
-    return pos_err, theta * DEG_PER_RAD
-
-
-@nb.njit(cache=CACHE)
-def residual(rot, pos, goal, mode, res):
-    """The residual of ``mode`` (MODE_POSE, MODE_POSITION, MODE_AXIS) into ``res`` (6,);
-    returns ``(pos err cm, the mode's angle error deg)`` (0 for MODE_POSITION)."""
-    if mode == MODE_POSE:
-        return pose_residual(rot, pos, goal, res)
-    if mode == MODE_AXIS:
-        return axis_residual(rot, pos, goal, res)
-    for k in range(3):
-        res[k] = goal[k, 3] - pos[k]
-        res[k + 3] = 0.0
-    return math.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2]), 0.0
+def pose_residual(rot, pos, goal, res):
+    """MODE_POSE's :func:`residual` (a plain-Python name kept for the tests)."""
+    return residual(rot, pos, goal, MODE_POSE, res)
 
 
 @nb.njit(cache=CACHE)
@@ -280,7 +279,9 @@ def _movement(q, q_prev):
 @nb.njit(cache=CACHE)
 def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
-    fk_frames(q, frames, jp, rot, pos, rot, rot, False)  # no axes wanted
+    # No axes wanted. ``mode < 0`` (always False) rather than the literal: numba compiles a
+    # literal argument as a specialisation of its own, ~1 s more of the first compile.
+    fk_frames(q, frames, jp, rot, pos, rot, rot, mode < 0)
     pos_err, ori_err = residual(rot, pos, goal, mode, res)
     cost = pos_err * pos_err + ori_err * ori_err
     if move_w > 0.0:
@@ -403,7 +404,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     evaluate = True
     while True:
         if evaluate:
-            fk_frames(q_try, frames, jp, rot, pos, axes, points, True)
+            fk_frames(q_try, frames, jp, rot, pos, axes, points, mode >= 0)  # see candidate_cost
             new_pos, new_ori = residual(rot, pos, goal, mode, res)
             new_cost = new_pos * new_pos + new_ori * new_ori
             if new_cost < cost or steps == 0:
@@ -543,6 +544,13 @@ def init_population(
     Returns True if the tolerances are already met.
     """
     n_pop, n = pop.shape
+    for k in range(st.shape[0]):
+        st[k] = 0
+    # "Nothing found yet": infinite errors at the start (or mid-range) configuration.
+    record[R_POS_CM] = np.inf
+    record[R_ORI_DEG] = np.inf
+    for j in range(n):
+        record_q[j] = q_start[j] if ip[I_HAS_PREV] else 0.5 * (lo[j] + hi[j])
     first = 0
     if ip[I_HAS_PREV]:
         n_local = max(1, n_pop // 3)
@@ -563,11 +571,16 @@ def init_population(
 
 @nb.njit(cache=CACHE)
 def generation(
-    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q
+    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q, gens
 ):
-    """One memetic generation: DE rand/1/bin with greedy selection, then LM on the best
-    unstuck individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
-    generations. Returns True once the tolerances are met."""
+    """``gens`` memetic generations (fewer once the tolerances are met; returns True then).
+
+    One generation: DE rand/1/bin with greedy selection, then LM on the best unstuck
+    individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
+    generations. Several per call keep the cost of Python and of numba's dispatch (~2 µs for
+    these arguments) off every generation. (The loop is here, not around a helper: every
+    level of compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
+    """
     n_pop, n = pop.shape
     f_scale = fp[F_SCALE]
     cr = fp[F_CR]
@@ -579,114 +592,54 @@ def generation(
     rot = np.empty((3, 3))
     pos = np.empty(3)
     res = np.empty(6)
-    best_before = _min(cost)
-    for i in range(n_pop):
-        r1 = _randint(rng, n_pop - 1)
-        r1 += r1 >= i
-        r2 = r1
-        while r2 == r1 or r2 == i:
-            r2 = _randint(rng, n_pop)
-        r3 = r1
-        while r3 == r1 or r3 == r2 or r3 == i:
-            r3 = _randint(rng, n_pop)
-        j_rand = _randint(rng, n)
-        for j in range(n):
-            if j == j_rand or _rand(rng) <= cr:
-                v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
-                trial[j] = min(max(v, lo[j]), hi[j])
-            else:
-                trial[j] = pop[i, j]
-        trial_cost[i] = candidate_cost(trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res)
-        for j in range(n):
-            trials[i, j] = trial[j]
-    for i in range(n_pop):
-        if trial_cost[i] <= cost[i]:
-            if trial_cost[i] < cost[i]:
-                stuck[i] = False
-            cost[i] = trial_cost[i]
+    for _ in range(gens):
+        best_before = _min(cost)
+        for i in range(n_pop):
+            r1 = _randint(rng, n_pop - 1)
+            r1 += r1 >= i
+            r2 = r1
+            while r2 == r1 or r2 == i:
+                r2 = _randint(rng, n_pop)
+            r3 = r1
+            while r3 == r1 or r3 == r2 or r3 == i:
+                r3 = _randint(rng, n_pop)
+            j_rand = _randint(rng, n)
             for j in range(n):
-                pop[i, j] = trials[i, j]
-    st[S_GENERATIONS] += 1
-    st[S_EVALUATIONS] += n_pop
-    done = _refine_best(
-        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
-    )
-    if done:
-        return True
-    if _min(cost) < best_before * (1.0 - 1e-9):
-        st[S_STALE] = 0
-    else:
-        st[S_STALE] += 1
-        if st[S_STALE] >= ip[I_STALL_GENS]:
-            # Restart: the record keeps the best so far; the whole population is drawn anew.
-            # intp(0), not the literal 0: numba would compile a second specialisation.
-            _draw_population(pop, lo, hi, rng, np.intp(0))
-            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
-            st[S_EVALUATIONS] += n_pop
-            stuck[:] = False
+                if j == j_rand or _rand(rng) <= cr:
+                    v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
+                    trial[j] = min(max(v, lo[j]), hi[j])
+                else:
+                    trial[j] = pop[i, j]
+            trial_cost[i] = candidate_cost(
+                trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
+            )
+            for j in range(n):
+                trials[i, j] = trial[j]
+        for i in range(n_pop):
+            if trial_cost[i] <= cost[i]:
+                if trial_cost[i] < cost[i]:
+                    stuck[i] = False
+                cost[i] = trial_cost[i]
+                for j in range(n):
+                    pop[i, j] = trials[i, j]
+        st[S_GENERATIONS] += 1
+        st[S_EVALUATIONS] += n_pop
+        done = _refine_best(
+            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
+        )
+        if done:
+            return True
+        if _min(cost) < best_before * (1.0 - 1e-9):
             st[S_STALE] = 0
-            st[S_RESTARTS] += 1
-    return False
-
-
-@nb.njit(cache=CACHE)
-def run(
-    pop,
-    cost,
-    stuck,
-    lo,
-    hi,
-    frames,
-    jp,
-    goal,
-    q_prev,
-    fp,
-    ip,
-    rng,
-    st,
-    record,
-    record_q,
-    spread_rad,
-    start,
-    max_gens,
-):
-    """The entry point :func:`companion.ik.solve` calls: with ``start``, reset the record and
-    initialise the population (:func:`init_population`, around ``q_prev`` when
-    ``ip[I_HAS_PREV]``); then up to ``max_gens`` generations. Returns True once the tolerances
-    are met. One call per chunk of generations keeps the per-call cost of Python and of numba's
-    dispatch (~2 µs for these 18 arguments) off every generation."""
-    if start:
-        record[R_COST] = np.inf
-        record[R_POS_CM] = np.inf
-        record[R_ORI_DEG] = np.inf
-        for k in range(st.shape[0]):
-            st[k] = 0
-        # "Nothing found yet": infinite errors at the start (or mid-range) configuration.
-        for j in range(record_q.shape[0]):
-            record_q[j] = q_prev[j] if ip[I_HAS_PREV] else 0.5 * (lo[j] + hi[j])
-        if init_population(
-            pop,
-            cost,
-            stuck,
-            lo,
-            hi,
-            frames,
-            jp,
-            goal,
-            q_prev,
-            fp,
-            ip,
-            rng,
-            st,
-            record,
-            record_q,
-            q_prev,
-            spread_rad,
-        ):
-            return True
-    for _ in range(max_gens):
-        if generation(
-            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q
-        ):
-            return True
+        else:
+            st[S_STALE] += 1
+            if st[S_STALE] >= ip[I_STALL_GENS]:
+                # Restart: the record keeps the best so far; the whole population is drawn anew.
+                # intp(0), not the literal 0: numba would compile a second specialisation.
+                _draw_population(pop, lo, hi, rng, np.intp(0))
+                _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
+                st[S_EVALUATIONS] += n_pop
+                stuck[:] = False
+                st[S_STALE] = 0
+                st[S_RESTARTS] += 1
     return False

@@ -2,13 +2,22 @@
 
 This is where the time budget is enforced. The search itself is memetic differential evolution,
 compiled (:mod:`companion.ik.kernels`): DE rand/1/bin is the global search, and
-damped-least-squares steps refine its best individual. This module runs it one generation at a
-time, reading the clock between generations. It stops:
+damped-least-squares steps refine its best individual. This module runs it in chunks of
+generations (one compiled call each: 1, 2, 4, … up to 64 generations), reading the clock between
+chunks. It stops:
 
 * as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
-* before a generation that would not finish inside ``budget_ms``. The slowest generation so
-  far is the estimate, so the budget holds up to one generation's jitter (DEADLINE);
+* before a chunk, even of one generation, that is predicted not to finish inside ``budget_ms``
+  (DEADLINE). The prediction is a moving average of the cost of a generation, each sample
+  capped at 4× the average, so one generation preempted by another process does not end the
+  search early on a busy machine; the budget holds up to one chunk's jitter;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
+
+Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
+revolute and prismatic, base and tool transforms, reversed joints, DH or URDF). At this API a
+prismatic joint is in cm wherever a revolute one is in degrees (``q_start_deg``, ``q_deg``).
+What must be met is chosen per call (:class:`TargetMode`): the whole pose, the position, or the
+position and a pointing direction.
 
 It always returns the best configuration found, within the joint limits, with both errors.
 A target it cannot reach (the papers' G is one) comes back with ``converged=False``; that is
@@ -18,10 +27,14 @@ Warm start: ``q_start_deg`` (normally the previous command) seeds a third of the
 around it, and a minimal-movement term (``settings.movement_weight``) keeps consecutive
 solutions on the same elbow/wrist branch.
 
-Importing this module does no work: the kernels compile (the first time, a few seconds) or load
-from numba's disk cache (after that, a fraction of a second) when :func:`warm_up` runs. The
-daemon calls it before it reports READY; a first :func:`solve` without it calls it before its
-clock starts. So no budget ever pays for compilation.
+Importing this module does no work. The kernels are compiled lazily by numba's JIT (there are
+no explicit signatures: numba infers them from the first call) and cached on disk: the first
+:func:`warm_up` in a fresh cache compiles them (about 17 s of CPU on the development machine),
+later ones load the cache (about 0.5 s, most of it numba setting up its compiler on the first
+call). ``python -m companion.ik`` does that compile ahead of time, e.g. at install into the
+service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports READY; a first
+:func:`solve` without it calls it before its clock starts. So no budget ever pays for
+compilation.
 """
 
 from __future__ import annotations
@@ -323,7 +336,7 @@ def solve(
     st = ws.st
     max_gens = settings.max_generations
 
-    done = kernels.run(*args, ws.spread_rad, True, 0)
+    done = kernels.init_population(*args, ws.q_start, ws.spread_rad)
     now = clock()
     # The cost of the next generation: a moving average of the past ones (per generation of a
     # chunk), each sample capped at 4× the estimate, so one chunk preempted by another process
@@ -347,7 +360,7 @@ def solve(
             if gens < 1:
                 reason = StopReason.DEADLINE
                 break
-        done = kernels.run(*args, ws.spread_rad, False, gens)
+        done = kernels.generation(*args, gens)
         after = clock()
         sample_s = (after - now) / gens
         now = after
@@ -434,8 +447,9 @@ def warm_up() -> float:
     """Compile (or load from the numba cache) every kernel :func:`solve` uses; returns seconds.
 
     Call it once before the first time-critical solve (the daemon does, before READY). The
-    target is the papers' G, which cannot converge, so both the initialisation and the
-    generation kernels run, cold and warm.
+    target is the papers' G, which cannot converge, so the compiled entry points
+    (``kernels.init_population`` and ``kernels.generation``, which hold every other kernel, and
+    ``kernels.goal_matrix``) all run, cold and warm; so does the pointing-direction mode's path.
     """
     global _warmed_up
     _warmed_up = True
@@ -445,4 +459,5 @@ def warm_up() -> float:
     few = SolverSettings(max_generations=2)
     solve(arm, unreachable, budget_ms=1e4, seed=0, settings=few)
     solve(arm, unreachable, budget_ms=1e4, seed=0, q_start_deg=[0, 90, 0, 0, 0, 0], settings=few)
+    solve(arm, unreachable, budget_ms=1e4, seed=0, settings=few, mode=TargetMode.POSITION_AXIS)
     return time.perf_counter() - t

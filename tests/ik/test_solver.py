@@ -31,21 +31,25 @@ def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
 
 
 def _charged_run(monkeypatch, clock, init_s, per_generation_s):
-    """kernels.run advances ``clock`` as if initialising took ``init_s`` and each generation
+    """The kernels advance ``clock`` as if initialising took ``init_s`` and each generation
     took ``per_generation_s`` (a callable of the generation's index)."""
-    real_run = kernels.run
+    real_init, real_generation = kernels.init_population, kernels.generation
     count = [0]
 
-    def run(*args):
-        done = real_run(*args)
-        start, gens = args[-2], args[-1]
-        clock.advance(init_s if start else 0.0)
-        for _ in range(gens):
+    def init_population(*args):
+        done = real_init(*args)
+        clock.advance(init_s)
+        return done
+
+    def generation(*args):
+        done = real_generation(*args)
+        for _ in range(args[-1]):
             clock.advance(per_generation_s(count[0]))
             count[0] += 1
         return done
 
-    monkeypatch.setattr(kernels, "run", run)
+    monkeypatch.setattr(kernels, "init_population", init_population)
+    monkeypatch.setattr(kernels, "generation", generation)
 
 
 def test_deadline_on_a_fake_clock(monkeypatch):
