@@ -165,6 +165,18 @@ class CompiledIKObjective:
     def __init__(self, objective: IKObjective) -> None:
         self.objective = objective
         arm = objective.arm
+        # The compiled J is the DH chain the papers use: revolute joints, no base, no reversed
+        # joint. Other arms (prismatic, base, URDF) go through the numpy IKObjective.
+        if (
+            arm.convention is None
+            or arm.base is not None
+            or not arm.all_revolute
+            or any(j.direction != 1 for j in arm.joints)
+        ):
+            raise ValueError(
+                f"arm {arm.name}: the compiled objective takes revolute DH arms without a base "
+                "transform or reversed joints; use IKObjective"
+            )
         alpha, a, d, offset = (
             np.array([j.alpha_rad for j in arm.joints]),
             np.array([j.a_cm for j in arm.joints]),
