@@ -104,9 +104,14 @@ def rtb_robot(name: str, arm: Arm) -> Any:
     return rtb.DHRobot(links, name=name)
 
 
-def prepare_ours(arm: Arm, target: Pose, seed: int, budget_ms: float) -> Call:
+def prepare_ours(
+    arm: Arm, target: Pose, seed: int, budget_ms: float, reasons: list[str] | None = None
+) -> Call:
     def call() -> np.ndarray:
-        return solve(arm, target, budget_ms=budget_ms, seed=seed).q_rad
+        res = solve(arm, target, budget_ms=budget_ms, seed=seed)
+        if reasons is not None:
+            reasons.append(res.stop_reason.value)
+        return res.q_rad
 
     return call
 
@@ -137,12 +142,13 @@ def interleaved(
     stats: dict[str, dict[str, list]] = {
         who: {"ok": [], "cpu": [], "wall": []} for who in ("ours", "rtb")
     }
+    reasons: list[str] = []  # ours, per pose: why it stopped
     gc.collect()
     gc.freeze()
     gc.disable()
     try:
         for k, target in enumerate(poses):
-            calls = {"ours": prepare_ours(arm, target, seed + k, budget_ms)}
+            calls = {"ours": prepare_ours(arm, target, seed + k, budget_ms, reasons)}
             if ets is not None:
                 calls["rtb"] = prepare_rtb(arm, ets, target, seed + k)
             order = list(calls) if k % 2 == 0 else list(reversed(calls))
@@ -168,6 +174,12 @@ def interleaved(
     if stats["rtb"]["ok"]:
         row["ratio med"] = row["ours cpu med"] / row["rtb cpu med"]
         row["ratio p99"] = row["ours cpu p99"] / row["rtb cpu p99"]
+    ours = stats["ours"]
+    failed = [i for i, good in enumerate(ours["ok"]) if not good]
+    row["ours failures: stop, wall/cpu ms"] = (
+        ", ".join(f"{reasons[i]} {ours['wall'][i]:.1f}/{ours['cpu'][i]:.2f}" for i in failed[:4])
+        or "–"
+    )
     return row
 
 
