@@ -73,6 +73,7 @@ if not CACHE:
     )
 
 DEG_PER_RAD = 180.0 / math.pi
+TWO_PI = 2.0 * math.pi
 
 # Layout of the float parameter vector ``fp``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
@@ -114,12 +115,25 @@ def _randint(rng, n):
 
 
 @nb.njit(cache=CACHE)
+def _into_range(v, lo, hi, wraps):
+    """``v`` into ``[lo, hi]``: a joint whose range holds a whole turn (``wraps`` = 1.0) takes
+    the same angle modulo 2π (no false wall at ±180° on a joint that turns all the way round);
+    any other is clamped."""
+    if lo <= v <= hi:
+        return v
+    if wraps > 0.5:
+        return min(lo + (v - lo) % TWO_PI, hi)
+    return min(max(v, lo), hi)
+
+
+@nb.njit(cache=CACHE)
 def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
     The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm;
     see :mod:`companion.kinematics.arm`); ``jp`` rows: direction, offset, 1.0 for a revolute
-    joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``). With ``want_axes``, also each
+    joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``), and (not used here) 1.0 for a
+    joint whose range holds a whole turn. With ``want_axes``, also each
     joint's axis (the z axis it moves about or along, signed by its direction) and a point on
     it, in the base frame, for the geometric Jacobian.
     """
@@ -442,7 +456,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
             continue
         evaluate = True
         for j in range(n):
-            q_try[j] = min(max(q[j] + g[j], lo[j]), hi[j])
+            q_try[j] = _into_range(q[j] + g[j], lo[j], hi[j], jp[3, j])
     out[0] = cost
     out[1] = pos_err
     out[2] = ori_err
@@ -607,7 +621,7 @@ def generation(
             for j in range(n):
                 if j == j_rand or _rand(rng) <= cr:
                     v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
-                    trial[j] = min(max(v, lo[j]), hi[j])
+                    trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
                 else:
                     trial[j] = pop[i, j]
             trial_cost[i] = candidate_cost(

@@ -207,6 +207,8 @@ def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
             [float(j.direction) for j in arm.joints],
             [j.offset for j in arm.joints],
             [1.0 if j.revolute else 0.0 for j in arm.joints],
+            # A whole turn within the limits: the kernels wrap such a joint instead of clamping.
+            [1.0 if j.revolute and j.upper - j.lower >= 2 * math.pi else 0.0 for j in arm.joints],
         ]
     )
     return _ArmArrays(
