@@ -176,12 +176,6 @@ class _ArmArrays:
     to_user: FloatArray
 
 
-_MODE_IDS = {
-    TargetMode.POSE: kernels.MODE_POSE,
-    TargetMode.POSITION: kernels.MODE_POSITION,
-    TargetMode.POSITION_AXIS: kernels.MODE_AXIS,
-}
-
 # The daemon solves for one arm over and over: remember the last one. A tuple swapped whole, so
 # a reader in another thread never sees one arm paired with another's arrays.
 _last_arm: tuple[Arm, _ArmArrays] | None = None
@@ -304,8 +298,14 @@ def solve(
     fp, ip = ws.fp, ws.ip
     fp[kernels.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
     fp[kernels.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
-    mode_id = _MODE_IDS.get(mode)
-    if mode_id is None:
+    # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
+    if mode is TargetMode.POSE:
+        mode_id = kernels.MODE_POSE
+    elif mode is TargetMode.POSITION:
+        mode_id = kernels.MODE_POSITION
+    elif mode is TargetMode.POSITION_AXIS:
+        mode_id = kernels.MODE_AXIS
+    else:
         raise ValueError(f"mode={mode!r} must be one of {', '.join(m.name for m in TargetMode)}")
     ip[kernels.I_MODE] = mode_id
     if q_start_deg is None:
@@ -369,19 +369,20 @@ def solve(
         estimate_s += 0.25 * (min(sample_s, 4.0 * estimate_s) - estimate_s)
         chunk = min(2 * chunk, 64)
 
-    record = ws.record
+    record = ws.record.tolist()
     record_q = ws.record_q
+    counts = st.tolist()
     return IKResult(
         q_deg=tuple((record_q * ws.to_user).tolist()),
-        pos_err_cm=float(record[kernels.R_POS_CM]),
-        ori_err_deg=float(record[kernels.R_ORI_DEG]),
-        cost=float(record[kernels.R_COST]),
+        pos_err_cm=record[kernels.R_POS_CM],
+        ori_err_deg=record[kernels.R_ORI_DEG],
+        cost=record[kernels.R_COST],
         converged=reason is StopReason.CONVERGED,
         elapsed_ms=(clock() - started) * 1e3,
-        generations=int(st[kernels.S_GENERATIONS]),
-        evaluations=int(st[kernels.S_EVALUATIONS]),
-        lm_iterations=int(st[kernels.S_LM_ITERATIONS]),
-        restarts=int(st[kernels.S_RESTARTS]),
+        generations=counts[kernels.S_GENERATIONS],
+        evaluations=counts[kernels.S_EVALUATIONS],
+        lm_iterations=counts[kernels.S_LM_ITERATIONS],
+        restarts=counts[kernels.S_RESTARTS],
         stop_reason=reason,
         q=tuple(record_q.tolist()),
     )
