@@ -2,7 +2,8 @@
 
     .venv/bin/pip install -q -e '.[bench]'
     .venv/bin/python -m bench.solver [--poses 1000] [--limit-poses 200] [--hog-poses 300]
-                                     [--budget-ms 20] [--seed 2026] [--arms a,b] [--markdown FILE]
+                                     [--budget-ms 20] [--seed 2026] [--arms a,b] [--laps 5]
+                                     [--only-extras] [--no-cold-start] [--markdown FILE]
 
 The peer is roboticstoolbox-python's C++ ``ets().ik_LM`` (tol 1e-12, joint limits on, its own
 restarts), on rtb's own DH model for Puma560, UR5, UR10, Panda, Stanford and Baxter (metres) and
@@ -22,6 +23,8 @@ Targets: FK of joints drawn uniformly within the limits. Then:
 * joints-at-limits poses: every joint within 0.5° (0.5 cm for a slider) of one of its limits;
 * a CPU hog (one busy subprocess per core) beside ours, same poses as the first
   ``--hog-poses`` of the main run: success, and how the deadline ends the failures;
+* ours warm along 100 Hz paths of the default arm (``--laps``), and the budget overrun on
+  unreachable targets (``--only-extras`` runs just these and the cold start);
 * the first call in a fresh interpreter with the numba cache warm and empty.
 """
 
@@ -222,6 +225,85 @@ def hog_row(name: str, arm: Arm, poses: list[Pose], budget_ms: float, seed: int)
     }
 
 
+def path_poses(arm: Arm, kind: str, samples: int) -> list[Pose]:
+    """A hand path sampled at 100 Hz: a 5 cm circle or a 10 × 5 cm figure-eight, 2 s long,
+    orientation held, around a comfortable pose of the default arm (elbow bent)."""
+    centre = arm.fk([20, 70, 50, 20, 30, 10])
+    out = []
+    for k in range(samples):
+        s = 2 * math.pi * k / samples
+        if kind == "circle":
+            dy, dz = 5.0 * math.cos(s), 5.0 * math.sin(s)
+        else:
+            dy, dz = 5.0 * math.sin(s), 2.5 * math.sin(2 * s)
+        out.append(
+            Pose(
+                centre.x_cm,
+                centre.y_cm + dy,
+                centre.z_cm + dz,
+                centre.roll_deg,
+                centre.pitch_deg,
+                centre.yaw_deg,
+            )
+        )
+    return out
+
+
+def warm_row(arm: Arm, kind: str, budget_ms: float, laps: int) -> dict:
+    """Ours along a path, each solve started from the previous solution (the daemon's way)."""
+    poses = path_poses(arm, kind, 200) * laps
+    q_prev = np.array(solve(arm, poses[0], budget_ms=1e3, seed=0).q_deg)
+    cpu, ok, steps = [], [], []
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    try:
+        for k, target in enumerate(poses[1:], start=1):
+            c = time.thread_time()
+            res = solve(arm, target, budget_ms=budget_ms, seed=k, q_start_deg=q_prev)
+            cpu.append((time.thread_time() - c) * 1e3)
+            ok.append(judge(arm, target, res.q_rad))
+            steps.append(float(np.abs(np.array(res.q_deg) - q_prev).max()))
+            q_prev = np.array(res.q_deg)
+    finally:
+        gc.enable()
+        gc.unfreeze()
+    return {
+        "path": f"100 Hz {kind} ({laps} laps)",
+        "poses": len(cpu),
+        "ok %": 100.0 * float(np.mean(ok)),
+        "cpu med": float(np.median(cpu)),
+        "cpu p99": float(np.percentile(cpu, 99)),
+        "max joint step deg": max(steps),
+    }
+
+
+def overrun_row(arm: Arm, budget_ms: float, count: int, seed: int) -> dict:
+    """Unreachable targets (orientation turned 90–180° off, or positions beyond reach) must
+    come back by the budget: wall time minus budget."""
+    rng = np.random.default_rng(seed)
+    over = []
+    for k, target in enumerate(random_targets(arm, count, rng)):
+        if k % 2:
+            target = Pose(target.x_cm * 3, target.y_cm * 3, target.z_cm * 3 + 100, 0, 0, 0)
+        else:
+            target = Pose(
+                *target.as_tuple()[:3],
+                target.roll_deg + 180,
+                -target.pitch_deg,
+                target.yaw_deg + rng.uniform(90, 180),
+            )
+        t = time.perf_counter()
+        solve(arm, target, budget_ms=budget_ms, seed=k)
+        over.append((time.perf_counter() - t) * 1e3 - budget_ms)
+    return {
+        "budget ms": budget_ms,
+        "targets": count,
+        "median overrun ms": float(np.median(over)),
+        "max overrun ms": float(np.max(over)),
+    }
+
+
 def first_call(cache_dir: str | None) -> dict:
     """Import, ``ik.warm_up()`` and the first solve in a fresh interpreter; ``cache_dir`` forces
     numba's cache there (an empty one: the first run ever)."""
@@ -268,6 +350,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--arms", default=",".join(ARMS))
     parser.add_argument("--no-cold-start", action="store_true")
+    parser.add_argument("--laps", type=int, default=5, help="laps of each warm path (0: none)")
+    parser.add_argument(
+        "--only-extras", action="store_true", help="only warm paths, overrun and cold start"
+    )
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args()
 
@@ -278,7 +364,7 @@ def main() -> None:
     except ImportError:
         peer = False
     warm_up()
-    names = args.arms.split(",")
+    names = [] if args.only_extras else args.arms.split(",")
     arms = {n: Arm.from_package_file(f"{n}.toml") for n in names}
     main_rows, limit_rows, hog_rows = [], [], []
     for n, arm in arms.items():
@@ -295,16 +381,25 @@ def main() -> None:
         f"success = pos ≤ {TOL_POS_CM} cm and ori ≤ {TOL_ORI_DEG}° and within limits; "
         "times in ms, CPU = thread CPU time; ratio = ours/rtb CPU",
         "",
-        "Random reachable poses, interleaved with rtb ik_LM (C++, tol 1e-12, limits on):",
-        "",
     ]
-    lines += table(main_rows) + ["", "Joints-at-limits poses (every joint within 0.5° of a limit):"]
-    lines += [""] + table(limit_rows) + [""]
+    if main_rows:
+        lines += ["Random reachable poses, interleaved with rtb ik_LM (C++, tol 1e-12, limits on):"]
+        lines += [""] + table(main_rows) + [""]
+        lines += ["Joints-at-limits poses (every joint within 0.5° of a limit):", ""]
+        lines += table(limit_rows) + [""]
     if hog_rows:
         lines += ["Ours beside a CPU hog (one busy process per core):", ""]
         lines += table(hog_rows) + [""]
     if not peer:
         lines.append("rtb not installed: pip install -e '.[bench]'")
+    if args.laps:
+        default = Arm.default()
+        warm = [warm_row(default, k, args.budget_ms, args.laps) for k in ("circle", "figure-eight")]
+        lines += ["Ours, warm, along paths of the default arm (start = previous solution):", ""]
+        lines += table(warm) + [""]
+        over = [overrun_row(default, b, 200, args.seed) for b in (1.0, args.budget_ms)]
+        lines += ["Budget overrun on unreachable targets, default arm (wall − budget):", ""]
+        lines += table(over) + [""]
     if not args.no_cold_start:
         with tempfile.TemporaryDirectory() as empty:
             start = [

@@ -7,10 +7,12 @@ generations (one compiled call each: 1, 2, 4, … up to 64 generations), reading
 chunks. It stops:
 
 * as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
-* before a chunk, even of one generation, that is predicted not to finish inside ``budget_ms``
-  (DEADLINE). The prediction is a moving average of the cost of a generation, each sample
-  capped at 4× the average, so one generation preempted by another process does not end the
-  search early on a busy machine; the budget holds up to one chunk's jitter;
+* before a generation that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
+  prediction is a moving average of the cost of a generation, each sample the smaller of its
+  wall and CPU time and capped at 4× the average, so a generation preempted by another process
+  does not end the search early on a busy machine. A chunk is never predicted to take more than
+  half of the budget left (one generation excepted), so the budget holds up to the jitter of
+  one chunk, if the machine lets this thread run at all;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
@@ -268,6 +270,7 @@ def solve(
     tol_ori_deg: float = 1e-3,
     settings: SolverSettings = DEFAULT_SETTINGS,
     clock: Clock = time.perf_counter,
+    cpu_clock: Clock = time.thread_time,
     mode: TargetMode = TargetMode.POSE,
     tool_axis: Sequence[float] = (0.0, 0.0, 1.0),
     direction: Sequence[float] | None = None,
@@ -285,6 +288,9 @@ def solve(
     direction: the hand's ``tool_axis`` (hand frame, default its z axis) must point along
     ``direction`` (base frame; default: the target orientation's ``tool_axis``, i.e.
     ``R_target · tool_axis``), roll about it free. Neither vector needs to be unit length.
+
+    ``clock`` measures the budget (wall time); ``cpu_clock`` (this thread's CPU time) helps
+    estimate what a generation costs when other processes take the CPU. Tests pass fakes.
 
     The first call in a process that has not run :func:`warm_up` runs it first, before the
     clock starts: the budget is for the search, never for numba's compiler.
@@ -338,14 +344,18 @@ def solve(
     st = ws.st
     max_gens = settings.max_generations
 
+    cpu_before = cpu_clock()
     done = kernels.init_population(*args, ws.q_start, ws.spread_rad)
     now = clock()
+    cpu_now = cpu_clock()
     # The cost of the next generation: a moving average of the past ones (per generation of a
-    # chunk), each sample capped at 4× the estimate, so one chunk preempted by another process
-    # moves it by at most 75 % (and that wears off), instead of "the slowest so far" ending the
-    # search at half the budget on a busy machine. The first sample, initialisation, is taken
-    # whole. Chunks double from one generation up to 64, never predicted past the budget.
-    estimate_s = now - started
+    # chunk), each sample the smaller of the wall and the CPU time it took, so time spent
+    # preempted by another process does not count as the kernel's cost, and capped at 4× the
+    # estimate. Before, "the slowest generation so far", in wall time, ended the search at
+    # half the budget on a busy machine. The first sample is the initialisation. Chunks
+    # double from one generation up to 64, never predicted past the budget nor, beyond one
+    # generation, past half of what is left of it.
+    estimate_s = min(now - started, cpu_now - cpu_before)
     chunk = 1
     while True:
         if done:
@@ -357,15 +367,16 @@ def solve(
             break
         remaining_s = budget_s - (now - started)
         gens = min(chunk, left)
-        if gens * estimate_s > remaining_s:
-            gens = int(remaining_s / estimate_s) if estimate_s > 0.0 else gens
-            if gens < 1:
+        if gens * estimate_s > 0.5 * remaining_s:
+            if estimate_s > remaining_s or remaining_s <= 0.0:
                 reason = StopReason.DEADLINE
                 break
+            gens = max(int(0.5 * remaining_s / estimate_s), 1)  # estimate_s > 0 here
         done = kernels.generation(*args, gens)
         after = clock()
-        sample_s = (after - now) / gens
-        now = after
+        cpu_after = cpu_clock()
+        sample_s = min(after - now, cpu_after - cpu_now) / gens
+        now, cpu_now = after, cpu_after
         estimate_s += 0.25 * (min(sample_s, 4.0 * estimate_s) - estimate_s)
         chunk = min(2 * chunk, 64)
 

@@ -30,21 +30,27 @@ def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
     return float(e.pos_err_cm[0]), float(e.ori_err_deg[0])
 
 
-def _charged_run(monkeypatch, clock, init_s, per_generation_s):
+def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, init_cpu_s=0.0):
     """The kernels advance ``clock`` as if initialising took ``init_s`` and each generation
-    took ``per_generation_s`` (a callable of the generation's index)."""
+    took ``per_generation_s`` (a callable of the generation's index); ``cpu_clock``, if given,
+    advances by ``init_cpu_s`` for the initialisation and like ``clock`` for generations."""
     real_init, real_generation = kernels.init_population, kernels.generation
     count = [0]
 
     def init_population(*args):
         done = real_init(*args)
         clock.advance(init_s)
+        if cpu_clock is not None:
+            cpu_clock.advance(init_cpu_s)
         return done
 
     def generation(*args):
         done = real_generation(*args)
         for _ in range(args[-1]):
-            clock.advance(per_generation_s(count[0]))
+            step = per_generation_s(count[0])
+            clock.advance(step)
+            if cpu_clock is not None:
+                cpu_clock.advance(step)
             count[0] += 1
         return done
 
@@ -53,11 +59,12 @@ def _charged_run(monkeypatch, clock, init_s, per_generation_s):
 
 
 def test_deadline_on_a_fake_clock(monkeypatch):
-    # Initialisation and every generation cost 1 ms; chunks of 1, 2, 4 generations end at 8 ms,
-    # then only 2 fit before 10.5 ms (a third would end at 11 ms).
+    # Initialisation and every generation cost 1 ms; chunks of 1, 2, then 3 (not 4: a chunk
+    # takes at most half the time left), then single generations until the next would end
+    # past 10.5 ms.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 1e-3, lambda i: 1e-3)
-    res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock)
+    res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE and not res.converged
     assert res.generations == 9
     assert res.elapsed_ms == pytest.approx(10.0)
@@ -67,7 +74,7 @@ def test_a_generation_predicted_to_overrun_is_not_started(monkeypatch):
     # 3 ms each: init ends at 3, one generation at 6, the next would end at 12 > 10: 4 ms unused.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 3e-3, lambda i: 3e-3)
-    res = solve(ARM, G, budget_ms=10.0, seed=1, clock=clock)
+    res = solve(ARM, G, budget_ms=10.0, seed=1, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE
     assert res.generations == 2
     assert res.elapsed_ms == pytest.approx(9.0)
@@ -340,7 +347,7 @@ def test_one_preempted_generation_does_not_end_the_search_early(monkeypatch):
     # moving average lets the search go on, and it still stops within the budget.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 1e-4, lambda i: 4e-3 if i == 0 else 1e-4)
-    res = solve(ARM, G, budget_ms=10.0, seed=1, clock=clock)
+    res = solve(ARM, G, budget_ms=10.0, seed=1, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE
     assert res.generations > 40
     assert 9.0 <= res.elapsed_ms <= 10.0
@@ -375,3 +382,15 @@ def test_property_no_false_convergence_and_never_outside_limits(name, mode, u, s
         elif mode is TargetMode.POSITION_AXIS:
             cos = float(got[:3, 2] @ target.rotation[:, 2])
             assert math.degrees(math.acos(min(1.0, cos))) <= 1e-3 + 1e-9
+
+
+def test_initialisation_preempted_for_half_the_budget_does_not_end_the_search(monkeypatch):
+    # Another process held the CPU for 11 ms of the initialisation, which itself used 0.1 ms of
+    # CPU. In wall time alone one generation would look like 11 ms and none would fit in the
+    # 9 ms left; the CPU time says 0.1 ms, and the search runs on until the budget.
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 11e-3, lambda i: 1e-4, cpu_clock=cpu, init_cpu_s=1e-4)
+    res = solve(ARM, G, budget_ms=20.0, seed=1, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.DEADLINE
+    assert res.generations > 40
+    assert 19.0 <= res.elapsed_ms <= 20.0
