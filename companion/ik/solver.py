@@ -8,11 +8,12 @@ chunks. It stops:
 
 * as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
 * before a generation that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
-  prediction is a moving average of the cost of a generation, each sample the smaller of its
-  wall and CPU time and capped at 4× the average, so a generation preempted by another process
-  does not end the search early on a busy machine. A chunk is never predicted to take more than
-  half of the budget left (one generation excepted), so the budget holds up to the jitter of
-  one chunk, if the machine lets this thread run at all;
+  prediction is a moving average of the wall time of a generation, each sample capped at 4×
+  the average (and the first, the initialisation, counted in CPU time if that is less), so a
+  generation preempted by another process does not end the search early on a busy machine.
+  A chunk is never predicted to take more than half of the budget left (one generation
+  excepted), so the budget holds up to the jitter of one chunk, if the machine lets this
+  thread run at all;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
@@ -289,8 +290,8 @@ def solve(
     ``direction`` (base frame; default: the target orientation's ``tool_axis``, i.e.
     ``R_target · tool_axis``), roll about it free. Neither vector needs to be unit length.
 
-    ``clock`` measures the budget (wall time); ``cpu_clock`` (this thread's CPU time) helps
-    estimate what a generation costs when other processes take the CPU. Tests pass fakes.
+    ``clock`` measures the budget (wall time); ``cpu_clock`` (this thread's CPU time) tells
+    a slow initialisation from a preempted one. Tests pass fakes.
 
     The first call in a process that has not run :func:`warm_up` runs it first, before the
     clock starts: the budget is for the search, never for numba's compiler.
@@ -347,15 +348,16 @@ def solve(
     cpu_before = cpu_clock()
     done = kernels.init_population(*args, ws.q_start, ws.spread_rad)
     now = clock()
-    cpu_now = cpu_clock()
-    # The cost of the next generation: a moving average of the past ones (per generation of a
-    # chunk), each sample the smaller of the wall and the CPU time it took, so time spent
-    # preempted by another process does not count as the kernel's cost, and capped at 4× the
-    # estimate. Before, "the slowest generation so far", in wall time, ended the search at
-    # half the budget on a busy machine. The first sample is the initialisation. Chunks
-    # double from one generation up to 64, never predicted past the budget nor, beyond one
-    # generation, past half of what is left of it.
-    estimate_s = min(now - started, cpu_now - cpu_before)
+    # The wall time of the next generation: a moving average of the past ones (per generation
+    # of a chunk), each sample capped at 4× the estimate, so one chunk preempted by another
+    # process moves it by at most 75 % (and that wears off); before, "the slowest generation
+    # so far" ended the search at half the budget on a busy machine. The first sample, the
+    # initialisation, counts only its CPU time if that is less: an initialisation preempted
+    # for 11 ms must not make every generation look 11 ms long. Later samples are wall time,
+    # so a thread that only gets half a core predicts its generations at their real length.
+    # Chunks double from one generation up to 64, never predicted past the budget nor,
+    # beyond one generation, past half of what is left of it.
+    estimate_s = min(now - started, cpu_clock() - cpu_before)
     chunk = 1
     while True:
         if done:
@@ -374,9 +376,8 @@ def solve(
             gens = max(int(0.5 * remaining_s / estimate_s), 1)  # estimate_s > 0 here
         done = kernels.generation(*args, gens)
         after = clock()
-        cpu_after = cpu_clock()
-        sample_s = min(after - now, cpu_after - cpu_now) / gens
-        now, cpu_now = after, cpu_after
+        sample_s = (after - now) / gens
+        now = after
         estimate_s += 0.25 * (min(sample_s, 4.0 * estimate_s) - estimate_s)
         chunk = min(2 * chunk, 64)
 
