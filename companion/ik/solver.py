@@ -11,9 +11,9 @@ chunks. It stops:
   prediction is a moving average of the wall time of a generation, each sample capped at 4×
   the average (and the first, the initialisation, counted in CPU time if that is less), so a
   generation preempted by another process does not end the search early on a busy machine.
-  A chunk is never predicted to take more than half of the budget left (one generation
-  excepted), so the budget holds up to the jitter of one chunk, if the machine lets this
-  thread run at all;
+  A chunk is never predicted to take more than half of the budget left, so the budget holds
+  unless one generation takes twice the average and more, or the machine does not let this
+  thread run;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
@@ -355,8 +355,9 @@ def solve(
     # initialisation, counts only its CPU time if that is less: an initialisation preempted
     # for 11 ms must not make every generation look 11 ms long. Later samples are wall time,
     # so a thread that only gets half a core predicts its generations at their real length.
-    # Chunks double from one generation up to 64, never predicted past the budget nor,
-    # beyond one generation, past half of what is left of it.
+    # Chunks double from one generation up to 64, never predicted past half of what is left
+    # of the budget: one generation can cost several times the average (a restart, a full LM
+    # run), so the last one gets that margin; at most two average generations go unused.
     estimate_s = min(now - started, cpu_clock() - cpu_before)
     chunk = 1
     while True:
@@ -370,10 +371,11 @@ def solve(
         remaining_s = budget_s - (now - started)
         gens = min(chunk, left)
         if gens * estimate_s > 0.5 * remaining_s:
-            if estimate_s > remaining_s or remaining_s <= 0.0:
+            # estimate_s > 0 here unless the budget is spent.
+            gens = int(0.5 * remaining_s / estimate_s) if remaining_s > 0.0 else 0
+            if gens < 1:
                 reason = StopReason.DEADLINE
                 break
-            gens = max(int(0.5 * remaining_s / estimate_s), 1)  # estimate_s > 0 here
         done = kernels.generation(*args, gens)
         after = clock()
         sample_s = (after - now) / gens

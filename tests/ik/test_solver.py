@@ -60,24 +60,25 @@ def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, i
 
 def test_deadline_on_a_fake_clock(monkeypatch):
     # Initialisation and every generation cost 1 ms; chunks of 1, 2, then 3 (not 4: a chunk
-    # takes at most half the time left), then single generations until the next would end
-    # past 10.5 ms.
+    # takes at most half the time left), then single generations while one fits in half of
+    # what is left: at 9 ms, 1.5 ms are left and none is started.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 1e-3, lambda i: 1e-3)
     res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE and not res.converged
-    assert res.generations == 9
-    assert res.elapsed_ms == pytest.approx(10.0)
+    assert res.generations == 8
+    assert res.elapsed_ms == pytest.approx(9.0)
 
 
 def test_a_generation_predicted_to_overrun_is_not_started(monkeypatch):
-    # 3 ms each: init ends at 3, one generation at 6, the next would end at 12 > 10: 4 ms unused.
+    # 3 ms each: init ends at 3, one generation at 6; the next would take more than half of the
+    # 4 ms left, so it is not started.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 3e-3, lambda i: 3e-3)
     res = solve(ARM, G, budget_ms=10.0, seed=1, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE
-    assert res.generations == 2
-    assert res.elapsed_ms == pytest.approx(9.0)
+    assert res.generations == 1
+    assert res.elapsed_ms == pytest.approx(6.0)
 
 
 @pytest.mark.parametrize("seed", range(20))
