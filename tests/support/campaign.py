@@ -1134,6 +1134,10 @@ def run_rejects_config(directory: Path, text: str) -> tuple[int, str, int]:
     listener.bind(("127.0.0.1", 0))
     port = listener.getsockname()[1]
     path = directory / "run-bad.toml"
+    # The example's socket (/run/armbridge) would be shared with any other run on the machine.
+    text = text.replace(
+        'socket = "/run/armbridge/control.sock"', f'socket = "{directory / "control.sock"}"'
+    )
     path.write_text(text.replace("udpout:127.0.0.1:14550", f"udpout:127.0.0.1:{port}"))
     try:
         proc = run_daemon(path, timeout_s=60.0)
