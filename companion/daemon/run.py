@@ -201,7 +201,9 @@ def _run(config: DaemonConfig, config_path: str) -> int:
                 notifier.reloading()
                 reload_config(daemon, config_path)
                 notifier.ready()
-            if daemon.healthy:
+            # The watchdog is fed only while both threads serve: a control socket whose thread
+            # died would leave operators unable to stop the arm, so systemd restarts us.
+            if daemon.healthy and (server is None or server.alive):
                 notifier.watchdog()
             s = daemon.status()
             notifier.status(
