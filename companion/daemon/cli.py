@@ -10,6 +10,8 @@
   [--watch [S]]``, ``park``, ``stop``: clients of a running daemon's control socket.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK, no daemon.
 * ``check-config FILE``: validate a daemon config and exit.
+* ``doctor --config FILE``: check the flight controller's setup against the config, item by item
+  with the fix (:mod:`companion.daemon.doctor`); exit 1 if an item failed.
 
 Exit codes: 0 success; 1 refused (unreachable target, daemon said no, ``--wait`` timed out);
 2 bad input or configuration; 3 daemon not reachable. ``-v``/``-q``/``--log-level`` work before
@@ -85,6 +87,37 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
         print(f"{args.config}: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from companion.daemon import doctor
+    from companion.daemon.config import load_config
+    from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_path
+
+    cfg = load_config(args.config)
+    # The service holds the link (a serial port has one reader): doctor runs beside it never.
+    lock = InstanceLock(lock_path(args.config, cfg.control_socket))
+    try:
+        lock.acquire()
+    except AlreadyRunning as exc:
+        print(
+            f"armbridge doctor: {exc}: it holds the link. Stop it first "
+            "(sudo systemctl stop armbridge), run doctor, then start it again.",
+            file=sys.stderr,
+        )
+        return 3
+    except OSError:
+        pass  # no runtime directory yet (the service never ran): nothing holds the link
+    try:
+        findings = doctor.gather(cfg, timeout_s=args.timeout_s, listen_s=args.listen_s)
+    finally:
+        lock.release()
+    checks = doctor.evaluate(cfg, findings)
+    if args.json:
+        print(json.dumps({"url": findings.url, "checks": [c.as_dict() for c in checks]}, indent=2))
+    else:
+        print(doctor.format_report(findings, checks))
+    return 1 if any(c.verdict is doctor.Verdict.FAIL for c in checks) else 0
 
 
 #: ArduCopter's default output functions: motors on outputs 1-4 (quad), 1-6 (hexa), 1-8 (octa).
@@ -380,6 +413,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("check-config", "validate a daemon config as `run` would, then exit")
     p.add_argument("config", help="daemon config TOML")
     p.set_defaults(func=_cmd_check_config)
+
+    p = verb("doctor", "check the flight controller's setup against the config (service stopped)")
+    p.add_argument("--config", required=True, help="daemon config TOML")
+    p.add_argument(
+        "--timeout-s",
+        type=_positive_seconds,
+        default=10.0,
+        help="wait this long for the autopilot's heartbeat (default %(default)s)",
+    )
+    p.add_argument(
+        "--listen-s",
+        type=_positive_seconds,
+        default=3.0,
+        help="listen at least this long for a ground station routed to us (default %(default)s)",
+    )
+    p.add_argument("--json", action="store_true", help="the checks as JSON")
+    p.set_defaults(func=_cmd_doctor)
 
     p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)
