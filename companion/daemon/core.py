@@ -176,6 +176,10 @@ class ControlCore:
         self._last_step_s = -math.inf
         self._next_tick_s = clock()
         self._link_up = False
+        #: The pinned autopilot answered one of our commands since the link came up: it has
+        #: heard us, so it routes a ground station's targets to us (ArduPilot answers them
+        #: UNSUPPORTED, PX4 drops them, for a component it has not heard).
+        self._heard_us = False
         #: The autopilot's (system, component): configured parts are fixed, the rest latched
         #: from the first autopilot HEARTBEAT that matches them.
         self._pin_config = (config.link.target_system, config.link.target_component)
@@ -264,6 +268,8 @@ class ControlCore:
             return actions
         inflight = self._inflight
         if kind == "COMMAND_ACK":
+            if msg.target_component in (0, self.config.link.component_id):
+                self._heard_us = True  # it answered us: it knows our route
             if inflight is not None and msg.target_component in (0, self.config.link.component_id):
                 inflight.tracker.on_ack(msg.command, msg.result, self.clock())
                 self._poll_update(actions)
@@ -668,6 +674,7 @@ class ControlCore:
         if up == self._link_up:
             return
         self._link_up = up
+        self._heard_us = False  # until it answers the SYSTEM_TIME request sent on link-up
         if not up:
             log.warning("autopilot link lost: holding, no servo commands")
             self._lose_outputs(actions, "autopilot link lost")
@@ -812,6 +819,7 @@ class ControlCore:
             "autopilot": list(self._pinned) if self._pinned else None,
             # Its uptime by the last SYSTEM_TIME (None until one came): reboots are seen from it.
             "autopilot_boot_ms": self._boot_ms,
+            "autopilot_heard_us": self._link_up and self._heard_us,
             "holding": not self._link_up and self._last_step_s > -math.inf,
             "current_deg": list(position),
             # The hand where the acknowledged joints put it (forward kinematics of current_deg).

@@ -27,7 +27,7 @@ from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_pa
 from companion.daemon.service import ArmDaemon
 from companion.daemon.systemd import Notifier
 from companion.errors import ConfigError
-from firmware_interface import LinkError, LinkState
+from firmware_interface import LinkError
 
 log = logging.getLogger("armbridge")
 
@@ -194,8 +194,9 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         waiting = HeartbeatWait(config.link.url, time.monotonic())
         ping_s = notifier.watchdog_period_s / 2 if notifier.watchdog_period_s else 1.0
         while not stop.is_set():
-            link_up = daemon.link is not None and daemon.link.state is LinkState.UP
-            waiting.update(link_up, time.monotonic())
+            s = daemon.status()
+            # Up for targets once the autopilot has answered us, so knows our route (issue 20).
+            waiting.update(s["link"] == "up" and s["autopilot_heard_us"], time.monotonic())
             if reload.is_set():
                 reload.clear()
                 notifier.reloading()
@@ -205,7 +206,6 @@ def _run(config: DaemonConfig, config_path: str) -> int:
             # died would leave operators unable to stop the arm, so systemd restarts us.
             if daemon.healthy and (server is None or server.alive):
                 notifier.watchdog()
-            s = daemon.status()
             notifier.status(
                 f"link {s['link']}; {s['counters']['accepted']} targets accepted, "
                 f"{s['counters']['failed'] + s['counters']['denied']} refused"

@@ -573,3 +573,20 @@ def test_a_stream_of_targets_logs_one_accepted_line_a_second_per_source(rig, cap
     assert "from socket 3 accepted" in lines[1]
     assert lines[2].endswith("(and 19 more since the last line)")
     assert lines[3].startswith("stop from mavlink 255/190 accepted")
+
+
+def test_the_autopilot_has_heard_us_only_once_it_answered_us_since_the_link_came_up():
+    """Issue 20: the autopilot routes a ground station's targets to us only once it has heard
+    us; its answer to the SYSTEM_TIME request sent at link-up proves it. A loss resets it."""
+    rig = Rig()
+    [ask] = rig.up()
+    assert ask.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.ack(command=mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, src=(2, 1))  # not the pinned one
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.ack(command=mavlink.MAV_CMD_SET_MESSAGE_INTERVAL)
+    assert rig.core.status()["autopilot_heard_us"] is True
+    rig.tick(link_up=False)
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.tick(link_up=True)
+    assert rig.core.status()["autopilot_heard_us"] is False
