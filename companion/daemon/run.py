@@ -73,16 +73,21 @@ class HeartbeatWait:
             self._next_log_s = now_s + min(max(waited_s, WAIT_LOG_FIRST_S), WAIT_LOG_MAX_S)
 
 
-def reload_config(daemon: ArmDaemon, config_path: str) -> bool:
+def reload_config(
+    daemon: ArmDaemon, config_path: str, server: ControlServer | None = None
+) -> bool:
     """SIGHUP: re-read the config through the same ``load_config`` as start-up, so the same
     bounds apply; a config it refuses never reaches ``daemon.reload`` and the running one is
-    kept. True if the new config was handed over."""
+    kept. The control socket's limits go to ``server``. True if the new config was handed
+    over."""
     try:
         config = load_config(config_path)
     except ConfigError as exc:
         log.error("reload refused, keeping the running config: %s", exc)
         return False
     daemon.reload(config)
+    if server is not None:
+        server.reconfigure(config.control_max_connections, config.control_idle_timeout_s)
     return True
 
 
@@ -200,7 +205,7 @@ def _run(config: DaemonConfig, config_path: str) -> int:
             if reload.is_set():
                 reload.clear()
                 notifier.reloading()
-                reload_config(daemon, config_path)
+                reload_config(daemon, config_path, server)
                 notifier.ready()
             # The watchdog is fed only while both threads serve: a control socket whose thread
             # died would leave operators unable to stop the arm, so systemd restarts us.

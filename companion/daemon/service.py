@@ -195,7 +195,8 @@ class ArmDaemon:
 
     def reload(self, new: DaemonConfig) -> list[str]:
         """Apply a re-read config (SIGHUP). Solver, motion, park and rate settings take effect
-        at once. Link, arm and calibration changes need a restart: they are kept as they were
+        at once (the control socket's limits too: ``run`` hands them to its server). Link, arm,
+        calibration and the socket's path and group need a restart: they are kept as they were
         and named in the returned warnings, and so is a new park pose they cannot reach."""
         old = self.config
         warnings = [
@@ -204,6 +205,8 @@ class ArmDaemon:
                 ("link", old.link, new.link),
                 ("arm", old.arm, new.arm),
                 ("calibration", old.calibration, new.calibration),
+                ("control.socket", old.control_socket, new.control_socket),
+                ("control.socket_group", old.control_socket_group, new.control_socket_group),
             )
             if old_value != new_value
         ]
@@ -221,7 +224,13 @@ class ArmDaemon:
                 )
                 park_deg = old.park_deg
         self.config = dataclasses.replace(
-            new, link=old.link, arm=old.arm, calibration=old.calibration, park_deg=park_deg
+            new,
+            link=old.link,
+            arm=old.arm,
+            calibration=old.calibration,
+            park_deg=park_deg,
+            control_socket=old.control_socket,
+            control_socket_group=old.control_socket_group,
         )
         self._new_config = self.config
         self._wake.set()

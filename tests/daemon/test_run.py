@@ -8,6 +8,7 @@ import logging
 import pytest
 
 from companion.daemon.config import load_config
+from companion.daemon.control_socket import ControlServer
 from companion.daemon.run import HeartbeatWait, reload_config
 from companion.daemon.service import ArmDaemon
 
@@ -88,3 +89,26 @@ def test_the_wait_for_the_autopilot_is_logged_at_doubling_intervals(caplog):
     assert [w.split(" after ")[1].split(" s")[0] for w in waits] == ["5", "10", "20", "40"]
     assert "udpout:127.0.0.1:14550" in waits[0] and "armbridge doctor" in waits[0]
     assert lines[-1] == "autopilot link up after 60.5 s" and wait.heard
+
+
+def test_sighup_applies_the_sockets_limits_and_keeps_its_path(tmp_path, caplog):
+    """[control] on SIGHUP: max_connections and idle_timeout_s reach the running server; a new
+    socket path or group needs a restart (kept, and said)."""
+    socket_path = tmp_path / "c.sock"
+    path = tmp_path / "armbridge.toml"
+    path.write_text(GOOD + f'socket = "{socket_path}"\n')
+    daemon = ArmDaemon(load_config(path))
+    server = ControlServer(str(socket_path), daemon)
+    try:
+        assert (server.max_connections, server.idle_timeout_s) == (32, 30.0)
+        path.write_text(
+            GOOD
+            + f'socket = "{tmp_path / "other.sock"}"\nmax_connections = 4\nidle_timeout_s = 2\n'
+        )
+        with caplog.at_level(logging.WARNING):
+            assert reload_config(daemon, str(path), server)
+        assert (server.max_connections, server.idle_timeout_s) == (4, 2.0)
+        assert daemon.config.control_socket == str(socket_path)
+        assert "control.socket changed: restart the daemon to apply it" in caplog.text
+    finally:
+        server.close()
