@@ -222,6 +222,15 @@ def format_status(status: dict[str, Any]) -> str:
         + (f"{autopilot[0]}/{autopilot[1]}" if autopilot else "none yet")
         + (f" (up {boot_ms / 1000:.1f} s)" if boot_ms is not None else "")
         + f"  {' '.join(flags)}",
+    ]
+    if not autopilot:
+        lines.append(
+            "  no autopilot heard yet: targets are refused until it is "
+            "(`journalctl -u armbridge` says what the daemon waits for; `armbridge doctor`)"
+        )
+    elif status.get("link") == "up" and status.get("autopilot_heard_us") is False:
+        lines.append("  the autopilot has not answered us yet: it may not route targets to us")
+    lines += [
         f"hand  {_fmt_hand(status.get('hand'))}",
         "joint  angle_deg   goal_deg  output  pwm_us  state",
     ]

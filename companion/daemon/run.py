@@ -73,9 +73,7 @@ class HeartbeatWait:
             self._next_log_s = now_s + min(max(waited_s, WAIT_LOG_FIRST_S), WAIT_LOG_MAX_S)
 
 
-def reload_config(
-    daemon: ArmDaemon, config_path: str, server: ControlServer | None = None
-) -> bool:
+def reload_config(daemon: ArmDaemon, config_path: str, server: ControlServer | None = None) -> bool:
     """SIGHUP: re-read the config through the same ``load_config`` as start-up, so the same
     bounds apply; a config it refuses never reaches ``daemon.reload`` and the running one is
     kept. The control socket's limits go to ``server``. True if the new config was handed

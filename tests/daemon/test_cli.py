@@ -218,6 +218,16 @@ def test_status_for_people_names_a_refused_output():
     assert text.endswith("counters  targets 2")
 
 
+def test_status_for_people_says_when_no_autopilot_was_heard():
+    text = format_status({"link": "waiting", "autopilot": None, "current_deg": [], "counters": {}})
+    assert text.splitlines()[0] == "link waiting  autopilot none yet  still"
+    assert "no autopilot heard yet: targets are refused" in text.splitlines()[1]
+    heard = format_status(
+        {"link": "up", "autopilot": [1, 1], "autopilot_heard_us": False, "current_deg": []}
+    )
+    assert "has not answered us yet" in heard
+
+
 def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
     assert "cannot reach the daemon" in capsys.readouterr().err
