@@ -815,6 +815,8 @@ _DATETIME = datetime.datetime(1979, 5, 27, 7, 32, tzinfo=datetime.UTC)
 _WRONG_TYPES: dict[str, tuple[Any, ...]] = {
     # A value of every TOML type that the field's kind does not accept.
     "string": (5, 2.5, True, [1], {"a": 1}, _DATETIME, ""),
+    # control.socket: "" is valid there (no socket).
+    "path_or_empty": (5, 2.5, True, [1], {"a": 1}, _DATETIME),
     "number": ("3", True, [1.0], {"a": 1}, _DATETIME, math.nan, math.inf, -math.inf),
     "integer": ("3", 2.5, True, [1], {"a": 1}, _DATETIME, math.nan),
     "bool": ("true", 1, 0.0, [True], {"a": 1}, _DATETIME),
@@ -884,8 +886,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "solver.seed": ("integer", (-1,)),
     "control.rate_hz": ("number", (0, -20, 1e-10, 0.999, 400.5, 1e9)),
     "control.socket": (
-        "string",
-        ("/tmp/" + "s" * 120 + ".sock", "/nonexistent-armbridge-dir/c.sock", ".", "good.key"),
+        "path_or_empty",
+        # A missing last directory is fine (run makes it); two missing levels are not.
+        ("/tmp/" + "s" * 120 + ".sock", "/nonexistent-armbridge-dir/x/c.sock", ".", "good.key"),
     ),
     "control.socket_group": ("string", ("no-such-group-armbridge",)),
     "control.max_connections": ("integer", (0, -1, 257, 2**40)),
