@@ -35,6 +35,8 @@ def test_load_key_refuses_wrong_sizes_and_missing_files(tmp_path):
     with pytest.raises(ConfigurationError, match="cannot read signing key file") as info:
         load_key(tmp_path / "absent.key")
     assert isinstance(info.value.__cause__, OSError)
+    assert str(info.value).count("absent.key") == 1  # the path once, not again in the errno text
+    assert str(info.value).endswith(": No such file or directory")
     with pytest.raises(ConfigurationError, match=r"link_id=256 outside \[0, 255\]"):
         SigningConfig(key=KEY, link_id=256)
 
