@@ -146,8 +146,9 @@ def test_a_signing_state_that_cannot_be_stored_stops_sending(peer, tmp_path):
     )
     try:
         link.send(link.mav.statustext_encode(6, b"stored"))
-        (state_dir / "signing.state").unlink()
-        state_dir.rmdir()  # the state directory vanished (unmounted, removed)
+        # The state directory vanished (unmounted, removed): moved away in one step, as the
+        # heartbeat thread rewrites the state file all the time (unlink + rmdir raced it).
+        state_dir.rename(tmp_path / "gone")
         with pytest.raises(SigningStateError, match="cannot store the signing timestamp"):
             link.send(link.mav.statustext_encode(6, b"not signed"))
         assert not link.closed
