@@ -46,7 +46,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion import ik
 from companion.daemon.config import DaemonConfig
-from companion.daemon.core import Action, Answer, ControlCore, SendCommand
+from companion.daemon.core import Action, Answer, ControlCore, ReadParam, SendCommand
 from companion.daemon.intake import RATE_LIMITED, Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import (
     KINDS,
@@ -68,7 +68,15 @@ log = logging.getLogger("armbridge")
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
 #: The frame types the core reads.
-CORE_FRAMES = ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME")
+CORE_FRAMES = (
+    "HEARTBEAT",
+    "COMMAND_ACK",
+    "STATUSTEXT",
+    "SYSTEM_TIME",
+    "SERVO_OUTPUT_RAW",
+    "SYS_STATUS",
+    "PARAM_VALUE",
+)
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
 #: Per source, at most this many motion targets a second (burst ``SOURCE_BURST``): a ground
@@ -480,6 +488,13 @@ class ArmDaemon:
                 # The update then goes unanswered and the core treats it so; a transport
                 # error also drops the link to LOST, which makes the core hold.
                 log.warning("servo commands not sent: %s", exc)
+        for read in (a for a in actions if isinstance(a, ReadParam)):
+            if link is None:
+                break
+            try:
+                link.send(link.mav.param_request_read_encode(*read.target, read.name.encode(), -1))
+            except LinkError as exc:
+                log.warning("%s not asked for: %s", read.name, exc)
         answers = [a for a in actions if isinstance(a, Answer)]
         if answers:
             # Before the answers: a client that asks for status once answered sees its request

@@ -335,7 +335,7 @@ def check_sim_log(sim: SimProcess, calibration: ArmCalibration, report: TargetRe
             if event["src"][1] != OUR_COMPONENT:
                 continue
             if fields["command"] == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-                continue  # the daemon asks for SYSTEM_TIME (reboot detection)
+                continue  # the daemon asks for the streams it reads (see core)
             if fields["command"] != mavlink.MAV_CMD_DO_SET_SERVO:
                 report.pwm_violations.append(f"sim rx: unexpected command {fields['command']}")
                 continue
@@ -778,9 +778,10 @@ def run_mavlink_fuzz(
     for msg in peer.received:
         report.peer_received[msg.get_type()] += 1
         if msg.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
-            if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:  # SYSTEM_TIME, see core
+            # The streams the core reads: SYSTEM_TIME, SERVO_OUTPUT_RAW, SYS_STATUS.
+            if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
                 report.servo_commands.append(f"{msg.get_type()} command {msg.command}")
-        elif msg.get_type() not in ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT"):
+        elif msg.get_type() not in ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT", "PARAM_REQUEST_READ"):
             report.servo_commands.append(f"unexpected {msg.get_type()}")
     report.elapsed_s = time.perf_counter() - started
     return report
