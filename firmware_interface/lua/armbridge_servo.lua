@@ -63,8 +63,10 @@ local function say(severity, text)
 end
 
 local function bindings_missing()
-  if type(mavlink) == "nil" or type(param) == "nil" or type(SRV_Channels) == "nil" then
-    return "mavlink/param/SRV_Channels"
+  for name, binding in pairs({ mavlink = mavlink, param = param, SRV_Channels = SRV_Channels }) do
+    if binding == nil then
+      return name
+    end
   end
   for _, name in ipairs({ "init", "register_rx_msgid", "receive_chan", "send_chan", "block_command" }) do
     local ok, binding = pcall(function()
@@ -126,6 +128,7 @@ local function check_outputs(cmd)
   if not is_integer(first) or first < 1 or first > MAX_OUTPUT then
     return nil, 0, string.format("param7 first output %s not 1-%d", tostring(first), MAX_OUTPUT)
   end
+  first = math.tointeger(first) -- the bindings take integers
   local settings = {}
   for slot = 1, SLOTS do
     local pwm = cmd.params[slot]
@@ -151,7 +154,7 @@ local function check_outputs(cmd)
       if not is_integer(pwm) or pwm < low or pwm > high then
         return nil, output, string.format("out%d pwm %s not in %d-%d", output, tostring(pwm), math.floor(low), math.floor(high))
       end
-      settings[#settings + 1] = { output - 1, math.floor(pwm) }
+      settings[#settings + 1] = { output - 1, math.tointeger(pwm) }
     end
   end
   if #settings == 0 then
@@ -211,7 +214,7 @@ end
 
 local missing = bindings_missing()
 if missing ~= nil then
-  say(MAV_SEVERITY_WARNING, SCRIPT_NAME .. " needs " .. missing .. " (4.5+)")
+  say(MAV_SEVERITY_WARNING, "no " .. missing .. ", need 4.5+")
   return
 end
 -- Queue depth and number of message ids: both 8, so either argument order (it changed between
