@@ -44,6 +44,7 @@ from firmware_interface.link import (
 from firmware_interface.readback import OutputReadback
 from firmware_interface.servo import (
     SERVO_DIALECTS,
+    ArduPilotLuaServoDialect,
     ArduPilotServoDialect,
     Px4ServoDialect,
     ServoDialect,
@@ -81,6 +82,7 @@ __all__ = [
     "MavlinkLink",
     "OutputReadback",
     "SERVO_DIALECTS",
+    "ArduPilotLuaServoDialect",
     "ArduPilotServoDialect",
     "Px4ServoDialect",
     "ServoDialect",
