@@ -41,6 +41,7 @@ from firmware_interface.link import (
     LinkStats,
     MavlinkLink,
 )
+from firmware_interface.link_budget import LinkBudget, UpdateCost, link_budget, update_cost
 from firmware_interface.readback import OutputReadback
 from firmware_interface.servo import (
     SERVO_DIALECTS,
@@ -80,6 +81,10 @@ __all__ = [
     "LinkState",
     "LinkStats",
     "MavlinkLink",
+    "LinkBudget",
+    "UpdateCost",
+    "link_budget",
+    "update_cost",
     "OutputReadback",
     "SERVO_DIALECTS",
     "ArduPilotLuaServoDialect",
