@@ -34,6 +34,7 @@ from sim_servo.errors import SimConfigError, SimError
 from sim_servo.eventlog import EventLog
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
+from sim_servo.serial_line import MAX_BAUD, MIN_BAUD, SerialLineEndpoint
 from sim_servo.server import SimServer
 
 log = logging.getLogger("sim_servo")
@@ -64,6 +65,16 @@ def _function(text: str) -> tuple[int, int]:
     if not 1 <= pair[0] <= OUTPUT_COUNT:
         raise argparse.ArgumentTypeError(f"output={pair[0]} outside [1, {OUTPUT_COUNT}]")
     return pair
+
+
+def _baud(text: str) -> int:
+    try:
+        baud = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"baud={text!r} is not an integer") from None
+    if not MIN_BAUD <= baud <= MAX_BAUD:
+        raise argparse.ArgumentTypeError(f"baud={baud} outside [{MIN_BAUD}, {MAX_BAUD}]")
+    return baud
 
 
 def _outputs(text: str) -> tuple[int, ...]:
@@ -99,6 +110,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --pty: keep a symlink at PATH to the current pty (a stable "
         "name, as udev gives a USB serial adapter) and print PATH,115200",
     )
+    link.add_argument(
+        "--pty-baud",
+        type=_baud,
+        metavar="BAUD",
+        help="with --pty: model a serial line at BAUD (8N1, 10 bits a byte, both ways; "
+        "ArduPilot's 256-byte MAVLink transmit buffer) and print PATH,BAUD; the TCP-fitted "
+        "link timing is then off unless --link-* or [link_timing] set it",
+    )
     parser.add_argument(
         "--gcs",
         metavar="HOST:PORT",
@@ -126,6 +145,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
         "default: outputs 1-4 motors, others free (px4: arm outputs "
         "301-306)",
+    )
+    vehicle.add_argument(
+        "--lua-script",
+        action="store_true",
+        default=None,
+        help="ardupilot: answer MAV_CMD_USER_2 as armbridge's Lua bridge script does "
+        "(its checks, its ~9 ms answer)",
     )
     vehicle.add_argument(
         "--servo-output-rate-hz",
@@ -301,10 +327,14 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         ("servo_output_rate_hz", args.servo_output_rate_hz),
         ("system_time_rate_hz", args.system_time_rate_hz),
         ("loop_rate_hz", args.loop_rate_hz),
+        ("lua_script", args.lua_script),
     ):
         if value is not None:
             data[key] = value
     timing = dict(data.get("link_timing", {}))
+    if args.pty_baud is not None and not timing:
+        # The hold was fitted to TCP; a serial line's own timing is the bytes (serial_line.py).
+        timing = {"output_delay_ms": 0.0, "hold_ms": 0.0}
     for key, value in (
         ("output_delay_ms", args.link_delay_ms),
         ("hold_ms", args.link_hold_ms),
@@ -378,6 +408,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             parse_withhold(list(args.withhold_ack))  # fail early with the flag's own message
         if args.pty_link and not args.pty:
             raise SimConfigError("--pty-link needs --pty")
+        if args.pty_baud is not None and not args.pty:
+            raise SimConfigError("--pty-baud needs --pty")
         config = config_from_mapping(data, source=args.config or "<flags>", base_dir=base_dir)
         if args.signing_key:
             from dataclasses import replace
@@ -393,6 +425,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             endpoint = UdpEndpoint(*parse_host_port(args.udp, "--udp"))
         elif args.tcp:
             endpoint = TcpEndpoint(*parse_host_port(args.tcp, "--tcp"))
+        elif args.pty_baud is not None:
+            endpoint = SerialLineEndpoint(PtyEndpoint(args.pty_link, args.pty_baud), args.pty_baud)
         else:
             endpoint = PtyEndpoint(args.pty_link)
         start_s = time.monotonic()

@@ -53,6 +53,10 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
 * Anything else in COMMAND_LONG → UNSUPPORTED.
 
+With ``lua_script`` (ArduPilot only): MAV_CMD_USER_2 is answered as armbridge's Lua bridge
+answers it, after the script's own delay (:mod:`sim_servo.lua_bridge`); the arm's outputs get
+``SERVOn_MIN`` / ``MAX`` = the arm's PWM range, as the script's install notes ask.
+
 PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
 (Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
 Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
@@ -86,6 +90,7 @@ from sim_servo.config import (
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
 from sim_servo.linktiming import LinkOutput
+from sim_servo.lua_bridge import MAV_CMD_USER_2, LuaScriptTiming, check_user2, refusal_text
 from sim_servo.servo import Servo, ServoParams
 
 Emit = Callable[[dict[str, Any]], None]
@@ -243,6 +248,10 @@ class SimAutopilot:
             self._commands[mavlink.MAV_CMD_DO_SET_SERVO] = self._cmd_do_set_servo
         else:
             self._commands[mavlink.MAV_CMD_DO_SET_ACTUATOR] = self._cmd_do_set_actuator
+        self._lua: LuaScriptTiming | None = None
+        self._lua_pending: list[tuple[float, Command]] = []
+        if config.lua_script:
+            self._lua_setup(now_s)
         self._handlers: dict[str, Callable[[Any, float], None]] = {
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_LONG": self._on_command_long,
@@ -391,6 +400,7 @@ class SimAutopilot:
         self._run_reboot(now_s)
         if self._rebooting_until_s is None:
             self._run_inbox(now_s)
+            self._run_lua(now_s)
             self._run_deferred(now_s)
             self._run_heartbeat(now_s)
             self._run_streams(now_s)
@@ -414,6 +424,7 @@ class SimAutopilot:
             candidates += [due for due in self._next_due_s.values() if due is not None]
             candidates += [due for due, _ in self._deferred]
             candidates += [due for due, _, _ in self._inbox]
+            candidates += [due for due, _ in self._lua_pending]
         if self._reboot_due_s is not None:
             candidates.append(self._reboot_due_s)
         candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
@@ -462,6 +473,7 @@ class SimAutopilot:
         self.emit(now_s, "fault", fault="reboot", gap_s=gap_s)
         self._inbox.clear()
         self._deferred.clear()
+        self._lua_pending.clear()
         self._decoders.clear()  # a partial frame does not survive the reboot
         for link in self._links:
             link.clear()
@@ -792,6 +804,9 @@ class SimAutopilot:
         return Command(msg.command, params, source, self._rx_channel)
 
     def _run_command(self, command: Command, now_s: float) -> None:
+        if self._lua is not None and command.command == MAV_CMD_USER_2:
+            self._lua_pending.append((self._lua.answer_s(now_s), command))
+            return
         handler = self._commands.get(command.command)
         result = handler(command, now_s) if handler is not None else mavlink.MAV_RESULT_UNSUPPORTED
         withheld = (
@@ -992,6 +1007,57 @@ class SimAutopilot:
             self._defer(self._param_value(self.params[name], index), now_s)
 
     # -- state for the query socket --------------------------------------------------------
+
+    # -- the Lua bridge script (lua_script) ------------------------------------------------
+
+    def _lua_setup(self, now_s: float) -> None:
+        if self.config.flavour != "ardupilot":
+            raise ValueError("lua_script needs flavour='ardupilot'")
+        self._lua = LuaScriptTiming(now_s)
+        for output in self.config.arm.outputs:
+            self.params[f"SERVO{output}_MIN"].value = self.config.arm.pwm_min_us
+            self.params[f"SERVO{output}_MAX"].value = self.config.arm.pwm_max_us
+
+    def _lua_param(self, name: str) -> float | None:
+        param = self.params.get(name)
+        return None if param is None else float(param.value)
+
+    def _run_lua(self, now_s: float) -> None:
+        if not self._lua_pending:
+            return
+        due = [command for at, command in self._lua_pending if at <= now_s]
+        self._lua_pending = [entry for entry in self._lua_pending if entry[0] > now_s]
+        for command in due:
+            verdict = check_user2(command.params, self._lua_param)
+            if verdict.accepted:
+                for output, pwm in verdict.settings.items():
+                    self._apply(output, pwm, now_s)
+                result = mavlink.MAV_RESULT_ACCEPTED
+            else:
+                # The script sends its text at once (gcs:send_text), before its ACK.
+                self._statustext(mavlink.MAV_SEVERITY_WARNING, refusal_text(verdict), now_s)
+                result = mavlink.MAV_RESULT_FAILED
+            withheld = self.config.faults.withhold_all_acks or (
+                command.command in self.config.faults.withhold_ack_commands
+            )
+            self.emit(
+                now_s,
+                "ack",
+                command=command.command,
+                command_name="MAV_CMD_USER_2 (lua)",
+                result=result,
+                result_name=_result_name(result),
+                withheld=withheld,
+                refused_output=verdict.refused_output,
+            )
+            if withheld:
+                self.stats["acks_withheld"] += 1
+                continue
+            self.stats["acks"] += 1
+            ack = self._enc.command_ack_encode(
+                command.command, result, 0, verdict.refused_output, *command.source
+            )
+            self._send(ack, now_s, command.channel)
 
     def snapshot(self, now_s: float) -> dict[str, Any]:
         """Everything a test may assert on, as JSON-ready data."""

@@ -280,10 +280,16 @@ class SimConfig:
     system_time_rate_hz: float | None = None
     heartbeat_rate_hz: float = 1.0
     loop_rate_hz: float = 400.0
+    #: Answer MAV_CMD_USER_2 as armbridge's Lua bridge script does (ArduPilot only).
+    lua_script: bool = False
 
     def __post_init__(self) -> None:
         if self.flavour not in FLAVOURS:
             raise SimConfigError(f"flavour={self.flavour!r}; valid: {list(FLAVOURS)}")
+        if not isinstance(self.lua_script, bool):
+            raise SimConfigError(f"lua_script={self.lua_script!r} must be true or false")
+        if self.lua_script and self.flavour != "ardupilot":
+            raise SimConfigError(f"lua_script=true needs flavour='ardupilot', not {self.flavour!r}")
         _int(self.system_id, "system_id", 1, 255)
         _int(self.component_id, "component_id", 1, 255)
         functions = default_functions(self.flavour, self.arm.outputs)
@@ -362,6 +368,7 @@ _TOP_KEYS = {
     "system_time_rate_hz",
     "heartbeat_rate_hz",
     "loop_rate_hz",
+    "lua_script",
     "signing_key_file",
     "outputs",
     "servo",
@@ -443,6 +450,7 @@ def config_from_mapping(
         "system_time_rate_hz",
         "heartbeat_rate_hz",
         "loop_rate_hz",
+        "lua_script",
     ):
         if key in data:
             kwargs[key] = data[key]

@@ -124,6 +124,9 @@ class SimServer:
         now = self.clock()
         wait_s = min(MAX_WAIT_S, self.autopilot.next_event_s(now) - now)
         wait_s = min(wait_s, self._hangup.next_s() - now)
+        for link in self.links:  # a modelled serial line's next byte boundary
+            if (due := link.next_event_s()) is not None:
+                wait_s = min(wait_s, due - now)
         link_fds = {fd: channel for channel, link in enumerate(self.links) for fd in link.fds()}
         query_fds = self.query.fds() if self.query else []
         readable, _, _ = select.select(
@@ -149,6 +152,9 @@ class SimServer:
             else:
                 self.endpoint.close()
             self.autopilot.emit(now, "fault", fault=fault, url=self.endpoint.url)
+        for channel, link in enumerate(self.links):  # bytes a serial line delivers now
+            if data := link.service(now):
+                self.autopilot.receive(data, now, channel)
         for channel, frame in self.autopilot.poll(now):
             self.links[channel].write(frame)
         self.events.flush()  # after the frames: they never wait for the log

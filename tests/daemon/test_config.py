@@ -47,6 +47,11 @@ def test_minimal_config_needs_only_the_url(tmp_path):
     assert cfg.control_socket == "/run/armbridge/control.sock"  # the shipped unit's directory
 
 
+def test_ardupilot_lua_dialect_accepted(tmp_path):
+    text = '[link]\nurl = "/dev/ttyS1,115200"\ndialect = "ardupilot-lua"\n'
+    assert load_config(write(tmp_path, text)).link.dialect == "ardupilot-lua"
+
+
 def test_signing_key_is_read_relative_to_the_config(tmp_path):
     (tmp_path / "k.key").write_bytes(bytes(range(32)))
     text = EXAMPLE.replace('# signing_key = "signing.key"', 'signing_key = "k.key"')
