@@ -18,7 +18,15 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.calibration import default_calibration
 from sim_servo.autopilot import SimAutopilot
-from sim_servo.config import FaultConfig, LinkTimingConfig, SimConfig
+from sim_servo.config import (
+    DEFAULT_ARM_OUTPUTS,
+    FaultConfig,
+    LinkTimingConfig,
+    Px4TimingConfig,
+    SimConfig,
+    config_from_mapping,
+    ready_setup,
+)
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
@@ -27,6 +35,9 @@ WALL_S = 1.7e9
 SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
 SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
 INSTANT = LinkTimingConfig.instant()
+PX4_INSTANT = Px4TimingConfig.instant()
+#: A PX4 set up for the arm (functions 301–306, prearm mode 2, forwarding, armed at start).
+READY_PX4 = config_from_mapping({"flavour": "px4", **ready_setup("px4", DEFAULT_ARM_OUTPUTS)})
 
 
 def frame_source(frame: bytes) -> tuple[int, int]:
@@ -44,9 +55,14 @@ class Harness:
         *,
         signing_key: bytes | None = None,
         link_timing: LinkTimingConfig = INSTANT,
+        px4_timing: Px4TimingConfig = PX4_INSTANT,
         links: int = 1,
     ) -> None:
-        self.config = replace(config or SimConfig(), link_timing=link_timing)
+        self.config = replace(
+            config or SimConfig(),
+            link_timing=link_timing,
+            px4_timing=px4_timing,
+        )
         self.now = START_S
         self.events: list[dict] = []
         self.hand = HandModel.from_config(self.config.arm)
@@ -342,7 +358,7 @@ def test_param_request_read_by_name_and_index():
     value = param_values(h.run_for(0.01))[0]
     assert (value.param_id, value.param_value) == ("SERVO3_FUNCTION", 35.0)
     assert value.param_type == mavlink.MAV_PARAM_TYPE_INT16
-    assert (value.param_index, value.param_count) == (65535, 64)  # -1 as uint16
+    assert (value.param_index, value.param_count) == (65535, 66)  # -1 as uint16; 16 × 4 + BRD_
     h.send(h.gcs.param_request_read_encode(1, 1, b"", 1))
     value = param_values(h.run_for(0.01))[0]
     assert (value.param_id, value.param_value, value.param_index) == ("SERVO1_MIN", 1100.0, 1)
@@ -386,8 +402,8 @@ def test_param_request_list_sends_every_parameter():
     h = Harness()
     h.send(h.gcs.param_request_list_encode(1, 1))
     values = param_values(h.run_for(0.01))
-    assert len(values) == 64
-    assert [v.param_index for v in values] == list(range(64))
+    assert len(values) == 66  # SERVOn_FUNCTION / MIN / MAX / TRIM, BRD_SAFETY_DEFLT / MASK
+    assert [v.param_index for v in values] == list(range(66))
 
 
 # -- servo motion and the hand ---------------------------------------------------------------
@@ -435,7 +451,7 @@ def test_hand_reaches_the_commanded_pose():
 
 
 def test_px4_heartbeat_and_do_set_actuator():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
     assert beat.autopilot == mavlink.MAV_AUTOPILOT_PX4
     h.command(
@@ -446,12 +462,13 @@ def test_px4_heartbeat_and_do_set_actuator():
     assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 2
     status = h.of_type("ACTUATOR_OUTPUT_STATUS", msgs)[-1]
     assert status.active == 16
-    assert status.actuator[8:14] == [1000.0, 1500.0, 2000.0, 1750.0, 2000.0, 0.0]
-    assert status.actuator[0] == 1000.0  # motor 1, disarmed
+    # NaN: slot 6 never set, so still the disarmed PWM (not "off").
+    assert status.actuator[8:14] == [1000.0, 1500.0, 2000.0, 1750.0, 2000.0, 1000.0]
+    assert status.actuator[0] == 1000.0  # motor 1, armed: its minimum
 
 
 def test_px4_refuses_do_set_servo_as_unsupported_and_params_are_bytewise():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
     assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_UNSUPPORTED
     h.send(h.gcs.param_request_read_encode(1, 1, b"PWM_MAIN_FUNC9", -1))
@@ -992,13 +1009,14 @@ def test_a_scheduled_reboot_restarts_the_heartbeat_from_boot():
 
 
 def test_px4_outputs_return_to_their_disarmed_value_after_a_reboot():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     h.command(mavlink.MAV_CMD_DO_SET_ACTUATOR, 0.5, 0, 0, 0, 0, 0, 0)
     h.run_for(0.1)
     assert h.ap.pwm_us[9] == 1750
     h.ap.reboot(h.now, gap_s=0.1)
     h.run_for(0.2)
-    assert h.ap.pwm_us[9] == 1000 and h.ap.pwm_us[1] == 1000 and h.ap.pwm_us[16] == 0
+    assert not h.ap.armed and not h.ap.prearmed
+    assert h.ap.pwm_us[9] == 1000 and h.ap.pwm_us[1] == 1000 and h.ap.pwm_us[16] == 1000
 
 
 # -- the link timing model through the autopilot (no I/O overhead: the model's own figures) --

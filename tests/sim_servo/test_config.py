@@ -16,6 +16,7 @@ from sim_servo.config import (
     load_key,
     load_toml,
     parse_withhold,
+    ready_setup,
 )
 from sim_servo.errors import SimConfigError
 
@@ -28,10 +29,16 @@ def test_ardupilot_defaults_motors_on_1_to_4():
     assert all(config.functions[o] == 0 for o in range(5, 17))
 
 
-def test_px4_defaults_actuator_set_on_arm_outputs():
+def test_px4_defaults_leave_the_arm_outputs_unmapped_and_ready_maps_them():
     config = SimConfig(flavour="px4", arm=ArmConfig(outputs=(5, 6, 7, 8, 9, 10)))
     assert [config.functions[o] for o in (1, 2, 3, 4)] == [101, 102, 103, 104]
-    assert [config.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
+    assert all(config.functions[o] == 0 for o in range(5, 17))  # PWM_MAIN_FUNC5..16 ship as 0
+    assert config.params == {} and config.armed is False
+    ready = config_from_mapping({"flavour": "px4", **ready_setup("px4", (5, 6, 7, 8, 9, 10))})
+    assert [ready.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
+    assert ready.params == {"COM_PREARM_MODE": 2, "MAV_0_FORWARD": 1, "MAV_1_FORWARD": 1}
+    assert ready.armed is True
+    assert ready_setup("ardupilot", (9, 10)) == {}
 
 
 @pytest.mark.parametrize(
