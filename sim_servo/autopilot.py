@@ -53,12 +53,41 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
 * Anything else in COMMAND_LONG → UNSUPPORTED.
 
-PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
-(Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
-Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
-streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does);
-SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor; routing and link timing as ArduPilot's (not
-measured on PX4).
+* ArduPilot's safety switch (AP_BoardConfig; ``AP_HAL_ChibiOS/RCOutput.cpp`` ``push_local``):
+  on at each boot when ``BRD_SAFETY_DEFLT`` is 1 (0 here by default, so outputs are live);
+  :meth:`set_safety` (the queries ``safety_on`` / ``safety_off``) flips it. While on, an output
+  whose bit (output − 1) is not in ``BRD_SAFETY_MASK`` sends no pulses; DO_SET_SERVO is still
+  ACCEPTED and SERVO_OUTPUT_RAW still reports the PWM given (``read()`` returns the stored
+  period); switched off, the stored PWMs go out in one step.
+
+PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
+
+* HEARTBEAT with MAV_AUTOPILOT_PX4, ``MAV_MODE_FLAG_SAFETY_ARMED`` while armed; parameters
+  INT32 sent bytewise; DO_SET_SERVO UNSUPPORTED; SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor.
+* Disarmed at boot (``SimConfig.armed``: armed at start). MAV_CMD_COMPONENT_ARM_DISARM param1
+  1 / 0 arms / disarms (param2 21196: forced, a kill) → ACCEPTED; other values DENIED.
+* ``COM_PREARM_MODE`` 0 (default): never prearmed; 2 (and 1: no safety button here, as SITL):
+  prearmed from 5 s after each boot. Changes apply at once.
+* Outputs are live while armed or prearmed. Otherwise every output shows ``PWM_MAIN_DISn``
+  (1000 as boards; SITL 900) — at boot, on disarm and kill, after a reboot. Live, an output on
+  function 301–306 shows its slot of actuator set 1 (a slot never set since boot is NaN: the
+  disarmed PWM), a motor (101–104) its minimum once armed. What was stored while dead appears
+  in one step when the outputs come alive.
+* MAV_CMD_DO_SET_ACTUATOR (Commander.cpp) is ACCEPTED whatever happens: nothing mapped,
+  disarmed, param7 ≠ 0 (then ignored), values out of range. Param7 0 stores params 1–6 (NaN:
+  slot unchanged). PWM = 1500 + 500·v rounded half away from zero, clamped to
+  ``PWM_MAIN_MINn`` / ``MAXn``.
+* ``PWM_MAIN_FUNCn`` 0 by default except motors 1–4; PARAM_SET applies without a reboot.
+* SERVO_OUTPUT_RAW and ACTUATOR_OUTPUT_STATUS (``active`` 16, µs as floats) report the outputs.
+* Routing: :meth:`_route_px4` (forwarding per link, ``MAV_n_FORWARD``; only to a link that has
+  heard the target; commands for another component of ours ignored without an answer).
+* Timing: :class:`~sim_servo.config.Px4TimingConfig` — frames handled on arrival, commander
+  commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
+  main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 3.5 ms later.
+
+The ``output`` event logs every change of what a servo physically receives (with its cause),
+``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone
+that no joint stepped faster than its limit.
 """
 
 from __future__ import annotations

@@ -131,6 +131,29 @@ def test_example_file_loads():
     assert config.servo.slew_s_per_60deg == 0.12
 
 
+def test_px4_example_is_the_ready_vehicle():
+    path = EXAMPLE.parent / "quad_arm_px4.toml"
+    config = config_from_mapping(load_toml(path), str(path), path.parent)
+    ready = config_from_mapping({"flavour": "px4", **ready_setup("px4", config.arm.outputs)})
+    assert (config.functions, config.params, config.armed) == (
+        ready.functions,
+        ready.params,
+        ready.armed,
+    )
+    assert config.px4_timing == ready.px4_timing  # the defaults, written out
+
+
+def test_params_table_and_px4_timing_are_checked():
+    with pytest.raises(SimConfigError, match="parameter COM_PREARM_MODE"):
+        config_from_mapping({"params": {"COM_PREARM_MODE": 1.5}})
+    with pytest.raises(SimConfigError, match="armed='yes'"):
+        config_from_mapping({"armed": "yes"})
+    with pytest.raises(SimConfigError, match=r"\[px4_timing\]"):
+        config_from_mapping({"px4_timing": {"loop_ms": 1}})
+    with pytest.raises(SimConfigError, match="commander_period_ms=-1"):
+        config_from_mapping({"px4_timing": {"commander_period_ms": -1}})
+
+
 def test_unknown_keys_are_refused():
     with pytest.raises(SimConfigError, match=r"unknown keys \['colour'\]"):
         config_from_mapping({"colour": "red"}, "x.toml")
