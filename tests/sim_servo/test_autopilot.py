@@ -30,6 +30,7 @@ from sim_servo.config import (
     ready_setup,
 )
 from sim_servo.errors import SimConfigError
+from sim_servo.eventlog import physical_pwm_timeline
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
@@ -1395,6 +1396,7 @@ def test_output_events_replay_every_physical_pwm(flavour):
     else:
         h = ardupilot(params={"BRD_SAFETY_DEFLT": 1, "BRD_SAFETY_MASK": 1 << 8})
     replayed = dict(h.ap.output_us)
+    first = dict(replayed)
     seen = 0
     for _ in range(150):
         action = rng.integers(5)
@@ -1421,3 +1423,6 @@ def test_output_events_replay_every_physical_pwm(flavour):
         assert replayed == h.ap.output_us
     kinds = {e["event"] for e in h.events}
     assert "output" in kinds and ("prearm" in kinds or flavour == "ardupilot")
+    start = {"t_s": 0.0, "event": "start", "outputs_us": {str(o): p for o, p in first.items()}}
+    timeline = physical_pwm_timeline([start, *h.events])
+    assert {o: history[-1][1] for o, history in timeline.items()} == h.ap.output_us
