@@ -111,6 +111,10 @@ class SimProcess:
         """PX4: arm (or with ``armed=False`` disarm) now; False on ArduPilot."""
         return bool(query(self.query_path, "arm" if armed else "disarm").get("ok"))
 
+    def kill_switch(self) -> bool:
+        """PX4: kill now (a forced disarm: outputs to the disarmed PWM); False on ArduPilot."""
+        return bool(query(self.query_path, "kill").get("ok"))
+
     def safety(self, on: bool) -> bool:
         """ArduPilot: engage (``on``) or disengage the safety switch now; False on PX4."""
         return bool(query(self.query_path, "safety_on" if on else "safety_off").get("ok"))
