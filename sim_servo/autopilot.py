@@ -83,7 +83,7 @@ PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
   heard the target; commands for another component of ours ignored without an answer).
 * Timing: :class:`~sim_servo.config.Px4TimingConfig` — frames handled on arrival, commander
   commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
-  main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 3.5 ms later.
+  main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 2.5 ms later.
 
 The ``output`` event logs every change of what a servo physically receives (with its cause),
 ``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone

@@ -205,7 +205,7 @@ class Px4TimingConfig:
 
     commander_period_ms: float = 10.0
     mavlink_loop_ms: float = 1.5
-    forward_delay_ms: float = 3.5
+    forward_delay_ms: float = 2.5
 
     def __post_init__(self) -> None:
         _real(self.commander_period_ms, "commander_period_ms", 0.0, 1000.0)
