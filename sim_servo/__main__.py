@@ -137,8 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="OUTPUT=FUNCTION",
         help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
-        "default: outputs 1-4 motors, others free (px4: arm outputs "
-        "301-306)",
+        "default: outputs 1-4 motors, others 0 (px4 too: --ready maps the arm's outputs "
+        "to 301-306)",
     )
     vehicle.add_argument(
         "--param",

@@ -196,11 +196,15 @@ class Px4TimingConfig:
     * every frame leaves on its link's next MAVLink main-loop pass, every ``mavlink_loop_ms``
       from boot (1.5 ms, PX4's shortest main-loop delay).
 
-    So an ACK takes 0–10 ms + 0–1.5 ms, median about 5.75 ms, and each routed hop
-    ``forward_delay_ms`` + 0–1.5 ms. ``forward_delay_ms`` was fitted to the round trip through
-    PX4 with ``python -m bench.sim_calibration --px4`` and ``python -m bench.latency
-    --dialects px4`` (which part of PX4 delays a forwarded frame was not identified). All 0
-    (:meth:`instant`): frames are handled and leave at once.
+    So an ACK takes 0–10 ms + 0–1.5 ms (the model's own median 5.75 ms, p90 9.8, max 11.5) and
+    each routed hop ``forward_delay_ms`` + 0–1.5 ms. As a process on a loaded 2-core machine
+    (load 2–4) ``python -m bench.px4_calibration`` measured the ACK at 7.4–9.4 ms median, the
+    Python simulator's wake-ups adding 1.5–3.5 ms (ArduPilot's single round trip, one wake-up,
+    gained 0.7–1.5 ms in the same conditions): the simulator's median is above SITL's, its p90
+    and max near them. ``forward_delay_ms`` (2.5) was fitted to the ground station's round
+    trip through the daemon with ``python -m bench.latency --dialects ardupilot px4``: px4 → ACK
+    median 19.9 ms at load 4 (SITL 17.9–18.4); which part of PX4 delays a forwarded frame was
+    not identified. All 0 (:meth:`instant`): frames are handled and leave at once.
     """
 
     commander_period_ms: float = 10.0
