@@ -58,7 +58,10 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   :meth:`set_safety` (the queries ``safety_on`` / ``safety_off``) flips it. While on, an output
   whose bit (output − 1) is not in ``BRD_SAFETY_MASK`` sends no pulses; DO_SET_SERVO is still
   ACCEPTED and SERVO_OUTPUT_RAW still reports the PWM given (``read()`` returns the stored
-  period); switched off, the stored PWMs go out in one step.
+  period); switched off, the stored PWMs go out in one step. SYS_STATUS (streamable, off until
+  asked, as Copter's EXT_STAT stream) tells it: ``onboard_control_sensors_enabled`` has
+  MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS unless the switch is on (Copter's
+  ``update_vehicle_sensor_status_flags``).
 
 PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
 
@@ -814,6 +817,8 @@ class SimAutopilot:
         ]
         if self.config.flavour == "px4":
             ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
+        else:
+            ids.append(mavlink.MAVLINK_MSG_ID_SYS_STATUS)
         return tuple(ids)
 
     def _default_interval_ms(self, msg_id: int) -> int:
@@ -840,6 +845,14 @@ class SimAutopilot:
             # time_boot_ms restarts at 0 on a reboot: how a peer tells a reboot from a link loss.
             return self._enc.system_time_encode(
                 self._time_unix_us(now_s), (self._time_boot_us(now_s) // 1000) & 0xFFFFFFFF
+            )
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            # Copter's update_vehicle_sensor_status_flags: motor outputs "enabled" unless the
+            # safety switch is on (the only sensor bit modelled here).
+            motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            enabled = 0 if self.safety_on else motors
+            return self._enc.sys_status_encode(
+                motors, enabled, motors, 0, 0, -1, -1, 0, 0, 0, 0, 0, 0
             )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()

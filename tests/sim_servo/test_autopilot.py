@@ -1370,6 +1370,18 @@ def test_ardupilot_safety_on_keeps_outputs_out_of_the_mask_dead_then_they_jump()
     assert [e["on"] for e in h.events if e["event"] == "safety"] == [False, True]
 
 
+def test_ardupilot_sys_status_says_whether_the_safety_switch_holds_the_outputs():
+    h = ardupilot(params={"BRD_SAFETY_DEFLT": 1})
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SYS_STATUS, 100_000)
+    motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    status = h.of_type("SYS_STATUS", h.run_for(0.25))[-1]
+    assert status.onboard_control_sensors_present & motors
+    assert not status.onboard_control_sensors_enabled & motors
+    h.ap.set_safety(False, h.now)
+    status = h.of_type("SYS_STATUS", h.run_for(0.25))[-1]
+    assert status.onboard_control_sensors_enabled & motors
+
+
 def test_ardupilot_safety_parameters_read_and_set():
     h = ardupilot()
     h.send(h.gcs.param_set_encode(1, 1, b"BRD_SAFETY_MASK", 7936, mavlink.MAV_PARAM_TYPE_INT32))
