@@ -104,6 +104,11 @@ class SimServer:
             return {"ok": self.autopilot.reboot(self.clock())}
         if request == "hangup":
             return {"ok": self._hangup.hang_up_now(self.clock())}
+        if request in ("arm", "disarm", "kill"):
+            cause = "kill" if request == "kill" else "query"
+            return {"ok": self.autopilot.set_armed(request == "arm", self.clock(), cause=cause)}
+        if request in ("safety_on", "safety_off"):
+            return {"ok": self.autopilot.set_safety(request == "safety_on", self.clock())}
         return {"ok": True}
 
     def run(self) -> int:
