@@ -86,7 +86,23 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     )
     for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
         print(f"{args.config}: warning: {warning}", file=sys.stderr)
+    budget = link_budget_of(cfg)
+    if not budget.fits:
+        print(f"{args.config}: warning: {budget.message}", file=sys.stderr)
     return 0
+
+
+def link_budget_of(cfg: Any) -> Any:
+    """Whether the config's updates fit its link (a serial link's bytes per second)."""
+    from firmware_interface.link_budget import link_budget
+
+    return link_budget(
+        cfg.link.url,
+        cfg.link.dialect,
+        cfg.calibration,
+        cfg.rate_hz,
+        signed=cfg.link.signing is not None,
+    )
 
 
 def _cmd_doctor(args: argparse.Namespace) -> int:
@@ -129,7 +145,7 @@ def motor_output_warnings(dialect: str, outputs: Sequence[int]) -> list[str]:
     The autopilot refuses DO_SET_SERVO there ("Channel N is already in use") unless
     SERVOn_FUNCTION = 0, and on a vehicle where it is a motor, it must not be an arm joint.
     (PX4 outputs are actuator slots 1-6 mapped by PWM_MAIN_FUNCn: nothing to tell here.)"""
-    if dialect != "ardupilot":
+    if not dialect.startswith("ardupilot"):  # ardupilot and ardupilot-lua
         return []
     warnings = []
     for output in outputs:

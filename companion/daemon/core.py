@@ -732,14 +732,14 @@ class ControlCore:
             hint = " ".join(
                 f"Set SERVO{o}_FUNCTION = 0 on the flight controller."
                 for o in sorted(inflight.refused)
-                if self.config.link.dialect == "ardupilot"
+                if self._is_ardupilot
             )
             log.error("%s; motion stopped. %s", reason, hint)
             first = min(inflight.refused)
             more = f"+{len(inflight.refused) - 1}" if len(inflight.refused) > 1 else ""
             brief = (
                 f"Arm: set SERVO{first}_FUNCTION=0{more} (output in use)"
-                if self.config.link.dialect == "ardupilot"
+                if self._is_ardupilot
                 else f"Arm: output {first}{more} refused by the autopilot"
             )
             for w in inflight.waiting:

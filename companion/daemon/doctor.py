@@ -41,6 +41,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.config import DaemonConfig
 from firmware_interface import LinkConfig, LinkError, MavlinkLink
 from firmware_interface.link import MessageQueue
+from firmware_interface.lua_bridge import MAV_CMD_USER_2
 
 __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report", "param_names"]
 
@@ -99,6 +100,8 @@ class Findings:
     streams: dict[str, tuple[int | None, bool]] = field(default_factory=dict)
     #: ``(system, component)`` of ground stations heard through the autopilot.
     ground_stations: set[tuple[int, int]] = field(default_factory=set)
+    #: ardupilot-lua: the MAV_RESULT the bridge script's probe got (None: no answer).
+    lua_probe: int | None = None
     signing_on: bool = False
     #: Signed frames refused (bad signature, replayed, future): from anyone, the autopilot or
     #: others routed through it.
@@ -195,6 +198,11 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     else:
         checks += _px4_outputs(config, findings.params)
     checks += _streams(findings, kind or "ardupilot")
+    if dialect == "ardupilot-lua":
+        checks.append(_lua_script(findings))
+    budget = _link_budget(config)
+    if budget is not None:
+        checks.append(budget)
     checks.append(_signing(config, findings))
     checks.append(_routing(findings))
     return checks
@@ -376,6 +384,47 @@ def _streams(findings: Findings, kind: str) -> list[Check]:
     return checks
 
 
+def _lua_script(findings: Findings) -> Check:
+    result = findings.lua_probe
+    if result == mavlink.MAV_RESULT_ACCEPTED:
+        return Check("lua bridge", Verdict.PASS, "the script answers MAV_CMD_USER_2")
+    where = (
+        "copy the script (python -c 'import firmware_interface.lua_bridge as m; "
+        "print(m.script_path())') to APM/scripts on the SD card, set SCR_ENABLE = 1, reboot"
+    )
+    if result is None:
+        return Check("lua bridge", Verdict.FAIL, "MAV_CMD_USER_2 got no answer", where)
+    return Check(
+        "lua bridge",
+        Verdict.FAIL,
+        f"MAV_CMD_USER_2 answered {_result(result)}: the script is not running",
+        where,
+    )
+
+
+def _link_budget(config: DaemonConfig) -> Check | None:
+    """A serial link's bytes per update x rate_hz against its baud (None: not serial)."""
+    from firmware_interface.link_budget import link_budget
+
+    budget = link_budget(
+        config.link.url,
+        config.link.dialect,
+        config.calibration,
+        config.rate_hz,
+        signed=config.link.signing is not None,
+    )
+    if budget.baud is None:
+        return None
+    verdict = Verdict.PASS if budget.fits else Verdict.WARN
+    fix = (
+        None
+        if budget.fits
+        else "a faster baud, a lower control.rate_hz, or "
+        + (" / ".join(budget.alternatives) or "fewer joints")
+    )
+    return Check("link budget", verdict, budget.message, fix)
+
+
 def _signing(config: DaemonConfig, findings: Findings) -> Check:
     if config.link.signing is None:
         return Check(
@@ -480,6 +529,8 @@ def gather(
                 names = param_names(config, kind)
                 _read_params(link, inbox, names, kind, findings, clock)
                 _try_streams(link, inbox, READBACK[kind], findings, clock)
+                if config.link.dialect == "ardupilot-lua":
+                    findings.lua_probe = _probe_lua(link, inbox, config, findings, clock)
             _drain_until(inbox, started + max(listen_s, 0.0), findings, clock)
             findings.listened_s = clock() - started
             stats = link.stats
@@ -590,6 +641,31 @@ def _try_streams(
                 system, component, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, msg_id, 0, 0, 0, 0, 0, 0
             )
         )
+
+
+def _probe_lua(
+    link: MavlinkLink,
+    inbox: MessageQueue,
+    config: DaemonConfig,
+    findings: Findings,
+    clock: Callable[[], float],
+) -> int | None:
+    """MAV_CMD_USER_2 with every PWM NaN ("leave that output alone"): the bridge script answers
+    ACCEPTED and sets nothing; without it ArduPilot answers UNSUPPORTED itself."""
+    system, component = link.target
+    first = min(config.calibration.outputs)
+    nan = math.nan
+    link.send(
+        link.mav.command_long_encode(
+            system, component, MAV_CMD_USER_2, 0, nan, nan, nan, nan, nan, nan, float(first)
+        )
+    )
+    deadline = clock() + 1.5  # the script answers within ~12 ms; allow for a slow link
+    while clock() < deadline:
+        for msg in _drain_until(inbox, min(deadline, clock() + 0.1), findings, clock):
+            if msg.get_type() == "COMMAND_ACK" and msg.command == MAV_CMD_USER_2:
+                return int(msg.result)
+    return None
 
 
 def format_report(findings: Findings, checks: list[Check]) -> str:

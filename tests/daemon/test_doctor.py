@@ -4,6 +4,7 @@ parameter to change; a correct setup passes every item."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 
@@ -147,3 +148,26 @@ def test_doctor_against_the_simulator(tmp_path, sims, capsys):
     finally:
         done.set()
         thread.join(timeout=5)
+
+
+def test_the_lua_bridge_and_a_serial_links_budget_are_checked():
+    cfg = config("ardupilot-lua", url="/dev/ttyAMA0,57600")
+    params = ardupilot_params()
+    answered = Findings("u", autopilot=ARDUPILOT, params=params, streams=STREAMING, lua_probe=0)
+    checks = {c.item: c for c in evaluate(cfg, answered)}
+    assert checks["lua bridge"].verdict is Verdict.PASS
+    assert checks["link budget"].verdict is Verdict.PASS  # one 44 B frame fits 20 Hz at 57 600
+    unsupported = dataclasses.replace(answered, lua_probe=mavlink.MAV_RESULT_UNSUPPORTED)
+    lua = {c.item: c for c in evaluate(cfg, unsupported)}["lua bridge"]
+    assert lua.verdict is Verdict.FAIL and "UNSUPPORTED" in lua.detail
+    assert lua.fix is not None and "SCR_ENABLE = 1" in lua.fix
+    six = config(
+        "ardupilot",
+        url="/dev/ttyAMA0,57600",
+    )
+    slow = {c.item: c for c in evaluate(six, answered)}  # 264 B at 20 Hz do not fit 57 600
+    assert (
+        slow["link budget"].verdict is Verdict.WARN and "ardupilot-lua" in slow["link budget"].fix
+    )
+    udp = {c.item for c in evaluate(config(), answered)}
+    assert "link budget" not in udp and "lua bridge" not in udp
