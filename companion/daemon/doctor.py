@@ -133,8 +133,20 @@ def param_names(config: DaemonConfig, autopilot: str) -> list[str]:
                     f"{prefix}_FUNC{_px4_index(prefix, n)}",
                     f"{prefix}_MIN{_px4_index(prefix, n)}",
                 ]
-                names += [f"{prefix}_MAX{_px4_index(prefix, n)}"]
+                names += [
+                    f"{prefix}_MAX{_px4_index(prefix, n)}",
+                    f"{prefix}_DIS{_px4_index(prefix, n)}",
+                ]
+    names += _VEHICLE_PARAMS[autopilot]
     return names
+
+
+#: The vehicle-wide parameters read (issue 20): ArduPilot's safety switch; PX4's prearm mode and
+#: MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is one of them).
+_VEHICLE_PARAMS = {
+    "ardupilot": ["BRD_SAFETY_DEFLT", "BRD_SAFETY_MASK"],
+    "px4": ["COM_PREARM_MODE", "MAV_0_FORWARD", "MAV_1_FORWARD"],
+}
 
 
 def _px4_prefixes(output: int) -> tuple[str, ...]:
@@ -195,8 +207,10 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
         return checks
     if kind == "ardupilot":
         checks += _ardupilot_outputs(config, findings.params)
+        checks += _ardupilot_safety(config, findings.params)
     else:
         checks += _px4_outputs(config, findings.params)
+        checks += _px4_vehicle(config, findings.params)
     checks += _streams(findings, kind or "ardupilot")
     if dialect == "ardupilot-lua":
         checks.append(_lua_script(findings))
@@ -353,6 +367,98 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                     f"param set {prefix}_MIN{i} {min(pwm)}; param set {prefix}_MAX{i} {max(pwm)}",
                 )
             )
+    return checks
+
+
+def _ardupilot_safety(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
+    """A safety switch keeps outputs outside BRD_SAFETY_MASK without pulses; what was sent
+    meanwhile goes out in one step when it is switched off. The daemon holds the arm then."""
+    default, mask = _value(params, "BRD_SAFETY_DEFLT"), _value(params, "BRD_SAFETY_MASK")
+    if default is None:
+        return []
+    outside = [o for o in config.calibration.outputs if not (mask or 0) >> (o - 1) & 1]
+    if default == 0 or not outside:
+        why = "no safety switch" if default == 0 else "the arm's outputs are in BRD_SAFETY_MASK"
+        return [Check("safety switch", Verdict.PASS, why)]
+    wanted = (mask or 0) | sum(1 << (o - 1) for o in config.calibration.outputs)
+    return [
+        Check(
+            "safety switch",
+            Verdict.WARN,
+            f"BRD_SAFETY_DEFLT = {default} and output(s) {', '.join(map(str, outside))} not in "
+            f"BRD_SAFETY_MASK = {mask}: the arm holds until the switch is pressed",
+            f"param set BRD_SAFETY_MASK {wanted} (the arm's outputs stay live with the switch on)",
+        )
+    ]
+
+
+def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
+    """PX4: outputs dead until armed unless prearmed (COM_PREARM_MODE 2); the disarmed PWM is
+    where a joint goes at boot, disarm and kill (the park PWM is the safe choice); forwarding
+    must be on for a ground station's targets to reach us."""
+    checks = []
+    prearm = _value(params, "COM_PREARM_MODE")
+    if prearm is not None:
+        if prearm == 2:
+            checks.append(
+                Check("prearm", Verdict.PASS, "COM_PREARM_MODE = 2: outputs live 5 s after boot")
+            )
+        else:
+            checks.append(
+                Check(
+                    "prearm",
+                    Verdict.WARN,
+                    f"COM_PREARM_MODE = {prearm}: the arm's outputs stay at the disarmed PWM "
+                    "until the vehicle arms (the daemon holds and says so)",
+                    "param set COM_PREARM_MODE 2 (the arm moves while disarmed)",
+                )
+            )
+    park_pwm = (
+        config.calibration.angles_to_pwm_us(config.park_deg) if config.park_deg is not None else {}
+    )
+    for index, joint in enumerate(config.calibration.joints):
+        n = joint.output
+        prefix = next(
+            (
+                p
+                for p in _px4_prefixes(n)
+                if _value(params, f"{p}_DIS{_px4_index(p, n)}") is not None
+            ),
+            None,
+        )
+        if prefix is None:
+            continue
+        name = f"{prefix}_DIS{_px4_index(prefix, n)}"
+        dis = _value(params, name)
+        want = park_pwm.get(n)
+        label = f"{_joint_label(index, joint.name, n)} disarmed"
+        if want is not None and dis == want:
+            checks.append(Check(label, Verdict.PASS, f"{name} = {dis} = the park PWM"))
+        elif dis is not None and joint.pwm_min_us <= dis <= joint.pwm_max_us and want is None:
+            checks.append(Check(label, Verdict.PASS, f"{name} = {dis}, within the calibration"))
+        else:
+            checks.append(
+                Check(
+                    label,
+                    Verdict.WARN,
+                    f"{name} = {dis}: at boot, disarm and kill the joint jumps there"
+                    + ("" if want is None else f" (park is {want} us)"),
+                    f"param set {name} {want if want is not None else joint.pwm_min_us}",
+                )
+            )
+    off = [f for f in ("MAV_0_FORWARD", "MAV_1_FORWARD") if _value(params, f) == 0]
+    if off:
+        checks.append(
+            Check(
+                "forwarding",
+                Verdict.WARN,
+                f"{', '.join(off)} = 0: PX4 forwards a ground station's targets only between "
+                "instances that both forward",
+                "; ".join(f"param set {f} 1" for f in off),
+            )
+        )
+    elif _value(params, "MAV_0_FORWARD") is not None:
+        checks.append(Check("forwarding", Verdict.PASS, "on for TELEM1 and TELEM2"))
     return checks
 
 
@@ -527,7 +633,17 @@ def gather(
             kind = flavour(findings)
             if kind in ("ardupilot", "px4"):
                 names = param_names(config, kind)
-                _read_params(link, inbox, names, kind, findings, clock)
+                # PX4's PWM_AUX_* only where PWM_MAIN_* is not there (boards with an IO
+                # processor); an unknown name is never answered, so asking costs the timeout.
+                main = [n for n in names if not n.startswith("PWM_AUX_")]
+                _read_params(link, inbox, main, kind, findings, clock)
+                aux = [
+                    n
+                    for n in names
+                    if n.startswith("PWM_AUX_") and findings.params.get(_main_of(n)) is None
+                ]
+                if aux:
+                    _read_params(link, inbox, aux, kind, findings, clock)
                 _try_streams(link, inbox, READBACK[kind], findings, clock)
                 if config.link.dialect == "ardupilot-lua":
                     findings.lua_probe = _probe_lua(link, inbox, config, findings, clock)
@@ -563,6 +679,13 @@ def _drain_until(
         seen.append(msg)
 
 
+def _main_of(aux_name: str) -> str:
+    """PWM_AUX_FUNC3 → PWM_MAIN_FUNC11: the same output's PWM_MAIN name."""
+    stem = aux_name.removeprefix("PWM_AUX_").rstrip("0123456789")
+    index = int(aux_name[len("PWM_AUX_") + len(stem) :])
+    return f"PWM_MAIN_{stem}{index + 8}"
+
+
 def _wait_one(inbox: MessageQueue, timeout_s: float) -> Any:
     try:
         return inbox.get(timeout_s)
@@ -590,11 +713,13 @@ def _read_params(
             return
         for name in missing:
             link.send(link.mav.param_request_read_encode(system, component, name.encode(), -1))
-        for msg in _drain_until(inbox, clock() + 0.7, findings, clock):
-            if msg.get_type() == "PARAM_VALUE":
-                name = _param_id(msg.param_id)
-                if name in findings.params:
-                    findings.params[name] = decode_param(msg, kind)
+        deadline = clock() + 0.7
+        while clock() < deadline and any(findings.params[n] is None for n in missing):
+            for msg in _drain_until(inbox, min(deadline, clock() + 0.05), findings, clock):
+                if msg.get_type() == "PARAM_VALUE":
+                    name = _param_id(msg.param_id)
+                    if name in findings.params:
+                        findings.params[name] = decode_param(msg, kind)
 
 
 def _try_streams(

@@ -16,6 +16,7 @@ from companion.daemon.config import parse_config
 from companion.daemon.doctor import Findings, Verdict, evaluate, param_names
 from sim_servo.gcs import GroundStation
 from tests.support.config import write_config
+from tests.support.sim_process import SimProcess
 
 URL = {"url": "udpout:127.0.0.1:14550"}
 ARDUPILOT = (1, 1, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
@@ -171,3 +172,47 @@ def test_the_lua_bridge_and_a_serial_links_budget_are_checked():
     )
     udp = {c.item for c in evaluate(config(), answered)}
     assert "link budget" not in udp and "lua bridge" not in udp
+
+
+@pytest.mark.slow
+def test_doctor_names_px4s_default_setup_and_its_fix(tmp_path, capsys):
+    """Issue 20: PX4 as it comes (arm outputs on function 0, COM_PREARM_MODE 0, TELEM2 not
+    forwarding): doctor names each parameter with the value to set."""
+    with SimProcess(
+        tmp_path / "sim", "--udp", "127.0.0.1:0", "--flavour", "px4", ready=False
+    ) as sim:
+        path = write_config(
+            tmp_path / "px4.toml",
+            {"link": {"url": sim.url, "dialect": "px4"}, "control": {"socket": ""}},
+        )
+        assert main(["doctor", "--config", str(path), "--listen-s", "0.5"]) == 1
+    out = capsys.readouterr().out
+    assert (
+        "fix: param set PWM_MAIN_FUNC9 301" in out and "fix: param set PWM_MAIN_FUNC14 306" in out
+    )
+    assert "fix: param set COM_PREARM_MODE 2" in out
+    assert "fix: param set MAV_1_FORWARD 1" in out
+
+
+def test_a_correct_px4_setup_passes_the_vehicle_checks():
+    cfg = parse_config(
+        {
+            "link": {**URL, "dialect": "px4"},
+            "arm": {"park_deg": [0, 90, 0, 0, 0, 0]},
+            "control": {"socket": ""},
+        }
+    )
+    park = cfg.calibration.angles_to_pwm_us(cfg.park_deg)
+    params: dict[str, float | None] = {"COM_PREARM_MODE": 2.0, "MAV_0_FORWARD": 1.0}
+    params["MAV_1_FORWARD"] = 1.0
+    for k, n in enumerate(range(9, 15)):
+        params[f"PWM_MAIN_FUNC{n}"] = float(301 + k)
+        params[f"PWM_MAIN_MIN{n}"], params[f"PWM_MAIN_MAX{n}"] = 1000.0, 2000.0
+        params[f"PWM_MAIN_DIS{n}"] = float(park[n])
+    found = Findings("u", autopilot=PX4, params=params, streams=STREAMING)
+    checks = evaluate(cfg, found)
+    assert {c.item: c.verdict for c in checks if c.verdict is not Verdict.PASS} == {
+        "signing": Verdict.WARN,
+        "routing": Verdict.WARN,
+    }
+    assert "joint 1 (q1) on output 9 disarmed" in {c.item for c in checks}
