@@ -243,8 +243,10 @@ printf '\n$ armbridge status                              # as alice, the simula
 as_user alice "armbridge status"
 ct journalctl -u armbridge --no-pager -o short-monotonic -n 4
 
-count_log() {  # count_log REGEX: lines of the service's journal matching it
-    ct journalctl -u armbridge --no-pager -o cat --grep "$1" 2>/dev/null | wc -l
+count_log() {  # count_log REGEX: lines of the daemon's own journal matching it (not systemd's
+    # "Reloaded armbridge.service")
+    ct journalctl -u armbridge _COMM=armbridge --no-pager -o cat --case-sensitive=yes \
+        --grep "$1" 2>/dev/null | wc -l
 }
 signed_ok() {  # signed_ok GOTO_ARGS: restart, link up with the signing simulator, a goto as
     # alice, then a reload. systemd issue #24291 (252): with DynamicUser=, credentials were
@@ -256,22 +258,35 @@ signed_ok() {  # signed_ok GOTO_ARGS: restart, link up with the signing simulato
     readme "armbridge goto $1 --wait              # as alice"
     as_user alice "armbridge goto $1 --wait" >/dev/null || return 1
     as_user alice "armbridge status" | head -n 2
-    before=$(count_log '^reloaded ')
+    before=$(count_log '^INFO armbridge: reloaded ')
     run_readme "sudo systemctl reload armbridge" || return 1
     for _ in $(seq 40); do
-        [[ $(count_log '^reloaded ') -gt $before ]] && break
+        [[ $(count_log '^INFO armbridge: reloaded ') -gt $before ]] && break
         sleep 0.5
     done
-    ct journalctl -u armbridge --no-pager -o short-monotonic -n 4
-    [[ $(count_log '^reloaded ') -gt $before && $(count_log 'reload refused') -eq 0 ]]
+    ct journalctl -u armbridge --no-pager -o short-monotonic -n 3
+    [[ $(count_log '^INFO armbridge: reloaded ') -gt $before && $(count_log 'reload refused') -eq 0 ]]
 }
 
 say "Not a README step: signing as README 'The signing key' says (the simulator signs too)"
-ct systemctl stop armbridge-sim
-start_sim armbridge-sim-signed --signing-key /etc/armbridge/signing.key
 SIGNING=()
 run_readme "sudo sed -i 's|^# signing_key = .*|signing_key = \"credential:signing.key\"|' /etc/armbridge/armbridge.toml"
 run_readme "sudo CREDENTIALS_DIRECTORY=/etc/armbridge /opt/armbridge/.venv/bin/armbridge check-config /etc/armbridge/armbridge.toml"
+run_readme "sudo systemctl restart armbridge"
+# The key is in use: the unsigned simulator's frames are refused, and the link stays down.
+refused=0
+for _ in $(seq 30); do
+    refused=$(as_user alice "armbridge status --json" 2>/dev/null | python3 -c '
+import json, sys
+s = json.load(sys.stdin)["status"]
+print(s["link_counters"]["rejected_unsigned"] if s["link"] != "up" else -1)' 2>/dev/null || echo 0)
+    [[ $refused -gt 0 || $refused -lt 0 ]] && break
+    sleep 0.5
+done
+echo "   the unsigned simulator: ${refused} frames refused as unsigned (-1: link up)"
+[[ $refused -gt 0 ]] || SIGNING+=("refusing the unsigned simulator: FAIL")
+ct systemctl stop armbridge-sim
+start_sim armbridge-sim-signed --signing-key /etc/armbridge/signing.key
 if signed_ok "45 10 20 0 45 0"; then
     SIGNING+=("LoadCredential= (\"credential:signing.key\"): PASS")
 else
