@@ -160,16 +160,33 @@ say "Not a README step: the operator alice exists (and bob, who is not an operat
 ct_sh "useradd --create-home --shell /bin/bash alice && useradd --create-home --shell /bin/bash bob"
 
 # -- README "Running on a board", line by line ----------------------------------------------
-readme() {  # readme "README line" ["what is run instead, and why"]
+# The README's steps: its "Running on a board" code block, continuation lines joined and the
+# comments dropped. Each step below is checked against it, and every one of them must be taken,
+# so a README edit that this script does not follow fails the run.
+README_STEPS=$(awk '/^### Running on a board/ {f = 1} f && /^```sh/ {c = 1; next} c && /^```/ {exit} c' \
+    "$CHECKOUT/README.md" | sed -e ':a' -e '/\\$/N; s/\\\n *//; ta' |
+    sed -E 's/[[:space:]]{2,}#.*$//; s/[[:space:]]+$//')
+TAKEN=()
+readme() {  # readme "README step" ["what is run instead, and why"]: say it (and check it)
     printf '\n$ %s\n' "$1"
     if [[ $# -gt 1 ]]; then note "$2"; fi
+    if grep -qxF -- "$1" <<<"$README_STEPS"; then
+        TAKEN+=("$1")
+    else
+        echo "FAIL: not a step of README's \"Running on a board\" (edited there?): $1" >&2
+        exit 1
+    fi
 }
-run_readme() {  # run_readme "README line": run it as written, as root, in the checkout
+run_readme() {  # run_readme "README step": run it as written, as root, in the checkout
     readme "$1"
     ct_sh "$1"
 }
+step() {  # step "command": a command beyond the README, said and run as root
+    printf '\n$ %s\n' "$1"
+    ct_sh "$1"
+}
 
-run_readme "sudo apt-get update && sudo apt-get install -y python3-venv   # Debian, Raspberry Pi OS"
+run_readme "sudo apt-get update && sudo apt-get install -y python3-venv"
 run_readme "sudo groupadd --system armbridge"
 run_readme "sudo usermod -aG armbridge alice"
 run_readme "sudo /usr/bin/python3 -m venv /opt/armbridge/.venv"
@@ -178,7 +195,7 @@ readme "sudo /opt/armbridge/.venv/bin/pip install /path/to/this/checkout" \
 t=$(date +%s)
 ct_sh "sudo /opt/armbridge/.venv/bin/pip install /root/armbridge"
 PIP_S=$(($(date +%s) - t))
-run_readme "sudo ln -s /opt/armbridge/.venv/bin/armbridge /usr/local/bin/   # on the operators' PATH"
+run_readme "sudo ln -s /opt/armbridge/.venv/bin/armbridge /usr/local/bin/"
 run_readme "sudo install -D -m 644 companion/daemon/examples/armbridge.toml /etc/armbridge/armbridge.toml"
 readme "sudoedit /etc/armbridge/armbridge.toml" \
     "skipped (interactive): the example is used as is; its link.url udpout:127.0.0.1:14550 is where the simulator will listen"
@@ -217,8 +234,7 @@ start_sim() {  # start_sim UNIT [SIM FLAGS...]: the simulator as a transient uni
         --udp 127.0.0.1:14550 "$@"
 }
 
-readme "armbridge status                              # as alice" \
-    "in a login shell of alice, so her new group applies"
+readme "armbridge status" "as alice (README: '# as alice'), in a login shell: her new group applies"
 rc=0
 STATUS_1=$(as_user alice "armbridge status" 2>&1) || rc=$?
 echo "$STATUS_1"
@@ -226,6 +242,13 @@ if [[ $rc -ne 0 ]] || ! grep -Eq '^link (waiting|lost) +autopilot none yet' <<<"
     echo "FAIL: status as alice with no flight controller: exit $rc, or not 'link waiting/lost, autopilot none yet'" >&2
     exit 1
 fi
+
+while IFS= read -r line; do
+    [[ -z $line ]] && continue
+    printf '%s\n' "${TAKEN[@]}" | grep -qxF -- "$line" ||
+        { echo "FAIL: README step not taken by this script: $line" >&2; exit 1; }
+done <<<"$README_STEPS"
+note "all ${#TAKEN[@]} steps of README's \"Running on a board\" taken"
 
 # -- Beyond the README: an outsider, the link coming up, signing -------------------------------
 say "Not a README step: bob (not in armbridge) is refused"
@@ -253,13 +276,13 @@ signed_ok() {  # signed_ok GOTO_ARGS: restart, link up with the signing simulato
     # unreadable to command lines after the first; ExecReload= is one, and a reload re-reads
     # the key, so the reload is what would fail.
     local before
-    run_readme "sudo systemctl restart armbridge" || return 1
+    step "sudo systemctl restart armbridge" || return 1
     wait_link_up || { echo "   link: $link"; return 1; }
-    readme "armbridge goto $1 --wait              # as alice"
+    printf '\n$ armbridge goto %s --wait   # as alice\n' "$1"
     as_user alice "armbridge goto $1 --wait" >/dev/null || return 1
     as_user alice "armbridge status" | head -n 2
     before=$(count_log '^INFO armbridge: reloaded ')
-    run_readme "sudo systemctl reload armbridge" || return 1
+    step "sudo systemctl reload armbridge" || return 1
     for _ in $(seq 40); do
         [[ $(count_log '^INFO armbridge: reloaded ') -gt $before ]] && break
         sleep 0.5
@@ -270,9 +293,9 @@ signed_ok() {  # signed_ok GOTO_ARGS: restart, link up with the signing simulato
 
 say "Not a README step: signing as README 'The signing key' says (the simulator signs too)"
 SIGNING=()
-run_readme "sudo sed -i 's|^# signing_key = .*|signing_key = \"credential:signing.key\"|' /etc/armbridge/armbridge.toml"
-run_readme "sudo CREDENTIALS_DIRECTORY=/etc/armbridge /opt/armbridge/.venv/bin/armbridge check-config /etc/armbridge/armbridge.toml"
-run_readme "sudo systemctl restart armbridge"
+step "sudo sed -i 's|^# signing_key = .*|signing_key = \"credential:signing.key\"|' /etc/armbridge/armbridge.toml"
+step "sudo CREDENTIALS_DIRECTORY=/etc/armbridge /opt/armbridge/.venv/bin/armbridge check-config /etc/armbridge/armbridge.toml"
+step "sudo systemctl restart armbridge"
 # The key is in use: the unsigned simulator's frames are refused, and the link stays down.
 refused=0
 for _ in $(seq 30); do
@@ -296,11 +319,11 @@ fi
 
 say "Not a README step: signing the README's other way (the key in a group of its own)"
 ct systemctl reset-failed armbridge 2>/dev/null || true
-run_readme "sudo groupadd --system armbridge-key && sudo chgrp armbridge-key /etc/armbridge/signing.key && sudo chmod 0640 /etc/armbridge/signing.key"
-readme "sudo systemctl edit armbridge   # LoadCredential= (empty) and SupplementaryGroups=dialout armbridge-key" \
-    "interactive: the drop-in it would write, written directly"
+step "sudo groupadd --system armbridge-key && sudo chgrp armbridge-key /etc/armbridge/signing.key && sudo chmod 0640 /etc/armbridge/signing.key"
+printf '\n$ sudo systemctl edit armbridge   # LoadCredential= (empty), SupplementaryGroups=dialout armbridge-key\n'
+note "interactive: the drop-in it would write, written directly"
 ct_sh "mkdir -p /etc/systemd/system/armbridge.service.d && printf '[Service]\nLoadCredential=\nSupplementaryGroups=dialout armbridge-key\n' > /etc/systemd/system/armbridge.service.d/override.conf && systemctl daemon-reload"
-run_readme "sudo sed -i 's|^signing_key = .*|signing_key = \"/etc/armbridge/signing.key\"|' /etc/armbridge/armbridge.toml"
+step "sudo sed -i 's|^signing_key = .*|signing_key = \"/etc/armbridge/signing.key\"|' /etc/armbridge/armbridge.toml"
 if signed_ok "45 10 20 0 45 0"; then
     SIGNING+=("the key's own group (armbridge-key): PASS")
 else
