@@ -13,8 +13,11 @@
 # listens on the host's 127.0.0.1:14550, the example config's `udpout:127.0.0.1:14550`.
 #
 # Needs root, debootstrap and systemd-nspawn (Debian: debootstrap systemd-container), PyPI and a
-# Debian mirror. Takes minutes; not part of the test suite. Exit 0 only if `armbridge status`
-# answered the operator, before and after the simulated autopilot came up.
+# Debian mirror. Takes minutes; not part of the test suite. Exit 0 only if every step of the
+# README's block was taken (as written, or with the reason it could not be), `armbridge status`
+# answered the operator alice with no flight controller (link waiting, autopilot none yet) and
+# with the simulator (link up), bob (not an operator) was refused, and signing worked both ways
+# the README gives (a start, a signed goto and a reload each).
 #
 # Environment: SUITE (bookworm), MIRROR (http://deb.debian.org/debian), PIP_CERT (a CA bundle
 # for pip inside the container, where a proxy re-signs TLS; copied in as /etc/pip.conf's cert).
