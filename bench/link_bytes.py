@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     print(f"Arm update of {args.joints} joints, MAVLink 2, 8N1 serial ({BITS_PER_BYTE} bit/byte)")
     print(
-        f"{'dialect':<10}{'signed':<8}{'frames':>7}{'out B':>7}{'ack B':>7}  "
+        f"{'dialect':<14}{'signed':<8}{'frames':>7}{'out B':>7}{'ack B':>7}  "
         + "".join(f"{f'{b} baud: bw / rtt Hz':>28}" for b in args.baud)
     )
     for dialect in SERVO_DIALECTS:
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
                 round_trip_hz = bytes_per_s / (out_b + ack_b)  # sequential: cmd then ack
                 cells.append(f"{bandwidth_hz:>17.1f} / {round_trip_hz:>7.1f}")
             print(
-                f"{dialect:<10}{'yes' if signed else 'no':<8}{frames:>7}{out_b:>7}{ack_b:>7}  "
+                f"{dialect:<14}{'yes' if signed else 'no':<8}{frames:>7}{out_b:>7}{ack_b:>7}  "
                 + "".join(f"{c:>28}" for c in cells)
             )
     print(

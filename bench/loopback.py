@@ -36,7 +36,7 @@ from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
 
-SERVO_COMMANDS = {183: "DO_SET_SERVO", 187: "DO_SET_ACTUATOR"}
+SERVO_COMMANDS = {183: "DO_SET_SERVO", 187: "DO_SET_ACTUATOR", 31011: "USER_2 (Lua bridge)"}
 WAIT_S = 30.0
 
 try:  # PNG plots when matplotlib is installed (the `plots` extra); the Markdown never needs it
@@ -255,7 +255,9 @@ class Stack:
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
     ``sim_servo`` flags; ``daemon_root`` runs the daemon from another checkout (an older
-    version of the code, as a peer in the same run).
+    version of the code, as a peer in the same run). ``transport``: the simulator's link flags
+    (default UDP loopback; e.g. ``--pty --pty-baud 115200`` for a modelled serial line). The
+    ``ardupilot-lua`` dialect gets an ArduPilot simulator emulating the Lua bridge script.
     """
 
     def __init__(
@@ -265,18 +267,21 @@ class Stack:
         daemon: dict[str, dict[str, Any]] | None = None,
         sim_args: Sequence[str] = (),
         daemon_root: Path | None = None,
+        transport: Sequence[str] = ("--udp", "127.0.0.1:0"),
     ) -> None:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
         tmp = Path(self._tmp.name)
-        flavour = "ardupilot" if dialect == "ardupilot" else "px4"
+        flavour = "px4" if dialect == "px4" else "ardupilot"
+        if dialect == "ardupilot-lua":
+            sim_args = ("--lua-script", *sim_args)
         self.sim: SimProcess | None = None
         self.daemon: DaemonProcess | None = None
         self._status_client: ControlClient | None = None
         try:
             self.sim = SimProcess(
                 tmp / "sim",
-                "--udp", "127.0.0.1:0", "--flavour", flavour, "--gcs", "127.0.0.1:0", *sim_args,
+                *transport, "--flavour", flavour, "--gcs", "127.0.0.1:0", *sim_args,
                 timeout_s=WAIT_S,
             )  # fmt: skip
             self.event_log = self.sim.log_path

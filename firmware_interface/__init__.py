@@ -41,9 +41,11 @@ from firmware_interface.link import (
     LinkStats,
     MavlinkLink,
 )
+from firmware_interface.link_budget import LinkBudget, UpdateCost, link_budget, update_cost
 from firmware_interface.readback import OutputReadback
 from firmware_interface.servo import (
     SERVO_DIALECTS,
+    ArduPilotLuaServoDialect,
     ArduPilotServoDialect,
     Px4ServoDialect,
     ServoDialect,
@@ -79,8 +81,13 @@ __all__ = [
     "LinkState",
     "LinkStats",
     "MavlinkLink",
+    "LinkBudget",
+    "UpdateCost",
+    "link_budget",
+    "update_cost",
     "OutputReadback",
     "SERVO_DIALECTS",
+    "ArduPilotLuaServoDialect",
     "ArduPilotServoDialect",
     "Px4ServoDialect",
     "ServoDialect",

@@ -719,6 +719,10 @@ class MavlinkLink:
         )
         transport.set_peer(sender)
         self._counts["peer_changes"] += 1
+        # Our HEARTBEAT at once, not at the next beat (up to a second away): the autopilot
+        # routes to us only once it has heard us, and PX4 drops a ground station's command for
+        # a component it has not heard ("Ignore command ... to 1/191").
+        self._send_heartbeat()
 
     def _receive(self, transport: Transport, data: bytes, sender: Address | None) -> None:
         """Decode and dispatch what one read returned (udpin: choose the peer; module

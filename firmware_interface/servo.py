@@ -19,12 +19,23 @@
   PX4 copies all six params at once (FunctionActuatorSet.hpp) and NaN turns an output off, so
   every joint must be commanded in each update; with fewer than six joints the spare slots are
   NaN. ``skip_unchanged`` changes nothing here.
+* ``ardupilot-lua``: ArduPilot with the Lua bridge we ship (:mod:`firmware_interface.lua_bridge`,
+  ``lua/armbridge_servo.lua`` on the SD card): one COMMAND_LONG ``MAV_CMD_USER_2`` (31011) sets
+  up to six consecutive outputs, params 1–6 = PWM µs (NaN: leave that output alone), param7 =
+  the first output; the script checks every output's SERVOn_FUNCTION (must be 0) and
+  SERVOn_MIN/MAX before it sets any and answers one COMMAND_ACK: ACCEPTED, or FAILED with
+  nothing set. One 44-byte frame per update instead of six (264 B): the choice on 57 600 /
+  115 200 baud links, where the bytes, not the round trips, set the latency. Outputs are
+  grouped in windows of six from the lowest (the default 9–14 is one frame); outputs further
+  apart cost one frame per window, one ACK each. A window whose outputs all hold their value
+  already is left out of an update.
 """
 
 from __future__ import annotations
 
 import abc
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -32,6 +43,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_interface.calibration import ArmCalibration
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import CommandRejected, ConfigurationError, ServoOutputUnavailable
+from firmware_interface.lua_bridge import LUA_SLOTS, MAV_CMD_USER_2
 from firmware_interface.updates import ServoCommand
 
 PX4_ACTUATOR_SLOTS = 6
@@ -179,18 +191,90 @@ class Px4ServoDialect(ServoDialect):
             self._sender().command_long(command, params)
 
 
+#: "Channel 12 is already in use", as the Lua bridge (and ArduPilot itself) words a refusal.
+_CHANNEL_IN_USE = re.compile(r"Channel\s+(\d+)\s+is already in use")
+
+
+class ArduPilotLuaServoDialect(ServoDialect):
+    """One MAV_CMD_USER_2 per window of up to six outputs, for the shipped Lua bridge."""
+
+    name = "ardupilot-lua"
+    per_output = False
+
+    @staticmethod
+    def windows(outputs: Sequence[int]) -> list[tuple[int, ...]]:
+        """The outputs grouped as one command each: from the lowest, up to six in a row."""
+        groups: list[tuple[int, ...]] = []
+        for output in sorted(outputs):
+            if groups and output < groups[-1][0] + LUA_SLOTS:
+                groups[-1] = (*groups[-1], output)
+            else:
+                groups.append((output,))
+        return groups
+
+    def command_params(self, pwm_by_output: Mapping[int, int]) -> list[CommandParams]:
+        params: list[CommandParams] = []
+        for window in self.windows(list(pwm_by_output)):
+            first = window[0]
+            slots = [math.nan] * LUA_SLOTS
+            for output in window:
+                slots[output - first] = float(pwm_by_output[output])
+            params.append((MAV_CMD_USER_2, (*slots, float(first))))
+        return params
+
+    def plan(
+        self, pwm_by_output: Mapping[int, int], acked_pwm_us: Mapping[int, int] | None = None
+    ) -> list[ServoCommand]:
+        self.calibration.check_pwm_us(pwm_by_output)
+        acked = acked_pwm_us or {}
+        planned: list[ServoCommand] = []
+        for command, params in self.command_params(pwm_by_output):
+            first = int(params[6])
+            setting = tuple(
+                (first + slot, int(pwm))
+                for slot, pwm in enumerate(params[:6])
+                if not math.isnan(pwm)
+            )
+            if all(acked.get(output) == pwm for output, pwm in setting):
+                continue  # the autopilot holds every value of this window already
+            planned.append(ServoCommand(command, tuple(params), setting))
+        return planned
+
+    def _send_checked(self, pwm_by_output: dict[int, int], skip_unchanged: bool) -> None:
+        for command in self.plan(pwm_by_output):
+            try:
+                self._sender().command_long(command.command, command.params)
+            except CommandRejected as exc:
+                if exc.result != mavlink.MAV_RESULT_FAILED:
+                    raise
+                named = _CHANNEL_IN_USE.search(exc.statustext or "")
+                output = int(named.group(1)) if named else command.outputs[0]
+                raise ServoOutputUnavailable(
+                    f"servo outputs {list(command.outputs)} refused by the Lua bridge "
+                    f"({exc.result_name}, none set); autopilot said: {exc.statustext!r}. "
+                    f"Check SERVO{output}_FUNCTION = 0 and SERVO{output}_MIN/MAX on the "
+                    f"flight controller.",
+                    command=command.command,
+                    result=exc.result,
+                    result_name=exc.result_name,
+                    output=output,
+                    statustext=exc.statustext,
+                ) from exc
+
+
 #: The dialects by name; an unknown name is refused with this list.
 SERVO_DIALECTS: dict[str, Callable[[CommandSender | None, ArmCalibration], ServoDialect]] = {
     "ardupilot": ArduPilotServoDialect,
     "px4": Px4ServoDialect,
+    "ardupilot-lua": ArduPilotLuaServoDialect,
 }
 
 
 def make_servo_dialect(
     name: str, commands: CommandSender | None, calibration: ArmCalibration
 ) -> ServoDialect:
-    """Build the dialect called ``name`` (``ardupilot`` or ``px4``); without ``commands`` it
-    only plans updates (:meth:`ServoDialect.plan`)."""
+    """Build the dialect called ``name`` (``ardupilot``, ``px4``, ``ardupilot-lua``); without
+    ``commands`` it only plans updates (:meth:`ServoDialect.plan`)."""
     try:
         factory = SERVO_DIALECTS[name]
     except KeyError:

@@ -76,7 +76,9 @@ def load_key(path: str | os.PathLike[str]) -> bytes:
     try:
         data = Path(path).read_bytes()
     except OSError as exc:
-        raise ConfigurationError(f"cannot read signing key file {str(path)!r}: {exc}") from exc
+        raise ConfigurationError(
+            f"cannot read signing key file {str(path)!r}: {exc.strerror or exc}"
+        ) from exc
     if len(data) == KEY_LEN:
         return data
     text = data.strip()

@@ -12,7 +12,8 @@ Layout (one concern per module):
 * :mod:`sim_servo.hand`      – servo positions → joint angles (servo model) → hand pose (FK)
 * :mod:`sim_servo.faults`    – seeded drop / corrupt / latency decisions
 * :mod:`sim_servo.autopilot` – the MAVLink behaviour: bytes in, frames out, given the time
-* :mod:`sim_servo.linktiming` – when a link's frames leave (delay and hold fitted to SITL), pure
+* :mod:`sim_servo.linktiming` – when a link's frames leave (ArduPilot: delay and hold; PX4:
+  main-loop passes; both fitted to SITL), pure
 * :mod:`sim_servo.endpoints` – UDP / TCP / pty byte endpoints (the server side)
 * :mod:`sim_servo.query`     – the local Unix-socket state query
 * :mod:`sim_servo.eventlog`  – JSON-lines event log

@@ -22,18 +22,21 @@ from typing import Any
 
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import (
+    DEFAULT_ARM_OUTPUTS,
     FLAVOURS,
     OUTPUT_COUNT,
     config_from_mapping,
     load_key,
     load_toml,
     parse_withhold,
+    ready_setup,
 )
 from sim_servo.endpoints import Endpoint, PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
 from sim_servo.errors import SimConfigError, SimError
 from sim_servo.eventlog import EventLog
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
+from sim_servo.serial_line import MAX_BAUD, MIN_BAUD, SerialLineEndpoint
 from sim_servo.server import SimServer
 
 log = logging.getLogger("sim_servo")
@@ -64,6 +67,27 @@ def _function(text: str) -> tuple[int, int]:
     if not 1 <= pair[0] <= OUTPUT_COUNT:
         raise argparse.ArgumentTypeError(f"output={pair[0]} outside [1, {OUTPUT_COUNT}]")
     return pair
+
+
+def _baud(text: str) -> int:
+    try:
+        baud = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"baud={text!r} is not an integer") from None
+    if not MIN_BAUD <= baud <= MAX_BAUD:
+        raise argparse.ArgumentTypeError(f"baud={baud} outside [{MIN_BAUD}, {MAX_BAUD}]")
+    return baud
+
+
+def _param(text: str) -> tuple[str, int]:
+    name, sep, value = text.partition("=")
+    try:
+        number = int(value)
+    except ValueError:
+        number = None
+    if not sep or not name or number is None:
+        raise argparse.ArgumentTypeError(f"{text!r} must be NAME=INTEGER, e.g. COM_PREARM_MODE=2")
+    return name, number
 
 
 def _outputs(text: str) -> tuple[int, ...]:
@@ -99,6 +123,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --pty: keep a symlink at PATH to the current pty (a stable "
         "name, as udev gives a USB serial adapter) and print PATH,115200",
     )
+    link.add_argument(
+        "--pty-baud",
+        type=_baud,
+        metavar="BAUD",
+        help="with --pty: model a serial line at BAUD (8N1, 10 bits a byte, both ways; "
+        "ArduPilot's 256-byte MAVLink transmit buffer) and print PATH,BAUD; the TCP-fitted "
+        "link timing is then off unless --link-* or [link_timing] set it",
+    )
     parser.add_argument(
         "--gcs",
         metavar="HOST:PORT",
@@ -124,8 +156,43 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="OUTPUT=FUNCTION",
         help="output function (SERVOn_FUNCTION / PWM_MAIN_FUNCn), repeatable; "
-        "default: outputs 1-4 motors, others free (px4: arm outputs "
-        "301-306)",
+        "default: outputs 1-4 motors, others 0 (px4 too: --ready maps the arm's outputs "
+        "to 301-306)",
+    )
+    vehicle.add_argument(
+        "--param",
+        type=_param,
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter's value at start (e.g. COM_PREARM_MODE=2, BRD_SAFETY_MASK=7936), "
+        "repeatable; flags win over --ready and the config file",
+    )
+    vehicle.add_argument(
+        "--ready",
+        action="store_true",
+        help="a vehicle set up for the arm: px4 - arm outputs on functions 301-306, "
+        "COM_PREARM_MODE=2, forwarding on both links, armed at start; ardupilot - nothing "
+        "(safety off is the default)",
+    )
+    vehicle.add_argument(
+        "--armed",
+        action="store_true",
+        help="px4: armed at start (a reboot comes back disarmed); the query 'arm' / 'disarm' / "
+        "'kill' changes it later",
+    )
+    vehicle.add_argument(
+        "--safety",
+        choices=("on", "off"),
+        help="ardupilot: the safety switch at boot (BRD_SAFETY_DEFLT; default off); the query "
+        "'safety_on' / 'safety_off' changes it later",
+    )
+    vehicle.add_argument(
+        "--lua-script",
+        action="store_true",
+        default=None,
+        help="ardupilot: answer MAV_CMD_USER_2 as armbridge's Lua bridge script does "
+        "(its checks, its ~9 ms answer)",
     )
     vehicle.add_argument(
         "--servo-output-rate-hz",
@@ -168,6 +235,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="this many frames from a link within the hold release its replies at once (default 2)",
     )
 
+    px4_timing = parser.add_argument_group(
+        "px4 timing (a model fitted to PX4 SITL; see sim_servo.config.Px4TimingConfig)"
+    )
+    px4_timing.add_argument(
+        "--px4-commander-period-ms",
+        type=_non_negative,
+        help="arm/disarm and DO_SET_ACTUATOR act and are answered on the commander's next "
+        "cycle (default 10; 0: at once)",
+    )
+    px4_timing.add_argument(
+        "--px4-mavlink-loop-ms",
+        type=_non_negative,
+        help="frames leave on their link's next MAVLink main-loop pass (default 1.5)",
+    )
+    px4_timing.add_argument(
+        "--px4-forward-delay-ms",
+        type=_non_negative,
+        help="a frame routed to another link leaves this much later at the earliest",
+    )
+
     servo = parser.add_argument_group("servos and arm")
     servo.add_argument(
         "--slew-s-per-60deg",
@@ -189,7 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--query-socket",
         metavar="PATH",
         help="answer 'state' / 'events' / 'ping' (and the 'pause_heartbeat', "
-        "'resume_heartbeat', 'reboot', 'hangup' requests) lines on this Unix socket",
+        "'resume_heartbeat', 'reboot', 'hangup', 'arm', 'disarm', 'kill', 'safety_on', "
+        "'safety_off' requests) lines on this Unix socket",
     )
     report.add_argument("-v", "--verbose", action="store_true", help="log to stderr")
 
@@ -301,10 +389,14 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         ("servo_output_rate_hz", args.servo_output_rate_hz),
         ("system_time_rate_hz", args.system_time_rate_hz),
         ("loop_rate_hz", args.loop_rate_hz),
+        ("lua_script", args.lua_script),
     ):
         if value is not None:
             data[key] = value
     timing = dict(data.get("link_timing", {}))
+    if args.pty_baud is not None and not timing:
+        # The hold was fitted to TCP; a serial line's own timing is the bytes (serial_line.py).
+        timing = {"output_delay_ms": 0.0, "hold_ms": 0.0}
     for key, value in (
         ("output_delay_ms", args.link_delay_ms),
         ("hold_ms", args.link_hold_ms),
@@ -313,6 +405,38 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         if value is not None:
             timing[key] = value
     data["link_timing"] = timing
+    px4_timing = dict(data.get("px4_timing", {}))
+    for key, value in (
+        ("commander_period_ms", args.px4_commander_period_ms),
+        ("mavlink_loop_ms", args.px4_mavlink_loop_ms),
+        ("forward_delay_ms", args.px4_forward_delay_ms),
+    ):
+        if value is not None:
+            px4_timing[key] = value
+    data["px4_timing"] = px4_timing
+    arm = dict(data.get("arm", {}))
+    if args.arm:
+        arm["file"] = str(Path(args.arm).resolve())
+    if args.arm_outputs:
+        arm["outputs"] = list(args.arm_outputs)
+    data["arm"] = arm
+    params = dict(data.get("params", {}))
+    if args.ready:
+        flavour = data.get("flavour", "ardupilot")
+        setup = ready_setup(
+            flavour if isinstance(flavour, str) else "",
+            tuple(arm.get("outputs", DEFAULT_ARM_OUTPUTS)),
+        )
+        data["outputs"] = {**data.get("outputs", {}), **setup.get("outputs", {})}
+        params.update(setup.get("params", {}))
+        if "armed" in setup:
+            data["armed"] = setup["armed"]
+    if args.armed:
+        data["armed"] = True
+    if args.safety is not None:
+        params["BRD_SAFETY_DEFLT"] = 1 if args.safety == "on" else 0
+    params.update(dict(args.param))
+    data["params"] = params
     if args.function:
         outputs = dict(data.get("outputs", {}))
         outputs.update({str(o): f for o, f in args.function})
@@ -325,12 +449,6 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         if value is not None:
             servo[key] = value
     data["servo"] = servo
-    arm = dict(data.get("arm", {}))
-    if args.arm:
-        arm["file"] = str(Path(args.arm).resolve())
-    if args.arm_outputs:
-        arm["outputs"] = list(args.arm_outputs)
-    data["arm"] = arm
     faults = dict(data.get("faults", {}))
     for key in (
         "seed",
@@ -378,6 +496,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             parse_withhold(list(args.withhold_ack))  # fail early with the flag's own message
         if args.pty_link and not args.pty:
             raise SimConfigError("--pty-link needs --pty")
+        if args.pty_baud is not None and not args.pty:
+            raise SimConfigError("--pty-baud needs --pty")
         config = config_from_mapping(data, source=args.config or "<flags>", base_dir=base_dir)
         if args.signing_key:
             from dataclasses import replace
@@ -393,6 +513,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             endpoint = UdpEndpoint(*parse_host_port(args.udp, "--udp"))
         elif args.tcp:
             endpoint = TcpEndpoint(*parse_host_port(args.tcp, "--tcp"))
+        elif args.pty_baud is not None:
+            endpoint = SerialLineEndpoint(PtyEndpoint(args.pty_link, args.pty_baud), args.pty_baud)
         else:
             endpoint = PtyEndpoint(args.pty_link)
         start_s = time.monotonic()
@@ -431,6 +553,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         flavour=config.flavour,
         system_id=config.system_id,
         functions=dict(config.functions),
+        params=dict(config.params),
+        armed=autopilot.armed,
+        safety_on=autopilot.safety_on,
+        outputs_us=dict(autopilot.output_us),
         gcs_url=gcs.url if gcs is not None else None,
         monotonic_s=start_s,
     )

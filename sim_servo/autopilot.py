@@ -35,7 +35,7 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 * MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): −1 stops, 0 resets to
   the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds, then
   ``cap_message_interval``: at most 80 % of the loop rate (3 ms at 400 Hz); ACCEPTED for
-  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME; PX4 also
+  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME; ArduPilot SYS_STATUS, PX4
   ACTUATOR_OUTPUT_STATUS), FAILED for the others. SERVO_OUTPUT_RAW never streams faster than
   ``servo_output_min_interval_ms`` (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when
   400 Hz is asked); GET_MESSAGE_INTERVAL reports the stored interval, as
@@ -53,12 +53,48 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   PARAM_VALUE with ``param_index`` −1 (65535 on the wire, a uint16) for a set or a read by name.
 * Anything else in COMMAND_LONG → UNSUPPORTED.
 
-PX4 flavour: HEARTBEAT with MAV_AUTOPILOT_PX4; MAV_CMD_DO_SET_ACTUATOR (187) is always ACCEPTED
-(Commander.cpp) and drives the outputs whose PWM_MAIN_FUNCn is 301–306 ("Peripheral via
-Actuator Set 1–6") from params 1–6 in −1…1 (NaN: output off); ACTUATOR_OUTPUT_STATUS can be
-streamed; parameters are PWM_MAIN_FUNCn / MINn / MAXn (INT32, sent bytewise as PX4 does);
-SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor; routing and link timing as ArduPilot's (not
-measured on PX4).
+* ArduPilot's safety switch (AP_BoardConfig; ``AP_HAL_ChibiOS/RCOutput.cpp`` ``push_local``):
+  on at each boot when ``BRD_SAFETY_DEFLT`` is 1 (0 here by default, so outputs are live);
+  :meth:`set_safety` (the queries ``safety_on`` / ``safety_off``) flips it. While on, an output
+  whose bit (output − 1) is not in ``BRD_SAFETY_MASK`` sends no pulses; DO_SET_SERVO is still
+  ACCEPTED and SERVO_OUTPUT_RAW still reports the PWM given (``read()`` returns the stored
+  period); switched off, the stored PWMs go out in one step. SYS_STATUS (streamable, off until
+  asked, as Copter's EXT_STAT stream) tells it: ``onboard_control_sensors_enabled`` has
+  MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS unless the switch is on (Copter's
+  ``update_vehicle_sensor_status_flags``).
+
+With ``lua_script`` (ArduPilot only): MAV_CMD_USER_2 is answered as armbridge's Lua bridge
+answers it, after the script's own delay (:mod:`sim_servo.lua_bridge`); the arm's outputs get
+``SERVOn_MIN`` / ``MAX`` = the arm's PWM range, as the script's install notes ask.
+
+PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
+
+* HEARTBEAT with MAV_AUTOPILOT_PX4, ``MAV_MODE_FLAG_SAFETY_ARMED`` while armed; parameters
+  INT32 sent bytewise; DO_SET_SERVO UNSUPPORTED; SYSTEM_TIME at 1 Hz; no SERVO_OUTPUT_RAW floor.
+* Disarmed at boot (``SimConfig.armed``: armed at start). MAV_CMD_COMPONENT_ARM_DISARM param1
+  1 / 0 arms / disarms (param2 21196: forced, a kill) → ACCEPTED; other values DENIED.
+* ``COM_PREARM_MODE`` 0 (default): never prearmed; 2 (and 1: no safety button here, as SITL):
+  prearmed from 5 s after each boot. Changes apply at once.
+* Outputs are live while armed or prearmed. Otherwise every output shows ``PWM_MAIN_DISn``
+  (1000 as boards; SITL 900) — at boot, on disarm and kill, after a reboot. Live, an output on
+  function 301–306 shows its slot of actuator set 1 (a slot never set since boot is NaN: the
+  disarmed PWM), a motor (101–104) its minimum once armed. What was stored while dead appears
+  in one step when the outputs come alive.
+* MAV_CMD_DO_SET_ACTUATOR (Commander.cpp) is ACCEPTED whatever happens: nothing mapped,
+  disarmed, param7 ≠ 0 (then ignored), values out of range. Param7 0 stores params 1–6 (NaN:
+  slot unchanged). PWM = 1500 + 500·v rounded half away from zero, clamped to
+  ``PWM_MAIN_MINn`` / ``MAXn``.
+* ``PWM_MAIN_FUNCn`` 0 by default except motors 1–4; PARAM_SET applies without a reboot.
+* SERVO_OUTPUT_RAW and ACTUATOR_OUTPUT_STATUS (``active`` 16, µs as floats) report the outputs.
+* Routing: :meth:`_route_px4` (forwarding per link, ``MAV_n_FORWARD``; only to a link that has
+  heard the target; commands for another component of ours ignored without an answer).
+* Timing: :class:`~sim_servo.config.Px4TimingConfig` — frames handled on arrival, commander
+  commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
+  main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 2.5 ms later.
+
+The ``output`` event logs every change of what a servo physically receives (with its cause),
+``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone
+that no joint stepped faster than its limit.
 """
 
 from __future__ import annotations
@@ -79,13 +115,19 @@ from sim_servo.config import (
     OUTPUT_COUNT,
     PX4_ACTUATOR_SET_COUNT,
     PX4_ACTUATOR_SET_FIRST_FUNCTION,
+    PX4_DISARMED_PWM_US,
+    PX4_MOTOR_FUNCTIONS,
+    PX4_PREARM_DELAY_S,
+    PX4_PREARM_MODES,
     PX4_PWM_MAX_US,
     PX4_PWM_MIN_US,
     SimConfig,
 )
+from sim_servo.errors import SimConfigError
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
-from sim_servo.linktiming import LinkOutput
+from sim_servo.linktiming import LinkOutput, LoopLinkOutput
+from sim_servo.lua_bridge import MAV_CMD_USER_2, LuaScriptTiming, check_user2, refusal_text
 from sim_servo.servo import Servo, ServoParams
 
 Emit = Callable[[dict[str, Any]], None]
@@ -113,6 +155,17 @@ NOT_FORWARDED_IDS = frozenset(
         mavlink.MAVLINK_MSG_ID_ADSB_VEHICLE,
     }
 )
+#: PX4: the commands its commander handles, answered on the commander's next cycle.
+PX4_COMMANDER_COMMANDS = frozenset(
+    {mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_DO_SET_ACTUATOR}
+)
+#: MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (PX4 skips its checks; here: a kill).
+PX4_FORCE_MAGIC = 21196
+#: Our links as PX4 MAVLink instances, for their ``MAV_n_FORWARD``: the companion's link (0)
+#: is instance 1 (TELEM2), the ground station's (1) instance 0 (TELEM1), as on a Pixhawk.
+PX4_FORWARD_PARAMS = {0: "MAV_1_FORWARD", 1: "MAV_0_FORWARD"}
+#: PX4's defaults: forwarding on for instance 0 (TELEM1), off for the others.
+PX4_FORWARD_DEFAULTS = {"MAV_0_FORWARD": 1, "MAV_1_FORWARD": 0}
 
 
 @dataclass
@@ -177,15 +230,33 @@ class SimAutopilot:
         self._active_links: set[int] = set()
         #: Each link's outgoing side (channel 0 the companion's): delay and hold, see
         #: :mod:`sim_servo.linktiming`.
-        self._links: list[LinkOutput] = []
+        self._links: list[LinkOutput | LoopLinkOutput] = []
         self.set_links(links)
         self._deferred: list[tuple[float, mavlink.MAVLink_message]] = []
         self._inbox: list[tuple[float, int, mavlink.MAVLink_message]] = []
         #: The link of the frame being handled (a COMMAND_ACK goes back on it only).
         self._rx_channel = 0
+        #: While rebooting: when the autopilot comes back (silent and deaf until then).
+        self._rebooting_until_s: float | None = None
         self.params: dict[str, Param] = self._make_params()
         self._param_names = list(self.params)
-        self.pwm_us: dict[int, int] = self._boot_pwm_us()
+        #: PX4: the commander's queue of commands waiting for its next cycle, (due, command).
+        self._commander: list[tuple[float, Command]] = []
+        #: PX4: armed (MAV_CMD_COMPONENT_ARM_DISARM); prearmed (COM_PREARM_MODE, 5 s after boot).
+        self.armed = config.flavour == "px4" and config.armed
+        self.prearmed = False
+        #: PX4: actuator set 1–6 as last set by DO_SET_ACTUATOR (NaN: never set since boot).
+        self.actuator_values = [math.nan] * PX4_ACTUATOR_SET_COUNT
+        #: PX4: the (system, component)s each link has heard (``component_was_seen``).
+        self._heard: dict[int, set[tuple[int, int]]] = {}
+        #: ArduPilot: the PWM each output was last given (boot values until a command).
+        self._commanded_us: dict[int, int] = self._boot_pwm_us()
+        #: ArduPilot: the safety switch (BRD_SAFETY_DEFLT at each boot).
+        self.safety_on = self._safety_default()
+        #: What the autopilot reports (SERVO_OUTPUT_RAW, ACTUATOR_OUTPUT_STATUS) …
+        self.pwm_us: dict[int, int] = {}
+        #: … and what each servo physically receives (0: no pulses).
+        self.output_us: dict[int, int] = {}
         self.servos: dict[int, Servo] = {}
         for output in range(1, OUTPUT_COUNT + 1):
             deg_per_us = config.servo.deg_per_us
@@ -199,6 +270,11 @@ class SimAutopilot:
                 travel_max_us=config.servo.travel_max_us,
             )
             self.servos[output] = Servo(params, config.servo.initial_us, now_s)
+        self.pwm_us, self.output_us = self._outputs_now()
+        if config.flavour == "px4":
+            # PX4 drives every output to its disarmed PWM at boot: the horns go there.
+            for output, pwm in self.output_us.items():
+                self.servos[output].command(pwm, now_s)
         self._stream_msgs = self._streamable()
         self._interval_ms: dict[int, int] = {
             msg_id: self._default_interval_ms(msg_id) for msg_id in self._stream_msgs
@@ -209,11 +285,9 @@ class SimAutopilot:
         self._heartbeat_paused = False
         # Set by pause_heartbeat() (a test asking over the query socket): overrides the schedule.
         self._heartbeat_held: bool | None = None
-        #: While rebooting: when the autopilot comes back (silent and deaf until then).
-        self._rebooting_until_s: float | None = None
         after_s = config.faults.reboot_after_s
         self._reboot_due_s: float | None = None if after_s is None else now_s + after_s
-        self._moving = False
+        self._moving = config.flavour == "px4"  # PX4 drove the horns to the disarmed PWM
         self.peer: tuple[int, int] | None = None
         self._peers_seen: set[tuple[int, int]] = set()
         self.stats = dict.fromkeys(
@@ -243,6 +317,11 @@ class SimAutopilot:
             self._commands[mavlink.MAV_CMD_DO_SET_SERVO] = self._cmd_do_set_servo
         else:
             self._commands[mavlink.MAV_CMD_DO_SET_ACTUATOR] = self._cmd_do_set_actuator
+            self._commands[mavlink.MAV_CMD_COMPONENT_ARM_DISARM] = self._cmd_arm_disarm
+        self._lua: LuaScriptTiming | None = None
+        self._lua_pending: list[tuple[float, Command]] = []
+        if config.lua_script:
+            self._lua_setup(now_s)
         self._handlers: dict[str, Callable[[Any, float], None]] = {
             "HEARTBEAT": self._on_heartbeat,
             "COMMAND_LONG": self._on_command_long,
@@ -257,18 +336,144 @@ class SimAutopilot:
         if count < 1:
             raise ValueError(f"links={count} must be >= 1")
         while len(self._links) < count:
-            self._links.append(LinkOutput(self.config.link_timing))
+            if self.config.flavour == "px4":
+                loop_s = self.config.px4_timing.mavlink_loop_ms / 1000.0
+                self._links.append(LoopLinkOutput(loop_s, self._boot_s))
+            else:
+                self._links.append(LinkOutput(self.config.link_timing))
 
-    def _link(self, channel: int) -> LinkOutput:
+    def _link(self, channel: int) -> LinkOutput | LoopLinkOutput:
         self.set_links(channel + 1)  # a link we hear from exists
         return self._links[channel]
 
     def _boot_pwm_us(self) -> dict[int, int]:
-        """Each output's PWM at boot: none on a disabled output, idle on an assigned one."""
+        """ArduPilot: each output's PWM at boot: none on a disabled output, idle on an
+        assigned one."""
         return {
             output: 0 if self._function(output) == 0 else IDLE_ASSIGNED_PWM_US
             for output in range(1, OUTPUT_COUNT + 1)
         }
+
+    def _safety_default(self) -> bool:
+        return self.config.flavour == "ardupilot" and self.params["BRD_SAFETY_DEFLT"].value != 0
+
+    # -- outputs: what is reported, what the servos receive ----------------------------------
+
+    @property
+    def outputs_live(self) -> bool:
+        """PX4: armed or prearmed; ArduPilot: the safety switch off (per output: the mask)."""
+        if self.config.flavour == "px4":
+            return self.armed or self.prearmed
+        return not self.safety_on
+
+    def _live(self, output: int) -> bool:
+        if self.rebooting:
+            return False
+        if self.config.flavour == "px4":
+            return self.armed or self.prearmed
+        mask = self.params["BRD_SAFETY_MASK"].value
+        return not self.safety_on or bool(mask >> (output - 1) & 1)
+
+    def _outputs_now(self) -> tuple[dict[int, int], dict[int, int]]:
+        """(reported, physical) PWM of every output in the current state.
+
+        PX4 reports what it outputs. ArduPilot reports the PWM it was given (SERVO_OUTPUT_RAW
+        reads back what the output driver was told), while the safety switch keeps an output
+        out of ``BRD_SAFETY_MASK`` without pulses. During a reboot nothing has pulses."""
+        reported: dict[int, int] = {}
+        physical: dict[int, int] = {}
+        for output in range(1, OUTPUT_COUNT + 1):
+            if self.config.flavour == "px4":
+                reported[output] = self._px4_output_us(output)
+                physical[output] = reported[output]
+            else:
+                reported[output] = self._commanded_us[output]
+                physical[output] = reported[output] if self._live(output) else 0
+            if self.rebooting:
+                physical[output] = 0
+        return reported, physical
+
+    def _px4_output_us(self, output: int) -> int:
+        """PX4's output: the disarmed PWM (PWM_MAIN_DISn) unless live; live, an actuator-set
+        output shows its slot (NaN: never set, still disarmed), a motor its minimum."""
+        disarmed = self.params[f"PWM_MAIN_DIS{output}"].value
+        if not self._live(output):
+            return disarmed
+        function = self._function(output)
+        low, high = self._pwm_limits(output)
+        slot = function - PX4_ACTUATOR_SET_FIRST_FUNCTION
+        if 0 <= slot < PX4_ACTUATOR_SET_COUNT:
+            value = self.actuator_values[slot]
+            if math.isnan(value):
+                return disarmed
+            return min(max(px4_actuator_pwm_us(value), low), high)
+        if function in PX4_MOTOR_FUNCTIONS.values() and self.armed:
+            return low  # motors idle at their minimum once armed
+        return disarmed
+
+    def _refresh_outputs(self, now_s: float, cause: str) -> None:
+        """Bring the reported and physical PWMs up to the current state; every physical change
+        moves its servo and is logged as an ``output`` event (what the servo receives)."""
+        reported, physical = self._outputs_now()
+        self.pwm_us = reported
+        for output, pwm in physical.items():
+            before = self.output_us.get(output)
+            if before == pwm:
+                continue
+            self.output_us[output] = pwm
+            servo = self.servos[output]
+            servo.command(pwm, now_s)
+            self._moving = True
+            self.emit(
+                now_s,
+                "output",
+                output=output,
+                pwm_us=pwm,
+                from_us=before,
+                cause=cause,
+                position_us=round(servo.position_us(now_s), 3),
+            )
+
+    def _run_prearm(self, now_s: float) -> None:
+        if self.config.flavour != "px4":
+            return
+        due_s = self._prearm_due_s()
+        prearmed = due_s is not None and now_s >= due_s
+        if prearmed != self.prearmed:
+            self.prearmed = prearmed
+            self.emit(now_s, "prearm", prearmed=prearmed)
+            self._refresh_outputs(now_s, "prearm")
+
+    def _prearm_due_s(self) -> float | None:
+        """When PX4 prearms this boot (None: never). Mode 1 (safety button) is mode 2 here:
+        the simulated PX4 has no safety button, as SITL."""
+        if self.config.flavour != "px4" or self.rebooting:
+            return None
+        if self.params["COM_PREARM_MODE"].value not in (1, 2):
+            return None
+        return self._boot_s + PX4_PREARM_DELAY_S
+
+    def set_armed(self, armed: bool, now_s: float, cause: str = "query") -> bool:
+        """PX4: arm or disarm now (``cause`` goes in the event: query, command, kill …); False
+        (nothing done) on ArduPilot or while rebooting."""
+        if self.config.flavour != "px4" or self.rebooting:
+            return False
+        if armed != self.armed:
+            self.armed = armed
+            self.emit(now_s, "arming", armed=armed, cause=cause)
+            self._refresh_outputs(now_s, "arm" if armed else cause)
+        return True
+
+    def set_safety(self, on: bool, now_s: float, cause: str = "query") -> bool:
+        """ArduPilot: engage (``on``) or disengage the safety switch now; False (nothing done)
+        on PX4 or while rebooting."""
+        if self.config.flavour != "ardupilot" or self.rebooting:
+            return False
+        if on != self.safety_on:
+            self.safety_on = on
+            self.emit(now_s, "safety", on=on, cause=cause)
+            self._refresh_outputs(now_s, "safety_on" if on else "safety_off")
+        return True
 
     # -- parameters ------------------------------------------------------------------------
 
@@ -286,6 +491,14 @@ class SimAutopilot:
                 ):
                     name = f"SERVO{n}_{suffix}"
                     params[name] = Param(name, value, int16, -32768, 32767)
+            # AP_BoardConfig: the safety switch's state at boot (boards default 1; off here so
+            # a bench vehicle's outputs are live) and the outputs it leaves alone.
+            params["BRD_SAFETY_DEFLT"] = Param(
+                "BRD_SAFETY_DEFLT", 0, mavlink.MAV_PARAM_TYPE_INT8, -128, 127
+            )
+            params["BRD_SAFETY_MASK"] = Param(
+                "BRD_SAFETY_MASK", 0, mavlink.MAV_PARAM_TYPE_INT32, -(2**31), 2**31 - 1
+            )
         else:
             int32 = mavlink.MAV_PARAM_TYPE_INT32
             for n in range(1, OUTPUT_COUNT + 1):
@@ -293,10 +506,31 @@ class SimAutopilot:
                     ("PWM_MAIN_FUNC", functions[n]),
                     ("PWM_MAIN_MIN", PX4_PWM_MIN_US),
                     ("PWM_MAIN_MAX", PX4_PWM_MAX_US),
+                    ("PWM_MAIN_DIS", PX4_DISARMED_PWM_US),
                 ):
                     name = f"{prefix}{n}"
                     params[name] = Param(name, value, int32, -(2**31), 2**31 - 1)
+            for name, value in (("COM_PREARM_MODE", 0), *PX4_FORWARD_DEFAULTS.items()):
+                params[name] = Param(name, value, int32, -(2**31), 2**31 - 1)
+        for name, value in self.config.params.items():
+            param = params.get(name)
+            if param is None:
+                raise SimConfigError(
+                    f"parameter {name!r} unknown to the {self.config.flavour} flavour"
+                )
+            if not param.low <= value <= param.high:
+                raise SimConfigError(
+                    f"parameter {name}={value} outside [{param.low}, {param.high}]"
+                )
+            if name == "COM_PREARM_MODE" and value not in PX4_PREARM_MODES:
+                raise SimConfigError(f"COM_PREARM_MODE={value}; valid: {list(PX4_PREARM_MODES)}")
+            param.value = value
         return params
+
+    def _forwarding(self, channel: int) -> bool:
+        """PX4: whether the MAVLink instance on ``channel`` forwards (``MAV_n_FORWARD``)."""
+        name = PX4_FORWARD_PARAMS.get(channel)
+        return name is not None and self.params[name].value != 0
 
     def _function(self, output: int) -> int:
         key = (
@@ -390,7 +624,10 @@ class SimAutopilot:
         link to another (as received: a signed frame keeps its signature)."""
         self._run_reboot(now_s)
         if self._rebooting_until_s is None:
+            self._run_prearm(now_s)
             self._run_inbox(now_s)
+            self._run_lua(now_s)
+            self._run_commander(now_s)
             self._run_deferred(now_s)
             self._run_heartbeat(now_s)
             self._run_streams(now_s)
@@ -414,6 +651,11 @@ class SimAutopilot:
             candidates += [due for due in self._next_due_s.values() if due is not None]
             candidates += [due for due, _ in self._deferred]
             candidates += [due for due, _, _ in self._inbox]
+            candidates += [due for due, _ in self._lua_pending]
+            candidates += [due for due, _ in self._commander]
+            prearm_s = self._prearm_due_s()
+            if prearm_s is not None and not self.prearmed:
+                candidates.append(prearm_s)
         if self._reboot_due_s is not None:
             candidates.append(self._reboot_due_s)
         candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
@@ -462,13 +704,19 @@ class SimAutopilot:
         self.emit(now_s, "fault", fault="reboot", gap_s=gap_s)
         self._inbox.clear()
         self._deferred.clear()
+        self._lua_pending.clear()
+        self._commander.clear()
         self._decoders.clear()  # a partial frame does not survive the reboot
         for link in self._links:
             link.clear()
+        if self.armed:
+            self.armed = False
+            self.emit(now_s, "arming", armed=False, cause="reboot")
+        if self.prearmed:
+            self.prearmed = False
+            self.emit(now_s, "prearm", prearmed=False)
         # No pulses while the board restarts: servos hold where they are.
-        for output in self.pwm_us:
-            if self.pwm_us[output] != 0:
-                self._apply(output, 0, now_s)
+        self._refresh_outputs(now_s, "reboot")
         if gap_s == 0.0:
             self._boot(now_s)
         return True
@@ -488,9 +736,17 @@ class SimAutopilot:
         self._active_links.clear()
         self.peer = None
         self._peers_seen.clear()
-        for output, pwm in self._boot_pwm_us().items():
-            if self.pwm_us[output] != pwm:
-                self._apply(output, pwm, now_s)
+        self._heard.clear()
+        for link in self._links:
+            if isinstance(link, LoopLinkOutput):
+                link.phase_s = now_s
+        self._commanded_us = self._boot_pwm_us()
+        self.actuator_values = [math.nan] * PX4_ACTUATOR_SET_COUNT
+        safety_on = self._safety_default()
+        if safety_on != self.safety_on:
+            self.safety_on = safety_on
+            self.emit(now_s, "safety", on=safety_on, cause="boot")
+        self._refresh_outputs(now_s, "boot")
         for msg_id in self._stream_msgs:
             self._interval_ms[msg_id] = self._default_interval_ms(msg_id)
             self._next_due_s[msg_id] = now_s if self._interval_ms[msg_id] > 0 else None
@@ -525,12 +781,15 @@ class SimAutopilot:
             if self.config.flavour == "ardupilot"
             else mavlink.MAV_AUTOPILOT_PX4
         )
+        base_mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        if self.armed:
+            base_mode |= mavlink.MAV_MODE_FLAG_SAFETY_ARMED
         return self._enc.heartbeat_encode(
             mavlink.MAV_TYPE_QUADROTOR,
             autopilot,
-            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+            base_mode,
             0,
-            mavlink.MAV_STATE_STANDBY,
+            mavlink.MAV_STATE_ACTIVE if self.armed else mavlink.MAV_STATE_STANDBY,
         )
 
     def _effective_interval_ms(self, msg_id: int) -> int:
@@ -570,6 +829,8 @@ class SimAutopilot:
         ]
         if self.config.flavour == "px4":
             ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
+        else:
+            ids.append(mavlink.MAVLINK_MSG_ID_SYS_STATUS)
         return tuple(ids)
 
     def _default_interval_ms(self, msg_id: int) -> int:
@@ -597,6 +858,14 @@ class SimAutopilot:
             return self._enc.system_time_encode(
                 self._time_unix_us(now_s), (self._time_boot_us(now_s) // 1000) & 0xFFFFFFFF
             )
+        if msg_id == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+            # Copter's update_vehicle_sensor_status_flags: motor outputs "enabled" unless the
+            # safety switch is on (the only sensor bit modelled here).
+            motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            enabled = 0 if self.safety_on else motors
+            return self._enc.sys_status_encode(
+                motors, enabled, motors, 0, 0, -1, -1, 0, 0, 0, 0, 0, 0
+            )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()
         raise AssertionError(f"message id {msg_id} is not streamable")  # _streamable() guards
@@ -619,7 +888,8 @@ class SimAutopilot:
         except mavlink.MAVError as exc:  # robust_parsing reports most problems as BAD_DATA
             messages = [mavlink.MAVLink_bad_data(b"", str(exc))]
         self._link(channel).arrived(len(messages), now_s)
-        due = self._next_tick_s(now_s)
+        # PX4's receiver thread handles a frame as it is read; ArduPilot on a main-loop pass.
+        due = now_s if self.config.flavour == "px4" else self._next_tick_s(now_s)
         self._inbox.extend((due, channel, msg) for msg in messages)
 
     def _decoder(self, channel: int) -> mavlink.MAVLink:
@@ -673,7 +943,8 @@ class SimAutopilot:
             fields=_fields(msg),
         )
         self._active_links.add(channel)
-        if not self._route(msg, channel, now_s):
+        route = self._route_px4 if self.config.flavour == "px4" else self._route
+        if not route(msg, channel, now_s):
             return
         handler = self._handlers.get(kind)
         if handler is not None:
@@ -732,6 +1003,59 @@ class SimAutopilot:
             process_locally = True
         return process_locally
 
+    def _route_px4(self, msg: mavlink.MAVLink_message, channel: int, now_s: float) -> bool:
+        """PX4's routing (mavlink_main.cpp ``forward_message``, mavlink_receiver.cpp): True if
+        ``msg`` is for us.
+
+        * each link remembers the (system, component)s heard on it (``component_was_seen``);
+        * a frame is forwarded only when forwarding is on for the link it came in on *and* for
+          the link it goes out on (``MAV_n_FORWARD``, see :data:`PX4_FORWARD_PARAMS`), never
+          back out of its own link, and only to a link that has heard its target (a target
+          system 0, or no target: a link that has heard anyone; component 0: any component
+          of the system);
+        * handled here when its target is us or a broadcast; a command for another component
+          of our system is otherwise ignored, without an answer ("Ignore command 31010 from
+          255/190 to 1/191" in PX4's log), whether or not it was forwarded.
+        """
+        source = (msg.get_srcSystem(), msg.get_srcComponent())
+        own = (self.config.system_id, self.config.component_id)
+        if source == own:
+            return True
+        if source[0] != 0:
+            self._heard.setdefault(channel, set()).add(source)
+        target_system = max(0, getattr(msg, "target_system", 0))
+        target_component = max(0, getattr(msg, "target_component", 0))
+        local = target_system in (0, own[0]) and target_component in (0, own[1])
+        if (target_system, target_component) != own and self._forwarding(channel):
+            links = [
+                link
+                for link in range(len(self._links))
+                if link != channel
+                and self._forwarding(link)
+                and self._was_seen(link, target_system, target_component)
+            ]
+            if links:
+                delay_s = self.config.px4_timing.forward_delay_ms / 1000.0
+                self._forward(
+                    msg, links, now_s, source, (target_system, target_component), delay_s=delay_s
+                )
+        is_command = msg.get_type() in ("COMMAND_LONG", "COMMAND_INT")
+        if not local and is_command and target_system == own[0]:
+            self.emit(
+                now_s,
+                "ignored",
+                command=msg.command,
+                src=list(source),
+                to=[target_system, target_component],
+            )
+        return local
+
+    def _was_seen(self, channel: int, system: int, component: int) -> bool:
+        heard = self._heard.get(channel, set())
+        if system == 0:
+            return bool(heard)
+        return any(s == system and component in (0, c) for s, c in heard)
+
     def _learn_route(self, source: tuple[int, int], channel: int) -> None:
         route = (*source, channel)
         if source[0] != 0 and route not in self.routes and len(self.routes) < MAX_ROUTES:
@@ -746,11 +1070,12 @@ class SimAutopilot:
         target: tuple[int, int],
         *,
         log: bool = True,
+        delay_s: float = 0.0,
     ) -> None:
         frame = bytes(msg.get_msgbuf())
         for link in links:
             # Routed frames take the same way out as ours (delay and hold), without faults.
-            self._link(link).write(frame, now_s)
+            self._link(link).write(frame, now_s, delay_s)
             self.stats["routed"] += 1
         if links and log:
             self.emit(
@@ -792,6 +1117,28 @@ class SimAutopilot:
         return Command(msg.command, params, source, self._rx_channel)
 
     def _run_command(self, command: Command, now_s: float) -> None:
+        if self._lua is not None and command.command == MAV_CMD_USER_2:
+            self._lua_pending.append((self._lua.answer_s(now_s), command))
+            return
+        period_s = self.config.px4_timing.commander_period_ms / 1000.0
+        if (
+            self.config.flavour == "px4"
+            and command.command in PX4_COMMANDER_COMMANDS
+            and period_s > 0.0
+        ):
+            # Commander.cpp handles it (and answers) on its next cycle.
+            cycles = math.floor(round((now_s - self._boot_s) / period_s, 9)) + 1
+            self._commander.append((self._boot_s + cycles * period_s, command))
+            return
+        self._execute(command, now_s)
+
+    def _run_commander(self, now_s: float) -> None:
+        due = [command for at, command in self._commander if at <= now_s]
+        self._commander = [entry for entry in self._commander if entry[0] > now_s]
+        for command in due:
+            self._execute(command, now_s)
+
+    def _execute(self, command: Command, now_s: float) -> None:
         handler = self._commands.get(command.command)
         result = handler(command, now_s) if handler is not None else mavlink.MAV_RESULT_UNSUPPORTED
         withheld = (
@@ -840,31 +1187,62 @@ class SimAutopilot:
         self._apply(output, pwm, now_s)
         return mavlink.MAV_RESULT_ACCEPTED
 
+    def _apply(self, output: int, pwm: int, now_s: float) -> None:
+        """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command)."""
+        self._commanded_us[output] = pwm
+        self._refresh_outputs(now_s, "command")
+        self._servo_event(output, pwm, now_s)
+        if self.output_us[output] == pwm:
+            # A command re-sends the pulse even when it is unchanged (the servo's own timing).
+            self.servos[output].command(pwm, now_s)
+            self._moving = True
+
     def _cmd_do_set_actuator(self, command: Command, now_s: float) -> int:
-        index = command.params[6]
-        if index == 0:  # actuator set 1–6; PX4 has no other sets for functions 301–306
-            for output in range(1, OUTPUT_COUNT + 1):
-                slot = self._function(output) - PX4_ACTUATOR_SET_FIRST_FUNCTION
-                if not 0 <= slot < PX4_ACTUATOR_SET_COUNT:
-                    continue
-                if output in self.config.faults.nack_outputs:
-                    self.emit(now_s, "fault", fault="nack_output", output=output)
-                    return mavlink.MAV_RESULT_FAILED
-                value = command.params[slot]
-                if math.isnan(value):
-                    pwm = 0
-                else:
-                    low, high = self._pwm_limits(output)
-                    fraction = (min(max(value, -1.0), 1.0) + 1.0) / 2.0
-                    pwm = math.floor(low + fraction * (high - low) + 0.5)
-                self._apply(output, pwm, now_s, value=value)
+        """PX4 (Commander.cpp, actuator set 1–6): ACCEPTED whatever it does — no output mapped,
+        disarmed, param7 not 0, values out of range. Param7 0 stores params 1–6 in the
+        actuator set (a NaN leaves its slot as it was); outputs on functions 301–306 show their
+        slot once live (see :meth:`_px4_output_us`)."""
+        if command.params[6] != 0:
+            return mavlink.MAV_RESULT_ACCEPTED  # no other set drives functions 301–306
+        mapped = {
+            output: slot
+            for output in range(1, OUTPUT_COUNT + 1)
+            if 0
+            <= (slot := self._function(output) - PX4_ACTUATOR_SET_FIRST_FUNCTION)
+            < PX4_ACTUATOR_SET_COUNT
+        }
+        for output in mapped:
+            if output in self.config.faults.nack_outputs:
+                self.emit(now_s, "fault", fault="nack_output", output=output)
+                return mavlink.MAV_RESULT_FAILED
+        for slot in range(PX4_ACTUATOR_SET_COUNT):
+            if not math.isnan(command.params[slot]):
+                self.actuator_values[slot] = command.params[slot]
+        self._refresh_outputs(now_s, "command")
+        for output, slot in mapped.items():
+            value = self.actuator_values[slot]
+            if math.isnan(value):
+                continue
+            low, high = self._pwm_limits(output)
+            pwm = min(max(px4_actuator_pwm_us(value), low), high)
+            self._servo_event(output, pwm, now_s, value=value, live=self._live(output))
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def _apply(self, output: int, pwm: int, now_s: float, **extra: Any) -> None:
-        self.pwm_us[output] = pwm
+    def _cmd_arm_disarm(self, command: Command, now_s: float) -> int:
+        """PX4 MAV_CMD_COMPONENT_ARM_DISARM: param1 1 arms, 0 disarms (a force, param2 21196,
+        disarms at once whatever the state: a kill); anything else DENIED. The outputs go to
+        the disarmed PWM on a disarm, to the stored values on an arm (one step)."""
+        action = command.params[0]
+        if not math.isfinite(action) or round(action) not in (0, 1):
+            return mavlink.MAV_RESULT_DENIED
+        forced = command.params[1] == PX4_FORCE_MAGIC
+        cause = "command" if round(action) == 1 or not forced else "kill"
+        self.set_armed(round(action) == 1, now_s, cause=cause)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _servo_event(self, output: int, pwm: int, now_s: float, **extra: Any) -> None:
+        """A command gave ``output`` the PWM ``pwm`` (what it shows once live)."""
         servo = self.servos[output]
-        servo.command(pwm, now_s)
-        self._moving = True
         self.emit(
             now_s,
             "servo",
@@ -965,6 +1343,9 @@ class SimAutopilot:
         old = param.value
         param.value = value
         self.emit(now_s, "param_set", name=name, old=old, value=value)
+        # Applied at once (PX4: functions, limits, prearm mode; here also BRD_SAFETY_MASK).
+        self._run_prearm(now_s)
+        self._refresh_outputs(now_s, "param")
         index = -1 if self.config.flavour == "ardupilot" else self._param_names.index(name)
         self._defer(self._param_value(param, index), now_s)
 
@@ -993,13 +1374,66 @@ class SimAutopilot:
 
     # -- state for the query socket --------------------------------------------------------
 
+    # -- the Lua bridge script (lua_script) ------------------------------------------------
+
+    def _lua_setup(self, now_s: float) -> None:
+        if self.config.flavour != "ardupilot":
+            raise ValueError("lua_script needs flavour='ardupilot'")
+        self._lua = LuaScriptTiming(now_s)
+        for output in self.config.arm.outputs:
+            self.params[f"SERVO{output}_MIN"].value = self.config.arm.pwm_min_us
+            self.params[f"SERVO{output}_MAX"].value = self.config.arm.pwm_max_us
+
+    def _lua_param(self, name: str) -> float | None:
+        param = self.params.get(name)
+        return None if param is None else float(param.value)
+
+    def _run_lua(self, now_s: float) -> None:
+        if not self._lua_pending:
+            return
+        due = [command for at, command in self._lua_pending if at <= now_s]
+        self._lua_pending = [entry for entry in self._lua_pending if entry[0] > now_s]
+        for command in due:
+            verdict = check_user2(command.params, self._lua_param)
+            if verdict.accepted:
+                for output, pwm in verdict.settings.items():
+                    self._apply(output, pwm, now_s)
+                result = mavlink.MAV_RESULT_ACCEPTED
+            else:
+                # The script sends its text at once (gcs:send_text), before its ACK.
+                self._statustext(mavlink.MAV_SEVERITY_WARNING, refusal_text(verdict), now_s)
+                result = mavlink.MAV_RESULT_FAILED
+            withheld = self.config.faults.withhold_all_acks or (
+                command.command in self.config.faults.withhold_ack_commands
+            )
+            self.emit(
+                now_s,
+                "ack",
+                command=command.command,
+                command_name="MAV_CMD_USER_2 (lua)",
+                result=result,
+                result_name=_result_name(result),
+                withheld=withheld,
+                refused_output=verdict.refused_output,
+            )
+            if withheld:
+                self.stats["acks_withheld"] += 1
+                continue
+            self.stats["acks"] += 1
+            ack = self._enc.command_ack_encode(
+                command.command, result, 0, verdict.refused_output, *command.source
+            )
+            self._send(ack, now_s, command.channel)
+
     def snapshot(self, now_s: float) -> dict[str, Any]:
         """Everything a test may assert on, as JSON-ready data."""
         positions = self._positions(now_s)
         outputs = {
             str(o): {
                 "function": self._function(o),
-                "pwm_us": self.pwm_us[o],
+                "pwm_us": self.output_us[o],
+                "reported_us": self.pwm_us[o],
+                "live": self._live(o),
                 "position_us": positions[o],
                 "target_us": round(s.target_us, 3),
                 "moving": s.moving(now_s),
@@ -1013,6 +1447,11 @@ class SimAutopilot:
             "peer": list(self.peer) if self.peer else None,
             "routes": [list(route) for route in sorted(self.routes)],
             "rebooting": self.rebooting,
+            "armed": self.armed,
+            "prearmed": self.prearmed,
+            "safety_on": self.safety_on,
+            "outputs_live": self.outputs_live and not self.rebooting,
+            "actuator_values": [None if math.isnan(v) else v for v in self.actuator_values],
             "time_boot_ms": self._time_boot_us(now_s) // 1000,
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
@@ -1020,6 +1459,13 @@ class SimAutopilot:
             "streams": {_message_name(m): self._interval_ms[m] for m in self._stream_msgs},
             "stats": dict(self.stats),
         }
+
+
+def px4_actuator_pwm_us(value: float) -> int:
+    """PX4's PWM for an actuator value: 1500 + 500·v rounded half away from zero (measured on
+    SITL, whose outputs span 1000–2000); the caller clamps it to the output's min/max."""
+    exact = 1500.0 + 500.0 * min(max(value, -1e6), 1e6)
+    return int(math.copysign(math.floor(abs(exact) + 0.5), exact))
 
 
 def _param_id(raw: Any) -> str:

@@ -9,7 +9,15 @@ Output functions use each flavour's own numbers:
 * ``ardupilot``: ``SERVOn_FUNCTION`` — 0 disabled, 1 RC pass-through, 33–36 motors 1–4,
   51–66 RC input 1–16 … A quad's defaults are outputs 1–4 = 33–36, the rest 0.
 * ``px4``: ``PWM_MAIN_FUNCn`` — 0 disabled, 101–104 motors 1–4, 301–306 "Peripheral via
-  Actuator Set 1–6". The defaults are outputs 1–4 = 101–104 and the arm's outputs = 301–306.
+  Actuator Set 1–6". The defaults are outputs 1–4 = 101–104 and every other output 0, as PX4
+  ships them (``PWM_MAIN_FUNC5..16`` = 0): the arm's outputs must be set to 301–306.
+
+A *ready* vehicle (:func:`ready_setup`, the flag ``--ready``, what the test helpers and the
+benches start) is one set up as the README's PX4 / ArduPilot set-up sections say: PX4 — the
+arm's outputs on functions 301–306 in joint order, ``COM_PREARM_MODE`` 2, forwarding on both
+links (``MAV_0_FORWARD`` / ``MAV_1_FORWARD`` 1) and armed at start (so its outputs are live at
+once, not 5 s after boot; after a reboot it comes back disarmed and prearms 5 s later, as real
+PX4 does); ArduPilot — nothing to do (the safety switch is off by default).
 """
 
 from __future__ import annotations
@@ -54,6 +62,13 @@ ARDUPILOT_SERVO_OUTPUT_MIN_INTERVAL_MS = 20
 DEFAULT_SYSTEM_TIME_RATE_HZ = {"ardupilot": 0.0, "px4": 1.0}
 #: A real flight controller's reboot measured at 0.36 s without a frame.
 DEFAULT_REBOOT_GAP_S = 0.36
+#: PX4 ``PWM_MAIN_DISn`` default on boards (SITL has 900): the PWM of an output while it is not
+#: live (disarmed and not prearmed), at boot and after a kill or a reboot.
+PX4_DISARMED_PWM_US = 1000
+#: PX4 ``COM_PREARM_MODE``: 0 disabled (default), 1 safety button, 2 always.
+PX4_PREARM_MODES = (0, 1, 2)
+#: Measured on PX4 SITL: with ``COM_PREARM_MODE`` 2 the outputs come alive 5 s after boot.
+PX4_PREARM_DELAY_S = 5.0
 
 
 def _where(source: str, name: str) -> str:
@@ -164,6 +179,50 @@ class LinkTimingConfig:
 
 
 @dataclass(frozen=True)
+class Px4TimingConfig:
+    """When the PX4 flavour answers and forwards: a model fitted to PX4 SITL (main of 2026-03,
+    SIH quadrotor, UDP on loopback, a pymavlink client; issue 20's figures).
+
+    Measured there: MAV_CMD_DO_SET_ACTUATOR → COMMAND_ACK median 5.8 ms, p90 10.8, max 13.0; a
+    ground station's MAV_CMD_USER_1 through PX4 to the companion and its COMMAND_ACK back
+    through PX4: median 17.9–18.4 ms, max 22.5. The model (replacing ArduPilot's delay-and-hold
+    :class:`LinkTimingConfig`, which this flavour does not use):
+
+    * a received frame is handled at once (PX4's receiver thread, not a main-loop pass);
+    * a command the commander handles (MAV_CMD_COMPONENT_ARM_DISARM, MAV_CMD_DO_SET_ACTUATOR)
+      takes effect and is answered on the commander's next cycle, every
+      ``commander_period_ms`` (10 ms, PX4's 100 Hz commander) from boot;
+    * a frame routed from one link to another leaves ``forward_delay_ms`` later at the earliest;
+    * every frame leaves on its link's next MAVLink main-loop pass, every ``mavlink_loop_ms``
+      from boot (1.5 ms, PX4's shortest main-loop delay).
+
+    So an ACK takes 0–10 ms + 0–1.5 ms (the model's own median 5.75 ms, p90 9.8, max 11.5) and
+    each routed hop ``forward_delay_ms`` + 0–1.5 ms. As a process on a loaded 2-core machine
+    (load 2–4) ``python -m bench.px4_calibration`` measured the ACK at 7.4–9.4 ms median, the
+    Python simulator's wake-ups adding 1.5–3.5 ms (ArduPilot's single round trip, one wake-up,
+    gained 0.7–1.5 ms in the same conditions): the simulator's median is above SITL's, its p90
+    and max near them. ``forward_delay_ms`` (2.5) was fitted to the ground station's round
+    trip through the daemon with ``python -m bench.latency --dialects ardupilot px4``: px4 → ACK
+    median 19.9 ms at load 4 (SITL 17.9–18.4); which part of PX4 delays a forwarded frame was
+    not identified. All 0 (:meth:`instant`): frames are handled and leave at once.
+    """
+
+    commander_period_ms: float = 10.0
+    mavlink_loop_ms: float = 1.5
+    forward_delay_ms: float = 2.5
+
+    def __post_init__(self) -> None:
+        _real(self.commander_period_ms, "commander_period_ms", 0.0, 1000.0)
+        _real(self.mavlink_loop_ms, "mavlink_loop_ms", 0.0, 1000.0)
+        _real(self.forward_delay_ms, "forward_delay_ms", 0.0, 1000.0)
+
+    @classmethod
+    def instant(cls) -> Px4TimingConfig:
+        """No commander cycle, no main-loop wait, no forwarding delay."""
+        return cls(commander_period_ms=0.0, mavlink_loop_ms=0.0, forward_delay_ms=0.0)
+
+
+@dataclass(frozen=True)
 class FaultConfig:
     """Fault injection; every field off by default. Probabilities are per frame, in [0, 1]."""
 
@@ -271,7 +330,13 @@ class SimConfig:
     arm: ArmConfig = field(default_factory=ArmConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
     link_timing: LinkTimingConfig = field(default_factory=LinkTimingConfig)
+    px4_timing: Px4TimingConfig = field(default_factory=Px4TimingConfig)
     signing_key: bytes | None = None
+    #: Parameter values at start (name → value), over the flavour's defaults; names are checked
+    #: by the autopilot (:class:`~sim_servo.autopilot.SimAutopilot`), which knows them.
+    params: Mapping[str, int] = field(default_factory=dict)
+    #: PX4: armed at start (a pilot armed it). A reboot comes back disarmed, as PX4 does.
+    armed: bool = False
     servo_output_rate_hz: float = 0.0
     #: SERVO_OUTPUT_RAW's shortest interval, whatever is asked; None: the flavour's (ArduPilot
     #: 20 ms, PX4 none).
@@ -280,10 +345,16 @@ class SimConfig:
     system_time_rate_hz: float | None = None
     heartbeat_rate_hz: float = 1.0
     loop_rate_hz: float = 400.0
+    #: Answer MAV_CMD_USER_2 as armbridge's Lua bridge script does (ArduPilot only).
+    lua_script: bool = False
 
     def __post_init__(self) -> None:
         if self.flavour not in FLAVOURS:
             raise SimConfigError(f"flavour={self.flavour!r}; valid: {list(FLAVOURS)}")
+        if not isinstance(self.lua_script, bool):
+            raise SimConfigError(f"lua_script={self.lua_script!r} must be true or false")
+        if self.lua_script and self.flavour != "ardupilot":
+            raise SimConfigError(f"lua_script=true needs flavour='ardupilot', not {self.flavour!r}")
         _int(self.system_id, "system_id", 1, 255)
         _int(self.component_id, "component_id", 1, 255)
         functions = default_functions(self.flavour, self.arm.outputs)
@@ -291,6 +362,15 @@ class SimConfig:
             _int(output, "output", 1, OUTPUT_COUNT)
             functions[output] = _int(function, f"function of output {output}", 0, 65535)
         object.__setattr__(self, "functions", functions)
+        if not isinstance(self.params, Mapping):
+            raise SimConfigError(f"params={self.params!r} must be a table of name = integer")
+        for name, value in self.params.items():
+            if not isinstance(name, str) or not name:
+                raise SimConfigError(f"parameter name {name!r} is not a name")
+            _int(value, f"parameter {name}", -(2**31), 2**31 - 1)
+        object.__setattr__(self, "params", dict(self.params))
+        if not isinstance(self.armed, bool):
+            raise SimConfigError(f"armed={self.armed!r} must be true or false")
         if self.signing_key is not None and (
             not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32
         ):
@@ -325,12 +405,28 @@ def default_functions(flavour: str, arm_outputs: tuple[int, ...]) -> dict[int, i
     if flavour == "ardupilot":
         functions.update(ARDUPILOT_MOTOR_FUNCTIONS)
     elif flavour == "px4":
+        # PWM_MAIN_FUNC5..16 ship as 0: the arm's outputs are not mapped until someone sets
+        # them (ready_setup() does).
         functions.update(PX4_MOTOR_FUNCTIONS)
-        for index, output in enumerate(arm_outputs[:PX4_ACTUATOR_SET_COUNT]):
-            functions[output] = PX4_ACTUATOR_SET_FIRST_FUNCTION + index
     else:
         raise SimConfigError(f"flavour={flavour!r}; valid: {list(FLAVOURS)}")
     return functions
+
+
+def ready_setup(flavour: str, arm_outputs: tuple[int, ...]) -> dict[str, Any]:
+    """The settings (TOML keys) of a vehicle set up for the arm: PX4 — the arm's outputs on
+    functions 301–306 in joint order, ``COM_PREARM_MODE`` 2, forwarding on both links, armed
+    at start; ArduPilot — none (its safety switch is off by default)."""
+    if flavour == "ardupilot":
+        return {}
+    if flavour != "px4":
+        raise SimConfigError(f"flavour={flavour!r}; valid: {list(FLAVOURS)}")
+    outputs = {
+        str(output): PX4_ACTUATOR_SET_FIRST_FUNCTION + index
+        for index, output in enumerate(arm_outputs[:PX4_ACTUATOR_SET_COUNT])
+    }
+    params = {"COM_PREARM_MODE": 2, "MAV_0_FORWARD": 1, "MAV_1_FORWARD": 1}
+    return {"outputs": outputs, "params": params, "armed": True}
 
 
 def load_key(path: str | Path) -> bytes:
@@ -362,7 +458,11 @@ _TOP_KEYS = {
     "system_time_rate_hz",
     "heartbeat_rate_hz",
     "loop_rate_hz",
+    "lua_script",
     "signing_key_file",
+    "armed",
+    "params",
+    "px4_timing",
     "outputs",
     "servo",
     "arm",
@@ -443,9 +543,12 @@ def config_from_mapping(
         "system_time_rate_hz",
         "heartbeat_rate_hz",
         "loop_rate_hz",
+        "lua_script",
+        "armed",
     ):
         if key in data:
             kwargs[key] = data[key]
+    kwargs["params"] = dict(_table(data, "params", source))
     if "signing_key_file" in data:
         kwargs["signing_key"] = load_key(_resolve(data["signing_key_file"], base_dir))
     outputs = _table(data, "outputs", source)
@@ -485,6 +588,11 @@ def config_from_mapping(
         timing, set(LinkTimingConfig.__dataclass_fields__), f"[link_timing] in {source}"
     )
     kwargs["link_timing"] = LinkTimingConfig(**timing)
+    px4_timing = _table(data, "px4_timing", source)
+    _reject_unknown(
+        px4_timing, set(Px4TimingConfig.__dataclass_fields__), f"[px4_timing] in {source}"
+    )
+    kwargs["px4_timing"] = Px4TimingConfig(**px4_timing)
     return SimConfig(**kwargs)
 
 

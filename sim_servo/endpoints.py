@@ -48,6 +48,15 @@ class Endpoint(abc.ABC):
     def close(self) -> None:
         """Release everything; idempotent. Used for shutdown and for the hang-up fault."""
 
+    def next_event_s(self) -> float | None:
+        """When :meth:`service` next has work (a modelled serial line); None: never."""
+        return None
+
+    def service(self, now_s: float) -> bytes:
+        """Timed work due by ``now_s`` (a modelled serial line: frames whose bytes have left
+        are written); the bytes received that are due now. Plain endpoints have none."""
+        return b""
+
     def reopen(self) -> None:
         """Come back after a hang-up (the ``--hangup-for`` fault); only a pty can."""
         raise SimIOError(f"{type(self).__name__} cannot reopen after a hang-up (only --pty can)")
@@ -188,13 +197,13 @@ class PtyEndpoint(Endpoint):
     its name, so a reader never sees a half-made link.
     """
 
-    def __init__(self, link_path: str | None = None) -> None:
+    def __init__(self, link_path: str | None = None, baud: int = PTY_BAUD) -> None:
         self.link_path = link_path
         if link_path is not None and os.path.lexists(link_path) and not os.path.islink(link_path):
             raise SimIOError(f"--pty-link {link_path!r} exists and is not a symlink")
         self._open = False
         self._open_pty()
-        self.url = f"{link_path or self.path},{PTY_BAUD}"
+        self.url = f"{link_path or self.path},{baud}"
 
     def _open_pty(self) -> None:
         try:

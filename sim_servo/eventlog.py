@@ -5,6 +5,12 @@ answers a query: a frame never waits for the log, and a reader who asked sees ev
 Every event has ``t_s`` (seconds since the simulator started, monotonic) and ``event``; the other
 fields depend on the event (see ``docs/sim_servo.md``). The last ``keep`` events are also kept in
 memory so the query socket can return them.
+
+What a servo physically receives is in the log: ``start`` has every output's pulse
+(``outputs_us``) and each ``output`` event one change (``pwm_us``, ``from_us``, ``cause``), so
+:func:`physical_pwm_timeline` rebuilds every output's pulse over time from the log alone —
+arming, prearm, the safety switch and reboots included (``arming`` / ``prearm`` / ``safety``
+events say why).
 """
 
 from __future__ import annotations
@@ -48,3 +54,25 @@ def read_events(path: str | Path) -> list[dict[str, Any]]:
     """All events in a log file (for tests and tools)."""
     with open(path, encoding="utf-8") as handle:
         return [json.loads(line) for line in handle if line.strip()]
+
+
+def physical_pwm_timeline(events: list[dict[str, Any]]) -> dict[int, list[tuple[float, int]]]:
+    """Each output's physical pulse over time, ``output → [(t_s, pwm_us), …]`` from the
+    ``start`` event's ``outputs_us`` and the ``output`` events (0: no pulses). Raises
+    ``ValueError`` when an ``output`` event does not follow on from the one before (a log
+    that lost lines)."""
+    timeline: dict[int, list[tuple[float, int]]] = {}
+    for event in events:
+        if event["event"] == "start" and "outputs_us" in event:
+            for output, pwm in event["outputs_us"].items():
+                timeline[int(output)] = [(float(event["t_s"]), int(pwm))]
+        elif event["event"] == "output":
+            output = int(event["output"])
+            history = timeline.setdefault(output, [])
+            if history and history[-1][1] != event["from_us"]:
+                raise ValueError(
+                    f"output {output}: event at t_s={event['t_s']} goes from "
+                    f"{event['from_us']} µs but the log had it at {history[-1][1]} µs"
+                )
+            history.append((float(event["t_s"]), int(event["pwm_us"])))
+    return timeline

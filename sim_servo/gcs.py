@@ -85,7 +85,13 @@ class GroundStation:
         self.close()
 
     def send(self, msg: Any) -> bytes:
-        """Encode (and sign) ``msg`` and send it; the frame's bytes."""
+        """Encode (and sign) ``msg`` and send it; the frame's bytes. A signed frame's timestamp
+        is never behind the clock (pymavlink only counts up by one per frame), as the spec
+        asks of a system that knows the time: a receiver refuses a stream signed before its
+        own start."""
+        if self.mav.signing.sign_outgoing:
+            now = int((time.time() - SIGNING_EPOCH_UNIX_S) * 100_000)
+            self.mav.signing.timestamp = max(self.mav.signing.timestamp, now)
         frame = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         self._sock.send(frame)

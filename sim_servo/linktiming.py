@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 
 from sim_servo.config import LinkTimingConfig
 
@@ -152,3 +153,47 @@ class LinkOutput:
 
     def _close_window(self) -> None:
         self._window_start_s, self._window_frames, self._window_answered = None, 0, False
+
+
+class LoopLinkOutput:
+    """One link's outgoing frames in the PX4 flavour (:class:`~sim_servo.config.Px4TimingConfig`):
+    a frame produced at ``t`` (plus any extra delay: the latency fault, a forwarding delay)
+    leaves on the link's first MAVLink main-loop pass at or after it, passes every ``loop_s``
+    from ``phase_s`` (the boot). ``loop_s`` 0: at once. Same interface as :class:`LinkOutput`."""
+
+    def __init__(self, loop_s: float, phase_s: float) -> None:
+        if not loop_s >= 0.0:
+            raise ValueError(f"loop_s={loop_s!r} must be >= 0")
+        self._loop_s = loop_s
+        self.phase_s = phase_s
+        self._seq = itertools.count()
+        self._queue: list[tuple[float, int, bytes]] = []
+
+    def _pass_s(self, ready_s: float) -> float:
+        if self._loop_s == 0.0:
+            return ready_s
+        passes = math.ceil(round((ready_s - self.phase_s) / self._loop_s, 9))
+        return self.phase_s + passes * self._loop_s
+
+    def write(self, frame: bytes, now_s: float, extra_delay_s: float = 0.0) -> None:
+        leave_s = self._pass_s(now_s + max(0.0, extra_delay_s))
+        heapq.heappush(self._queue, (leave_s, next(self._seq), frame))
+
+    def arrived(self, frames: int, now_s: float) -> None:
+        """Incoming frames change nothing here."""
+
+    def take(self, now_s: float) -> list[bytes]:
+        frames = []
+        while self._queue and self._queue[0][0] <= now_s:
+            frames.append(heapq.heappop(self._queue)[2])
+        return frames
+
+    def next_event_s(self) -> float | None:
+        return self._queue[0][0] if self._queue else None
+
+    def clear(self) -> None:
+        self._queue.clear()
+
+    @property
+    def pending(self) -> int:
+        return len(self._queue)

@@ -14,6 +14,11 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
 * ``reboot`` – reboot the autopilot now (silent for ``--reboot-gap`` seconds, then back with
   time_boot from 0; ``--reboot-after`` schedules one instead); ``{"ok": true}``, or
   ``{"ok": false}`` while it is already rebooting.
+* ``arm`` / ``disarm`` / ``kill`` – PX4: arm, disarm, or kill (a forced disarm) now, as
+  MAV_CMD_COMPONENT_ARM_DISARM would; ``{"ok": true}``, or ``{"ok": false}`` on ArduPilot or
+  while rebooting;
+* ``safety_on`` / ``safety_off`` – ArduPilot: engage or disengage the safety switch now;
+  ``{"ok": true}``, or ``{"ok": false}`` on PX4 or while rebooting;
 * ``hangup`` – close the port now (with ``--hangup-for``, a new pty comes back that much later;
   ``--hangup-after`` schedules one instead); ``{"ok": true}``, or ``{"ok": false}`` while the
   port is away.
@@ -34,7 +39,20 @@ from typing import Any
 from sim_servo.errors import SimIOError
 
 Responder = Callable[[str], dict[str, Any]]
-QUERIES = ("state", "events", "ping", "pause_heartbeat", "resume_heartbeat", "reboot", "hangup")
+QUERIES = (
+    "state",
+    "events",
+    "ping",
+    "pause_heartbeat",
+    "resume_heartbeat",
+    "reboot",
+    "hangup",
+    "arm",
+    "disarm",
+    "kill",
+    "safety_on",
+    "safety_off",
+)
 _MAX_LINE = 65536
 
 

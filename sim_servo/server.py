@@ -104,6 +104,11 @@ class SimServer:
             return {"ok": self.autopilot.reboot(self.clock())}
         if request == "hangup":
             return {"ok": self._hangup.hang_up_now(self.clock())}
+        if request in ("arm", "disarm", "kill"):
+            cause = "kill" if request == "kill" else "query"
+            return {"ok": self.autopilot.set_armed(request == "arm", self.clock(), cause=cause)}
+        if request in ("safety_on", "safety_off"):
+            return {"ok": self.autopilot.set_safety(request == "safety_on", self.clock())}
         return {"ok": True}
 
     def run(self) -> int:
@@ -124,6 +129,9 @@ class SimServer:
         now = self.clock()
         wait_s = min(MAX_WAIT_S, self.autopilot.next_event_s(now) - now)
         wait_s = min(wait_s, self._hangup.next_s() - now)
+        for link in self.links:  # a modelled serial line's next byte boundary
+            if (due := link.next_event_s()) is not None:
+                wait_s = min(wait_s, due - now)
         link_fds = {fd: channel for channel, link in enumerate(self.links) for fd in link.fds()}
         query_fds = self.query.fds() if self.query else []
         readable, _, _ = select.select(
@@ -149,6 +157,9 @@ class SimServer:
             else:
                 self.endpoint.close()
             self.autopilot.emit(now, "fault", fault=fault, url=self.endpoint.url)
+        for channel, link in enumerate(self.links):  # bytes a serial line delivers now
+            if data := link.service(now):
+                self.autopilot.receive(data, now, channel)
         for channel, frame in self.autopilot.poll(now):
             self.links[channel].write(frame)
         self.events.flush()  # after the frames: they never wait for the log

@@ -10,6 +10,8 @@
   [--watch [S]]``, ``park``, ``stop``: clients of a running daemon's control socket.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK, no daemon.
 * ``check-config FILE``: validate a daemon config and exit.
+* ``doctor --config FILE``: check the flight controller's setup against the config, item by item
+  with the fix (:mod:`companion.daemon.doctor`); exit 1 if an item failed.
 
 Exit codes: 0 success; 1 refused (unreachable target, daemon said no, ``--wait`` timed out);
 2 bad input or configuration; 3 daemon not reachable. ``-v``/``-q``/``--log-level`` work before
@@ -84,7 +86,54 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     )
     for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
         print(f"{args.config}: warning: {warning}", file=sys.stderr)
+    budget = link_budget_of(cfg)
+    if not budget.fits:
+        print(f"{args.config}: warning: {budget.message}", file=sys.stderr)
     return 0
+
+
+def link_budget_of(cfg: Any) -> Any:
+    """Whether the config's updates fit its link (a serial link's bytes per second)."""
+    from firmware_interface.link_budget import link_budget
+
+    return link_budget(
+        cfg.link.url,
+        cfg.link.dialect,
+        cfg.calibration,
+        cfg.rate_hz,
+        signed=cfg.link.signing is not None,
+    )
+
+
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from companion.daemon import doctor
+    from companion.daemon.config import load_config
+    from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_path
+
+    cfg = load_config(args.config)
+    # The service holds the link (a serial port has one reader): doctor runs beside it never.
+    lock = InstanceLock(lock_path(args.config, cfg.control_socket))
+    try:
+        lock.acquire()
+    except AlreadyRunning as exc:
+        print(
+            f"armbridge doctor: {exc}: it holds the link. Stop it first "
+            "(sudo systemctl stop armbridge), run doctor, then start it again.",
+            file=sys.stderr,
+        )
+        return 3
+    except OSError:
+        pass  # no runtime directory yet (the service never ran): nothing holds the link
+    try:
+        findings = doctor.gather(cfg, timeout_s=args.timeout_s, listen_s=args.listen_s)
+    finally:
+        lock.release()
+    checks = doctor.evaluate(cfg, findings)
+    if args.json:
+        print(json.dumps({"url": findings.url, "checks": [c.as_dict() for c in checks]}, indent=2))
+    else:
+        print(doctor.format_report(findings, checks))
+    return 1 if any(c.verdict is doctor.Verdict.FAIL for c in checks) else 0
 
 
 #: ArduCopter's default output functions: motors on outputs 1-4 (quad), 1-6 (hexa), 1-8 (octa).
@@ -96,7 +145,7 @@ def motor_output_warnings(dialect: str, outputs: Sequence[int]) -> list[str]:
     The autopilot refuses DO_SET_SERVO there ("Channel N is already in use") unless
     SERVOn_FUNCTION = 0, and on a vehicle where it is a motor, it must not be an arm joint.
     (PX4 outputs are actuator slots 1-6 mapped by PWM_MAIN_FUNCn: nothing to tell here.)"""
-    if dialect != "ardupilot":
+    if not dialect.startswith("ardupilot"):  # ardupilot and ardupilot-lua
         return []
     warnings = []
     for output in outputs:
@@ -189,6 +238,15 @@ def format_status(status: dict[str, Any]) -> str:
         + (f"{autopilot[0]}/{autopilot[1]}" if autopilot else "none yet")
         + (f" (up {boot_ms / 1000:.1f} s)" if boot_ms is not None else "")
         + f"  {' '.join(flags)}",
+    ]
+    if not autopilot:
+        lines.append(
+            "  no autopilot heard yet: targets are refused until it is "
+            "(`journalctl -u armbridge` says what the daemon waits for; `armbridge doctor`)"
+        )
+    elif status.get("link") == "up" and status.get("autopilot_heard_us") is False:
+        lines.append("  the autopilot has not answered us yet: it may not route targets to us")
+    lines += [
         f"hand  {_fmt_hand(status.get('hand'))}",
         "joint  angle_deg   goal_deg  output  pwm_us  state",
     ]
@@ -380,6 +438,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("check-config", "validate a daemon config as `run` would, then exit")
     p.add_argument("config", help="daemon config TOML")
     p.set_defaults(func=_cmd_check_config)
+
+    p = verb("doctor", "check the flight controller's setup against the config (service stopped)")
+    p.add_argument("--config", required=True, help="daemon config TOML")
+    p.add_argument(
+        "--timeout-s",
+        type=_positive_seconds,
+        default=10.0,
+        help="wait this long for the autopilot's heartbeat (default %(default)s)",
+    )
+    p.add_argument(
+        "--listen-s",
+        type=_positive_seconds,
+        default=3.0,
+        help="listen at least this long for a ground station routed to us (default %(default)s)",
+    )
+    p.add_argument("--json", action="store_true", help="the checks as JSON")
+    p.set_defaults(func=_cmd_doctor)
 
     p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)

@@ -62,10 +62,15 @@ def _connect(sock: socket.socket, path: str | Path, timeout_s: float) -> None:
 
 
 def _permission_hint(path: str | Path) -> str:
+    """Which group the socket wants: its own, or, when its directory cannot be searched (the
+    service's /run/armbridge is 0750), the directory's."""
     try:
         st = os.stat(path)
     except OSError:
-        return "Permission denied"
+        try:
+            st = os.stat(os.path.dirname(os.path.abspath(path)))
+        except OSError:
+            return "Permission denied"
     try:
         group = grp.getgrgid(st.st_gid).gr_name
     except KeyError:

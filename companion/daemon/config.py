@@ -186,10 +186,11 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
 
     solver = root.table("solver", allowed=_SOLVER_KEYS)
     control = root.table("control", allowed=_CONTROL_KEYS)
-    if "socket" not in control:
+    socket_path = _socket_path(control, base)
+    if socket_path is None:
         for key in ("socket_group", "max_connections", "idle_timeout_s"):
             if key in control:
-                raise control.fail(key, "set without control.socket (there is no socket)")
+                raise control.fail(key, 'set with control.socket = "" (there is no socket)')
     calibration = _parse_calibration(root, arm)
     _check_pwm_covers_arm(source, arm, calibration, park)
     return DaemonConfig(
@@ -205,7 +206,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
-        control_socket=_socket_path(control, base) if "socket" in control else None,
+        control_socket=socket_path,
         control_socket_group=_group(control, "socket_group") if "socket_group" in control else None,
         control_max_connections=control.integer(
             "max_connections", 32, min_value=MAX_CONNECTIONS[0], max_value=MAX_CONNECTIONS[1]
@@ -223,13 +224,23 @@ def _bounded(t: Table, key: str, default: float, bounds: tuple[float | None, flo
 SOCKET_PATH_MAX_BYTES = 107
 
 
-def _socket_path(t: Table, base: Path) -> str:
+#: Where the control socket is when the config does not say: the directory the shipped unit's
+#: ``RuntimeDirectory=armbridge`` makes, and the CLI's default (``ARMBRIDGE_SOCKET`` overrides
+#: the CLI's side only).
+DEFAULT_CONTROL_SOCKET = "/run/armbridge/control.sock"
+
+
+def _socket_path(t: Table, base: Path) -> str | None:
     """``control.socket``, absolute (a relative path counts from the config file's directory,
-    like every other path in it), checked as ``run`` would use it: it fits ``sun_path``, its
-    directory exists, and whatever is at the path already is a socket (``run`` replaces only a
-    stale socket of its own; it also refuses one that a live daemon listens on, which a
-    static check cannot tell from a stale one)."""
-    path = os.path.abspath(base / t.string("socket"))
+    like every other path in it); :data:`DEFAULT_CONTROL_SOCKET` when absent; None for ``""``
+    (no socket: MAVLink targets only). Checked as ``run`` would use it: it fits ``sun_path``,
+    its directory exists or this user can create it (``run`` makes a missing last directory,
+    mode 0750, as systemd's ``RuntimeDirectory=`` would), and whatever is at the path already
+    is a socket (``run`` replaces only a stale socket of its own; it also refuses one that a
+    live daemon listens on, which a static check cannot tell from a stale one)."""
+    if t.data.get("socket") == "":
+        return None
+    path = os.path.abspath(base / t.string("socket", DEFAULT_CONTROL_SOCKET))
     size = len(os.fsencode(path))
     if size > SOCKET_PATH_MAX_BYTES:
         raise t.fail(
@@ -239,10 +250,18 @@ def _socket_path(t: Table, base: Path) -> str:
         )
     directory = os.path.dirname(path)
     if not os.path.isdir(directory):
-        # systemd's RuntimeDirectory= makes /run/NAME when the service starts (and removes it
-        # when it stops): a check before the first start must not refuse the shipped layout.
-        if os.path.dirname(directory) != "/run":
+        parent = os.path.dirname(directory)
+        if not os.path.isdir(parent):
             raise t.fail("socket", f"directory {directory} does not exist (for {path})")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            # systemd's RuntimeDirectory= makes /run/armbridge when the service starts (and
+            # removes it when it stops); a foreground run must be able to make it itself.
+            raise t.fail(
+                "socket",
+                f"directory {directory} does not exist and this user cannot create it in "
+                f"{parent} (the service's RuntimeDirectory= makes it; check as root, or set "
+                'control.socket to a path of yours, or "" for no socket)',
+            )
     try:
         mode = os.lstat(path).st_mode
     except FileNotFoundError:

@@ -181,6 +181,13 @@ class ControlServer:
         )
         self._thread.start()
 
+    def reconfigure(self, max_connections: int, idle_timeout_s: float) -> None:
+        """SIGHUP: new limits (``load_config`` bounded them). They apply from the next accept
+        and idle check; connections over a lowered cap stay until they idle out or close."""
+        self.max_connections = max_connections
+        self.idle_timeout_s = idle_timeout_s
+        self._wake()  # the loop recomputes its idle deadline
+
     @property
     def connections(self) -> int:
         """Connections open now."""

@@ -36,6 +36,7 @@ Rules:
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -84,6 +85,29 @@ REBOOT_LAG_MS = 750
 REBOOT_LAG_AFTER_SILENCE_MS = 250
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
+#: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
+#: outputs do (issue 20). ArduPilot streams it at most every 20 ms.
+READBACK_INTERVAL_S = 0.1
+#: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
+#: the switch is off) is asked for at this interval.
+SYS_STATUS_INTERVAL_S = 0.5
+#: A readback this long after an output's ACK shows what the output does with that command
+#: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
+READBACK_SETTLE_S = 0.15
+#: This many such readbacks in a row not showing the acknowledged PWM: the output is not live.
+READBACK_MISMATCHES = 2
+#: PX4: while outputs are not live, one speed-limited step towards the goal at this interval
+#: shows whether they came alive (they store what we send and show it once live; the storage
+#: cannot be told from the readback while it equals the disarmed PWM).
+PROBE_INTERVAL_S = 1.0
+#: PX4, outputs not yet known to be live: the next step waits for the readback's verdict on
+#: the one before (shown: live; not shown READBACK_MISMATCHES times: not live), at most this
+#: long (a readback stream that stopped must not stop the arm for good).
+VERDICT_TIMEOUT_S = 2.0
+#: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
+READBACK_TOLERANCE_US = 1
+#: PX4: with no readback this long after the link came up, move without it (and say so).
+READBACK_WAIT_S = 2.0
 
 Solve = Callable[[Pose, Sequence[float]], Any]  # (pose, q_start_deg) → ik.IKResult
 
@@ -99,6 +123,14 @@ class SendCommand:
 
 
 @dataclass(frozen=True)
+class ReadParam:
+    """A PARAM_REQUEST_READ of ``name`` to the autopilot ``target``."""
+
+    target: tuple[int, int]
+    name: str
+
+
+@dataclass(frozen=True)
 class Answer:
     """Answer ``request`` with ``reply`` (the edge sets its future)."""
 
@@ -106,7 +138,7 @@ class Answer:
     reply: Reply
 
 
-Action = SendCommand | Answer
+Action = SendCommand | ReadParam | Answer
 
 
 @dataclass(eq=False)
@@ -176,6 +208,10 @@ class ControlCore:
         self._last_step_s = -math.inf
         self._next_tick_s = clock()
         self._link_up = False
+        #: The pinned autopilot answered one of our commands since the link came up: it has
+        #: heard us, so it routes a ground station's targets to us (ArduPilot answers them
+        #: UNSUPPORTED, PX4 drops them, for a component it has not heard).
+        self._heard_us = False
         #: The autopilot's (system, component): configured parts are fixed, the rest latched
         #: from the first autopilot HEARTBEAT that matches them.
         self._pin_config = (config.link.target_system, config.link.target_component)
@@ -184,6 +220,35 @@ class ControlCore:
         self._boot_seen_s = 0.0  # when _boot_ms came
         self._system_time_s: float | None = None  # when the last SYSTEM_TIME came
         self._system_time_asked_s = -math.inf
+        # -- the outputs' truth (issue 20) --
+        #: The last SERVO_OUTPUT_RAW: output → PWM shown, and when it came.
+        self._readback: dict[int, int] = {}
+        self._readback_s = -math.inf
+        #: PX4 moves only after a readback newer than this (start, link loss, reboot), or
+        #: READBACK_WAIT_S after it with none (a firmware that does not stream it).
+        self._readback_since_s = clock()
+        self._readback_warned = False
+        #: When each output's PWM was acknowledged, and the PWMs acknowledged lately (a
+        #: readback may still show any of those from the last READBACK_SETTLE_S).
+        self._acked_s: dict[int, float] = {}
+        self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
+        #: Per output: readbacks in a row, settled after its ACK, not showing the acked PWM.
+        self._mismatches: dict[int, int] = {}
+        #: PX4: outputs whose readback does not show what they acknowledged → the reason, and
+        #: the PWM they showed then (the disarmed PWM): a readback of that PWM proves nothing.
+        self._not_live: dict[int, str] = {}
+        self._dead_pwm: dict[int, int] = {}
+        #: PX4: outputs whose latest settled readback showed what they acknowledged (live).
+        self._confirmed: set[int] = set()
+        #: PX4: store the pose the outputs show now (an output was found not live).
+        self._hold_now = False
+        #: ArduPilot: the safety switch (None: no SYS_STATUS yet) and BRD_SAFETY_MASK (None:
+        #: not read yet; then no output is assumed to be in it).
+        self._safety_on: bool | None = None
+        self._safety_mask: int | None = None
+        #: PX4: armed, from its HEARTBEAT (None: no HEARTBEAT yet). Shown, not relied on:
+        #: prearmed outputs are live while disarmed.
+        self._armed: bool | None = None
         self.counters = {
             "targets": 0,
             "solved": 0,
@@ -258,12 +323,17 @@ class ControlCore:
                 self._pin(source)
             elif source != self._pinned:
                 self.counters["foreign_frames"] += 1
+                return actions
+            if source == self._pinned:
+                self._armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             return actions
         if source != self._pinned:
             self.counters["foreign_frames"] += 1
             return actions
         inflight = self._inflight
         if kind == "COMMAND_ACK":
+            if msg.target_component in (0, self.config.link.component_id):
+                self._heard_us = True  # it answered us: it knows our route
             if inflight is not None and msg.target_component in (0, self.config.link.component_id):
                 inflight.tracker.on_ack(msg.command, msg.result, self.clock())
                 self._poll_update(actions)
@@ -275,6 +345,16 @@ class ControlCore:
                 inflight.tracker.on_statustext(str(text))
         elif kind == "SYSTEM_TIME":
             self._on_system_time(actions, int(msg.time_boot_ms))
+        elif kind == "SERVO_OUTPUT_RAW":
+            self._on_readback(actions, msg)
+        elif kind == "SYS_STATUS":
+            enabled = msg.onboard_control_sensors_enabled
+            safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            if safety_on != self._safety_on and self._is_ardupilot:
+                log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+            self._safety_on = safety_on
+        elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
+            self._safety_mask = int(round(msg.param_value))
         return actions
 
     def tick(self, link_up: bool, autopilot: tuple[int, int] | None = None) -> list[Action]:
@@ -424,6 +504,12 @@ class ControlCore:
         if tuple(self._position) == self._goal and self._settled():
             self._answer(actions, request, reply)  # already there: nothing to send
             return
+        dead = self._dead_outputs()
+        if dead:
+            # Its first step would wait for outputs that may stay dead for hours: the answer
+            # comes now, and says the arm moves once they are live.
+            self._answer(actions, request, _not_live_reply(reply, dead))
+            return
         self._waiting.append(_Waiting(request, reply))
 
     def _stop_motion(self, actions: list[Action], reply: Reply) -> None:
@@ -462,6 +548,30 @@ class ControlCore:
         if immediate and not self._waiting:
             return
         now = self.clock()
+        if not self._outputs_known(now):
+            return
+        if self._is_ardupilot:
+            if self._dead_outputs():
+                # The safety switch: whatever is sent is applied at once when it goes off.
+                return
+        else:
+            if self._hold_now:
+                self._hold_now = False
+                self._unconfirmed = None
+                self._send_step(actions, tuple(self._position), now, everything=True)
+                return
+            if not self._confirmed.issuperset(self._outputs):
+                # Outputs not known to be live: one speed-limited step at a time, the next only
+                # once the readback showed it (or, found not live, once a PROBE_INTERVAL_S):
+                # if they come alive meanwhile, they jump by at most that one step.
+                if self._not_live:
+                    if now - self._last_step_s < PROBE_INTERVAL_S:
+                        return
+                elif (
+                    any(o in self._acked_pwm for o in self._outputs if o not in self._confirmed)
+                    and now - self._last_step_s < VERDICT_TIMEOUT_S
+                ):
+                    return  # the readback's verdict on the step before is not in yet
         if self._unconfirmed is not None:
             if not (self._resend_now or self._goal is not None or self._waiting):
                 return  # an unanswered step is tried again when there is somewhere to go
@@ -477,6 +587,22 @@ class ControlCore:
                 return
             step = limit_step(self._position, goal, max_step_deg)
         self._send_step(actions, step, now)
+
+    def _outputs_known(self, now: float) -> bool:
+        """PX4: a readback since the start, link loss or reboot tells where the joints are;
+        without one for READBACK_WAIT_S, go on from the acknowledged pose (and say so once)."""
+        if self._is_ardupilot or self._readback_s >= self._readback_since_s:
+            return True
+        if now - self._readback_since_s < READBACK_WAIT_S:
+            return False
+        if not self._readback_warned:
+            self._readback_warned = True
+            log.warning(
+                "no SERVO_OUTPUT_RAW from the autopilot in %.0f s: moving from the pose last "
+                "acknowledged; outputs that come alive later may jump to it",
+                READBACK_WAIT_S,
+            )
+        return True
 
     def _send_step(
         self,
@@ -585,6 +711,9 @@ class ControlCore:
         joint_of = {o: i for i, o in enumerate(self._outputs)}
         for output, pwm in inflight.accepted.items():
             self._acked_pwm[output] = pwm
+            self._acked_s[output] = now
+            self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
+            self._mismatches[output] = 0
             self._refused.pop(output, None)
             self._position[joint_of[output]] = inflight.step_deg[joint_of[output]]
         settled = set(inflight.accepted) | set(inflight.refused)
@@ -603,14 +732,14 @@ class ControlCore:
             hint = " ".join(
                 f"Set SERVO{o}_FUNCTION = 0 on the flight controller."
                 for o in sorted(inflight.refused)
-                if self.config.link.dialect == "ardupilot"
+                if self._is_ardupilot
             )
             log.error("%s; motion stopped. %s", reason, hint)
             first = min(inflight.refused)
             more = f"+{len(inflight.refused) - 1}" if len(inflight.refused) > 1 else ""
             brief = (
                 f"Arm: set SERVO{first}_FUNCTION=0{more} (output in use)"
-                if self.config.link.dialect == "ardupilot"
+                if self._is_ardupilot
                 else f"Arm: output {first}{more} refused by the autopilot"
             )
             for w in inflight.waiting:
@@ -623,10 +752,13 @@ class ControlCore:
             self._unanswered = 0
             self.counters["servo_updates"] += 1  # acknowledged in full
             self._record_first_out(timing)
+            dead = self._dead_outputs()
             for w in inflight.waiting:
                 reply = w.reply
                 if reply.timing is not None:
                     reply = dataclasses.replace(reply, timing={**reply.timing, **timing})
+                if dead:
+                    reply = _not_live_reply(reply, dead)
                 self._answer(actions, w.request, reply)
             self._maybe_send(actions, immediate=True)
             return
@@ -668,6 +800,7 @@ class ControlCore:
         if up == self._link_up:
             return
         self._link_up = up
+        self._heard_us = False  # until it answers the SYSTEM_TIME request sent on link-up
         if not up:
             log.warning("autopilot link lost: holding, no servo commands")
             self._lose_outputs(actions, "autopilot link lost")
@@ -689,29 +822,158 @@ class ControlCore:
             self._goal = None
             self._trajectory.clear()
         self._acked_pwm.clear()
+        self._acked_s.clear()
+        self._ack_history.clear()
+        self._mismatches.clear()
+        self._confirmed.clear()
+        self._readback_since_s = self.clock()
+        if not self._is_ardupilot:
+            # PX4 applies what it stores in one step once its outputs are live: re-sending the
+            # pose of before would jump from wherever the outputs are now (the disarmed PWM
+            # after a reboot). The joints are where the next readback says; the motion goes on
+            # from there at the speed limit.
+            self._unconfirmed = None
+            return
         if inflight is not None or self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)
             self._resend_now = True
 
     def _ask_system_time(self, actions: list[Action]) -> None:
+        """Ask for every stream the core reads (an autopilot forgets them when it reboots):
+        SYSTEM_TIME (reboots), SERVO_OUTPUT_RAW (what the outputs do) and, from ArduPilot,
+        SYS_STATUS (its safety switch) and BRD_SAFETY_MASK."""
         if self._pinned is None:
             return
         self._system_time_asked_s = self.clock()
-        actions.append(
-            SendCommand(
-                self._pinned,
-                mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-                (
-                    float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME),
-                    SYSTEM_TIME_INTERVAL_S * 1e6,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.0,
-                ),
+        streams = [
+            (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S),
+            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, READBACK_INTERVAL_S),
+        ]
+        if self._is_ardupilot:
+            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))
+        for msg_id, interval_s in streams:
+            actions.append(
+                SendCommand(
+                    self._pinned,
+                    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                    (float(msg_id), interval_s * 1e6, 0.0, 0.0, 0.0, 0.0, 0.0),
+                )
             )
-        )
+        if self._is_ardupilot and self._safety_mask is None:
+            actions.append(ReadParam(self._pinned, "BRD_SAFETY_MASK"))
+
+    @property
+    def _is_ardupilot(self) -> bool:
+        return self.config.link.dialect.startswith("ardupilot")
+
+    # -- the outputs' truth (issue 20) -------------------------------------------------------
+
+    def _on_readback(self, actions: list[Action], msg: Any) -> None:
+        """A SERVO_OUTPUT_RAW: what each output does. PX4 shows the PWM it outputs (the
+        disarmed PWM until armed or prearmed), so a PX4 output that does not show what it
+        acknowledged, READBACK_MISMATCHES times in a row once settled, is not live: the joint
+        is where the readback says, and the motion holds (see :meth:`_maybe_send`). ArduPilot
+        shows what it was told even with the safety switch on: SYS_STATUS says that."""
+        now = self.clock()
+        self._readback = {
+            n: int(v)
+            for n in range(1, 17)
+            if (v := getattr(msg, f"servo{n}_raw", 0)) and msg.port == 0
+        }
+        self._readback_s = now
+        if self._is_ardupilot:
+            return
+        joint_of = {o: i for i, o in enumerate(self._outputs)}
+        for output in self._outputs:
+            shown = self._readback.get(output)
+            acked = self._acked_pwm.get(output)
+            if shown is None:
+                continue
+            if acked is None:
+                if self._inflight is None and output not in self._acked_s:
+                    # Nothing of ours acknowledged yet (start, reboot): the joint is where the
+                    # output puts it, not at the assumed start pose.
+                    self._position[joint_of[output]] = self._angle_shown(output, shown)
+                continue
+            expected = self._expected_pwms(output, now)
+            if not expected:
+                continue  # acknowledged too lately to be shown yet
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected):
+                self._mismatches[output] = 0
+                dead_pwm = self._dead_pwm.get(output)
+                if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
+                    continue  # the hold at the disarmed PWM: shown either way, proves nothing
+                self._confirmed.add(output)
+                self._dead_pwm.pop(output, None)
+                if self._not_live.pop(output, None) is not None:
+                    log.info("output %d live again (shows %d us)", output, shown)
+                continue
+            # A live output that stops showing what it acknowledged long ago was disarmed,
+            # killed or rebooted: no second look (PX4 would apply our stored pose at once on
+            # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).
+            needed = 1 if output in self._confirmed else READBACK_MISMATCHES
+            self._confirmed.discard(output)
+            joint = self.config.calibration.for_output(output)
+            if output in self._not_live and acked == joint.angle_to_pwm_us(
+                self._angle_shown(output, shown)
+            ):
+                continue  # held as near the disarmed PWM as the calibration allows
+            self._mismatches[output] = self._mismatches.get(output, 0) + 1
+            if self._mismatches[output] < needed:
+                continue
+            if output not in self._not_live:
+                reason = (
+                    f"output {output} shows {shown} us, not the {acked} us acknowledged "
+                    "(disarmed, or the outputs not armed)"
+                )
+                log.warning("%s: holding the arm where it is", reason)
+                self._not_live[output] = reason
+            self._dead_pwm[output] = shown
+            # The joint is where the output puts it: that is stored at once (PX4 would apply
+            # what we stored in one step when the outputs come alive), and the motion goes on
+            # from there.
+            self._position[joint_of[output]] = self._angle_shown(output, shown)
+            self._acked_pwm.pop(output, None)
+            self._acked_s.pop(output, None)
+            self._ack_history.pop(output, None)
+            self._mismatches[output] = 0
+            self._hold_now = True
+
+    def _expected_pwms(self, output: int, now: float) -> set[int]:
+        """The PWMs a readback at ``now`` may show for ``output``: the last one acknowledged
+        at least READBACK_SETTLE_S ago and any acknowledged since (the readback lags by up to
+        that). Empty while the only ones are too recent to be shown yet."""
+        history = self._ack_history.get(output)
+        if not history:
+            return set()
+        cutoff = now - READBACK_SETTLE_S + 1e-9
+        recent = {pwm for t, pwm in history if t >= cutoff}
+        older = [pwm for t, pwm in history if t < cutoff]
+        if not older:
+            return set()
+        return recent | {older[-1]}
+
+    def _angle_shown(self, output: int, pwm_us: int) -> float:
+        """The joint angle an output's PWM means, within the calibration and the arm's limits
+        (a disarmed PWM may lie outside the servo's range)."""
+        joint = self.config.calibration.for_output(output)
+        pwm = min(max(pwm_us, joint.pwm_min_us), joint.pwm_max_us)
+        angle = joint.pwm_us_to_angle_deg(pwm)
+        limits = self.config.arm.joints[self._outputs.index(output)]
+        return min(max(angle, math.degrees(limits.min_rad)), math.degrees(limits.max_rad))
+
+    def _dead_outputs(self) -> dict[int, str]:
+        """The arm's outputs that are not live now, with the reason."""
+        if self._is_ardupilot:
+            if not self._safety_on:
+                return {}
+            mask = self._safety_mask or 0
+            return {
+                o: f"safety switch on (output {o} not in BRD_SAFETY_MASK)"
+                for o in self._outputs
+                if not mask >> (o - 1) & 1
+            }
+        return dict(self._not_live)
 
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
         previous, previous_s = self._boot_ms, self._boot_seen_s
@@ -753,7 +1015,13 @@ class ControlCore:
         log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
         self._acked_pwm.clear()
-        if self._inflight is None and self._last_step_s > -math.inf:
+        self._acked_s.clear()
+        self._ack_history.clear()
+        self._confirmed.clear()
+        if not self._is_ardupilot:
+            # PX4 (see _lose_outputs): never re-send a stale pose; the readback says where.
+            self._readback_since_s = now
+        elif self._inflight is None and self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)
             self._resend_now = True
         self._ask_system_time(actions)
@@ -795,6 +1063,7 @@ class ControlCore:
 
     def status(self) -> dict[str, Any]:
         """A JSON-ready snapshot (build it on the driving thread)."""
+        dead = self._dead_outputs()
         outputs = {}
         for output in self._outputs:
             if output in self._refused:
@@ -803,7 +1072,12 @@ class ControlCore:
                 state = {"state": "acknowledged"}
             else:
                 state = {"state": "unknown"}
-            outputs[output] = {"pwm_us": self._acked_pwm.get(output), **state}
+            outputs[output] = {
+                "pwm_us": self._acked_pwm.get(output),
+                **state,
+                "shown_us": self._readback.get(output),
+                "live": output not in dead,
+            }
         position = tuple(self._position)
         if self._hand_at is None or self._hand_at[0] != position:
             hand = self.config.arm.fk(position)
@@ -812,6 +1086,7 @@ class ControlCore:
             "autopilot": list(self._pinned) if self._pinned else None,
             # Its uptime by the last SYSTEM_TIME (None until one came): reboots are seen from it.
             "autopilot_boot_ms": self._boot_ms,
+            "autopilot_heard_us": self._link_up and self._heard_us,
             "holding": not self._link_up and self._last_step_s > -math.inf,
             "current_deg": list(position),
             # The hand where the acknowledged joints put it (forward kinematics of current_deg).
@@ -820,6 +1095,11 @@ class ControlCore:
             "moving": self._inflight is not None
             or (self._goal is not None and (self._goal != position or not self._settled())),
             "last_pwm_us": dict(self._acked_pwm) or None,
+            # What the outputs do (issue 20): not live = disarmed / safety on, with why.
+            "outputs_live": not dead,
+            "not_live": {str(o): why for o, why in sorted(dead.items())},
+            "armed": self._armed,
+            "safety_on": self._safety_on,
             "outputs": outputs,
             "last_target": self.last_target,
             "trajectory_points_left": len(self._trajectory),
@@ -838,3 +1118,17 @@ def _source(request: Request) -> str:
     """Who asked, for a log line: ``mavlink 255/190``, ``socket 3``."""
     kind, *ids = request.source or ("unknown",)
     return f"{kind} {'/'.join(str(i) for i in ids)}".strip()
+
+
+def _not_live_reply(reply: Reply, dead: dict[int, str]) -> Reply:
+    first = dead[min(dead)]
+    more = f" (+{len(dead) - 1} more)" if len(dead) > 1 else ""
+    return dataclasses.replace(
+        reply,
+        message=f"{reply.message}; outputs not live: {first}{more}: the arm moves when they are",
+    )
+
+
+def _param_name(raw: Any) -> str:
+    text = raw.decode("ascii", "replace") if isinstance(raw, bytes | bytearray) else str(raw)
+    return text.rstrip("\0")

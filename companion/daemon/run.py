@@ -3,8 +3,9 @@
 Start-up order: the config (a bad one exits 2 with nothing opened), the instance lock (a second
 ``run`` for the same control socket exits 2, "already running (pid N)", having touched nothing:
 see :mod:`companion.daemon.instance_lock`), the IK kernels (compiled the first time, loaded from
-numba's cache after), the control socket, the autopilot link; READY=1
-once the autopilot's heartbeat is heard. SIGTERM/SIGINT stop (parking if configured), SIGHUP
+numba's cache after; systemd's start timeout is extended meanwhile), the control socket, the
+autopilot link; then READY=1, without waiting for the autopilot (see ``_run``: the wait is
+logged and shown in STATUS=). SIGTERM/SIGINT stop (parking if configured), SIGHUP
 re-reads the config.
 """
 
@@ -12,9 +13,12 @@ from __future__ import annotations
 
 import gc
 import logging
+import os
 import signal
 import sys
 import threading
+import time
+from dataclasses import dataclass, field
 
 from companion import ik
 from companion.daemon.config import DaemonConfig, load_config
@@ -23,27 +27,73 @@ from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_pa
 from companion.daemon.service import ArmDaemon
 from companion.daemon.systemd import Notifier
 from companion.errors import ConfigError
-from firmware_interface import LinkError, LinkState
+from firmware_interface import LinkError
 
 log = logging.getLogger("armbridge")
 
 
-def reload_config(daemon: ArmDaemon, config_path: str) -> bool:
+#: How long systemd should wait for the kernels (EXTEND_TIMEOUT_USEC before warm_up): a first
+#: compile on a Raspberry Pi 4 is a minute or more; loading them from the cache takes ~1 s.
+KERNEL_LOAD_ALLOWANCE_S = 300.0
+#: While no autopilot heartbeat has been heard: the first warning after this long, then again
+#: at each doubling of the wait, up to once every WAIT_LOG_MAX_S.
+WAIT_LOG_FIRST_S = 5.0
+WAIT_LOG_MAX_S = 300.0
+
+
+@dataclass
+class HeartbeatWait:
+    """Says, in the log, how long the daemon has waited for the autopilot: once at
+    ``WAIT_LOG_FIRST_S``, then at 2x, 4x... (capped at one line per ``WAIT_LOG_MAX_S``), and once
+    when it is heard. A link that is lost later is the link's business (it logs that itself)."""
+
+    url: str
+    started_s: float
+    heard: bool = False
+    _next_log_s: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self._next_log_s = self.started_s + WAIT_LOG_FIRST_S
+
+    def update(self, link_up: bool, now_s: float) -> None:
+        if self.heard:
+            return
+        waited_s = now_s - self.started_s
+        if link_up:
+            self.heard = True
+            log.info("autopilot link up after %.1f s", waited_s)
+        elif now_s >= self._next_log_s:
+            log.warning(
+                "no heartbeat from the autopilot on %s after %.0f s: is it powered, is the "
+                "url (port, baud) right, does it send MAVLink on that port? "
+                "`armbridge doctor` checks the link",
+                self.url,
+                waited_s,
+            )
+            self._next_log_s = now_s + min(max(waited_s, WAIT_LOG_FIRST_S), WAIT_LOG_MAX_S)
+
+
+def reload_config(daemon: ArmDaemon, config_path: str, server: ControlServer | None = None) -> bool:
     """SIGHUP: re-read the config through the same ``load_config`` as start-up, so the same
     bounds apply; a config it refuses never reaches ``daemon.reload`` and the running one is
-    kept. True if the new config was handed over."""
+    kept. The control socket's limits go to ``server``. True if the new config was handed
+    over."""
     try:
         config = load_config(config_path)
     except ConfigError as exc:
         log.error("reload refused, keeping the running config: %s", exc)
         return False
     daemon.reload(config)
+    if server is not None:
+        server.reconfigure(config.control_max_connections, config.control_idle_timeout_s)
     return True
 
 
 def run(config_path: str) -> int:
     """``armbridge run``: the service until SIGTERM/SIGINT; returns the exit code."""
     config = load_config(config_path)  # ConfigError → exit 2, nothing opened or sent
+    if config.control_socket:
+        _make_socket_directory(config)
     # Before anything is touched (the kernel cache, the socket, the link, the signing state):
     # a second instance must leave the first one's socket and link alone. Held until exit.
     lock = InstanceLock(lock_path(config_path, config.control_socket))
@@ -64,9 +114,32 @@ def run(config_path: str) -> int:
         lock.release()
 
 
+def _make_socket_directory(config: DaemonConfig) -> None:
+    """The socket's directory, made (mode 0750) when missing, as systemd's ``RuntimeDirectory=``
+    would for the service: a foreground ``run`` with the default ``/run/armbridge/control.sock``
+    then works as root. ``check-config`` already refused a directory this user cannot make."""
+    assert config.control_socket is not None
+    directory = os.path.dirname(config.control_socket)
+    try:
+        os.mkdir(directory, 0o750)
+    except FileExistsError:
+        return
+    except OSError as exc:
+        raise ConfigError(
+            config.source, "control.socket", f"cannot create {directory}: {exc.strerror or exc}"
+        ) from exc
+    log.info("created %s for the control socket", directory)
+
+
 def _run(config: DaemonConfig, config_path: str) -> int:
+    notifier = Notifier()
     # Compile (first start) or load (later starts) the IK kernels now, before the link opens
-    # and long before READY, so that no target pays for it.
+    # and READY, so that no target pays for it. A first compile takes 10-20 s on 2 cores and
+    # longer on a Raspberry Pi: systemd's start timeout (90 s by default) is extended for it.
+    notifier.notify(
+        f"EXTEND_TIMEOUT_USEC={int(KERNEL_LOAD_ALLOWANCE_S * 1e6)}",
+        "STATUS=loading the IK kernels (the first start compiles them)",
+    )
     log.info("IK kernels ready in %.2f s", ik.warm_up())
     # The start-up heap (numpy, numba, pymavlink: ~120k objects) never dies. Frozen, the
     # collector's full passes skip it: one took ~55 ms here, long enough to stall the control
@@ -82,7 +155,6 @@ def _run(config: DaemonConfig, config_path: str) -> int:
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     signal.signal(signal.SIGHUP, lambda *_: reload.set())
 
-    notifier = Notifier()
     daemon = ArmDaemon(config)
     server = None
     try:
@@ -111,26 +183,37 @@ def _run(config: DaemonConfig, config_path: str) -> int:
             raise ConfigError(
                 config.source, "link.signing_state", f"cannot write it: {exc.strerror or exc}"
             ) from exc
-        notifier.status("waiting for the autopilot heartbeat")
-        ready = False
+        # READY as soon as the daemon serves (socket listening, link open), not when the
+        # autopilot is first heard: a companion board often boots before the flight
+        # controller is powered or plugged in, and a start that waits for it would time out
+        # and restart in a loop. Until the link is up, `status` says so and targets are
+        # answered "no autopilot link"; the log and STATUS= say what it waits for.
+        notifier.ready(f"waiting for the autopilot heartbeat on {config.link.url}")
+        log.info(
+            "serving%s; waiting for the autopilot heartbeat on %s",
+            f" on {config.control_socket}" if config.control_socket else "",
+            config.link.url,
+        )
+        waiting = HeartbeatWait(config.link.url, time.monotonic())
         ping_s = notifier.watchdog_period_s / 2 if notifier.watchdog_period_s else 1.0
         while not stop.is_set():
-            link_up = daemon.link is not None and daemon.link.state is LinkState.UP
-            if link_up and not ready:
-                ready = True
-                notifier.ready("autopilot link up")
-                log.info("ready: autopilot link up")
+            s = daemon.status()
+            # Up for targets once the autopilot has answered us, so knows our route (issue 20).
+            waiting.update(s["link"] == "up" and s["autopilot_heard_us"], time.monotonic())
             if reload.is_set():
                 reload.clear()
                 notifier.reloading()
-                reload_config(daemon, config_path)
+                reload_config(daemon, config_path, server)
                 notifier.ready()
-            if daemon.healthy:
+            # The watchdog is fed only while both threads serve: a control socket whose thread
+            # died would leave operators unable to stop the arm, so systemd restarts us.
+            if daemon.healthy and (server is None or server.alive):
                 notifier.watchdog()
-            s = daemon.status()
             notifier.status(
                 f"link {s['link']}; {s['counters']['accepted']} targets accepted, "
                 f"{s['counters']['failed'] + s['counters']['denied']} refused"
+                if waiting.heard
+                else f"waiting for the autopilot heartbeat on {config.link.url}"
             )
             stop.wait(min(ping_s, 0.5))
     finally:

@@ -46,7 +46,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion import ik
 from companion.daemon.config import DaemonConfig
-from companion.daemon.core import Action, Answer, ControlCore, SendCommand
+from companion.daemon.core import Action, Answer, ControlCore, ReadParam, SendCommand
 from companion.daemon.intake import RATE_LIMITED, Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import (
     KINDS,
@@ -68,7 +68,15 @@ log = logging.getLogger("armbridge")
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
 #: The frame types the core reads.
-CORE_FRAMES = ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT", "SYSTEM_TIME")
+CORE_FRAMES = (
+    "HEARTBEAT",
+    "COMMAND_ACK",
+    "STATUSTEXT",
+    "SYSTEM_TIME",
+    "SERVO_OUTPUT_RAW",
+    "SYS_STATUS",
+    "PARAM_VALUE",
+)
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
 #: Per source, at most this many motion targets a second (burst ``SOURCE_BURST``): a ground
@@ -195,7 +203,8 @@ class ArmDaemon:
 
     def reload(self, new: DaemonConfig) -> list[str]:
         """Apply a re-read config (SIGHUP). Solver, motion, park and rate settings take effect
-        at once. Link, arm and calibration changes need a restart: they are kept as they were
+        at once (the control socket's limits too: ``run`` hands them to its server). Link, arm,
+        calibration and the socket's path and group need a restart: they are kept as they were
         and named in the returned warnings, and so is a new park pose they cannot reach."""
         old = self.config
         warnings = [
@@ -204,6 +213,8 @@ class ArmDaemon:
                 ("link", old.link, new.link),
                 ("arm", old.arm, new.arm),
                 ("calibration", old.calibration, new.calibration),
+                ("control.socket", old.control_socket, new.control_socket),
+                ("control.socket_group", old.control_socket_group, new.control_socket_group),
             )
             if old_value != new_value
         ]
@@ -221,7 +232,13 @@ class ArmDaemon:
                 )
                 park_deg = old.park_deg
         self.config = dataclasses.replace(
-            new, link=old.link, arm=old.arm, calibration=old.calibration, park_deg=park_deg
+            new,
+            link=old.link,
+            arm=old.arm,
+            calibration=old.calibration,
+            park_deg=park_deg,
+            control_socket=old.control_socket,
+            control_socket_group=old.control_socket_group,
         )
         self._new_config = self.config
         self._wake.set()
@@ -471,6 +488,13 @@ class ArmDaemon:
                 # The update then goes unanswered and the core treats it so; a transport
                 # error also drops the link to LOST, which makes the core hold.
                 log.warning("servo commands not sent: %s", exc)
+        for read in (a for a in actions if isinstance(a, ReadParam)):
+            if link is None:
+                break
+            try:
+                link.send(link.mav.param_request_read_encode(*read.target, read.name.encode(), -1))
+            except LinkError as exc:
+                log.warning("%s not asked for: %s", read.name, exc)
         answers = [a for a in actions if isinstance(a, Answer)]
         if answers:
             # Before the answers: a client that asks for status once answered sees its request

@@ -218,6 +218,16 @@ def test_status_for_people_names_a_refused_output():
     assert text.endswith("counters  targets 2")
 
 
+def test_status_for_people_says_when_no_autopilot_was_heard():
+    text = format_status({"link": "waiting", "autopilot": None, "current_deg": [], "counters": {}})
+    assert text.splitlines()[0] == "link waiting  autopilot none yet  still"
+    assert "no autopilot heard yet: targets are refused" in text.splitlines()[1]
+    heard = format_status(
+        {"link": "up", "autopilot": [1, 1], "autopilot_heard_us": False, "current_deg": []}
+    )
+    assert "has not answered us yet" in heard
+
+
 def test_client_without_daemon_exits_3(tmp_path, capsys):
     assert main(["status", "--socket", str(tmp_path / "none.sock")]) == 3
     assert "cannot reach the daemon" in capsys.readouterr().err
@@ -262,8 +272,9 @@ def test_demo_plot_is_a_png(tmp_path):
 
 @pytest.mark.slow
 def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons, capsys):
-    """The daemon as systemd runs it: READY=1 once the autopilot is heard, targets over the
-    control socket, SIGTERM → park → STOPPING=1 → exit 0 within a second."""
+    """The daemon as systemd runs it: READY=1 once it serves (saying what it waits for), the
+    link up once the autopilot is heard, targets over the control socket, SIGTERM → park →
+    STOPPING=1 → exit 0 within a second."""
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))
     notify.settimeout(WAIT_S)
@@ -280,6 +291,11 @@ def test_run_as_a_service_ready_goto_sigterm(tmp_path, sims, daemons, capsys):
         messages = []
         while not any(m.startswith(b"READY=1") for m in messages):
             messages.append(notify.recv(4096))  # each recv bounded by the socket timeout
+        assert messages[-1] == b"READY=1\nSTATUS=waiting for the autopilot heartbeat on " + (
+            sim.url.encode()
+        )
+        assert any(m.startswith(b"EXTEND_TIMEOUT_USEC=") for m in messages)
+        assert wait_until(lambda: request(control, {"cmd": "status"})["status"]["link"] == "up")
         _cli_clients_against_a_live_daemon(str(control), tmp_path, capsys)
         reply = request(
             control, {"cmd": "goto", "pose": [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]}
@@ -395,7 +411,11 @@ def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
     """The flight controller's port is missing (unplugged, not enumerated yet): one clear line
     and exit 1, so systemd's Restart=on-failure tries again; no traceback."""
     config = write_config(
-        tmp_path / "armbridge.toml", {"link": {"url": f"{tmp_path / 'ttyACM9'},115200"}}
+        tmp_path / "armbridge.toml",
+        {
+            "link": {"url": f"{tmp_path / 'ttyACM9'},115200"},
+            "control": {"socket": str(tmp_path / "control.sock")},
+        },
     )
     done = run_daemon(config)
     assert done.returncode == 1

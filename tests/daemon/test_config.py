@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from importlib import resources
 
@@ -30,10 +31,25 @@ def test_example_config_loads_with_documented_defaults(tmp_path):
     assert (theta2.angle_min_deg, theta2.angle_max_deg) == (0.0, 180.0)
 
 
+def test_every_value_the_example_sets_is_the_default(tmp_path):
+    """The example config says "every field is listed with its default" (park_deg excepted,
+    and marked so): loaded, it is the same config as the URL alone."""
+    example = load_config(write(tmp_path, EXAMPLE))
+    minimal = load_config(write(tmp_path, '[link]\nurl = "udpout:127.0.0.1:14550"\n', "min.toml"))
+    assert example.park_deg == (0, 90, 0, 0, 0, 0) and minimal.park_deg is None
+    assert dataclasses.replace(example, source=minimal.source, park_deg=None) == minimal
+
+
 def test_minimal_config_needs_only_the_url(tmp_path):
     cfg = load_config(write(tmp_path, '[link]\nurl = "tcp:127.0.0.1:5760"\n'))
     assert cfg.calibration.outputs == (9, 10, 11, 12, 13, 14)
-    assert cfg.link.signing is None and cfg.control_socket is None
+    assert cfg.link.signing is None
+    assert cfg.control_socket == "/run/armbridge/control.sock"  # the shipped unit's directory
+
+
+def test_ardupilot_lua_dialect_accepted(tmp_path):
+    text = '[link]\nurl = "/dev/ttyS1,115200"\ndialect = "ardupilot-lua"\n'
+    assert load_config(write(tmp_path, text)).link.dialect == "ardupilot-lua"
 
 
 def test_signing_key_is_read_relative_to_the_config(tmp_path):

@@ -102,7 +102,7 @@ def test_config_cases_are_seeded(tmp_path):
         # A socket path longer than sun_path passed check-config and failed at bind in run.
         (
             EXAMPLE_TEXT.replace(
-                '# socket = "/run/armbridge/control.sock"', f'socket = "/run/{"s" * 110}.sock"'
+                'socket = "/run/armbridge/control.sock"', f'socket = "/run/{"s" * 110}.sock"'
             ).encode(),
             "control.socket",
             "at most 107",
@@ -128,8 +128,8 @@ def test_found_by_the_fuzz_now_names_the_field(tmp_path, content, field, words):
         # the link sends a single HEARTBEAT (it was a traceback, exit 1, after the link was up).
         (
             lambda t: t.replace(
-                '# socket = "/run/armbridge/control.sock"',
-                'socket = "/nonexistent-armbridge-dir/control.sock"',
+                'socket = "/run/armbridge/control.sock"',
+                'socket = "/nonexistent-armbridge-dir/below/control.sock"',
             ),
             "control.socket",
         ),

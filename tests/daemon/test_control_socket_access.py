@@ -250,3 +250,15 @@ def test_closing_removes_only_its_own_socket(tmp_path, daemon):
     (tmp_path / "c.sock").write_text("someone else's")
     srv.close()
     assert (tmp_path / "c.sock").read_text() == "someone else's"
+
+
+def test_the_permission_hint_names_the_directorys_group_when_the_socket_cannot_be_seen(tmp_path):
+    """The service's /run/armbridge is 0750: a user outside its group cannot even stat the
+    socket, so the hint comes from the directory (found by the clean-rootfs install test)."""
+    from companion.daemon.client import _permission_hint
+
+    directory = tmp_path / "run"
+    directory.mkdir()
+    group = grp.getgrgid(directory.stat().st_gid).gr_name
+    hint = _permission_hint(directory / "control.sock")
+    assert f"group {group!r}" in hint and "ask to be added" in hint

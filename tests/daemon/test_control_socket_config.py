@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import os
 import socket
+import stat
 from pathlib import Path
 
 import pytest
 
 from companion.daemon.cli import main
 from companion.daemon.config import load_config, parse_config
+from companion.daemon.run import _make_socket_directory
 from companion.errors import ConfigError
 
 URL = {"url": "udpout:127.0.0.1:9"}
@@ -48,10 +50,30 @@ def test_check_config_accepts_a_socket_at_the_path(tmp_path):
 
 
 def test_check_config_refuses_a_missing_directory(tmp_path):
-    path = write(tmp_path, 'socket = "no-such-dir/control.sock"')
+    path = write(tmp_path, 'socket = "no-such-dir/below/control.sock"')
     with pytest.raises(ConfigError) as info:
         load_config(path)
     assert info.value.field == "control.socket" and "does not exist" in str(info.value)
+
+
+def test_run_makes_a_missing_last_directory(tmp_path):
+    """As RuntimeDirectory= would: check-config passes it, and run makes it (0750)."""
+    config = load_config(write(tmp_path, 'socket = "rundir/control.sock"'))
+    assert not (tmp_path / "rundir").exists()
+    _make_socket_directory(config)
+    assert (tmp_path / "rundir").is_dir()
+    assert stat.S_IMODE((tmp_path / "rundir").stat().st_mode) == 0o750 & ~_umask()
+    _make_socket_directory(config)  # already there: nothing to do
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_an_empty_socket_means_none(tmp_path):
+    assert load_config(write(tmp_path, 'socket = ""')).control_socket is None
 
 
 def test_a_missing_runtime_directory_under_run_passes(tmp_path):
@@ -70,7 +92,7 @@ def test_a_missing_runtime_directory_under_run_passes(tmp_path):
         ({"socket": "/tmp/c.sock", "max_connections": 0}, "max_connections", "[1, 256]"),
         ({"socket": "/tmp/c.sock", "max_connections": 257}, "max_connections", "[1, 256]"),
         ({"socket": "/tmp/c.sock", "idle_timeout_s": 0.05}, "idle_timeout_s", "[0.1, 3600]"),
-        ({"idle_timeout_s": 5.0}, "idle_timeout_s", "without control.socket"),
+        ({"socket": "", "idle_timeout_s": 5.0}, "idle_timeout_s", "there is no socket"),
     ],
 )
 def test_socket_settings_are_bounded(control, field, words):

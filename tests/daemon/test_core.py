@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
-from companion.daemon.core import UPDATE_ATTEMPTS, Answer, ControlCore, SendCommand
+from companion.daemon.core import UPDATE_ATTEMPTS, Answer, ControlCore, ReadParam, SendCommand
 from companion.daemon.requests import Outcome, Request
 from tests.support.timing import FakeClock
 
@@ -55,6 +55,7 @@ class Rig:
         self.calibration = config.calibration
         self.core = ControlCore(config, solve=fake_solve, clock=self.clock)
         self.sent: list[SendCommand] = []
+        self.reads: list[ReadParam] = []
         self.answers: dict[int, list] = {}
         self.codecs: dict[tuple[int, int], mavlink.MAVLink] = {}
         self.decoder = mavlink.MAVLink(None)
@@ -67,6 +68,8 @@ class Rig:
             if isinstance(action, Answer):
                 self.answers.setdefault(id(action.request), []).append(action.reply)
                 action.request.answer(action.reply)
+            elif isinstance(action, ReadParam):
+                self.reads.append(action)
             else:
                 new.append(action)
         self.sent += new
@@ -91,6 +94,19 @@ class Rig:
 
     def system_time(self, boot_ms, src=(1, 1)):
         return self.frame(lambda c: c.system_time_encode(0, boot_ms), src)
+
+    def readback(self, pwm_by_output, src=(1, 1)):
+        """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0)."""
+        values = [int(pwm_by_output.get(n, 0)) for n in range(1, 17)]
+        return self.frame(lambda c: c.servo_output_raw_encode(0, 0, *values), src)
+
+    def sys_status(self, safety_on, src=(1, 1)):
+        outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+        enabled = 0 if safety_on else outputs
+        return self.frame(
+            lambda c: c.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+            src,
+        )
 
     def tick(self, link_up=True):
         return self.take(self.core.tick(link_up))
@@ -361,9 +377,15 @@ def test_a_ground_station_heartbeat_is_not_an_autopilot():
     assert rig.core.status()["autopilot"] is None
 
 
-def test_system_time_is_asked_for_once_pinned(rig):
-    [ask] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
-    assert ask.params[0] == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME and ask.params[1] > 0
+def test_system_time_readback_and_safety_are_asked_for_once_pinned(rig):
+    asks = [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert [a.params[0] for a in asks] == [
+        mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
+        mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
+        mavlink.MAVLINK_MSG_ID_SYS_STATUS,
+    ]
+    assert all(a.params[1] > 0 for a in asks)
+    assert [r.name for r in rig.reads] == ["BRD_SAFETY_MASK"]
 
 
 def test_a_reboot_within_the_loss_timeout_is_seen_and_every_output_resent(rig):
@@ -437,6 +459,7 @@ def test_px4_sends_one_frame_for_every_joint():
     rig = Rig(dialect="px4")
     rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
     rig.tick()
+    rig.readback(rig.calibration.angles_to_pwm_us(PARK))  # PX4 moves once it knows where
     request = rig.goto(near(PARK))
     [frame] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_DO_SET_ACTUATOR]
     rig.ack(command=mavlink.MAV_CMD_DO_SET_ACTUATOR)
@@ -573,3 +596,206 @@ def test_a_stream_of_targets_logs_one_accepted_line_a_second_per_source(rig, cap
     assert "from socket 3 accepted" in lines[1]
     assert lines[2].endswith("(and 19 more since the last line)")
     assert lines[3].startswith("stop from mavlink 255/190 accepted")
+
+
+def test_the_autopilot_has_heard_us_only_once_it_answered_us_since_the_link_came_up():
+    """Issue 20: the autopilot routes a ground station's targets to us only once it has heard
+    us; its answer to the SYSTEM_TIME request sent at link-up proves it. A loss resets it."""
+    rig = Rig()
+    asks = rig.up()
+    assert {a.command for a in asks} == {mavlink.MAV_CMD_SET_MESSAGE_INTERVAL}
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.ack(command=mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, src=(2, 1))  # not the pinned one
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.ack(command=mavlink.MAV_CMD_SET_MESSAGE_INTERVAL)
+    assert rig.core.status()["autopilot_heard_us"] is True
+    rig.tick(link_up=False)
+    assert rig.core.status()["autopilot_heard_us"] is False
+    rig.tick(link_up=True)
+    assert rig.core.status()["autopilot_heard_us"] is False
+
+
+# -- the outputs' truth (issue 20) --------------------------------------------------------------
+
+ACTUATOR = mavlink.MAV_CMD_DO_SET_ACTUATOR
+
+
+class Px4Outputs:
+    """PX4's outputs as measured on SITL, for these tests: DO_SET_ACTUATOR stores values (NaN:
+    unchanged) and is always ACCEPTED; the outputs show the disarmed PWM until live, then the
+    stored values at once; SERVO_OUTPUT_RAW reads back what they show."""
+
+    def __init__(self, rig: Rig, disarmed_us: int) -> None:
+        self.rig = rig
+        self.disarmed_us = disarmed_us
+        self.live = False
+        self.stored: dict[int, int | None] = dict.fromkeys(rig.calibration.outputs)
+        self.physical_moves: list[tuple[int, int, int]] = []  # (output, from, to)
+        self.shown = self._shown()
+
+    def _shown(self) -> dict[int, int]:
+        return {
+            o: (v if self.live and v is not None else self.disarmed_us)
+            for o, v in self.stored.items()
+        }
+
+    def _refresh(self, record: bool = True) -> None:
+        shown = self._shown()
+        for o, pwm in shown.items():
+            if pwm != self.shown[o] and record:
+                self.physical_moves.append((o, self.shown[o], pwm))
+        self.shown = shown
+
+    def handle(self) -> None:
+        """Apply and acknowledge every DO_SET_ACTUATOR sent so far."""
+        commands = [c for c in self.rig.sent if c.command == ACTUATOR]
+        self.rig.sent.clear()
+        for c in commands:
+            for slot, output in enumerate(self.rig.calibration.outputs):
+                value = c.params[slot]
+                if not math.isnan(value):
+                    joint = self.rig.calibration.for_output(output)
+                    span = joint.pwm_max_us - joint.pwm_min_us
+                    self.stored[output] = round(joint.pwm_min_us + (value + 1) / 2 * span)
+            self._refresh()
+            self.rig.ack(command=ACTUATOR)
+
+    def set_live(self, live: bool) -> None:
+        """Arm or prearm (live), disarm or kill (not). Disarming drives every output to the
+        disarmed PWM at once: PX4's doing, not ours, so not recorded as a move."""
+        self.live = live
+        self._refresh(record=live)
+
+    def readback(self) -> None:
+        self.rig.readback(self.shown)
+
+
+def px4_rig(disarmed_us: int = 1500) -> tuple[Rig, Px4Outputs]:
+    rig = Rig(dialect="px4")
+    rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    rig.tick()
+    rig.sent.clear()
+    return rig, Px4Outputs(rig, disarmed_us)
+
+
+def run(rig: Rig, px4: Px4Outputs, seconds: float, step_s: float = 0.05) -> None:
+    """Time passes: ticks, PX4 handles what was sent, readbacks every 0.1 s."""
+    for _ in range(round(seconds / step_s)):
+        rig.advance(step_s)
+        px4.handle()
+        if round(rig.clock() / step_s) % 2 == 0:
+            px4.readback()
+
+
+def test_px4_moves_only_once_a_readback_said_where_the_joints_are():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)  # prearmed: live, showing the disarmed PWM (nothing stored yet)
+    request = rig.goto(near(PARK))
+    assert not [c for c in rig.sent if c.command == ACTUATOR]  # no readback yet
+    px4.readback()
+    run(rig, px4, 0.2)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    # It started from where the outputs were (1500 us), not from the assumed park pose.
+    first = px4.physical_moves[0]
+    joint = rig.calibration.for_output(first[0])
+    step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+    assert first[1] == 1500 and abs(first[2] - first[1]) <= step_us + 1
+
+
+def test_px4_outputs_that_do_not_show_what_they_acknowledged_hold_the_arm():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.readback()
+    request = rig.goto(near(PARK, 20.0))  # far: many steps
+    run(rig, px4, 1.0)  # disarmed: every step ACCEPTED, none shown
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    status = rig.core.status()
+    assert status["outputs_live"] is False
+    why = status["not_live"][str(rig.calibration.outputs[0])]
+    assert "shows 1500 us, not the" in why and "acknowledged" in why
+    # Held: at most one probing step a second goes out while they stay dead.
+    sent_before = len(px4.physical_moves), rig.core.counters["servo_updates"]
+    run(rig, px4, 3.0)
+    assert rig.core.counters["servo_updates"] - sent_before[1] <= 4
+    later = rig.goto(near(PARK, 19.0))
+    assert "outputs not live" in rig.reply(later).message
+    assert rig.reply(later).outcome is Outcome.ACCEPTED
+    # Armed: no output jumps by more than one step; then the arm goes on to the goal.
+    px4.set_live(True)
+    run(rig, px4, 6.0)
+    assert rig.core.status()["outputs_live"] is True
+    for output, before, after in px4.physical_moves:
+        joint = rig.calibration.for_output(output)
+        step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+        assert abs(after - before) <= step_us + 1, (output, before, after)
+    assert rig.core.status()["goal_deg"] == pytest.approx(list(near(PARK, 19.0)))
+    assert rig.core.status()["moving"] is False
+
+
+def test_px4_after_a_reboot_the_stale_pose_is_not_sent_again():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    rig.system_time(600_000)
+    rig.advance(0.36)
+    rig.sent.clear()
+    rig.system_time(150)  # rebooted: its outputs are back at the disarmed PWM
+    px4.stored = dict.fromkeys(px4.stored)
+    px4.set_live(True)
+    rig.tick()
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
+
+
+def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(rig):
+    rig.sys_status(safety_on=True)
+    rig.sent.clear()
+    request = rig.goto(near(PARK))
+    assert not rig.servo()  # nothing: it would be applied at once when the switch goes off
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.ACCEPTED
+    assert "outputs not live: safety switch on (output 9 not in BRD_SAFETY_MASK)" in reply.message
+    assert rig.core.status()["safety_on"] is True
+    mask = sum(1 << (o - 1) for o in rig.calibration.outputs)
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", mask, 6, 1, 0))
+    rig.advance(0.05)
+    assert rig.core.status()["outputs_live"] is True and rig.servo()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["live", "dead", "goto", "run"]),
+            st.floats(-25, 25),
+        ),
+        min_size=1,
+        max_size=12,
+    )
+)
+def test_property_px4_outputs_never_jump_faster_than_the_speed_limit(events):
+    """Issue 20: over any arm/disarm/prearm sequence and targets, no output moves by more than
+    one step's PWM at once, neither on our commands nor when the outputs come alive (the
+    disarmed PWM within the calibration, as PWM_MAIN_DIS = park makes it). Disarming drives
+    them to the disarmed PWM at once: PX4's own jump, not counted."""
+    rig, px4 = px4_rig(disarmed_us=rig_park_pwm())
+    px4.readback()
+    for kind, value in events:
+        if kind == "live":
+            px4.set_live(True)
+        elif kind == "dead":
+            px4.set_live(False)
+        elif kind == "goto":
+            rig.goto(near(PARK, value))
+        # Each state lasts a second: a disarm and re-arm within the readback's detection
+        # window (~0.3 s at 10 Hz) while moving would apply that window's steps at once.
+        run(rig, px4, 1.0)
+    for output, before, after in px4.physical_moves:
+        joint = rig.calibration.for_output(output)
+        step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+        assert abs(after - before) <= step_us + 1, (output, before, after)
+
+
+def rig_park_pwm() -> int:
+    """One PWM inside every joint's calibration (the default 1000-2000 us)."""
+    return 1500

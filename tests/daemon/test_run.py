@@ -8,7 +8,8 @@ import logging
 import pytest
 
 from companion.daemon.config import load_config
-from companion.daemon.run import reload_config
+from companion.daemon.control_socket import ControlServer
+from companion.daemon.run import HeartbeatWait, reload_config
 from companion.daemon.service import ArmDaemon
 
 GOOD = '[link]\nurl = "udpout:127.0.0.1:14550"\n[control]\nrate_hz = 20.0\n'
@@ -71,3 +72,43 @@ def test_an_in_bounds_reload_is_applied(daemon_and_path):
     path.write_text(GOOD.replace("rate_hz = 20.0", "rate_hz = 400"))
     assert reload_config(daemon, str(path)) is True
     assert len(daemon.reloaded) == 1 and daemon.config.rate_hz == 400
+
+
+def test_the_wait_for_the_autopilot_is_logged_at_doubling_intervals(caplog):
+    """No flight controller yet: a warning at 5 s, then at 10, 20, 40 s... and one line when
+    it is heard; nothing after that."""
+    wait = HeartbeatWait("udpout:127.0.0.1:14550", started_s=100.0)
+    with caplog.at_level(logging.INFO, logger="armbridge"):
+        for t in range(0, 60):
+            wait.update(False, 100.0 + t)
+        wait.update(True, 160.5)
+        wait.update(False, 200.0)
+        wait.update(True, 300.0)
+    lines = [r.getMessage() for r in caplog.records]
+    waits = [line for line in lines if "no heartbeat" in line]
+    assert [w.split(" after ")[1].split(" s")[0] for w in waits] == ["5", "10", "20", "40"]
+    assert "udpout:127.0.0.1:14550" in waits[0] and "armbridge doctor" in waits[0]
+    assert lines[-1] == "autopilot link up after 60.5 s" and wait.heard
+
+
+def test_sighup_applies_the_sockets_limits_and_keeps_its_path(tmp_path, caplog):
+    """[control] on SIGHUP: max_connections and idle_timeout_s reach the running server; a new
+    socket path or group needs a restart (kept, and said)."""
+    socket_path = tmp_path / "c.sock"
+    path = tmp_path / "armbridge.toml"
+    path.write_text(GOOD + f'socket = "{socket_path}"\n')
+    daemon = ArmDaemon(load_config(path))
+    server = ControlServer(str(socket_path), daemon)
+    try:
+        assert (server.max_connections, server.idle_timeout_s) == (32, 30.0)
+        path.write_text(
+            GOOD
+            + f'socket = "{tmp_path / "other.sock"}"\nmax_connections = 4\nidle_timeout_s = 2\n'
+        )
+        with caplog.at_level(logging.WARNING):
+            assert reload_config(daemon, str(path), server)
+        assert (server.max_connections, server.idle_timeout_s) == (4, 2.0)
+        assert daemon.config.control_socket == str(socket_path)
+        assert "control.socket changed: restart the daemon to apply it" in caplog.text
+    finally:
+        server.close()

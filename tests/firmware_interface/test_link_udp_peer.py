@@ -78,6 +78,23 @@ def test_udpin_peer_is_never_moved_by_garbage_or_frames_from_other_ids(attacker)
         peer.close()
 
 
+def test_udpin_sends_its_heartbeat_as_soon_as_it_knows_the_autopilot():
+    """The autopilot learns our route from our first frame: it comes at once, not at the next
+    1 Hz beat (issue 20: PX4 dropped a ground station's USER_1 sent right after we were up)."""
+    link = MavlinkLink.open("udpin:127.0.0.1:0", LinkConfig(heartbeat_rate_hz=0.1))
+    peer = ScriptedPeer(UdpClientEndpoint(link.transport.local_address))
+    try:
+        assert wait_until(lambda: link.stats.tx_messages >= 1)  # the first beat, to no one
+        sent_s = time.monotonic()
+        peer.send_heartbeat()
+        [heartbeat] = peer.wait_for_messages("HEARTBEAT", timeout_s=5.0)
+        assert heartbeat.get_srcComponent() == 191
+        assert time.monotonic() - sent_s < 5.0  # the next beat was 10 s away
+    finally:
+        link.close()
+        peer.close()
+
+
 def test_udpin_follows_the_autopilot_to_a_new_port_only_once_the_old_one_fell_silent(attacker):
     clock = FakeClock()
     link = open_udpin(clock)

@@ -13,11 +13,14 @@ from firmware_interface.errors import (
     ServoOutputUnavailable,
 )
 from firmware_interface.link import LinkConfig, MavlinkLink
+from firmware_interface.lua_bridge import MAV_CMD_USER_2
 from firmware_interface.servo import (
+    ArduPilotLuaServoDialect,
     ArduPilotServoDialect,
     Px4ServoDialect,
     make_servo_dialect,
 )
+from firmware_interface.updates import UpdateState, UpdateTracker
 from tests.support.mavlink_peer import PtyEndpoint, ScriptedPeer, UdpEndpoint
 
 IN_USE = "ServoRelayEvent: Channel 11 is already in use"
@@ -145,7 +148,7 @@ def test_unknown_dialect_lists_the_valid_ones(udp):
     with pytest.raises(
         ConfigurationError,
         match=r"unknown servo dialect 'betaflight'; "
-        r"valid: \['ardupilot', 'px4'\]",
+        r"valid: \['ardupilot', 'ardupilot-lua', 'px4'\]",
     ):
         make_servo_dialect("betaflight", sender, default_calibration())
 
@@ -162,3 +165,63 @@ def test_ardupilot_commands_and_acks_over_a_pty():
         sender.close()
         link.close()
         peer.close()
+
+
+# -- ardupilot-lua: one MAV_CMD_USER_2 per window of six outputs, for the shipped Lua bridge --
+
+
+def test_lua_plans_six_consecutive_outputs_as_one_command():
+    dialect = make_servo_dialect("ardupilot-lua", None, default_calibration())
+    pwm = {9: 1100, 10: 1200, 11: 1300, 12: 1400, 13: 1500, 14: 1600}
+    (cmd,) = dialect.plan(pwm)
+    assert cmd.command == MAV_CMD_USER_2
+    assert cmd.params == (1100.0, 1200.0, 1300.0, 1400.0, 1500.0, 1600.0, 9.0)
+    assert dict(cmd.pwm_by_output) == pwm
+    assert dialect.plan(pwm, acked_pwm_us=pwm) == []  # nothing to change: nothing sent
+    (again,) = dialect.plan(pwm, acked_pwm_us={**pwm, 12: 1401})
+    assert dict(again.pwm_by_output) == pwm  # one output differs: the whole window goes
+
+
+def test_lua_outputs_apart_take_one_command_per_window_with_nan_gaps():
+    calibration = calibration_from_ranges([(-90, 90)] * 4, outputs=(1, 3, 9, 10))
+    dialect = ArduPilotLuaServoDialect(None, calibration)
+    low, high = dialect.plan({1: 1500, 3: 1600, 9: 1700, 10: 1800})
+    assert low.params[0] == 1500.0 and math.isnan(low.params[1]) and low.params[2] == 1600.0
+    assert all(math.isnan(p) for p in low.params[3:6]) and low.params[6] == 1.0
+    assert dict(low.pwm_by_output) == {1: 1500, 3: 1600}
+    assert high.params[:2] == (1700.0, 1800.0) and high.params[6] == 9.0
+    assert ArduPilotLuaServoDialect.windows([14, 9, 15, 3]) == [(3,), (9, 14), (15,)]
+
+
+def test_lua_out_of_range_pwm_never_planned():
+    dialect = ArduPilotLuaServoDialect(None, default_calibration())
+    with pytest.raises(PwmOutOfRange, match="pwm_us=2210"):
+        dialect.plan({9: 1500, 10: 2210})
+
+
+def test_lua_failed_ack_refuses_every_output_of_the_command():
+    dialect = ArduPilotLuaServoDialect(None, default_calibration())
+    commands = dialect.plan(dict.fromkeys(range(9, 15), 1500))
+    tracker = UpdateTracker(commands, sent_s=0.0, timeout_s=0.1, grace_s=0.01)
+    tracker.on_ack(MAV_CMD_USER_2, mavlink.MAV_RESULT_FAILED, 0.009)
+    tracker.on_statustext("armbridge: Channel 12 is already in use; none set")
+    outcome = tracker.poll(0.02)
+    assert outcome is not None and outcome.state is UpdateState.DONE
+    assert sorted(outcome.refused) == list(range(9, 15)) and not outcome.accepted
+    assert "Channel 12" in outcome.refused[12]
+
+
+def test_lua_send_pwm_one_command_long_then_refusal_names_the_output(udp):
+    peer, sender = udp
+    dialect = make_servo_dialect("ardupilot-lua", sender, default_calibration())
+    dialect.send_angles([0, 90, 0, -90, 90, -70])
+    (cmd,) = peer.messages("COMMAND_LONG")
+    assert cmd.command == MAV_CMD_USER_2
+    assert [cmd.param1, cmd.param2, cmd.param6, cmd.param7] == [1500, 1500, 1000, 9]
+    text = "armbridge: Channel 12 is already in use; none set"
+    peer.ack_result = mavlink.MAV_RESULT_FAILED
+    peer.on_command = lambda _cmd: peer.send_statustext(text)
+    with pytest.raises(ServoOutputUnavailable) as info:
+        dialect.send_pwm(dict.fromkeys(range(9, 15), 1600))
+    assert (info.value.output, info.value.statustext) == (12, text)
+    assert "none set" in str(info.value)

@@ -35,6 +35,8 @@ def test_load_key_refuses_wrong_sizes_and_missing_files(tmp_path):
     with pytest.raises(ConfigurationError, match="cannot read signing key file") as info:
         load_key(tmp_path / "absent.key")
     assert isinstance(info.value.__cause__, OSError)
+    assert str(info.value).count("absent.key") == 1  # the path once, not again in the errno text
+    assert str(info.value).endswith(": No such file or directory")
     with pytest.raises(ConfigurationError, match=r"link_id=256 outside \[0, 255\]"):
         SigningConfig(key=KEY, link_id=256)
 
@@ -144,8 +146,9 @@ def test_a_signing_state_that_cannot_be_stored_stops_sending(peer, tmp_path):
     )
     try:
         link.send(link.mav.statustext_encode(6, b"stored"))
-        (state_dir / "signing.state").unlink()
-        state_dir.rmdir()  # the state directory vanished (unmounted, removed)
+        # The state directory vanished (unmounted, removed): moved away in one step, as the
+        # heartbeat thread rewrites the state file all the time (unlink + rmdir raced it).
+        state_dir.rename(tmp_path / "gone")
         with pytest.raises(SigningStateError, match="cannot store the signing timestamp"):
             link.send(link.mav.statustext_encode(6, b"not signed"))
         assert not link.closed

@@ -121,8 +121,15 @@ def test_mavlink_input_fuzz_sends_no_servo_command_and_keeps_memory_flat(tmp_pat
     assert report.status_answers == CI_FUZZ_ROUNDS + 1
     assert set(report.link_states) == {"up"}
     assert report.servo_commands == [], "the fuzz made the daemon command the autopilot"
-    # COMMAND_LONG: only SET_MESSAGE_INTERVAL for SYSTEM_TIME (servo_commands checks that).
-    assert set(report.peer_received) <= {"HEARTBEAT", "COMMAND_ACK", "STATUSTEXT", "COMMAND_LONG"}
+    # COMMAND_LONG: only SET_MESSAGE_INTERVAL for the streams the core reads (servo_commands
+    # checks that); PARAM_REQUEST_READ: BRD_SAFETY_MASK.
+    assert set(report.peer_received) <= {
+        "HEARTBEAT",
+        "COMMAND_ACK",
+        "STATUSTEXT",
+        "COMMAND_LONG",
+        "PARAM_REQUEST_READ",
+    }
     counters = report.counters
     assert counters["servo_updates"] == 0 and counters["accepted"] == 0
     assert counters["denied"] == report.markers_answered

@@ -10,6 +10,7 @@ of this file.
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import replace
 
 import numpy as np
@@ -17,8 +18,19 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.calibration import default_calibration
+from sim_servo.autopilot import PX4_FORCE_MAGIC as PX4_FORCE
 from sim_servo.autopilot import SimAutopilot
-from sim_servo.config import FaultConfig, LinkTimingConfig, SimConfig
+from sim_servo.config import (
+    DEFAULT_ARM_OUTPUTS,
+    FaultConfig,
+    LinkTimingConfig,
+    Px4TimingConfig,
+    SimConfig,
+    config_from_mapping,
+    ready_setup,
+)
+from sim_servo.errors import SimConfigError
+from sim_servo.eventlog import physical_pwm_timeline
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
@@ -27,6 +39,9 @@ WALL_S = 1.7e9
 SERVO_OUTPUT_RAW = mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
 SYSTEM_TIME = mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
 INSTANT = LinkTimingConfig.instant()
+PX4_INSTANT = Px4TimingConfig.instant()
+#: A PX4 set up for the arm (functions 301–306, prearm mode 2, forwarding, armed at start).
+READY_PX4 = config_from_mapping({"flavour": "px4", **ready_setup("px4", DEFAULT_ARM_OUTPUTS)})
 
 
 def frame_source(frame: bytes) -> tuple[int, int]:
@@ -44,9 +59,14 @@ class Harness:
         *,
         signing_key: bytes | None = None,
         link_timing: LinkTimingConfig = INSTANT,
+        px4_timing: Px4TimingConfig = PX4_INSTANT,
         links: int = 1,
     ) -> None:
-        self.config = replace(config or SimConfig(), link_timing=link_timing)
+        self.config = replace(
+            config or SimConfig(),
+            link_timing=link_timing,
+            px4_timing=px4_timing,
+        )
         self.now = START_S
         self.events: list[dict] = []
         self.hand = HandModel.from_config(self.config.arm)
@@ -342,7 +362,7 @@ def test_param_request_read_by_name_and_index():
     value = param_values(h.run_for(0.01))[0]
     assert (value.param_id, value.param_value) == ("SERVO3_FUNCTION", 35.0)
     assert value.param_type == mavlink.MAV_PARAM_TYPE_INT16
-    assert (value.param_index, value.param_count) == (65535, 64)  # -1 as uint16
+    assert (value.param_index, value.param_count) == (65535, 66)  # -1 as uint16; 16 × 4 + BRD_
     h.send(h.gcs.param_request_read_encode(1, 1, b"", 1))
     value = param_values(h.run_for(0.01))[0]
     assert (value.param_id, value.param_value, value.param_index) == ("SERVO1_MIN", 1100.0, 1)
@@ -386,8 +406,8 @@ def test_param_request_list_sends_every_parameter():
     h = Harness()
     h.send(h.gcs.param_request_list_encode(1, 1))
     values = param_values(h.run_for(0.01))
-    assert len(values) == 64
-    assert [v.param_index for v in values] == list(range(64))
+    assert len(values) == 66  # SERVOn_FUNCTION / MIN / MAX / TRIM, BRD_SAFETY_DEFLT / MASK
+    assert [v.param_index for v in values] == list(range(66))
 
 
 # -- servo motion and the hand ---------------------------------------------------------------
@@ -435,7 +455,7 @@ def test_hand_reaches_the_commanded_pose():
 
 
 def test_px4_heartbeat_and_do_set_actuator():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
     assert beat.autopilot == mavlink.MAV_AUTOPILOT_PX4
     h.command(
@@ -446,12 +466,13 @@ def test_px4_heartbeat_and_do_set_actuator():
     assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 2
     status = h.of_type("ACTUATOR_OUTPUT_STATUS", msgs)[-1]
     assert status.active == 16
-    assert status.actuator[8:14] == [1000.0, 1500.0, 2000.0, 1750.0, 2000.0, 0.0]
-    assert status.actuator[0] == 1000.0  # motor 1, disarmed
+    # NaN: slot 6 never set, so still the disarmed PWM (not "off").
+    assert status.actuator[8:14] == [1000.0, 1500.0, 2000.0, 1750.0, 2000.0, 1000.0]
+    assert status.actuator[0] == 1000.0  # motor 1, armed: its minimum
 
 
 def test_px4_refuses_do_set_servo_as_unsupported_and_params_are_bytewise():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1500)
     assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_UNSUPPORTED
     h.send(h.gcs.param_request_read_encode(1, 1, b"PWM_MAIN_FUNC9", -1))
@@ -992,13 +1013,14 @@ def test_a_scheduled_reboot_restarts_the_heartbeat_from_boot():
 
 
 def test_px4_outputs_return_to_their_disarmed_value_after_a_reboot():
-    h = Harness(SimConfig(flavour="px4"))
+    h = Harness(READY_PX4)
     h.command(mavlink.MAV_CMD_DO_SET_ACTUATOR, 0.5, 0, 0, 0, 0, 0, 0)
     h.run_for(0.1)
     assert h.ap.pwm_us[9] == 1750
     h.ap.reboot(h.now, gap_s=0.1)
     h.run_for(0.2)
-    assert h.ap.pwm_us[9] == 1000 and h.ap.pwm_us[1] == 1000 and h.ap.pwm_us[16] == 0
+    assert not h.ap.armed and not h.ap.prearmed
+    assert h.ap.pwm_us[9] == 1000 and h.ap.pwm_us[1] == 1000 and h.ap.pwm_us[16] == 1000
 
 
 # -- the link timing model through the autopilot (no I/O overhead: the model's own figures) --
@@ -1057,3 +1079,362 @@ def test_a_statustext_still_follows_its_ack_under_the_timing_model():
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 2, 1500)  # a motor: FAILED + STATUSTEXT
     kinds = [m.get_type() for m in h.run_for(0.1) if m.get_type() != "HEARTBEAT"]
     assert kinds == ["COMMAND_ACK", "STATUSTEXT"]
+
+
+# -- PX4 as measured on SITL (issue 20) ---------------------------------------------------------
+
+ARM_DISARM = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+SET_ACTUATOR = mavlink.MAV_CMD_DO_SET_ACTUATOR
+ARM_OUTPUTS = range(9, 15)
+
+
+def px4(**settings) -> Harness:
+    """A PX4 with the firmware's defaults, plus ``settings`` (TOML keys)."""
+    return Harness(config_from_mapping({"flavour": "px4", **settings}))
+
+
+def mapped(**settings) -> Harness:
+    """PX4 with the arm's outputs on 301–306 and nothing else set up (disarmed, prearm off)."""
+    outputs = {str(o): 301 + i for i, o in enumerate(ARM_OUTPUTS)}
+    return px4(outputs=outputs, **settings)
+
+
+def arm_pwms(h: Harness) -> list[int]:
+    return [h.ap.output_us[o] for o in ARM_OUTPUTS]
+
+
+def set_param(h: Harness, name: str, value: int) -> None:
+    raw = struct.unpack("<f", struct.pack("<i", value))[0]  # PX4 sends INT32 bytewise
+    h.send(h.gcs.param_set_encode(1, 1, name.encode(), raw, mavlink.MAV_PARAM_TYPE_INT32))
+
+
+def test_px4_defaults_disarmed_functions_0_and_set_actuator_accepted_doing_nothing():
+    h = px4()
+    beat = h.of_type("HEARTBEAT", h.run_for(0.0))[0]
+    assert not beat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    assert [h.ap.params[f"PWM_MAIN_FUNC{o}"].value for o in ARM_OUTPUTS] == [0] * 6
+    assert h.ap.params["COM_PREARM_MODE"].value == 0
+    h.command(SET_ACTUATOR, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0)
+    assert [a.result for a in acks(h.run_for(0.1))] == [mavlink.MAV_RESULT_ACCEPTED]
+    assert set(h.ap.output_us.values()) == {1000}  # every output at PWM_MAIN_DISn
+    h.run_for(10.0)  # prearm mode 0: nothing comes alive, ever
+    assert set(h.ap.output_us.values()) == {1000} and not h.ap.prearmed
+
+
+def test_px4_function_change_applies_without_reboot_and_stored_values_jump_on_arm():
+    h = px4()
+    for i, output in enumerate(ARM_OUTPUTS):
+        set_param(h, f"PWM_MAIN_FUNC{output}", 301 + i)
+    h.run_for(0.01)
+    assert [h.ap._function(o) for o in ARM_OUTPUTS] == [301, 302, 303, 304, 305, 306]
+    values = (0.112, -0.778, -0.334, 0.444, -0.222, 0.0)
+    h.command(SET_ACTUATOR, *values, 0)
+    h.run_for(0.1)
+    assert arm_pwms(h) == [1000] * 6  # disarmed: dead, whatever was accepted
+    h.command(ARM_DISARM, 1)
+    msgs = h.run_for(0.1)
+    assert acks(msgs)[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    # The stored values in one step, as measured: [1556, 1111, 1333, 1722, 1389, 1500].
+    assert arm_pwms(h) == [1556, 1111, 1333, 1722, 1389, 1500]
+    steps = [e for e in h.events if e["event"] == "output" and e["output"] in ARM_OUTPUTS]
+    assert [(e["from_us"], e["pwm_us"], e["cause"]) for e in steps[-6:]] == [
+        (1000, p, "arm") for p in [1556, 1111, 1333, 1722, 1389, 1500]
+    ]
+    beat = h.of_type("HEARTBEAT", h.run_for(1.0))[-1]
+    assert beat.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+
+
+def test_px4_disarm_kill_and_bad_arm_parameter():
+    h = mapped(armed=True)
+    h.command(SET_ACTUATOR, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0)
+    h.run_for(0.1)
+    assert arm_pwms(h) == [1750] * 6
+    h.command(ARM_DISARM, 0)
+    assert acks(h.run_for(0.1))[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert arm_pwms(h) == [1000] * 6 and not h.ap.armed
+    h.command(ARM_DISARM, 1)
+    h.run_for(0.1)
+    assert arm_pwms(h) == [1750] * 6  # still stored
+    h.command(ARM_DISARM, 0, PX4_FORCE)
+    h.run_for(0.1)
+    assert arm_pwms(h) == [1000] * 6
+    assert [e["cause"] for e in h.events if e["event"] == "arming"] == ["command"] * 2 + ["kill"]
+    h.command(ARM_DISARM, 2)
+    assert acks(h.run_for(0.1))[-1].result == mavlink.MAV_RESULT_DENIED
+    assert h.ap.set_armed(True, h.now, cause="kill") and h.ap.armed  # the query's way in
+
+
+def test_px4_prearm_mode_2_makes_outputs_live_5_s_after_boot():
+    h = mapped(params={"COM_PREARM_MODE": 2})
+    h.command(SET_ACTUATOR, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0)
+    h.run_until(START_S + 4.99)
+    assert arm_pwms(h) == [1000] * 6 and not h.ap.prearmed
+    h.run_until(START_S + 5.01)
+    assert arm_pwms(h) == [1600] * 6 and h.ap.prearmed and not h.ap.armed
+    [event] = [e for e in h.events if e["event"] == "prearm"]
+    assert event["t_s"] == pytest.approx(5.0)
+    h.ap.reboot(h.now, gap_s=0.5)  # back disarmed, slots never set, prearm 5 s after boot
+    h.run_for(0.6)
+    assert arm_pwms(h) == [1000] * 6
+    h.command(SET_ACTUATOR, -0.2, -0.2, -0.2, -0.2, -0.2, -0.2, 0)  # re-sent after the reboot
+    h.run_for(4.8)
+    assert arm_pwms(h) == [1000] * 6
+    h.run_for(0.2)
+    assert arm_pwms(h) == [1400] * 6
+
+
+def test_px4_prearm_mode_set_at_runtime_applies_at_once():
+    h = mapped()
+    h.command(SET_ACTUATOR, 0.2, 0.2, 0.2, 0.2, 0.2, 0.2, 0)
+    h.run_for(6.0)
+    assert arm_pwms(h) == [1000] * 6
+    set_param(h, "COM_PREARM_MODE", 2)
+    h.run_for(0.01)
+    assert arm_pwms(h) == [1600] * 6
+
+
+@pytest.mark.parametrize(
+    ("value", "pwm"),
+    [
+        (0.001, 1501),  # 1500.5: half away from zero
+        (-0.0009, 1500),  # 1499.55
+        (0.9979, 1999),  # 1998.95
+        (0.5, 1750),
+        (-1.0, 1000),
+        (1.0, 2000),
+        (2.0, 2000),  # out of range: clamped to PWM_MAIN_MAXn, still ACCEPTED
+        (-7.5, 1000),
+        (math.inf, 2000),
+    ],
+)
+def test_px4_actuator_value_to_pwm(value, pwm):
+    h = mapped(armed=True)
+    h.command(SET_ACTUATOR, value, 0, 0, 0, 0, 0, 0)
+    assert acks(h.run_for(0.01))[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert h.ap.output_us[9] == pwm
+
+
+def test_px4_limits_nan_and_other_sets():
+    h = mapped(armed=True, params={"PWM_MAIN_MAX9": 1800, "PWM_MAIN_MIN10": 1200})
+    h.command(SET_ACTUATOR, 1.0, -1.0, 0.5, 0, 0, 0, 0)
+    h.run_for(0.01)
+    assert arm_pwms(h)[:3] == [1800, 1200, 1750]
+    h.command(SET_ACTUATOR, math.nan, 0.0, math.nan, math.nan, math.nan, math.nan, 0)
+    h.run_for(0.01)
+    assert arm_pwms(h)[:3] == [1800, 1500, 1750]  # NaN: that output unchanged
+    h.command(SET_ACTUATOR, 0, 0, 0, 0, 0, 0, 1)  # param7 = 1: ACCEPTED, no effect
+    assert acks(h.run_for(0.01))[-1].result == mavlink.MAV_RESULT_ACCEPTED
+    assert arm_pwms(h)[:3] == [1800, 1500, 1750]
+
+
+def test_px4_servo_output_raw_and_actuator_output_status_show_the_disarmed_pwm():
+    h = mapped()
+    for msg_id in (SERVO_OUTPUT_RAW, mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS):
+        h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 20_000)
+    h.command(SET_ACTUATOR, 0.5, 0, 0, 0, 0, 0, 0)
+    msgs = h.run_for(0.1)
+    assert h.of_type("SERVO_OUTPUT_RAW", msgs)[-1].servo9_raw == 1000
+    status = h.of_type("ACTUATOR_OUTPUT_STATUS", msgs)[-1]
+    assert status.active == 16 and status.actuator[8] == 1000.0
+    h.ap.set_armed(True, h.now)
+    msgs = h.run_for(0.1)
+    assert h.of_type("SERVO_OUTPUT_RAW", msgs)[-1].servo9_raw == 1750
+    assert h.of_type("ACTUATOR_OUTPUT_STATUS", msgs)[-1].actuator[8] == 1750.0
+
+
+def test_px4_disarmed_pwm_is_a_parameter():
+    h = mapped(params={"PWM_MAIN_DIS9": 900})
+    assert h.ap.output_us[9] == 900 and h.ap.output_us[10] == 1000
+    with pytest.raises(SimConfigError, match="NO_SUCH_PARAM"):
+        px4(params={"NO_SUCH_PARAM": 1})
+    with pytest.raises(SimConfigError, match="COM_PREARM_MODE=3"):
+        px4(params={"COM_PREARM_MODE": 3})
+
+
+def px4_pair(**settings) -> Harness:
+    """PX4 with the companion (1/191) on link 0, heard; the ground station on link 1."""
+    h = Harness(config_from_mapping({"flavour": "px4", **settings}), links=2)
+    companion = mavlink.MAVLink(None, 1, 191)
+    h.ap.receive(
+        companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0).pack(companion),
+        h.now,
+        0,
+    )
+    h.run_for(0.01)
+    h.forwarded()
+    return h
+
+
+def test_px4_forwards_only_between_links_with_forwarding_on_to_a_heard_component():
+    user_1 = mavlink.MAV_CMD_USER_1
+    both = {"MAV_0_FORWARD": 1, "MAV_1_FORWARD": 1}
+
+    def send_user_1(h, component=191):
+        h.send(h.gcs.command_long_encode(1, component, user_1, 0, 0, 0, 0, 0, 0, 0, 0), 1)
+        h.run_for(0.01)
+        return [channel for channel, _ in h.forwarded()]
+
+    # PX4's defaults: forwarding on for instance 0 (the ground station's), off for the
+    # companion's: nothing goes through, and the command is not ours: no answer.
+    h = px4_pair()
+    assert send_user_1(h) == [] and h.of_type("COMMAND_ACK") == []
+    assert [e["to"] for e in h.events if e["event"] == "ignored"] == [[1, 191]]
+    h = px4_pair(params=both)
+    assert send_user_1(h) == [0]
+    assert send_user_1(h, component=192) == []  # never heard on link 0
+    h = px4_pair(params={"MAV_0_FORWARD": 0, "MAV_1_FORWARD": 1})
+    assert send_user_1(h) == []  # the link it came in on does not forward
+
+
+def test_px4_udpin_race_a_target_before_the_companion_spoke_is_dropped():
+    h = Harness(
+        config_from_mapping({"flavour": "px4", "params": {"MAV_0_FORWARD": 1, "MAV_1_FORWARD": 1}}),
+        links=2,
+    )
+    h.send(h.gcs.command_long_encode(1, 191, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0), 1)
+    h.run_for(0.01)
+    assert h.forwarded() == [] and h.of_type("COMMAND_ACK") == []
+
+
+def test_px4_timing_commander_cycle_and_main_loop():
+    timing = Px4TimingConfig()  # the defaults: commander 10 ms, main loop 1.5 ms
+    h = Harness(READY_PX4, px4_timing=timing)
+    rng = np.random.default_rng(3)
+    rtts = []
+    for _ in range(200):
+        h.run_for(rng.uniform(0.0, 0.02))
+        sent = h.now
+        h.command(SET_ACTUATOR, 0.1, 0, 0, 0, 0, 0, 0)
+        rtts.append(_wait_ack(h) - sent)
+    rtts_ms = np.array(rtts) * 1000
+    assert rtts_ms.min() > 0.0 and rtts_ms.max() <= 11.5 + 1e-6
+    assert 4.5 <= float(np.median(rtts_ms)) <= 7.0
+    # Every frame leaves on a 1.5 ms main-loop pass from boot.
+    phases = [((t - START_S) * 1000 / 1.5) % 1 for t, _, _ in h.wire]
+    assert all(min(p, 1 - p) < 1e-6 for p in phases)
+
+
+def test_px4_timing_forwarded_frames_wait_forward_delay_then_a_main_loop_pass():
+    timing = Px4TimingConfig(commander_period_ms=10.0, mavlink_loop_ms=1.5, forward_delay_ms=3.5)
+    h = Harness(READY_PX4, px4_timing=timing, links=2)
+    companion = mavlink.MAVLink(None, 1, 191)
+    h.ap.receive(companion.heartbeat_encode(18, 8, 0, 0, 0).pack(companion), h.now, 0)
+    h.run_for(0.01)
+    h.forwarded()
+    h.run_until(START_S + 0.1003)
+    sent = h.now
+    h.send(h.gcs.command_long_encode(1, 191, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0), 1)
+    while not (out := h.forwarded()):
+        h.now = h.ap.next_event_s(h.now + 1e-9)
+        h._collect()
+    assert out[0][0] == 0
+    # 100.3 ms after boot + 3.5 ms = 103.8 ms, then the next 1.5 ms pass: 105.0 ms.
+    assert (h.now - sent) * 1000 == pytest.approx(4.7)
+
+
+# -- ArduPilot's safety switch -------------------------------------------------------------------
+
+
+def ardupilot(**settings) -> Harness:
+    return Harness(config_from_mapping({"flavour": "ardupilot", **settings}))
+
+
+def test_ardupilot_safety_off_by_default():
+    h = ardupilot()
+    assert not h.ap.safety_on and h.ap.params["BRD_SAFETY_DEFLT"].value == 0
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1700)
+    h.run_for(0.01)
+    assert h.ap.output_us[9] == 1700
+
+
+def test_ardupilot_safety_on_keeps_outputs_out_of_the_mask_dead_then_they_jump():
+    mask = 1 << (10 - 1)  # output 10 bypasses the safety switch
+    h = ardupilot(params={"BRD_SAFETY_DEFLT": 1, "BRD_SAFETY_MASK": mask})
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 20_000)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1700)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1300)
+    msgs = h.run_for(0.5)
+    assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 3
+    # SERVO_OUTPUT_RAW reports what the outputs were given; the servo on 9 gets no pulses.
+    raw = h.of_type("SERVO_OUTPUT_RAW", msgs)[-1]
+    assert (raw.servo9_raw, raw.servo10_raw) == (1700, 1300)
+    assert (h.ap.output_us[9], h.ap.output_us[10]) == (0, 1300)
+    assert h.ap.servos[9].position_us(h.now) == 1500.0  # where it started
+    assert h.ap.set_safety(False, h.now)
+    assert h.ap.output_us[9] == 1700
+    [step] = [e for e in h.events if e["event"] == "output" and e["output"] == 9]
+    assert (step["from_us"], step["pwm_us"], step["cause"]) == (0, 1700, "safety_off")
+    h.ap.reboot(h.now, gap_s=0.1)  # BRD_SAFETY_DEFLT = 1: back on at boot
+    h.run_for(0.2)
+    assert h.ap.safety_on and h.ap.output_us[9] == 0
+    assert [e["on"] for e in h.events if e["event"] == "safety"] == [False, True]
+
+
+def test_ardupilot_sys_status_says_whether_the_safety_switch_holds_the_outputs():
+    h = ardupilot(params={"BRD_SAFETY_DEFLT": 1})
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_SYS_STATUS, 100_000)
+    motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    status = h.of_type("SYS_STATUS", h.run_for(0.25))[-1]
+    assert status.onboard_control_sensors_present & motors
+    assert not status.onboard_control_sensors_enabled & motors
+    h.ap.set_safety(False, h.now)
+    status = h.of_type("SYS_STATUS", h.run_for(0.25))[-1]
+    assert status.onboard_control_sensors_enabled & motors
+
+
+def test_ardupilot_safety_parameters_read_and_set():
+    h = ardupilot()
+    h.send(h.gcs.param_set_encode(1, 1, b"BRD_SAFETY_MASK", 7936, mavlink.MAV_PARAM_TYPE_INT32))
+    value = param_values(h.run_for(0.01))[0]
+    assert (value.param_id, value.param_value) == ("BRD_SAFETY_MASK", 7936.0)
+    h.send(h.gcs.param_request_read_encode(1, 1, b"BRD_SAFETY_DEFLT", -1))
+    value = param_values(h.run_for(0.01))[0]
+    assert (value.param_value, value.param_type) == (0.0, mavlink.MAV_PARAM_TYPE_INT8)
+    assert not h.ap.set_armed(True, h.now)  # no arming here: PX4 only
+    assert not Harness(READY_PX4).ap.set_safety(True, START_S)  # no safety switch on PX4
+
+
+# -- the event log tells what each servo physically received -----------------------------------
+
+
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_output_events_replay_every_physical_pwm(flavour):
+    """Random arming, prearm, safety, reboots and commands: replaying the ``output`` events
+    gives each output's physical PWM after every step (so a bench can check joint speed from
+    the log alone)."""
+    rng = np.random.default_rng(7)
+    if flavour == "px4":
+        h = mapped(params={"COM_PREARM_MODE": 2})
+    else:
+        h = ardupilot(params={"BRD_SAFETY_DEFLT": 1, "BRD_SAFETY_MASK": 1 << 8})
+    replayed = dict(h.ap.output_us)
+    first = dict(replayed)
+    seen = 0
+    for _ in range(150):
+        action = rng.integers(5)
+        if action == 0:
+            if flavour == "px4":
+                h.command(SET_ACTUATOR, *rng.uniform(-1, 1, 6), 0)
+            else:
+                h.command(
+                    mavlink.MAV_CMD_DO_SET_SERVO,
+                    int(rng.integers(9, 15)),
+                    1000 + 10 * int(rng.integers(101)),
+                )
+        elif action == 1:
+            h.ap.set_armed(bool(rng.integers(2)), h.now)
+            h.ap.set_safety(bool(rng.integers(2)), h.now)
+        elif action == 2 and rng.random() < 0.2:
+            h.ap.reboot(h.now, gap_s=float(rng.uniform(0, 0.5)))
+        h.run_for(float(rng.uniform(0, 1.5)))
+        for event in h.events[seen:]:
+            if event["event"] == "output":
+                assert replayed[event["output"]] == event["from_us"]
+                replayed[event["output"]] = event["pwm_us"]
+        seen = len(h.events)
+        assert replayed == h.ap.output_us
+    kinds = {e["event"] for e in h.events}
+    assert "output" in kinds and ("prearm" in kinds or flavour == "ardupilot")
+    start = {"t_s": 0.0, "event": "start", "outputs_us": {str(o): p for o, p in first.items()}}
+    timeline = physical_pwm_timeline([start, *h.events])
+    assert {o: history[-1][1] for o, history in timeline.items()} == h.ap.output_us

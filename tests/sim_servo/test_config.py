@@ -16,6 +16,7 @@ from sim_servo.config import (
     load_key,
     load_toml,
     parse_withhold,
+    ready_setup,
 )
 from sim_servo.errors import SimConfigError
 
@@ -28,10 +29,16 @@ def test_ardupilot_defaults_motors_on_1_to_4():
     assert all(config.functions[o] == 0 for o in range(5, 17))
 
 
-def test_px4_defaults_actuator_set_on_arm_outputs():
+def test_px4_defaults_leave_the_arm_outputs_unmapped_and_ready_maps_them():
     config = SimConfig(flavour="px4", arm=ArmConfig(outputs=(5, 6, 7, 8, 9, 10)))
     assert [config.functions[o] for o in (1, 2, 3, 4)] == [101, 102, 103, 104]
-    assert [config.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
+    assert all(config.functions[o] == 0 for o in range(5, 17))  # PWM_MAIN_FUNC5..16 ship as 0
+    assert config.params == {} and config.armed is False
+    ready = config_from_mapping({"flavour": "px4", **ready_setup("px4", (5, 6, 7, 8, 9, 10))})
+    assert [ready.functions[o] for o in range(5, 11)] == [301, 302, 303, 304, 305, 306]
+    assert ready.params == {"COM_PREARM_MODE": 2, "MAV_0_FORWARD": 1, "MAV_1_FORWARD": 1}
+    assert ready.armed is True
+    assert ready_setup("ardupilot", (9, 10)) == {}
 
 
 @pytest.mark.parametrize(
@@ -122,6 +129,29 @@ def test_example_file_loads():
     config = config_from_mapping(load_toml(EXAMPLE), str(EXAMPLE), EXAMPLE.parent)
     assert config.flavour == "ardupilot" and config.functions[9] == 0
     assert config.servo.slew_s_per_60deg == 0.12
+
+
+def test_px4_example_is_the_ready_vehicle():
+    path = EXAMPLE.parent / "quad_arm_px4.toml"
+    config = config_from_mapping(load_toml(path), str(path), path.parent)
+    ready = config_from_mapping({"flavour": "px4", **ready_setup("px4", config.arm.outputs)})
+    assert (config.functions, config.params, config.armed) == (
+        ready.functions,
+        ready.params,
+        ready.armed,
+    )
+    assert config.px4_timing == ready.px4_timing  # the defaults, written out
+
+
+def test_params_table_and_px4_timing_are_checked():
+    with pytest.raises(SimConfigError, match="parameter COM_PREARM_MODE"):
+        config_from_mapping({"params": {"COM_PREARM_MODE": 1.5}})
+    with pytest.raises(SimConfigError, match="armed='yes'"):
+        config_from_mapping({"armed": "yes"})
+    with pytest.raises(SimConfigError, match=r"\[px4_timing\]"):
+        config_from_mapping({"px4_timing": {"loop_ms": 1}})
+    with pytest.raises(SimConfigError, match="commander_period_ms=-1"):
+        config_from_mapping({"px4_timing": {"commander_period_ms": -1}})
 
 
 def test_unknown_keys_are_refused():

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from sim_servo.errors import SimIOError
-from sim_servo.eventlog import EventLog, read_events
+from sim_servo.eventlog import EventLog, physical_pwm_timeline, read_events
 
 
 def test_lines_are_json_and_flushed(tmp_path):
@@ -29,3 +29,18 @@ def test_memory_only_and_bad_path(tmp_path):
     log.close()
     with pytest.raises(SimIOError, match="cannot open event log"):
         EventLog(tmp_path / "no" / "such" / "dir.jsonl")
+
+
+def test_physical_pwm_timeline_from_the_log():
+    events = [
+        {"t_s": 0.0, "event": "start", "outputs_us": {"9": 1000, "10": 1000}},
+        {"t_s": 0.5, "event": "servo", "output": 9, "pwm_us": 1700},
+        {"t_s": 1.0, "event": "output", "output": 9, "pwm_us": 1700, "from_us": 1000},
+        {"t_s": 2.0, "event": "output", "output": 9, "pwm_us": 1000, "from_us": 1700},
+    ]
+    timeline = physical_pwm_timeline(events)
+    assert timeline == {9: [(0.0, 1000), (1.0, 1700), (2.0, 1000)], 10: [(0.0, 1000)]}
+    with pytest.raises(ValueError, match="output 9: event at t_s=3.0 goes from 1500"):
+        physical_pwm_timeline(
+            [*events, {"t_s": 3.0, "event": "output", "output": 9, "pwm_us": 1, "from_us": 1500}]
+        )

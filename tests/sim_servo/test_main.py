@@ -2,7 +2,8 @@
 
 Each test starts ``python -m sim_servo`` as a subprocess, reads the link URL from its first
 stdout line, talks MAVLink with its own pymavlink codec (not through firmware_interface), waits
-on conditions with a bound, and stops the process with SIGTERM, asserting a clean exit.
+on conditions with a bound, and stops the process with SIGTERM, asserting a clean exit. The
+flags' mapping onto the settings is checked in-process (``settings``).
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ import pytest
 import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_servo.__main__ import build_parser, main
+from sim_servo.__main__ import build_parser, config_data, main
+from sim_servo.config import config_from_mapping
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
 
@@ -387,3 +389,36 @@ def test_bad_settings_exit_2_with_a_message(capsys, tmp_path):
     assert "--hangup-for (hangup_for_s) needs --pty" in capsys.readouterr().err
     assert main(["--udp", "127.0.0.1:0", "--pty-link", str(tmp_path / "tty")]) == 2
     assert "--pty-link needs --pty" in capsys.readouterr().err
+
+
+def settings(*argv: str):
+    """The config the flags give (no process, no port)."""
+    data, base_dir = config_data(build_parser().parse_args(["--udp", "127.0.0.1:0", *argv]))
+    return config_from_mapping(data, base_dir=base_dir)
+
+
+def test_ready_param_armed_and_safety_flags():
+    raw = settings("--flavour", "px4")
+    assert raw.functions[9] == 0 and raw.params == {} and raw.armed is False
+    ready = settings("--flavour", "px4", "--ready", "--arm-outputs", "3,4,5,6,7,8")
+    assert [ready.functions[o] for o in range(3, 9)] == [301, 302, 303, 304, 305, 306]
+    assert ready.params["COM_PREARM_MODE"] == 2 and ready.armed is True
+    tuned = settings("--flavour", "px4", "--ready", "--param", "COM_PREARM_MODE=0", "--armed")
+    assert tuned.params["COM_PREARM_MODE"] == 0 and tuned.armed is True
+    safety = settings("--safety", "on", "--param", "BRD_SAFETY_MASK=256", "--ready")
+    assert safety.params == {"BRD_SAFETY_DEFLT": 1, "BRD_SAFETY_MASK": 256}
+    timing = settings(
+        "--flavour", "px4", "--px4-commander-period-ms", "0", "--px4-mavlink-loop-ms", "2"
+    )
+    assert (timing.px4_timing.commander_period_ms, timing.px4_timing.mavlink_loop_ms) == (0.0, 2.0)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--udp", "127.0.0.1:0", "--param", "COM_PREARM_MODE"])
+    assert main(["--udp", "127.0.0.1:0", "--param", "NO_SUCH=1"]) == 2
+
+
+def test_help_documents_the_vehicle_setup_flags(capsys):
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--help"])
+    text = capsys.readouterr().out
+    for flag in ("--ready", "--param", "--armed", "--safety", "--px4-forward-delay-ms", "'kill'"):
+        assert flag in text

@@ -15,11 +15,11 @@ from sim_servo.query import query
 from sim_servo.server import SimServer
 
 
-def start(tmp_path, autopilot_cls=SimAutopilot, gcs=None):
+def start(tmp_path, autopilot_cls=SimAutopilot, gcs=None, config=None):
     events = EventLog(None)
     endpoint = UdpEndpoint("127.0.0.1", 0)
     now = time.monotonic()
-    autopilot = autopilot_cls(SimConfig(), now_s=now, emit=events)
+    autopilot = autopilot_cls(config or SimConfig(), now_s=now, emit=events)
     server = SimServer(
         autopilot, endpoint, events, gcs=gcs, query_path=str(tmp_path / "q.sock"), start_s=now
     )
@@ -114,3 +114,26 @@ def test_protocol_exception_ends_the_loop_with_status_1(tmp_path):
     assert result["rc"] == 1
     error = [e for e in events.recent if e["event"] == "error"][0]
     assert "protocol bug" in error["error"]
+
+
+def test_arming_and_safety_queries(tmp_path):
+    px4 = SimConfig(flavour="px4", functions={9: 301})
+    server, _, _, thread, result = start(tmp_path, config=px4)
+    path = tmp_path / "q.sock"
+    assert query(path, "state")["armed"] is False
+    assert query(path, "arm") == {"ok": True}
+    assert query(path, "state")["armed"] is True
+    assert query(path, "kill") == {"ok": True}
+    state = query(path, "state")
+    assert state["armed"] is False and state["outputs"]["9"]["pwm_us"] == 1000
+    assert query(path, "safety_on") == {"ok": False}  # PX4 has none here
+    causes = [e.get("cause") for e in query(path, "events")["events"] if e["event"] == "arming"]
+    assert causes == ["query", "kill"]
+    server.stop()
+    thread.join(5)
+    assert result["rc"] == 0
+    server, _, _, thread, result = start(tmp_path)  # ArduPilot
+    assert query(path, "safety_on") == {"ok": True} and query(path, "state")["safety_on"] is True
+    assert query(path, "arm") == {"ok": False}
+    server.stop()
+    thread.join(5)

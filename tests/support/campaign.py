@@ -335,7 +335,7 @@ def check_sim_log(sim: SimProcess, calibration: ArmCalibration, report: TargetRe
             if event["src"][1] != OUR_COMPONENT:
                 continue
             if fields["command"] == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
-                continue  # the daemon asks for SYSTEM_TIME (reboot detection)
+                continue  # the daemon asks for the streams it reads (see core)
             if fields["command"] != mavlink.MAV_CMD_DO_SET_SERVO:
                 report.pwm_violations.append(f"sim rx: unexpected command {fields['command']}")
                 continue
@@ -778,9 +778,10 @@ def run_mavlink_fuzz(
     for msg in peer.received:
         report.peer_received[msg.get_type()] += 1
         if msg.get_type() in ("COMMAND_LONG", "COMMAND_INT"):
-            if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:  # SYSTEM_TIME, see core
+            # The streams the core reads: SYSTEM_TIME, SERVO_OUTPUT_RAW, SYS_STATUS.
+            if msg.command != mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
                 report.servo_commands.append(f"{msg.get_type()} command {msg.command}")
-        elif msg.get_type() not in ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT"):
+        elif msg.get_type() not in ("HEARTBEAT", "COMMAND_ACK", "STATUSTEXT", "PARAM_REQUEST_READ"):
             report.servo_commands.append(f"unexpected {msg.get_type()}")
     report.elapsed_s = time.perf_counter() - started
     return report
@@ -815,6 +816,8 @@ _DATETIME = datetime.datetime(1979, 5, 27, 7, 32, tzinfo=datetime.UTC)
 _WRONG_TYPES: dict[str, tuple[Any, ...]] = {
     # A value of every TOML type that the field's kind does not accept.
     "string": (5, 2.5, True, [1], {"a": 1}, _DATETIME, ""),
+    # control.socket: "" is valid there (no socket).
+    "path_or_empty": (5, 2.5, True, [1], {"a": 1}, _DATETIME),
     "number": ("3", True, [1.0], {"a": 1}, _DATETIME, math.nan, math.inf, -math.inf),
     "integer": ("3", 2.5, True, [1], {"a": 1}, _DATETIME, math.nan),
     "bool": ("true", 1, 0.0, [True], {"a": 1}, _DATETIME),
@@ -884,8 +887,9 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "solver.seed": ("integer", (-1,)),
     "control.rate_hz": ("number", (0, -20, 1e-10, 0.999, 400.5, 1e9)),
     "control.socket": (
-        "string",
-        ("/tmp/" + "s" * 120 + ".sock", "/nonexistent-armbridge-dir/c.sock", ".", "good.key"),
+        "path_or_empty",
+        # A missing last directory is fine (run makes it); two missing levels are not.
+        ("/tmp/" + "s" * 120 + ".sock", "/nonexistent-armbridge-dir/x/c.sock", ".", "good.key"),
     ),
     "control.socket_group": ("string", ("no-such-group-armbridge",)),
     "control.max_connections": ("integer", (0, -1, 257, 2**40)),
@@ -1134,6 +1138,10 @@ def run_rejects_config(directory: Path, text: str) -> tuple[int, str, int]:
     listener.bind(("127.0.0.1", 0))
     port = listener.getsockname()[1]
     path = directory / "run-bad.toml"
+    # The example's socket (/run/armbridge) would be shared with any other run on the machine.
+    text = text.replace(
+        'socket = "/run/armbridge/control.sock"', f'socket = "{directory / "control.sock"}"'
+    )
     path.write_text(text.replace("udpout:127.0.0.1:14550", f"udpout:127.0.0.1:{port}"))
     try:
         proc = run_daemon(path, timeout_s=60.0)

@@ -31,9 +31,16 @@ class SimProcess:
     ``url`` is the first line it printed (its link), ``gcs_url`` the second one's URL when
     ``--gcs`` is among ``args``. Returns once the query socket answers. A context manager:
     leaving it stops (and reaps) the process.
+
+    ``ready`` (default) starts a vehicle set up for the arm (``--ready``): on PX4 the arm's
+    outputs on functions 301–306, ``COM_PREARM_MODE`` 2, forwarding on, armed at start, so its
+    outputs are live as every test before issue 20 assumed; ArduPilot's safety switch is off
+    anyway. ``ready=False`` gives the firmware's defaults (PX4: outputs dead until armed).
     """
 
-    def __init__(self, directory: Path, *args: str, timeout_s: float = WAIT_S) -> None:
+    def __init__(
+        self, directory: Path, *args: str, timeout_s: float = WAIT_S, ready: bool = True
+    ) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         self.query_path = str(directory / "sim.sock")
         self.log_path = directory / "events.jsonl"
@@ -43,6 +50,7 @@ class SimProcess:
             "-m",
             "sim_servo",
             *args,
+            *(["--ready"] if ready and "--ready" not in args else []),
             "--query-socket",
             self.query_path,
             "--event-log",
@@ -98,6 +106,18 @@ class SimProcess:
         False if it was already rebooting. Wait for the ``fault`` event ``booted`` (or a
         HEARTBEAT) to know it is back."""
         return bool(query(self.query_path, "reboot").get("ok"))
+
+    def arm(self, armed: bool = True) -> bool:
+        """PX4: arm (or with ``armed=False`` disarm) now; False on ArduPilot."""
+        return bool(query(self.query_path, "arm" if armed else "disarm").get("ok"))
+
+    def kill_switch(self) -> bool:
+        """PX4: kill now (a forced disarm: outputs to the disarmed PWM); False on ArduPilot."""
+        return bool(query(self.query_path, "kill").get("ok"))
+
+    def safety(self, on: bool) -> bool:
+        """ArduPilot: engage (``on``) or disengage the safety switch now; False on PX4."""
+        return bool(query(self.query_path, "safety_on" if on else "safety_off").get("ok"))
 
     def hangup(self) -> bool:
         """Close the port now (with ``--hangup-for``, a new pty comes back that much later);
