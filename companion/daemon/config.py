@@ -171,9 +171,21 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
     if "file" in arm_table:
         arm_path = base / arm_table.string("file")
         try:
-            arm = Arm.from_toml(arm_path, dof=None)
+            if arm_path.suffix.lower() == ".urdf":
+                arm = Arm.from_urdf(arm_path)
+            else:
+                arm = Arm.from_toml(arm_path, dof=None)
         except ArmConfigError as exc:
             raise arm_table.fail("file", f"arm file {exc}") from exc
+        prismatic = [j.name for j in arm.joints if not j.revolute]
+        if prismatic:
+            # A servo output maps an angle range to PWM; a slider's calibration (cm ↔ PWM)
+            # is not written yet. The solver API takes such arms (companion.ik.solve).
+            raise arm_table.fail(
+                "file",
+                f"joint {prismatic[0]} is prismatic: the daemon drives revolute joints only "
+                "(companion.ik.solve takes prismatic arms)",
+            )
     else:
         arm = Arm.default()
     park = None

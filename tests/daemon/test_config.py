@@ -368,3 +368,26 @@ def test_a_missing_credential_is_named_like_a_missing_key_file(tmp_path, monkeyp
         load_config(write(tmp_path, CREDENTIAL_CONFIG))
     assert refused.value.field == "link.signing_key"
     assert "signing.key" in str(refused.value)
+
+
+def test_a_urdf_arm_file_loads_and_a_prismatic_arm_is_refused_naming_the_joint(tmp_path):
+    from importlib import resources as res
+
+    arms = res.files("companion.kinematics") / "arms"
+    urdf = tmp_path / "ur5.urdf"
+    urdf.write_text((arms / "ur5.urdf").read_text())
+    cfg = load_config(
+        write(tmp_path, '[link]\nurl = "udpout:127.0.0.1:14550"\n[arm]\nfile = "ur5.urdf"\n')
+    )
+    assert cfg.arm.dof == 6
+    stanford = tmp_path / "stanford.toml"
+    stanford.write_text((arms / "stanford.toml").read_text())
+    with pytest.raises(ConfigError) as info:
+        load_config(
+            write(
+                tmp_path,
+                '[link]\nurl = "udpout:127.0.0.1:14550"\n[arm]\nfile = "stanford.toml"\n',
+                "s.toml",
+            )
+        )
+    assert info.value.field == "arm.file" and "is prismatic" in str(info.value)
