@@ -113,8 +113,10 @@ class GroundStation:
         *,
         system_id: int = 1,
         component_id: int = COMPANION_COMPONENT_ID,
+        mode: int = 0,
     ) -> Any:
-        """COMMAND_LONG MAV_CMD_USER_1 with params 1–6 = x_cm, y_cm, z_cm, roll, pitch, yaw."""
+        """COMMAND_LONG MAV_CMD_USER_1 with params 1–6 = x_cm, y_cm, z_cm, roll, pitch, yaw and
+        param7 = the target mode (0 pose, 1 position, 2 position + pointing)."""
         x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg = pose
         return self.mav.command_long_encode(
             system_id,
@@ -127,11 +129,11 @@ class GroundStation:
             roll_deg,
             pitch_deg,
             yaw_deg,
-            0,
+            mode,
         )
 
     def send_target(self, pose: Sequence[float], **ids: int) -> float:
-        """Send a target; the monotonic time it left."""
+        """Send a target (``ids``: system_id, component_id, mode); the time it left."""
         msg = self.target_message(pose, **ids)
         sent_s = self.clock()
         self.send(msg)

@@ -469,7 +469,19 @@ def build_parser() -> argparse.ArgumentParser:
     pose_args(p)
     client_args(p)
     wait_arg(p)
-    p.set_defaults(func=lambda a: _client(a, {"cmd": "goto", "pose": _pose(a)}))
+    p.add_argument(
+        "--mode",
+        choices=("pose", "position", "position_axis"),
+        default="pose",
+        help="what must be met: the whole pose (default), the position only, or the position "
+        "with the hand's z axis along the pose's (roll about it free)",
+    )
+    p.set_defaults(
+        func=lambda a: _client(
+            a,
+            {"cmd": "goto", "pose": _pose(a)} | ({"mode": a.mode} if a.mode != "pose" else {}),
+        )
+    )
 
     p = verb("trajectory", "send a timed list of hand poses (running daemon)")
     p.add_argument(

@@ -54,7 +54,8 @@ from companion.daemon.requests import (
     Outcome,
     Reply,
     Request,
-    as_pose,
+    Target,
+    as_target,
     parse_trajectory,
 )
 from companion.kinematics.arm import Pose
@@ -109,7 +110,7 @@ READBACK_TOLERANCE_US = 1
 #: PX4: with no readback this long after the link came up, move without it (and say so).
 READBACK_WAIT_S = 2.0
 
-Solve = Callable[[Pose, Sequence[float]], Any]  # (pose, q_start_deg) → ik.IKResult
+Solve = Callable[[Pose, Sequence[float], str], Any]  # (pose, q_start_deg, mode) → ik.IKResult
 
 
 @dataclass(frozen=True)
@@ -448,13 +449,14 @@ class ControlCore:
         if request.kind == "trajectory":
             return parse_trajectory(request.payload)
         try:
-            return as_pose(request.payload)
+            return as_target(request.payload)
         except ValueError as exc:
             raise ValueError(f"invalid target: {exc}") from exc
 
-    def _goto(self, actions: list[Action], request: Request | None, pose: Pose) -> bool:
+    def _goto(self, actions: list[Action], request: Request | None, target: Target) -> bool:
+        pose = target.pose
         start = self._goal if self._goal is not None else tuple(self._position)
-        result = self._solve(pose, start)
+        result = self._solve(pose, start, target.mode)
         self.counters["solved"] += 1
         timing = {
             "received_s": request.received_s if request is not None else self.clock(),
@@ -462,6 +464,7 @@ class ControlCore:
         }
         self.last_target = {
             "pose": list(pose.as_tuple()),
+            "mode": target.mode,
             "converged": result.converged,
             "pos_err_cm": result.pos_err_cm,
             "ori_err_deg": result.ori_err_deg,
@@ -527,7 +530,7 @@ class ControlCore:
         if not due:
             return
         self._trajectory = self._trajectory[len(due) :]
-        if not self._goto(actions, None, due[-1][1]):
+        if not self._goto(actions, None, Target(due[-1][1])):
             log.warning("trajectory aborted: a point is out of reach")
             self._trajectory.clear()
 
@@ -1051,6 +1054,8 @@ class ControlCore:
         target = ""
         if request.kind == "goto" and self.last_target is not None:
             target = " (" + ", ".join(f"{v:.2f}" for v in self.last_target["pose"]) + ")"
+            if self.last_target.get("mode", "pose") != "pose":
+                target += f" {self.last_target['mode']}"
         more = f" (and {skipped} more since the last line)" if skipped else ""
         log.info(
             "%s%s from %s accepted: %s%s",

@@ -131,6 +131,45 @@ def as_pose(value: Any) -> Pose:
     return Pose.from_sequence(value)
 
 
+#: What of a target must be met (the solver's ``TargetMode`` by value): the whole pose; the
+#: position only; the position and the hand's z axis pointing along the target orientation's.
+TARGET_MODES = ("pose", "position", "position_axis")
+#: MAV_CMD_USER_1 param7 → target mode. 3-15 are kept for more modes, 16 and up for target
+#: frames (issue 18: world-frame targets).
+MAVLINK_TARGET_MODES = {0.0: "pose", 1.0: "position", 2.0: "position_axis"}
+
+
+@dataclass(frozen=True)
+class Target:
+    """A ``goto``: the pose, and what of it must be met (:data:`TARGET_MODES`)."""
+
+    pose: Pose
+    mode: str = "pose"
+
+
+def as_target(value: Any) -> Target:
+    """A :class:`Target` from a Target, a pose (mode ``pose``), or ``{"pose": ..., "mode":
+    ...}``; ``ValueError`` names what is wrong."""
+    if isinstance(value, Target):
+        return value
+    if isinstance(value, dict):
+        mode = value.get("mode", "pose")
+        if mode not in TARGET_MODES:
+            raise ValueError(
+                f"mode={mode!r} is not one of {', '.join(TARGET_MODES)} "
+                "(MAV_CMD_USER_1 param7: 0 pose, 1 position, 2 position_axis)"
+            )
+        return Target(as_pose(value.get("pose")), mode)
+    return Target(as_pose(value))
+
+
+def mavlink_target_payload(params: Sequence[float], param7: float) -> dict[str, Any]:
+    """A USER_1's payload: params 1-6 the pose, param7 the target mode (an unknown one is
+    refused by :func:`as_target`, naming it)."""
+    mode = MAVLINK_TARGET_MODES.get(param7) if math.isfinite(param7) else None
+    return {"pose": tuple(params), "mode": mode or f"param7={param7:g}"}
+
+
 def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:
     """``[[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]`` (or ``(t_s, pose)``
     pairs) → points sorted by time; ``ValueError`` says what is wrong."""

@@ -55,7 +55,8 @@ from companion.daemon.requests import (
     Outcome,
     Reply,
     Request,
-    as_pose,
+    as_target,
+    mavlink_target_payload,
     parse_trajectory,
 )
 from companion.kinematics.arm import Pose
@@ -282,7 +283,7 @@ class ArmDaemon:
         # A malformed target is DENIED here, at once: it must not displace a valid one waiting.
         try:
             if request.kind == "goto":
-                as_pose(request.payload)
+                as_target(request.payload)
             elif request.kind == "trajectory":
                 parse_trajectory(request.payload)
         except (TypeError, ValueError, OverflowError) as exc:
@@ -361,7 +362,8 @@ class ArmDaemon:
                     self._counts["flood_unanswered"] += 1
             return
         params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6)
-        request = self.new_request("goto", params, source=("mavlink", *source))
+        payload = mavlink_target_payload(params, msg.param7)
+        request = self.new_request("goto", payload, source=("mavlink", *source))
         request.future.add_done_callback(lambda f: self._answer_mavlink(source, f.result()))
         self.intake.submit(request)
 
@@ -415,7 +417,7 @@ class ArmDaemon:
 
     # -- control thread ---------------------------------------------------------------------
 
-    def _solve(self, pose: Pose, q_start_deg: Sequence[float]) -> ik.IKResult:
+    def _solve(self, pose: Pose, q_start_deg: Sequence[float], mode: str = "pose") -> ik.IKResult:
         config = self.config
         return ik.solve(
             config.arm,
@@ -425,6 +427,7 @@ class ArmDaemon:
             q_start_deg=q_start_deg,
             tol_pos_cm=config.tol_pos_cm,
             tol_ori_deg=config.tol_ori_deg,
+            mode=ik.TargetMode(mode),
         )
 
     def _run(self) -> None:

@@ -28,7 +28,7 @@ SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 ACCEPTED, FAILED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
 
 
-def fake_solve(pose, q_start_deg):
+def fake_solve(pose, q_start_deg, mode="pose"):
     q = pose.as_tuple()
     return SimpleNamespace(
         q_deg=tuple(q),

@@ -319,11 +319,11 @@ class _BuggyDaemon(ArmDaemon):
 
     bugs = 1
 
-    def _solve(self, pose, q_start_deg):
+    def _solve(self, pose, q_start_deg, mode="pose"):
         if self.bugs:
             self.bugs -= 1
             raise RuntimeError("a bug under the control thread")
-        return super()._solve(pose, q_start_deg)
+        return super()._solve(pose, q_start_deg, mode)
 
 
 def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
