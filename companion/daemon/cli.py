@@ -77,7 +77,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from companion.daemon.config import load_config
+    from companion.daemon.config import link_budget_of, load_config
 
     cfg = load_config(args.config)
     print(
@@ -87,22 +87,9 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
         print(f"{args.config}: warning: {warning}", file=sys.stderr)
     budget = link_budget_of(cfg)
-    if not budget.fits:
+    if not budget.fits:  # a serial link too slow for this dialect at control.rate_hz
         print(f"{args.config}: warning: {budget.message}", file=sys.stderr)
     return 0
-
-
-def link_budget_of(cfg: Any) -> Any:
-    """Whether the config's updates fit its link (a serial link's bytes per second)."""
-    from firmware_interface.link_budget import link_budget
-
-    return link_budget(
-        cfg.link.url,
-        cfg.link.dialect,
-        cfg.calibration,
-        cfg.rate_hz,
-        signed=cfg.link.signing is not None,
-    )
 
 
 def _cmd_doctor(args: argparse.Namespace) -> int:

@@ -25,6 +25,7 @@ from firmware_interface import (
     FirmwareInterfaceError,
     InvalidUrl,
     JointCalibration,
+    LinkConfig,
     SigningConfig,
     parse_url,
 )
@@ -36,6 +37,7 @@ from firmware_interface.calibration import (
     PWM_LIMIT_MIN_US,
 )
 from firmware_interface.errors import CalibrationError, PwmOutOfRange
+from firmware_interface.link_budget import LinkBudget, link_budget
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
 
@@ -98,6 +100,18 @@ class LinkSettings:
     signing: SigningConfig | None = None
     #: Who may send MAVLink targets: (system id, component id) pairs; None: anyone routed to us.
     allowed_senders: frozenset[tuple[int, int]] | None = None
+
+
+def link_config(settings: LinkSettings) -> LinkConfig:
+    """The link's own settings from the daemon's (``run`` and ``doctor`` open the same link)."""
+    return LinkConfig(
+        system_id=settings.system_id,
+        component_id=settings.component_id,
+        target_system=settings.target_system,
+        target_component=settings.target_component,
+        loss_timeout_s=settings.loss_timeout_s,
+        signing=settings.signing,
+    )
 
 
 @dataclass(frozen=True)
@@ -526,3 +540,15 @@ def _check_pwm_covers_arm(
                 ) from None
             except CalibrationError as exc:  # only a park angle within 1e-9 deg past a limit
                 raise ConfigError(source, "arm.park_deg", f"[{index}]: {exc}") from exc
+
+
+def link_budget_of(config: DaemonConfig) -> LinkBudget:
+    """Whether the config's updates fit its link (a serial link's bytes per second), for
+    ``check-config`` and ``doctor``."""
+    return link_budget(
+        config.link.url,
+        config.link.dialect,
+        config.calibration,
+        config.rate_hz,
+        signed=config.link.signing is not None,
+    )

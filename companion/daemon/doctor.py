@@ -38,7 +38,7 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.daemon.config import DaemonConfig
+from companion.daemon.config import DaemonConfig, link_budget_of, link_config
 from firmware_interface import LinkConfig, LinkError, MavlinkLink
 from firmware_interface.link import MessageQueue
 from firmware_interface.lua_bridge import MAV_CMD_USER_2
@@ -510,15 +510,7 @@ def _lua_script(findings: Findings) -> Check:
 
 def _link_budget(config: DaemonConfig) -> Check | None:
     """A serial link's bytes per update x rate_hz against its baud (None: not serial)."""
-    from firmware_interface.link_budget import link_budget
-
-    budget = link_budget(
-        config.link.url,
-        config.link.dialect,
-        config.calibration,
-        config.rate_hz,
-        signed=config.link.signing is not None,
-    )
+    budget = link_budget_of(config)
     if budget.baud is None:
         return None
     verdict = Verdict.PASS if budget.fits else Verdict.WARN
@@ -603,18 +595,10 @@ def gather(
     """Open the link, wait at most ``timeout_s`` for the autopilot, read what :func:`evaluate`
     needs, listen at least ``listen_s`` for a ground station; close the link."""
     s = config.link
-    link_config = LinkConfig(
-        system_id=s.system_id,
-        component_id=s.component_id,
-        target_system=s.target_system,
-        target_component=s.target_component,
-        loss_timeout_s=s.loss_timeout_s,
-        signing=s.signing,
-    )
     opener = open_link or (lambda url, cfg: MavlinkLink.open(url, cfg, clock=clock))
     findings = Findings(url=s.url, signing_on=s.signing is not None)
     started = clock()
-    link = opener(s.url, link_config)
+    link = opener(s.url, link_config(s))
     try:
         with link.messages(
             ["HEARTBEAT", "PARAM_VALUE", "COMMAND_ACK", *STREAM_IDS], maxsize=4096

@@ -45,7 +45,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion import ik
-from companion.daemon.config import DaemonConfig
+from companion.daemon.config import DaemonConfig, link_config
 from companion.daemon.core import Action, Answer, ControlCore, ReadParam, SendCommand
 from companion.daemon.intake import RATE_LIMITED, Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import (
@@ -60,7 +60,7 @@ from companion.daemon.requests import (
     parse_trajectory,
 )
 from companion.kinematics.arm import Pose
-from firmware_interface import LinkConfig, LinkError, LinkState, MavlinkLink
+from firmware_interface import LinkError, LinkState, MavlinkLink
 
 __all__ = ["ArmDaemon", "Outcome", "Reply"]
 
@@ -146,18 +146,7 @@ class ArmDaemon:
 
     def start(self) -> None:
         s = self.config.link
-        self.link = MavlinkLink.open(
-            s.url,
-            LinkConfig(
-                system_id=s.system_id,
-                component_id=s.component_id,
-                target_system=s.target_system,
-                target_component=s.target_component,
-                loss_timeout_s=s.loss_timeout_s,
-                signing=s.signing,
-            ),
-            clock=self.clock,
-        )
+        self.link = MavlinkLink.open(s.url, link_config(s), clock=self.clock)
         self.link.subscribe(self._on_command_long, ["COMMAND_LONG"])
         self.link.subscribe(self._on_frame, CORE_FRAMES)
         self._thread = threading.Thread(target=self._run, name="armbridge-control", daemon=True)
