@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from bench.mavpeer import SocketPeer
 from bench.report import machine, md_table, write_markdown
 from tests.support.sim_process import SimProcess
 
@@ -46,49 +47,18 @@ REAL_ACK_MS = (5.8, 10.8, 13.0)
 REAL_CHAIN_MEDIAN_MS = "17.9–18.4"
 
 
-class UdpPeer:
+class UdpPeer(SocketPeer):
     """A pymavlink codec on a UDP socket talking to one address."""
 
     def __init__(self, url: str, system: int, component: int) -> None:
         _, host, port = url.split(":")
         self.address = (host, int(port))
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind(("127.0.0.1", 0))
-        self.mav = mavlink.MAVLink(None, system, component)
-        self.dec = mavlink.MAVLink(None)
-        self.dec.robust_parsing = True
-        self._pending: list[Any] = []
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.bind(("127.0.0.1", 0))
+        super().__init__(sock, system, component)
 
-    def send(self, msg: Any) -> None:
-        self.sock.sendto(msg.pack(self.mav), self.address)
-        self.mav.seq = (self.mav.seq + 1) % 256
-
-    def wait_for(self, predicate: Callable[[Any], bool], timeout_s: float = WAIT_S) -> Any:
-        deadline = time.monotonic() + timeout_s
-        while True:
-            while self._pending:
-                msg = self._pending.pop(0)
-                if predicate(msg):
-                    return msg
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise TimeoutError("no matching message from the simulator")
-            self.sock.settimeout(left)
-            self._pending.extend(self.dec.parse_buffer(self.sock.recv(65536)) or [])
-
-    def drain(self) -> None:
-        self._pending.clear()
-        self.sock.setblocking(False)
-        try:
-            while self.sock.recv(65536):
-                pass
-        except BlockingIOError:
-            pass
-        finally:
-            self.sock.setblocking(True)
-
-    def close(self) -> None:
-        self.sock.close()
+    def _write(self, frame: bytes) -> None:
+        self.sock.sendto(frame, self.address)
 
 
 def is_ack(command: int) -> Callable[[Any], bool]:

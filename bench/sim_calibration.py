@@ -23,7 +23,6 @@ the autopilot's 400 Hz main loop. Arguments after ``--`` go to the simulator (e.
 from __future__ import annotations
 
 import argparse
-import collections
 import socket
 import sys
 import tempfile
@@ -35,6 +34,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from bench.mavpeer import SocketPeer
 from bench.report import machine, md_table, write_markdown
 from tests.support.sim_process import SimProcess
 
@@ -52,60 +52,24 @@ REAL = {
 REAL_STREAM_HZ = 50.0
 
 
-class TcpClient:
+class TcpClient(SocketPeer):
     """A pymavlink codec over one TCP connection: the companion computer (1/191)."""
 
     def __init__(self, url: str) -> None:
         _, host, port = url.split(":")
-        self.sock = socket.create_connection((host, int(port)), timeout=WAIT_S)
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.mav = mavlink.MAVLink(None, *COMPANION)
-        self.dec = mavlink.MAVLink(None)
-        self.dec.robust_parsing = True
-        self._pending: collections.deque[Any] = collections.deque()
+        sock = socket.create_connection((host, int(port)), timeout=WAIT_S)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        super().__init__(sock, *COMPANION)
 
-    def send(self, msg: Any) -> None:
-        self.sock.sendall(msg.pack(self.mav))
-        self.mav.seq = (self.mav.seq + 1) % 256
+    def _write(self, frame: bytes) -> None:
+        self.sock.sendall(frame)
 
     def command(self, command: int, *params: float) -> None:
         values = list(params) + [0.0] * (7 - len(params))
         self.send(self.mav.command_long_encode(1, 1, command, 0, *values))
 
-    def wait_for(self, predicate: Callable[[Any], bool], timeout_s: float = WAIT_S) -> Any:
-        """The next message matching ``predicate`` (others are dropped); raises on timeout."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            while self._pending:
-                msg = self._pending.popleft()
-                if predicate(msg):
-                    return msg
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise TimeoutError("no matching message from the simulator")
-            self.sock.settimeout(left)
-            data = self.sock.recv(65536)
-            if not data:
-                raise ConnectionError("the simulator closed the connection")
-            self._pending.extend(self.dec.parse_buffer(data) or [])
-
     def ack(self, command: int) -> Any:
         return self.wait_for(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command)
-
-    def drain(self) -> None:
-        """Forget whatever has arrived (heartbeats, stream frames)."""
-        self._pending.clear()
-        self.sock.setblocking(False)
-        try:
-            while self.sock.recv(65536):
-                pass
-        except BlockingIOError:
-            pass
-        finally:
-            self.sock.setblocking(True)
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 def set_servo(client: TcpClient, pwm_us: int) -> None:
