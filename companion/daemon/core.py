@@ -229,9 +229,9 @@ class ControlCore:
         #: READBACK_WAIT_S after it with none (a firmware that does not stream it).
         self._readback_since_s = clock()
         self._readback_warned = False
-        #: When each output's PWM was acknowledged, and the PWMs acknowledged lately (a
-        #: readback may still show any of those from the last READBACK_SETTLE_S).
-        self._acked_s: dict[int, float] = {}
+        #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
+        #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
+        #: start, a loss or a reboot.
         self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
         #: Per output: readbacks in a row, settled after its ACK, not showing the acked PWM.
         self._mismatches: dict[int, int] = {}
@@ -347,7 +347,7 @@ class ControlCore:
         elif kind == "SYSTEM_TIME":
             self._on_system_time(actions, int(msg.time_boot_ms))
         elif kind == "SERVO_OUTPUT_RAW":
-            self._on_readback(actions, msg)
+            self._on_readback(msg)
         elif kind == "SYS_STATUS":
             enabled = msg.onboard_control_sensors_enabled
             safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
@@ -355,7 +355,9 @@ class ControlCore:
                 log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
             self._safety_on = safety_on
         elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
-            self._safety_mask = int(round(msg.param_value))
+            # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
+            value = msg.param_value
+            self._safety_mask = int(value) if math.isfinite(value) and value >= 0 else None
         return actions
 
     def tick(self, link_up: bool, autopilot: tuple[int, int] | None = None) -> list[Action]:
@@ -714,7 +716,6 @@ class ControlCore:
         joint_of = {o: i for i, o in enumerate(self._outputs)}
         for output, pwm in inflight.accepted.items():
             self._acked_pwm[output] = pwm
-            self._acked_s[output] = now
             self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
             self._mismatches[output] = 0
             self._refused.pop(output, None)
@@ -825,7 +826,6 @@ class ControlCore:
             self._goal = None
             self._trajectory.clear()
         self._acked_pwm.clear()
-        self._acked_s.clear()
         self._ack_history.clear()
         self._mismatches.clear()
         self._confirmed.clear()
@@ -871,7 +871,7 @@ class ControlCore:
 
     # -- the outputs' truth (issue 20) -------------------------------------------------------
 
-    def _on_readback(self, actions: list[Action], msg: Any) -> None:
+    def _on_readback(self, msg: Any) -> None:
         """A SERVO_OUTPUT_RAW: what each output does. PX4 shows the PWM it outputs (the
         disarmed PWM until armed or prearmed), so a PX4 output that does not show what it
         acknowledged, READBACK_MISMATCHES times in a row once settled, is not live: the joint
@@ -893,7 +893,7 @@ class ControlCore:
             if shown is None:
                 continue
             if acked is None:
-                if self._inflight is None and output not in self._acked_s:
+                if self._inflight is None and output not in self._ack_history:
                     # Nothing of ours acknowledged yet (start, reboot): the joint is where the
                     # output puts it, not at the assumed start pose.
                     self._position[joint_of[output]] = self._angle_shown(output, shown)
@@ -937,7 +937,6 @@ class ControlCore:
             # from there.
             self._position[joint_of[output]] = self._angle_shown(output, shown)
             self._acked_pwm.pop(output, None)
-            self._acked_s.pop(output, None)
             self._ack_history.pop(output, None)
             self._mismatches[output] = 0
             self._hold_now = True
@@ -1018,7 +1017,6 @@ class ControlCore:
         log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
         self._acked_pwm.clear()
-        self._acked_s.clear()
         self._ack_history.clear()
         self._confirmed.clear()
         if not self._is_ardupilot:

@@ -756,6 +756,8 @@ def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(
     assert reply.outcome is Outcome.ACCEPTED
     assert "outputs not live: safety switch on (output 9 not in BRD_SAFETY_MASK)" in reply.message
     assert rig.core.status()["safety_on"] is True
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", math.nan, 6, 1, 0))
+    assert rig.core.status()["outputs_live"] is False  # a NaN mask frees nothing
     mask = sum(1 << (o - 1) for o in rig.calibration.outputs)
     rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", mask, 6, 1, 0))
     rig.advance(0.05)
