@@ -30,6 +30,9 @@ MACHINE=armbridge-install-test
 # not python3-venv, which the README's first step installs.
 PACKAGES=systemd,systemd-sysv,dbus,python3,ca-certificates,sudo,procps
 CT_PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
+# Inside the container (its own root filesystem): where the checkout's tracked files are copied
+# from the read-only bind at /src, as a user's clone would be.
+CT_CHECKOUT=/root/armbridge
 
 if [[ $# -ne 1 || $1 != /* || $1 == / ]]; then
     echo "usage: $0 ROOTFS   (an absolute path for the base system, not /)" >&2
@@ -137,7 +140,7 @@ ct() {  # ct CMD...: run as root inside the container, with a clean environment
     nsenter --target "$LEADER" --all -- env -i PATH="$CT_PATH" HOME=/root LANG=C.UTF-8 \
         TERM=dumb "$@"
 }
-ct_sh() { ct /bin/bash -c "set -eo pipefail; cd /root/armbridge 2>/dev/null || cd /; $1"; }
+ct_sh() { ct /bin/bash -c "set -eo pipefail; cd $CT_CHECKOUT 2>/dev/null || cd /; $1"; }
 as_user() {  # as_user USER CMD: a login shell, so the user's groups are read afresh
     ct runuser --login "$1" --command "$2"
 }
@@ -154,10 +157,10 @@ if [[ -n ${PIP_CERT:-} ]]; then
     ct_sh "printf '[global]\ncert = /etc/ssl/install-test-ca.pem\n' > /etc/pip.conf"
 fi
 
-say "Not a README step: the checkout, a copy of /src's tracked files in /root/armbridge"
+say "Not a README step: the checkout, a copy of /src's tracked files in $CT_CHECKOUT"
 note "pip builds in the source tree (armbridge.egg-info), so it cannot install from read-only /src"
 git -C "$CHECKOUT" ls-files -z |
-    ct_sh "mkdir /root/armbridge && tar -C /src --null -T - -cf - | tar -C /root/armbridge -xf -"
+    ct_sh "mkdir $CT_CHECKOUT && tar -C /src --null -T - -cf - | tar -C $CT_CHECKOUT -xf -"
 
 say "Not a README step: the operator alice exists (and bob, who is not an operator)"
 ct_sh "useradd --create-home --shell /bin/bash alice && useradd --create-home --shell /bin/bash bob"
@@ -194,9 +197,9 @@ run_readme "sudo groupadd --system armbridge"
 run_readme "sudo usermod -aG armbridge alice"
 run_readme "sudo /usr/bin/python3 -m venv /opt/armbridge/.venv"
 readme "sudo /opt/armbridge/.venv/bin/pip install /path/to/this/checkout" \
-    "the checkout is /root/armbridge"
+    "the checkout is $CT_CHECKOUT"
 t=$(date +%s)
-ct_sh "sudo /opt/armbridge/.venv/bin/pip install /root/armbridge"
+ct_sh "sudo /opt/armbridge/.venv/bin/pip install $CT_CHECKOUT"
 PIP_S=$(($(date +%s) - t))
 run_readme "sudo ln -s /opt/armbridge/.venv/bin/armbridge /usr/local/bin/"
 run_readme "sudo install -D -m 644 companion/daemon/examples/armbridge.toml /etc/armbridge/armbridge.toml"
