@@ -17,7 +17,14 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
-from companion.daemon.core import UPDATE_ATTEMPTS, Answer, ControlCore, ReadParam, SendCommand
+from companion.daemon.core import (
+    PIPELINE_DEPTH,
+    UPDATE_ATTEMPTS,
+    Answer,
+    ControlCore,
+    ReadParam,
+    SendCommand,
+)
 from companion.daemon.requests import Outcome, Request
 from tests.support.timing import FakeClock
 
@@ -295,6 +302,70 @@ def test_a_moving_arm_survives_unanswered_updates_up_to_update_attempts(rig):
         assert moving == (attempt < UPDATE_ATTEMPTS)
 
 
+def test_a_target_goes_out_behind_the_update_in_flight_and_acks_are_counted_in_order(rig):
+    # On a 115 200-baud line an update takes 13-21 ms: a target arriving meanwhile used to
+    # wait out the whole round trip before its first step went out.
+    rig.goto(PARK)
+    rig.ack_all(rig.sent)  # every output acknowledged: the state the pipe starts from
+    rig.sent.clear()
+    rig.clock.advance(0.02)
+    first = rig.goto(near(PARK))
+    ahead = rig.servo()
+    rig.sent.clear()
+    rig.clock.advance(0.01)  # half a tick later, the first update still in flight
+    target = tuple(p + 20.0 for p in PARK)
+    second = rig.goto(target)
+    behind = [c for c in rig.sent if c.command == SERVO]
+    assert len(behind) == 6  # every output the update ahead sent, at the new step
+    for c in behind:
+        output, pwm = int(c.params[0]), int(c.params[1])
+        # One step from the command ahead of it, limited by the time since that one went out.
+        assert 0 < rig.angle(output, pwm) - rig.angle(output, ahead[output]) <= STEP_DEG / 2 + 0.2
+    for _ in range(6):
+        rig.ack()
+    assert rig.reply(first).outcome is Outcome.ACCEPTED and not second.answered
+    assert rig.core.status()["last_pwm_us"] == ahead
+    for _ in range(6):
+        rig.ack()
+    assert rig.reply(second).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["last_pwm_us"] == rig.servo(behind)
+    # Never a third: the step after waits for the one ahead of it.
+    rig.sent.clear()
+    for delta_deg in (-20.0, -21.0, -22.0):
+        rig.clock.advance(0.005)
+        rig.goto(tuple(p + delta_deg for p in PARK))
+    assert len([c for c in rig.sent if c.command == SERVO]) == 12
+
+
+def test_an_unanswered_update_with_one_behind_it_is_decided_by_the_one_behind(rig):
+    rig.goto(PARK)
+    rig.ack_all(rig.sent)
+    rig.sent.clear()
+    rig.clock.advance(0.02)
+    first = rig.goto(near(PARK))
+    rig.clock.advance(0.01)
+    second = rig.goto(tuple(p + 20.0 for p in PARK))
+    behind = [c for c in rig.sent if c.command == SERVO][6:]
+    for _ in range(3):
+        rig.ack()  # three of the first update's six: the rest lost, and all of the second's
+    rig.sent.clear()
+    rig.advance(rig.config.link.command_timeout_s - 0.005)  # the first's deadline
+    assert not first.answered and not second.answered
+    status = rig.core.status()
+    assert status["last_pwm_us"] is None  # unknown, not "acknowledged at park"
+    assert rig.servo() == {}  # no retry of the first: the second re-sent its outputs
+    rig.advance(0.01)  # the second's deadline: its commands confirmed one at a time
+    for expected in behind:
+        [alone] = [c for c in rig.sent if c.command == SERVO]
+        assert alone.params == expected.params
+        rig.sent.clear()
+        rig.ack()
+    # Both targets are answered by the outcome of the update that carried their outputs.
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    assert rig.reply(second).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["last_pwm_us"] == rig.servo(behind)
+
+
 # -- requests ----------------------------------------------------------------------------------
 
 
@@ -521,8 +592,10 @@ def test_any_sequence_answers_every_request_once_keeps_the_limit_and_the_range(e
             low, high = cal.for_output(output).pwm_range_us
             assert low <= pwm <= high
             joint = cal.outputs.index(output)
-            # Never more than one step from what the autopilot acknowledged.
-            assert abs(rig.angle(output, pwm) - position[joint]) <= STEP_DEG + 0.2
+            # Never more than one step per update in flight from what the autopilot
+            # acknowledged (the next step may go out behind the one in flight).
+            bound = PIPELINE_DEPTH * STEP_DEG + 0.2
+            assert abs(rig.angle(output, pwm) - position[joint]) <= bound
         goal = rig.core.status()["goal_deg"]
         replies = [(rig.reply(r), q) for r, q in requests if q is not None]
         live = {q for reply, q in replies if reply is None or reply.outcome is Outcome.ACCEPTED}
