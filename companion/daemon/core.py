@@ -64,6 +64,7 @@ from companion.kinematics.arm import Pose
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
 from firmware_interface.link import is_autopilot_heartbeat
+from firmware_interface.transport import parse_url
 from firmware_interface.updates import ServoCommand, UpdateOutcome, UpdateState, UpdateTracker
 
 log = logging.getLogger("armbridge")
@@ -91,6 +92,11 @@ REBOOT_BACKSTEP_MS = 100
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
 #: outputs do (issue 20). ArduPilot streams it at most every 20 ms.
 READBACK_INTERVAL_S = 0.1
+#: ArduPilot on a serial line below SLOW_LINK_BAUD: the readback only feeds status there (its
+#: safety switch comes from SYS_STATUS), and at 10 Hz its 49-byte frames (4.3 ms each at
+#: 115 200 baud) would delay an update's ACK behind them one time in twenty.
+READBACK_SLOW_LINK_INTERVAL_S = 1.0
+SLOW_LINK_BAUD = 230_400
 #: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
 #: the switch is off) is asked for at this interval.
 SYS_STATUS_INTERVAL_S = 0.5
@@ -235,6 +241,13 @@ class ControlCore:
         #: READBACK_WAIT_S after it with none (a firmware that does not stream it).
         self._readback_since_s = clock()
         self._readback_warned = False
+        spec = parse_url(config.link.url)
+        slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
+        self._readback_interval_s = (
+            READBACK_SLOW_LINK_INTERVAL_S
+            if slow_serial and self._is_ardupilot
+            else READBACK_INTERVAL_S
+        )
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
         #: start, a loss or a reboot.
@@ -946,7 +959,7 @@ class ControlCore:
         self._system_time_asked_s = self.clock()
         streams = [
             (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S),
-            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, READBACK_INTERVAL_S),
+            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, self._readback_interval_s),
         ]
         if self._is_ardupilot:
             streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))

@@ -459,6 +459,32 @@ def test_system_time_readback_and_safety_are_asked_for_once_pinned(rig):
     assert [r.name for r in rig.reads] == ["BRD_SAFETY_MASK"]
 
 
+@pytest.mark.parametrize(
+    ("url", "dialect", "interval_s"),
+    [
+        ("/dev/ttyAMA0,115200", "ardupilot-lua", 1.0),  # status only: spare the slow line
+        ("/dev/ttyAMA0,921600", "ardupilot", 0.1),
+        ("/dev/ttyAMA0,57600", "px4", 0.1),  # PX4's liveness comes from it
+    ],
+)
+def test_the_readback_is_asked_for_less_often_where_it_only_feeds_status_on_a_slow_line(
+    url, dialect, interval_s
+):
+    rig = Rig(dialect=dialect, url=url)
+    autopilot = (
+        mavlink.MAV_AUTOPILOT_PX4 if dialect == "px4" else mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+    )
+    rig.heartbeat(autopilot=autopilot)
+    rig.tick()
+    [ask] = [
+        c
+        for c in rig.sent
+        if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+        and c.params[0] == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW
+    ]
+    assert ask.params[1] == pytest.approx(interval_s * 1e6)
+
+
 def test_a_reboot_within_the_loss_timeout_is_seen_and_every_output_resent(rig):
     # An autopilot restarted in 0.36 s went unnoticed: status "up" with the old PWMs while its
     # outputs were at 0, and the next target sent only the output that changed.
