@@ -1008,9 +1008,13 @@ class ControlCore:
                     self._position[joint_of[output]] = self._angle_shown(output, shown)
                 continue
             expected = self._expected_pwms(output, now)
-            if not expected:
-                continue  # acknowledged too lately to be shown yet
-            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected):
+            # PX4 applies a command on its output cycle and answers it on its commander's: a
+            # readback in between shows a step on its way, not acknowledged yet. It is ours,
+            # so the output is live.
+            on_its_way = {
+                f.pwm_by_output[output] for f in self._flights if output in f.pwm_by_output
+            }
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
                 self._mismatches[output] = 0
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
@@ -1020,6 +1024,8 @@ class ControlCore:
                 if self._not_live.pop(output, None) is not None:
                     log.info("output %d live again (shows %d us)", output, shown)
                 continue
+            if not expected:
+                continue  # acknowledged too lately to be shown yet
             # A live output that stops showing what it acknowledged long ago was disarmed,
             # killed or rebooted: no second look (PX4 would apply our stored pose at once on
             # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).

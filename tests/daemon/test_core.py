@@ -64,6 +64,7 @@ class Rig:
         self.sent: list[SendCommand] = []
         self.reads: list[ReadParam] = []
         self.answers: dict[int, list] = {}
+        self.requests: list[Request] = []
         self.codecs: dict[tuple[int, int], mavlink.MAVLink] = {}
         self.decoder = mavlink.MAVLink(None)
 
@@ -128,6 +129,7 @@ class Rig:
 
     def request(self, kind, payload=None, **kw) -> Request:
         request = Request(kind, payload, received_s=self.clock(), **kw)
+        self.requests.append(request)  # alive: answers are keyed by id()
         self.take(self.core.request(request))
         return request
 
@@ -759,6 +761,21 @@ class Px4Outputs:
             self._refresh()
             self.rig.ack(command=ACTUATOR)
 
+    def apply(self) -> list[SendCommand]:
+        """Apply every DO_SET_ACTUATOR sent so far, its ACK not sent yet (PX4 answers on its
+        commander's cycle, after the output cycle may have applied it)."""
+        commands = [c for c in self.rig.sent if c.command == ACTUATOR]
+        self.rig.sent.clear()
+        for c in commands:
+            for slot, output in enumerate(self.rig.calibration.outputs):
+                value = c.params[slot]
+                if not math.isnan(value):
+                    joint = self.rig.calibration.for_output(output)
+                    span = joint.pwm_max_us - joint.pwm_min_us
+                    self.stored[output] = round(joint.pwm_min_us + (value + 1) / 2 * span)
+        self._refresh()
+        return commands
+
     def set_live(self, live: bool) -> None:
         """Arm or prearm (live), disarm or kill (not). Disarming drives every output to the
         disarmed PWM at once: PX4's doing, not ours, so not recorded as a move."""
@@ -828,6 +845,27 @@ def test_px4_outputs_that_do_not_show_what_they_acknowledged_hold_the_arm():
         assert abs(after - before) <= step_us + 1, (output, before, after)
     assert rig.core.status()["goal_deg"] == pytest.approx(list(near(PARK, 19.0)))
     assert rig.core.status()["moving"] is False
+
+
+def test_px4_a_readback_showing_a_step_before_its_ack_is_not_a_dead_output():
+    # PX4 applies DO_SET_ACTUATOR on its output cycle and answers on its commander's: a
+    # readback in between shows a step not acknowledged yet. Taken for "not what was
+    # acknowledged", it held the arm as if disarmed (a target waited 201 ms in bench.latency).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    request = rig.goto(near(PARK, 20.0))
+    unanswered = px4.apply()
+    px4.readback()  # shows the step before its ACK
+    for _ in unanswered:
+        rig.ack(command=ACTUATOR)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["outputs_live"] is True
+    rig.advance(1.0 / RATE_HZ)
+    assert [c for c in rig.sent if c.command == ACTUATOR]  # the next step at once
 
 
 def test_px4_after_a_reboot_the_stale_pose_is_not_sent_again():
