@@ -481,6 +481,14 @@ class ControlCore:
             raise ValueError(f"invalid target: {exc}") from exc
 
     def _goto(self, actions: list[Action], request: Request | None, target: Target) -> bool:
+        if target.frame != "base":
+            reply = Reply(
+                Outcome.DENIED,
+                f"frame={target.frame!r}: world-frame targets are not enabled on this daemon",
+            )
+            if request is not None:
+                self._answer(actions, request, reply)
+            return False
         pose = target.pose
         start = self._goal if self._goal is not None else tuple(self._position)
         result = self._solve(pose, start, target.mode)

@@ -938,3 +938,10 @@ def test_property_px4_outputs_never_jump_faster_than_the_speed_limit(events):
 def rig_park_pwm() -> int:
     """One PWM inside every joint's calibration (the default 1000-2000 us)."""
     return 1500
+
+
+def test_a_world_frame_target_is_refused_while_world_targets_are_off(rig):
+    request = rig.request("goto", {"pose": near(PARK), "mode": "pose", "frame": "local_ned"})
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.DENIED and "local_ned" in reply.message
+    assert not [c for c in rig.sent if c.command == SERVO]
