@@ -32,12 +32,15 @@ def test_example_config_loads_with_documented_defaults(tmp_path):
 
 
 def test_every_value_the_example_sets_is_the_default(tmp_path):
-    """The example config says "every field is listed with its default" (park_deg excepted,
-    and marked so): loaded, it is the same config as the URL alone."""
+    """The example config says "every field is listed with its default" (park_deg and the
+    keep-out volumes excepted, and marked so: a park pose and a vehicle are the user's own, and
+    the default is none of either): loaded, it is the same config as the URL alone."""
     example = load_config(write(tmp_path, EXAMPLE))
     minimal = load_config(write(tmp_path, '[link]\nurl = "udpout:127.0.0.1:14550"\n', "min.toml"))
     assert example.park_deg == (0, 90, 0, 0, 0, 0) and minimal.park_deg is None
-    assert dataclasses.replace(example, source=minimal.source, park_deg=None) == minimal
+    assert len(example.keepout) == 9 and minimal.keepout == ()
+    same = dataclasses.replace(example, source=minimal.source, park_deg=None, keepout=())
+    assert same == minimal
 
 
 def test_minimal_config_needs_only_the_url(tmp_path):
