@@ -276,7 +276,9 @@ class KeepOut:
     """An arm, its mount and keep-out volumes, prepared once for repeated checks.
 
     ``margin_cm`` (≥ 0) is the clearance every link capsule must keep from every volume;
-    ``max_depth`` bounds the halvings of :meth:`check_motion`. Raises ``ValueError`` for an arm
+    :meth:`check_motion` first samples a motion every ``step_cm`` of bounded link travel, then
+    halves the intervals it cannot prove clear, at most ``max_depth`` times (neither changes
+    what is accepted as clear, only how much work that takes). Raises ``ValueError`` for an arm
     without link shapes when volumes are given (there would be nothing to check).
     """
 
@@ -288,6 +290,7 @@ class KeepOut:
         margin_cm: float = 1.0,
         *,
         max_depth: int = 12,
+        step_cm: float = 2.0,
     ) -> None:
         self.arm = arm
         self.volumes = tuple(volumes)
@@ -301,6 +304,9 @@ class KeepOut:
         if max_depth < 0:
             raise ValueError(f"max_depth={max_depth!r} must be >= 0")
         self.max_depth: int = int(max_depth)
+        if not step_cm > 0:
+            raise ValueError(f"step_cm={step_cm!r} must be > 0")
+        self.step_cm = float(step_cm)
         names = [v.name for v in self.volumes]
         for v in self.volumes:
             if not isinstance(v, Sphere | Capsule | Box | Cylinder):
@@ -518,8 +524,8 @@ class KeepOut:
         speed = self.speeds(q0, q1)  # (C,)
         dq = q1 - q0
         top = float(speed.max())
-        # Start with samples about 2 cm of link travel apart: one interval for a control tick.
-        count = int(min(max(math.ceil(top / 2.0), 1), 256))
+        # Start with samples step_cm of link travel apart: one interval for a control tick.
+        count = int(min(max(math.ceil(top / self.step_cm), 1), 256))
         s = np.linspace(0.0, 1.0, count + 1)
         clear = self.clearances(q0 + s[:, None] * dq).min(axis=2)  # (S, C)
         lo_s, hi_s = s[:-1], s[1:]
