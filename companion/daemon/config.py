@@ -386,7 +386,7 @@ def _check_rest_pose_clear(
     )
     raise root.fail(
         f"keepout[{index}]",
-        f"{what} is not clear of keep-out volume {hit.volume!r}: {hit.reason}",
+        f"{what} is not clear: {hit.reason}",
     )
 
 
