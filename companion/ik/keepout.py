@@ -1,0 +1,180 @@
+"""Solutions that keep clear of the vehicle: :func:`solve_clear`, a hard filter around
+:func:`~companion.ik.solver.solve`.
+
+The solver knows nothing of keep-out volumes yet (a cost term that steers away from them comes
+later); this filter checks each answer with a :class:`~companion.kinematics.collision.KeepOut`
+and, while the budget lasts, asks again from elsewhere: first from ``q_start_deg`` (the warm
+start, normally the previous command), then alternately a cold start and a warm start from a
+random configuration that is itself clear, each with a fresh seed. An answer is taken only if
+the configuration, and (with ``q_start_deg``) the straight joint motion from ``q_start_deg`` to
+it, keep the margin; otherwise the target is refused with the reason of the best attempt (which
+link comes how close to which volume, and where along the motion).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+import numpy as np
+
+from companion.ik.solver import IKResult, TargetMode, solve
+from companion.kinematics import Pose
+from companion.kinematics.collision import Collision, KeepOut
+
+Clock = Callable[[], float]
+Solver = Callable[..., IKResult]
+
+#: Random configurations drawn to find clear warm starts (one batch check, ~1 ms).
+_CLEAR_STARTS = 64
+
+
+class ClearVerdict(Enum):
+    """What :func:`solve_clear` found."""
+
+    CLEAR = "clear"
+    """A clear answer (its ``converged`` says whether it meets the tolerances)."""
+    COLLIDES = "collides"
+    """Every answer found puts a link inside a volume's margin: refused."""
+    MOTION_COLLIDES = "motion_collides"
+    """Some answers are clear, but the motion from ``q_start_deg`` to each crosses a margin."""
+    DEADLINE = "deadline"
+    """The budget ended before a single answer: refused, nothing checked."""
+
+
+@dataclass(frozen=True)
+class ClearResult:
+    """Outcome of :func:`solve_clear`. ``result`` is the clear answer (None when refused);
+    ``collision`` the reason of a refusal (the best attempt's worst link and volume; None when
+    clear, or when the budget ended before any answer). ``attempts`` solver calls took
+    ``elapsed_ms`` on the clock."""
+
+    verdict: ClearVerdict
+    result: IKResult | None
+    collision: Collision | None
+    attempts: int
+    elapsed_ms: float
+
+    @property
+    def refused(self) -> bool:
+        return self.result is None
+
+
+def _rng(seed: int | np.random.Generator | None) -> np.random.Generator:
+    if isinstance(seed, np.random.Generator):
+        return seed
+    if seed is None or (isinstance(seed, int | np.integer) and not isinstance(seed, bool)):
+        return np.random.default_rng(None if seed is None else int(seed) & ((1 << 64) - 1))
+    raise ValueError(f"seed={seed!r} must be an int, a numpy Generator or None")
+
+
+def _better(a: IKResult, b: IKResult | None) -> bool:
+    """Converged beats not converged; then the lower cost."""
+    if b is None:
+        return True
+    if a.converged != b.converged:
+        return a.converged
+    return a.cost < b.cost
+
+
+def solve_clear(
+    keepout: KeepOut,
+    target: Pose | Sequence[float],
+    *,
+    budget_ms: float = 20.0,
+    seed: int | np.random.Generator | None = None,
+    q_start_deg: Sequence[float] | None = None,
+    tol_pos_cm: float = 1e-3,
+    tol_ori_deg: float = 1e-3,
+    mode: TargetMode = TargetMode.POSE,
+    max_attempts: int = 16,
+    clock: Clock = time.perf_counter,
+    solver: Solver = solve,
+    **solve_kwargs: Any,
+) -> ClearResult:
+    """Solve for ``target`` on ``keepout.arm`` and return only an answer clear of
+    ``keepout``'s volumes (and, given ``q_start_deg``, reached from it by a clear straight joint
+    motion), within ``budget_ms`` in all and at most ``max_attempts`` solver calls.
+
+    The arguments are :func:`~companion.ik.solver.solve`'s (``solve_kwargs`` passes the rest:
+    ``settings``, ``tool_axis``, ``direction``, ``cpu_clock``); ``solver`` is injectable for
+    tests. A clear converged answer returns at once; otherwise the best clear one found (its
+    ``converged`` False), or a refusal naming the reason. Same seed, same inputs → same answer,
+    as long as the budget does not cut a solve short.
+    """
+    started = clock()
+    if not (isinstance(budget_ms, int | float) and math.isfinite(budget_ms) and budget_ms > 0):
+        raise ValueError(f"budget_ms={budget_ms!r} must be a finite number > 0")
+    if not (isinstance(max_attempts, int) and max_attempts >= 1):
+        raise ValueError(f"max_attempts={max_attempts!r} must be an integer >= 1")
+    arm = keepout.arm
+    rng = _rng(seed)
+    q_start_rad = None
+    if q_start_deg is not None:
+        q_start = np.asarray(q_start_deg, dtype=float)
+        if q_start.shape != (arm.dof,) or not np.all(np.isfinite(q_start)):
+            raise ValueError(f"q_start_deg={q_start_deg!r} must be {arm.dof} finite values")
+        q_start_rad = arm.q_from_user(q_start)
+    deadline = started + budget_ms * 1e-3
+
+    best: IKResult | None = None
+    refusal: tuple[IKResult, Collision, bool] | None = None  # (attempt, why, motion only)
+    clear_starts: np.ndarray | None = None
+    attempts = 0
+    while attempts < max_attempts:
+        left_s = deadline - clock()
+        if left_s <= 0.0:
+            break
+        # The first try gets half the budget (a warm start normally converges in a fraction
+        # of it); later ones share what is left with the next.
+        share_s = left_s / 2 if attempts + 1 < max_attempts else left_s
+        start: Sequence[float] | None
+        if attempts == 0:
+            start = q_start_deg
+        elif attempts % 2 == 1:
+            start = None
+        else:
+            if clear_starts is None:
+                drawn = arm.random_q_rad(rng, _CLEAR_STARTS)
+                clear_starts = drawn[keepout.clear_mask(drawn)]
+            start = (
+                None
+                if len(clear_starts) == 0
+                else arm.q_to_user(clear_starts[rng.integers(len(clear_starts))]).tolist()
+            )
+        result = solver(
+            arm,
+            target,
+            budget_ms=share_s * 1e3,
+            seed=int(rng.integers(0, 1 << 63)),
+            q_start_deg=start,
+            tol_pos_cm=tol_pos_cm,
+            tol_ori_deg=tol_ori_deg,
+            mode=mode,
+            **solve_kwargs,
+        )
+        attempts += 1
+        q = result.q_rad
+        why = keepout.check(q)
+        motion_only = False
+        if why is None and q_start_rad is not None:
+            why = keepout.check_motion(q_start_rad, q)
+            motion_only = True
+        if why is None:
+            if _better(result, best):
+                best = result
+            if result.converged:
+                break
+        elif refusal is None or _better(result, refusal[0]):
+            refusal = (result, why, motion_only)
+    elapsed_ms = (clock() - started) * 1e3
+    if best is not None:
+        return ClearResult(ClearVerdict.CLEAR, best, None, attempts, elapsed_ms)
+    if refusal is None:  # the budget ran out before a single attempt
+        return ClearResult(ClearVerdict.DEADLINE, None, None, attempts, elapsed_ms)
+    verdict = ClearVerdict.MOTION_COLLIDES if refusal[2] else ClearVerdict.COLLIDES
+    return ClearResult(verdict, None, refusal[1], attempts, elapsed_ms)
