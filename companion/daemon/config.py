@@ -123,6 +123,24 @@ def link_config(settings: LinkSettings) -> LinkConfig:
 
 
 @dataclass(frozen=True)
+class WorldSettings:
+    """``[world]``: world-frame targets (issue 18).
+
+    ``enabled``: the daemon asks the autopilot for ATTITUDE and LOCAL_POSITION_NED at
+    ``telemetry_hz`` and takes targets in LOCAL_NED (off by default: on a serial link the two
+    streams cost 80 bytes each a frame). ``lead_ms``: how far ahead of the link's own latency
+    (half an update's measured round trip) the vehicle's motion is predicted: the servo's
+    response. ``max_age_ms``: telemetry older than this is not followed (the arm holds and
+    status says why).
+    """
+
+    enabled: bool = False
+    telemetry_hz: float = 50.0
+    lead_ms: float = 20.0
+    max_age_ms: float = 200.0
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     """A validated daemon configuration."""
 
@@ -153,12 +171,16 @@ class DaemonConfig:
     #: Clearance kept from every keep-out volume (``safety.keepout_margin_cm``).
     keepout_margin_cm: float = 1.0
 
+    #: World-frame targets (``[world]``): the hand held in LOCAL_NED while the vehicle moves.
+    world: WorldSettings = WorldSettings()
+
     def keepout_check(self) -> KeepOut:
         """The arm, mount, volumes and margin, prepared for the keep-out checks."""
         return KeepOut(self.arm, self.keepout, self.mount, self.keepout_margin_cm)
 
 
-_SECTIONS = ("link", "arm", "solver", "control", "joint", "mount", "safety", "keepout")
+_SECTIONS = ("link", "arm", "solver", "control", "joint", "mount", "safety", "keepout", "world")
+_WORLD_KEYS = ("enabled", "telemetry_hz", "lead_ms", "max_age_ms")
 _MOUNT_KEYS = ("xyz_cm", "rpy_deg")
 _SAFETY_KEYS = ("keepout_margin_cm",)
 #: Per keep-out volume type, its fields besides ``name`` and ``type``.
@@ -274,6 +296,25 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         mount=mount,
         keepout=volumes,
         keepout_margin_cm=margin,
+        world=_parse_world(root.table("world", allowed=_WORLD_KEYS)),
+    )
+
+
+#: ArduPilot streams a message at most at its main loop's rate; 50 Hz is what SERVO_OUTPUT_RAW
+#: reached when 400 Hz was asked (issue 13), so more is not asked for.
+TELEMETRY_HZ = (1.0, 50.0)
+LEAD_MS = (0.0, 500.0)
+MAX_AGE_MS = (10.0, 2000.0)
+
+
+def _parse_world(t: Table) -> WorldSettings:
+    return WorldSettings(
+        enabled=t.boolean("enabled", False),
+        telemetry_hz=t.number(
+            "telemetry_hz", 50.0, min_value=TELEMETRY_HZ[0], max_value=TELEMETRY_HZ[1]
+        ),
+        lead_ms=t.number("lead_ms", 20.0, min_value=LEAD_MS[0], max_value=LEAD_MS[1]),
+        max_age_ms=t.number("max_age_ms", 200.0, min_value=MAX_AGE_MS[0], max_value=MAX_AGE_MS[1]),
     )
 
 

@@ -60,7 +60,9 @@ from companion.daemon.requests import (
     as_target,
     parse_trajectory,
 )
+from companion.daemon.telemetry import VehicleTelemetry
 from companion.kinematics.arm import Pose
+from companion.kinematics.vehicle import base_to_world, world_to_base
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
 from firmware_interface.link import is_autopilot_heartbeat
@@ -121,7 +123,13 @@ READBACK_WAIT_S = 2.0
 #: next step after that waits: a deeper pipe would only queue stale steps.
 PIPELINE_DEPTH = 2
 
-Solve = Callable[[Pose, Sequence[float], str], Any]  # (pose, q_start_deg, mode) → ik.IKResult
+#: (pose, q_start_deg, mode, budget_ms or None for the configured one) → ik.IKResult
+Solve = Callable[[Pose, Sequence[float], str, float | None], Any]
+#: A world-frame target is solved again every control tick in at most this share of the
+#: period (warm, it converges in ~0.1 ms; an unreachable one costs the whole of it).
+WORLD_SOLVE_SHARE = 0.1
+#: Before any update's round trip was measured, the link's one-way latency is taken as this.
+WORLD_DEFAULT_ONE_WAY_S = 0.005
 
 
 @dataclass(frozen=True)
@@ -288,6 +296,13 @@ class ControlCore:
         self._hand_at: tuple[tuple[float, ...], dict[str, float]] | None = None
         #: (kind, source) → (when its last "accepted" line was logged, how many since)
         self._accept_log: dict[tuple[str, Any], tuple[float, int]] = {}
+        # -- world-frame targets (issue 18) --
+        self._telemetry = VehicleTelemetry()
+        #: The target held in the world (None: none), and what following it last found.
+        self._world: Target | None = None
+        self._world_note: dict[str, Any] = {}
+        #: Recent updates' round trips (s), for the link's one-way latency.
+        self._round_trips: collections.deque[float] = collections.deque(maxlen=32)
 
     # -- events -----------------------------------------------------------------------------
 
@@ -331,8 +346,9 @@ class ControlCore:
         self._maybe_send(actions, immediate=True)
         return actions
 
-    def frame(self, msg: Any) -> list[Action]:
-        """A frame from the link: HEARTBEAT, COMMAND_ACK, STATUSTEXT or SYSTEM_TIME."""
+    def frame(self, msg: Any, received_s: float | None = None) -> list[Action]:
+        """A frame from the link (see ``service.CORE_FRAMES``), received at ``received_s``
+        (default: now; the vehicle's telemetry is dated from it)."""
         actions: list[Action] = []
         kind = msg.get_type()
         source = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -377,6 +393,8 @@ class ControlCore:
             if safety_on != self._safety_on and self._is_ardupilot:
                 log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
             self._safety_on = safety_on
+        elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
+            self._telemetry.on_frame(msg, self.clock() if received_s is None else received_s)
         elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
             # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
             value = msg.param_value
@@ -404,6 +422,8 @@ class ControlCore:
         if due:
             if self._trajectory:
                 self._due_trajectory_point(actions)
+            elif self._world is not None:
+                self._follow_world()
             self._maybe_send(actions, immediate=False)
         return actions
 
@@ -481,17 +501,21 @@ class ControlCore:
             raise ValueError(f"invalid target: {exc}") from exc
 
     def _goto(self, actions: list[Action], request: Request | None, target: Target) -> bool:
-        if target.frame != "base":
-            reply = Reply(
-                Outcome.DENIED,
-                f"frame={target.frame!r}: world-frame targets are not enabled on this daemon",
-            )
-            if request is not None:
-                self._answer(actions, request, reply)
-            return False
         pose = target.pose
+        if target.frame != "base":
+            refusal = self._world_refusal(target)
+            in_base = None if refusal is not None else self._world_in_base(target)
+            if in_base is None:
+                if request is not None:
+                    self._answer(
+                        actions,
+                        request,
+                        refusal or Reply(Outcome.TEMPORARILY_REJECTED, self._world_note["reason"]),
+                    )
+                return False
+            pose = in_base
         start = self._goal if self._goal is not None else tuple(self._position)
-        result = self._solve(pose, start, target.mode)
+        result = self._solve(pose, start, target.mode, None)
         self.counters["solved"] += 1
         timing = {
             "received_s": request.received_s if request is not None else self.clock(),
@@ -530,9 +554,13 @@ class ControlCore:
         else:
             superseded = Reply(Outcome.CANCELLED, "superseded by a newer target")
             self._stop_motion(actions, superseded)
+            message = "moving" if target.frame == "base" else "moving; held in LOCAL_NED"
             self._accept(
-                actions, request, result.q_deg, Reply(Outcome.ACCEPTED, "moving", result, timing)
+                actions, request, result.q_deg, Reply(Outcome.ACCEPTED, message, result, timing)
             )
+            if target.frame != "base":
+                self._world = target
+                self._world_note = {"reachable": True, "reason": None}
         return True
 
     def _accept(
@@ -555,6 +583,7 @@ class ControlCore:
         already on their way are answered when their update resolves."""
         self._goal = None
         self._trajectory.clear()
+        self._world = None
         for w in self._waiting:
             self._answer(actions, w.request, reply)
         self._waiting.clear()
@@ -871,6 +900,8 @@ class ControlCore:
             self._unconfirmed = None
             self._unanswered = 0
             self.counters["servo_updates"] += 1  # acknowledged in full
+            if inflight.attempt == 0:
+                self._round_trips.append(now - inflight.sent_s)
             self._record_first_out(timing)
             dead = self._dead_outputs()
             for w in inflight.waiting:
@@ -946,6 +977,7 @@ class ControlCore:
         self._ack_history.clear()
         self._mismatches.clear()
         self._confirmed.clear()
+        self._telemetry.reset()
         self._readback_since_s = self.clock()
         if not self._is_ardupilot:
             # PX4 applies what it stores in one step once its outputs are live: re-sending the
@@ -971,6 +1003,12 @@ class ControlCore:
         ]
         if self._is_ardupilot:
             streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))
+        world = self.config.world
+        if world.enabled:
+            streams += [
+                (mavlink.MAVLINK_MSG_ID_ATTITUDE, 1.0 / world.telemetry_hz),
+                (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1.0 / world.telemetry_hz),
+            ]
         for msg_id, interval_s in streams:
             actions.append(
                 SendCommand(
@@ -1150,6 +1188,93 @@ class ControlCore:
             self._resend_now = True
         self._ask_system_time(actions)
 
+    # -- world-frame targets (issue 18) ------------------------------------------------------
+
+    def _world_refusal(self, target: Target) -> Reply | None:
+        if not self.config.world.enabled:
+            return Reply(
+                Outcome.DENIED,
+                f"frame={target.frame!r}: world-frame targets are off ([world] enabled = false)",
+            )
+        return None
+
+    def _world_in_base(self, target: Target) -> Pose | None:
+        """The world target in the arm's base frame when the next step will reach the
+        servos (None: no usable telemetry; ``_world_note["reason"]`` says why)."""
+        now = self.clock()
+        state = self._telemetry.state()
+        world = self.config.world
+        if state is None:
+            self._world_note = {
+                "reachable": None,
+                "reason": "no vehicle telemetry yet (ATTITUDE and LOCAL_POSITION_NED)",
+            }
+            return None
+        age_ms = 1000.0 * state.age_s(now)
+        if age_ms > world.max_age_ms:
+            self._world_note = {
+                "reachable": None,
+                "reason": f"vehicle telemetry {age_ms:.0f} ms old (world.max_age_ms = "
+                f"{world.max_age_ms:g}): holding",
+            }
+            return None
+        trips = sorted(self._round_trips)
+        one_way_s = trips[len(trips) // 2] / 2.0 if trips else WORLD_DEFAULT_ONE_WAY_S
+        apply_s = now + one_way_s + world.lead_ms / 1000.0
+        return world_to_base(target.pose, state.predict(apply_s), self.config.mount.matrix)
+
+    def _follow_world(self) -> None:
+        """Each tick: the held world target solved again (warm) for where the vehicle will be.
+        Out of reach, or with no fresh telemetry, the arm holds its last goal and status says
+        why; it follows again once the target is back within reach."""
+        target = self._world
+        assert target is not None
+        pose = self._world_in_base(target)
+        if pose is None:
+            return
+        start = self._goal if self._goal is not None else tuple(self._position)
+        budget_ms = min(self.config.budget_ms, 1000.0 * WORLD_SOLVE_SHARE / self.config.rate_hz)
+        result = self._solve(pose, start, target.mode, budget_ms)
+        self.counters["solved"] += 1
+        if result.converged:
+            self._goal = tuple(float(q) for q in result.q_deg)
+            self._world_note = {"reachable": True, "reason": None}
+            return
+        if self._world_note.get("reachable") is not False:
+            log.warning(
+                "world target out of reach (pos %.2f cm, ori %.1f deg): holding the last "
+                "reachable pose",
+                result.pos_err_cm,
+                result.ori_err_deg,
+            )
+        self._world_note = {
+            "reachable": False,
+            "reason": f"out of reach: pos {result.pos_err_cm:.2f} cm ori "
+            f"{result.ori_err_deg:.1f} deg; holding the last reachable pose",
+        }
+
+    def _world_status(self, position: tuple[float, ...]) -> dict[str, Any]:
+        world = self.config.world
+        out: dict[str, Any] = {"enabled": world.enabled}
+        if not world.enabled:
+            return out
+        now = self.clock()
+        state = self._telemetry.state()
+        out["telemetry_age_ms"] = None if state is None else 1000.0 * state.age_s(now)
+        out["target"] = (
+            None
+            if self._world is None
+            else {"pose": list(self._world.pose.as_tuple()), "mode": self._world.mode}
+        )
+        out["following"] = self._world is not None
+        out.update(self._world_note if self._world is not None else {})
+        if state is not None:
+            hand = base_to_world(
+                self.config.arm.fk(position), state.predict(now), self.config.mount.matrix
+            )
+            out["hand_ned"] = dict(zip(POSE_KEYS, hand.as_tuple(), strict=True))
+        return out
+
     # -- answers and status -----------------------------------------------------------------
 
     def _answer(self, actions: list[Action], request: Request, reply: Reply) -> None:
@@ -1229,6 +1354,9 @@ class ControlCore:
             "outputs": outputs,
             "last_target": self.last_target,
             "trajectory_points_left": len(self._trajectory),
+            # World-frame targets (issue 18): the one held, whether it is within reach, the
+            # telemetry's age, the hand in LOCAL_NED by the acknowledged joints.
+            "world": self._world_status(position),
             "counters": dict(self.counters),
         }
 

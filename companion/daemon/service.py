@@ -77,6 +77,8 @@ CORE_FRAMES = (
     "SERVO_OUTPUT_RAW",
     "SYS_STATUS",
     "PARAM_VALUE",
+    "ATTITUDE",
+    "LOCAL_POSITION_NED",
 )
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
@@ -362,7 +364,7 @@ class ArmDaemon:
                 self._frames.popleft()
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
-            self._frames.append(msg)
+            self._frames.append((self.clock(), msg))
         self._wake.set()
 
     def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
@@ -406,12 +408,18 @@ class ArmDaemon:
 
     # -- control thread ---------------------------------------------------------------------
 
-    def _solve(self, pose: Pose, q_start_deg: Sequence[float], mode: str = "pose") -> ik.IKResult:
+    def _solve(
+        self,
+        pose: Pose,
+        q_start_deg: Sequence[float],
+        mode: str = "pose",
+        budget_ms: float | None = None,
+    ) -> ik.IKResult:
         config = self.config
         return ik.solve(
             config.arm,
             pose,
-            budget_ms=config.budget_ms,
+            budget_ms=config.budget_ms if budget_ms is None else budget_ms,
             seed=config.seed,
             q_start_deg=q_start_deg,
             tol_pos_cm=config.tol_pos_cm,
@@ -453,8 +461,8 @@ class ArmDaemon:
             with self._frames_lock:
                 if not self._frames:
                     return
-                msg = self._frames.popleft()
-            self._carry_out(core.frame(msg))
+                received_s, msg = self._frames.popleft()
+            self._carry_out(core.frame(msg, received_s))
 
     def _tick(self) -> list[Action]:
         link = self.link

@@ -35,7 +35,7 @@ SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 ACCEPTED, FAILED = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED
 
 
-def fake_solve(pose, q_start_deg, mode="pose"):
+def fake_solve(pose, q_start_deg, mode="pose", budget_ms=None):
     q = pose.as_tuple()
     return SimpleNamespace(
         q_deg=tuple(q),
@@ -49,13 +49,16 @@ def fake_solve(pose, q_start_deg, mode="pose"):
 class Rig:
     """A core, the autopilot's codec, and what came out."""
 
-    def __init__(self, dialect: str = "ardupilot", **link: object) -> None:
+    def __init__(
+        self, dialect: str = "ardupilot", sections: dict | None = None, **link: object
+    ) -> None:
         self.clock = FakeClock()
         config = parse_config(
             {
                 "link": {"url": "udpout:127.0.0.1:14550", "dialect": dialect, **link},
                 "arm": {"park_deg": list(PARK), "joint_speed_deg_s": SPEED_DEG_S},
                 "control": {"rate_hz": RATE_HZ},
+                **(sections or {}),
             }
         )
         self.config = config

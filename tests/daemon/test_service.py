@@ -319,11 +319,11 @@ class _BuggyDaemon(ArmDaemon):
 
     bugs = 1
 
-    def _solve(self, pose, q_start_deg, mode="pose"):
+    def _solve(self, pose, q_start_deg, mode="pose", budget_ms=None):
         if self.bugs:
             self.bugs -= 1
             raise RuntimeError("a bug under the control thread")
-        return super()._solve(pose, q_start_deg, mode)
+        return super()._solve(pose, q_start_deg, mode, budget_ms)
 
 
 def test_a_bug_in_the_control_thread_fails_the_request_holds_and_keeps_serving(autopilot):
