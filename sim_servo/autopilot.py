@@ -126,9 +126,11 @@ from sim_servo.config import (
 from sim_servo.errors import SimConfigError
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
+from sim_servo.hover import HoverDisturbance, VehicleState
 from sim_servo.linktiming import LinkOutput, LoopLinkOutput
 from sim_servo.lua_bridge import MAV_CMD_USER_2, LuaScriptTiming, check_user2, refusal_text
 from sim_servo.servo import Servo, ServoParams
+from sim_servo.world import FloatArray, WorldPose, hand_in_world, mount_matrix, pose_matrix
 
 Emit = Callable[[dict[str, Any]], None]
 
@@ -204,6 +206,15 @@ class SimAutopilot:
         self.config = config
         self.hand = hand
         self.faults = faults or FaultInjector(config.faults)
+        #: The vehicle's motion (pure, seeded): it goes on through a reboot of the autopilot.
+        self.vehicle = HoverDisturbance.from_config(config.vehicle)
+        self._mount = mount_matrix(config.vehicle.mount)
+        #: The hand in the arm's base frame for the last horn positions seen (an FK is costly).
+        self._hand_key: tuple[float, ...] | None = None
+        self._hand_base: FloatArray | None = None
+        log_rate_hz = config.vehicle.log_rate_hz
+        self._vehicle_log_s = 1.0 / log_rate_hz if log_rate_hz > 0 else 0.0
+        self._vehicle_due_s: float | None = now_s if log_rate_hz > 0 else None
         self._emit_sink = emit or (lambda event: None)
         self._start_s = now_s
         #: When the current boot started: time_boot, the main-loop phase (a reboot moves it).
@@ -622,6 +633,8 @@ class SimAutopilot:
         """Run the periodic work due by ``now_s``; the frames to write now, as ``(link,
         frame)``: our own (on every link, or the one a reply is for) and those routed from one
         link to another (as received: a signed frame keeps its signature)."""
+        # First: the sample's horn positions are those before this pass's commands.
+        self._run_vehicle_log(now_s)
         self._run_reboot(now_s)
         if self._rebooting_until_s is None:
             self._run_prearm(now_s)
@@ -658,6 +671,8 @@ class SimAutopilot:
                 candidates.append(prearm_s)
         if self._reboot_due_s is not None:
             candidates.append(self._reboot_due_s)
+        if self._vehicle_due_s is not None:
+            candidates.append(self._vehicle_due_s)
         candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
         if self._moving:
             candidates.append(max(servo.arrival_s() for servo in self.servos.values()))
@@ -826,6 +841,8 @@ class SimAutopilot:
             mavlink.MAVLINK_MSG_ID_HEARTBEAT,
             mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
             mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
         ]
         if self.config.flavour == "px4":
             ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
@@ -840,6 +857,13 @@ class SimAutopilot:
             return max(1, round(1000.0 / self.config.servo_output_rate_hz))
         if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME and self.config.system_time_default_hz:
             return max(1, round(1000.0 / self.config.system_time_default_hz))
+        if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE and self.config.attitude_default_hz:
+            return max(1, round(1000.0 / self.config.attitude_default_hz))
+        if (
+            msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+            and self.config.local_position_default_hz
+        ):
+            return max(1, round(1000.0 / self.config.local_position_default_hz))
         return 0
 
     def _stream_message(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message:
@@ -865,6 +889,23 @@ class SimAutopilot:
             enabled = 0 if self.safety_on else motors
             return self._enc.sys_status_encode(
                 motors, enabled, motors, 0, 0, -1, -1, 0, 0, 0, 0, 0, 0
+            )
+        if msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            # The state at exactly the time the stamp names (see sim_servo.hover).
+            stamp_ms = self._time_boot_us(now_s) // 1000
+            state = self.vehicle.state(self._boot_s + stamp_ms / 1000.0 - self._start_s)
+            if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
+                return self._enc.attitude_encode(
+                    stamp_ms & 0xFFFFFFFF, *state.attitude_wrapped(), *state.body_rates()
+                )
+            return self._enc.local_position_ned_encode(
+                stamp_ms & 0xFFFFFFFF,
+                state.north_m,
+                state.east_m,
+                state.down_m,
+                state.vn_m_s,
+                state.ve_m_s,
+                state.vd_m_s,
             )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()
@@ -1271,6 +1312,45 @@ class SimAutopilot:
     def _positions(self, now_s: float) -> dict[int, float]:
         return {o: round(s.position_us(now_s), 3) for o, s in self.servos.items()}
 
+    # -- the vehicle and the hand in the world ---------------------------------------------
+
+    def hand_world(self, now_s: float, vehicle: VehicleState | None = None) -> WorldPose | None:
+        """The hand in LOCAL_NED at ``now_s``: the vehicle's pose then (``vehicle``, if already
+        computed), the mount, and the hand the servos' horns give (None without a hand model or
+        while a horn is outside its joint's PWM range)."""
+        if self.hand is None:
+            return None
+        key = tuple(round(self.servos[o].position_us(now_s), 3) for o in self.hand.outputs)
+        if key != self._hand_key:
+            pose = self.hand.state(dict(zip(self.hand.outputs, key, strict=True))).pose
+            self._hand_key = key
+            self._hand_base = None if pose is None else pose_matrix(*pose.as_tuple())
+        if self._hand_base is None:
+            return None
+        if vehicle is None:
+            vehicle = self.vehicle.state(now_s - self._start_s)
+        return hand_in_world(vehicle, self._mount, self._hand_base)
+
+    def world_sample(self, now_s: float) -> dict[str, Any]:
+        """The vehicle's state and the hand in the world at ``now_s``, JSON-ready (the
+        ``vehicle`` event's fields)."""
+        vehicle = self.vehicle.state(now_s - self._start_s)
+        hand = self.hand_world(now_s, vehicle)
+        return {
+            "vehicle": vehicle.as_dict(),
+            "hand_ned": hand.as_dict() if hand is not None else None,
+        }
+
+    def _run_vehicle_log(self, now_s: float) -> None:
+        """The periodic ``vehicle`` event, stamped and computed at its due time; a pass late
+        by more than a period restarts the cadence (one sample, not a burst)."""
+        due = self._vehicle_due_s
+        if due is None or now_s < due:
+            return
+        following = due + self._vehicle_log_s
+        self._vehicle_due_s = following if following > now_s else now_s + self._vehicle_log_s
+        self.emit(due, "vehicle", **self.world_sample(due))
+
     def _cmd_set_message_interval(self, command: Command, now_s: float) -> int:
         msg_id_f, interval_f = command.params[0], command.params[1]
         if not (math.isfinite(msg_id_f) and math.isfinite(interval_f)):
@@ -1456,6 +1536,7 @@ class SimAutopilot:
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
             "hand": self.hand.state(positions).as_dict() if self.hand else None,
+            **self.world_sample(now_s),
             "streams": {_message_name(m): self._interval_ms[m] for m in self._stream_msgs},
             "stats": dict(self.stats),
         }
