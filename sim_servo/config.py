@@ -708,7 +708,9 @@ def config_from_mapping(
     kwargs["faults"] = FaultConfig(**faults)
     vehicle = dict(_table(data, "vehicle", source))
     _reject_unknown(vehicle, set(VehicleConfig.__dataclass_fields__), f"[vehicle] in {source}")
-    mount = _table(vehicle, "mount", source)
+    mount = vehicle.get("mount", {})
+    if not isinstance(mount, Mapping):
+        raise SimConfigError(f"[vehicle.mount] in {source} must be a table")
     _reject_unknown(mount, set(MountConfig.__dataclass_fields__), f"[vehicle.mount] in {source}")
     vehicle["mount"] = MountConfig(**mount)
     kwargs["vehicle"] = VehicleConfig(**vehicle)

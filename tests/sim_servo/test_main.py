@@ -422,3 +422,24 @@ def test_help_documents_the_vehicle_setup_flags(capsys):
     text = capsys.readouterr().out
     for flag in ("--ready", "--param", "--armed", "--safety", "--px4-forward-delay-ms", "'kill'"):
         assert flag in text
+
+
+def test_vehicle_motion_flags():
+    default = settings()
+    assert default.vehicle.hover is True and default.vehicle.log_rate_hz == 25.0
+    still = settings("--no-hover", "--vehicle-log-hz", "0", "--attitude-rate-hz", "50")
+    assert (still.vehicle.hover, still.vehicle.log_rate_hz, still.attitude_rate_hz) == (
+        False,
+        0.0,
+        50.0,
+    )
+    moved = settings(
+        "--hover-seed", "9", "--drift-cm", "6", "--tilt-deg", "2", "--mount-xyz-cm", "1,2,15",
+        "--mount-rpy-deg", "180,0,0", "--local-position-rate-hz", "10",
+    )  # fmt: skip
+    assert (moved.vehicle.seed, moved.vehicle.drift_cm, moved.vehicle.tilt_deg) == (9, 6.0, 2.0)
+    assert moved.vehicle.mount.xyz_cm == (1.0, 2.0, 15.0)
+    assert moved.vehicle.mount.rpy_deg == (180.0, 0.0, 0.0)
+    assert moved.local_position_rate_hz == 10.0
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--udp", "127.0.0.1:0", "--mount-xyz-cm", "1,2"])
