@@ -166,6 +166,10 @@ PX4_FORCE_MAGIC = 21196
 #: Our links as PX4 MAVLink instances, for their ``MAV_n_FORWARD``: the companion's link (0)
 #: is instance 1 (TELEM2), the ground station's (1) instance 0 (TELEM1), as on a Pixhawk.
 PX4_FORWARD_PARAMS = {0: "MAV_1_FORWARD", 1: "MAV_0_FORWARD"}
+#: ``vehicle`` events are written in batches at most this long after they were due (a wake-up
+#: per sample would cost more than the samples), and never more than VEHICLE_LOG_MAX_S behind.
+VEHICLE_LOG_LAG_S = 0.2
+VEHICLE_LOG_MAX_S = 2.0
 #: PX4's defaults: forwarding on for instance 0 (TELEM1), off for the others.
 PX4_FORWARD_DEFAULTS = {"MAV_0_FORWARD": 1, "MAV_1_FORWARD": 0}
 
@@ -215,6 +219,8 @@ class SimAutopilot:
         log_rate_hz = config.vehicle.log_rate_hz
         self._vehicle_log_s = 1.0 / log_rate_hz if log_rate_hz > 0 else 0.0
         self._vehicle_due_s: float | None = now_s if log_rate_hz > 0 else None
+        #: Samples fall at origin + n·period (no drift from adding periods up).
+        self._vehicle_origin_s, self._vehicle_n = now_s, 0
         self._emit_sink = emit or (lambda event: None)
         self._start_s = now_s
         #: When the current boot started: time_boot, the main-loop phase (a reboot moves it).
@@ -425,6 +431,7 @@ class SimAutopilot:
     def _refresh_outputs(self, now_s: float, cause: str) -> None:
         """Bring the reported and physical PWMs up to the current state; every physical change
         moves its servo and is logged as an ``output`` event (what the servo receives)."""
+        self._run_vehicle_log(now_s)  # the samples due before a servo's course changes
         reported, physical = self._outputs_now()
         self.pwm_us = reported
         for output, pwm in physical.items():
@@ -672,7 +679,8 @@ class SimAutopilot:
         if self._reboot_due_s is not None:
             candidates.append(self._reboot_due_s)
         if self._vehicle_due_s is not None:
-            candidates.append(self._vehicle_due_s)
+            # Samples are written late, in batches (see _run_vehicle_log): no wake-up each.
+            candidates.append(self._vehicle_due_s + VEHICLE_LOG_LAG_S)
         candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
         if self._moving:
             candidates.append(max(servo.arrival_s() for servo in self.servos.values()))
@@ -1230,6 +1238,7 @@ class SimAutopilot:
 
     def _apply(self, output: int, pwm: int, now_s: float) -> None:
         """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command)."""
+        self._run_vehicle_log(now_s)
         self._commanded_us[output] = pwm
         self._refresh_outputs(now_s, "command")
         self._servo_event(output, pwm, now_s)
@@ -1342,14 +1351,22 @@ class SimAutopilot:
         }
 
     def _run_vehicle_log(self, now_s: float) -> None:
-        """The periodic ``vehicle`` event, stamped and computed at its due time; a pass late
-        by more than a period restarts the cadence (one sample, not a burst)."""
+        """The ``vehicle`` events due by ``now_s``, each stamped and computed at its own due
+        time. They are written late, in batches (on any pass, at most VEHICLE_LOG_LAG_S after
+        they were due), and always before a servo is given a new course (every command and
+        output change calls this first), so the horn positions of a past sample are exact: a
+        servo's motion between two commands is known at any time. More than VEHICLE_LOG_MAX_S
+        behind (a stalled process) the cadence restarts from now."""
         due = self._vehicle_due_s
         if due is None or now_s < due:
             return
-        following = due + self._vehicle_log_s
-        self._vehicle_due_s = following if following > now_s else now_s + self._vehicle_log_s
-        self.emit(due, "vehicle", **self.world_sample(due))
+        if now_s - due > VEHICLE_LOG_MAX_S:
+            self._vehicle_origin_s, self._vehicle_n, due = now_s, 0, now_s
+        while due <= now_s:
+            self.emit(due, "vehicle", **self.world_sample(due))
+            self._vehicle_n += 1
+            due = self._vehicle_origin_s + self._vehicle_n * self._vehicle_log_s
+        self._vehicle_due_s = due
 
     def _cmd_set_message_interval(self, command: Command, now_s: float) -> int:
         msg_id_f, interval_f = command.params[0], command.params[1]

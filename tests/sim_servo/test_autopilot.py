@@ -1548,3 +1548,21 @@ def test_no_vehicle_events_at_rate_0_and_an_unknown_hand_is_none():
     h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 2400)  # beyond the joint's PWM range
     h.run_for(1.0)
     assert world_timeline(h.events)[-1].hand is None
+
+
+def test_vehicle_samples_written_late_keep_the_horn_positions_of_their_time():
+    h = Harness(SimConfig(vehicle=VehicleConfig(hover=False, log_rate_hz=100)))
+    h.run_for(0.5)
+    assert len(world_timeline(h.events)) == 51  # a pass writes every sample due
+    # No wake-up for each sample: the next one is written on any pass, at the latest 0.2 s late.
+    assert h.ap.next_event_s(h.now) == pytest.approx(h.now + 0.01 + 0.2)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1800)  # handled at the next pass, ≤ 2.5 ms
+    h.run_for(1.0)
+    ack_t_s = next(e["t_s"] for e in h.events if e["event"] == "ack")
+    samples = world_timeline(h.events)
+    assert len(samples) == 151  # 0 … 1.5 s, none lost to the batching
+    before = [s.hand for s in samples if s.t_s <= ack_t_s]
+    after = [s.hand for s in samples if s.t_s > ack_t_s]
+    assert len(before) == 51 and all(hand == before[0] for hand in before)
+    assert after[0] != before[0]  # the horn started at once
+    assert after[-1] != after[0] and after[-1] == after[-2]  # it moved, then stopped
