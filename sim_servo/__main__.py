@@ -23,6 +23,8 @@ from typing import Any
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import (
     DEFAULT_ARM_OUTPUTS,
+    DEFAULT_ATTITUDE_RATE_HZ,
+    DEFAULT_LOCAL_POSITION_RATE_HZ,
     FLAVOURS,
     OUTPUT_COUNT,
     config_from_mapping,
@@ -40,6 +42,11 @@ from sim_servo.serial_line import MAX_BAUD, MIN_BAUD, SerialLineEndpoint
 from sim_servo.server import SimServer
 
 log = logging.getLogger("sim_servo")
+
+#: MAVLink 2 frame of ATTITUDE or LOCAL_POSITION_NED (10 header + 28 payload + 2 CRC bytes)
+#: and of HEARTBEAT (10 + 9 + 2).
+PX4_STREAM_FRAME_BYTES = 40
+HEARTBEAT_FRAME_BYTES = 21
 
 
 def _probability(text: str) -> float:
@@ -550,7 +557,27 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
     if mount:
         vehicle["mount"] = mount
     data["vehicle"] = vehicle
+    if args.pty_baud is not None and data.get("flavour") == "px4":
+        for key, rate_hz in px4_serial_stream_rates_hz(args.pty_baud).items():
+            data.setdefault(key, rate_hz)
     return data, base_dir
+
+
+def px4_serial_stream_rates_hz(baud: int) -> dict[str, float]:
+    """PX4's ATTITUDE and LOCAL_POSITION_NED rates on a serial line at ``baud``: the ONBOARD
+    defaults (100 and 30 Hz) scaled down to the link's data rate, as PX4 scales every stream
+    (mavlink_main.cpp ``update_rate_mult``: × min(1, (datarate − constant-rate streams) /
+    the others' bytes per second), with ``MAV_x_RATE`` 0 meaning half the line, ``baud / 20``
+    bytes per second). Only the simulated streams share that budget here (a real PX4 has more
+    ONBOARD streams, so lower rates); HEARTBEAT is the constant one."""
+    datarate_b_s = baud / 20
+    rates_hz = {
+        "attitude_rate_hz": DEFAULT_ATTITUDE_RATE_HZ["px4"],
+        "local_position_rate_hz": DEFAULT_LOCAL_POSITION_RATE_HZ["px4"],
+    }
+    streamed_b_s = PX4_STREAM_FRAME_BYTES * sum(rates_hz.values())
+    multiplier = min(1.0, max(0.0, datarate_b_s - HEARTBEAT_FRAME_BYTES) / streamed_b_s)
+    return {key: rate * multiplier for key, rate in rates_hz.items()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

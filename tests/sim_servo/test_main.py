@@ -443,3 +443,20 @@ def test_vehicle_motion_flags():
     assert moved.local_position_rate_hz == 10.0
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--udp", "127.0.0.1:0", "--mount-xyz-cm", "1,2"])
+
+
+def test_px4_scales_its_streams_to_half_a_serial_line():
+    def on_pty(*argv: str):
+        data, base_dir = config_data(build_parser().parse_args(["--pty", *argv]))
+        return config_from_mapping(data, base_dir=base_dir)
+
+    # PX4: MAV_x_RATE 0 is baud / 20 bytes/s; 130 frames/s of 40 bytes need 5200 B/s.
+    slow = on_pty("--flavour", "px4", "--pty-baud", "57600")
+    assert slow.attitude_rate_hz == pytest.approx(100 * (2880 - 21) / 5200)
+    assert slow.local_position_rate_hz == pytest.approx(30 * (2880 - 21) / 5200)
+    fast = on_pty("--flavour", "px4", "--pty-baud", "115200")
+    assert (fast.attitude_rate_hz, fast.local_position_rate_hz) == (100.0, 30.0)
+    asked = on_pty("--flavour", "px4", "--pty-baud", "57600", "--attitude-rate-hz", "5")
+    assert asked.attitude_rate_hz == 5.0  # a flag wins
+    assert on_pty("--pty-baud", "57600").attitude_rate_hz is None  # ArduPilot: its SRn_ 0
+    assert on_pty("--flavour", "px4").attitude_rate_hz is None  # no line: the ONBOARD defaults
