@@ -92,6 +92,13 @@ PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
   commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
   main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 2.5 ms later.
 
+The vehicle moves (:mod:`sim_servo.hover`, ``[vehicle]``): ATTITUDE and LOCAL_POSITION_NED are
+streamable (ArduPilot: off until asked, SRn_EXTRA1 / SRn_POSITION 0 on Copter; PX4: 100 and
+30 Hz, its ONBOARD defaults), each frame carrying the state at exactly its ``time_boot_ms``; the
+motion goes on through a reboot. :meth:`SimAutopilot.hand_world` puts the hand in LOCAL_NED
+(vehicle ∘ mount ∘ the hand the horns give, :mod:`sim_servo.world`); the periodic ``vehicle``
+event logs both (written in batches, always before a servo's course changes).
+
 The ``output`` event logs every change of what a servo physically receives (with its cause),
 ``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone
 that no joint stepped faster than its limit.

@@ -264,6 +264,8 @@ def test_vehicle_and_mount_tables_from_toml_and_the_stream_defaults():
     assert vehicle.as_dict()["mount"] == {"xyz_cm": [2.0, 0.0, 12.0], "rpy_deg": [180.0, 0.0, 90.0]}
     assert config_from_mapping(vehicle_data := {"vehicle": vehicle.as_dict()}).vehicle == vehicle
     assert vehicle_data["vehicle"]["seed"] == 3
+    for example in (EXAMPLE, EXAMPLE.parent / "quad_arm_px4.toml"):  # the defaults, written out
+        assert config_from_mapping(load_toml(example)).vehicle == VehicleConfig()
     # The shared default: an arm hanging 10 cm under the body origin, axes the body's.
     assert VehicleConfig().mount == MountConfig((0.0, 0.0, 10.0), (0.0, 0.0, 0.0))
     px4 = SimConfig(flavour="px4")
