@@ -15,7 +15,11 @@ events say why).
 Where the hand is in the world is in the log too: the periodic ``vehicle`` events (``[vehicle]
 log_rate_hz``) carry the vehicle's state and the hand's pose in LOCAL_NED at their ``t_s``, and
 :func:`world_timeline` returns them; the ``start`` event's ``vehicle`` holds the settings (seed,
-bounds, mount) that rebuild the same motion at any time (``HoverDisturbance.from_config``).
+bounds, mount) that rebuild the same motion at any time:
+``HoverDisturbance.from_config(config_from_mapping({"vehicle": start["vehicle"]}).vehicle)``.
+``vehicle`` events are written up to 0.2 s late, in batches (see
+:meth:`~sim_servo.autopilot.SimAutopilot._run_vehicle_log`): in time order among themselves, not
+with the other events.
 """
 
 from __future__ import annotations
