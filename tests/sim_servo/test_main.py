@@ -19,6 +19,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.__main__ import build_parser, config_data, main
 from sim_servo.config import config_from_mapping
+from sim_servo.eventlog import world_timeline
+from sim_servo.hover import HoverDisturbance
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
 
@@ -131,6 +133,9 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
 
     client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 36, 50_000)  # 20 Hz
     assert client.wait_for(ack_for(511)).result == mavlink.MAV_RESULT_ACCEPTED
+    client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30, 20_000)  # ATTITUDE at 50 Hz
+    assert client.wait_for(ack_for(511)).result == mavlink.MAV_RESULT_ACCEPTED
+    attitude = client.wait_for(is_type("ATTITUDE"))
     raw = client.wait_for(is_type("SERVO_OUTPUT_RAW"))
     assert raw.servo9_raw == 1800 and raw.servo2_raw == 1000
     first = len(client.log)
@@ -147,7 +152,17 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
     events = sim.events()
     assert events[0]["event"] == "start" and events[-1]["event"] == "stop"
     commands = [e for e in events if e["event"] == "rx" and e["msg"] == "COMMAND_LONG"]
-    assert [e["fields"]["command"] for e in commands] == [183, 183, 22, 511]
+    assert [e["fields"]["command"] for e in commands] == [183, 183, 22, 511, 511]
+    # The moving vehicle: the start event's settings rebuild the motion the frames carried,
+    # and the log holds the hand in the world.
+    hover = HoverDisturbance.from_config(
+        config_from_mapping({"vehicle": events[0]["vehicle"]}).vehicle
+    )
+    state = hover.state(attitude.time_boot_ms / 1000.0)  # booted at the start
+    assert attitude.roll == pytest.approx(state.roll_rad, rel=1e-6, abs=1e-7)
+    assert attitude.yawspeed == pytest.approx(state.body_rates()[2], rel=1e-6, abs=1e-7)
+    samples = world_timeline(events)
+    assert len(samples) >= 25 and all(s.hand is not None for s in samples)
 
 
 @pytest.mark.slow
