@@ -44,7 +44,7 @@ from sim_servo.eventlog import world_timeline
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The arm's configuration held (the demo's comfortable pose).
-HOLD_DEG = (20.0, 70.0, 50.0, 20.0, 30.0, 10.0)
+HOLD_DEG = (0.0, 70.0, -70.0, 0.0, 0.0, 0.0)
 #: The simulator's default home: 2 m up over the origin, level, yaw 0.
 HOME_NED_CM = (0.0, 0.0, -200.0)
 

@@ -1238,7 +1238,7 @@ class ControlCore:
         self.counters["solved"] += 1
         if result.converged:
             self._goal = tuple(float(q) for q in result.q_deg)
-            self._world_note = {"reachable": True, "reason": None}
+            self._world_note = {"reachable": True, "reason": None, "solve_ms": result.elapsed_ms}
             return
         if self._world_note.get("reachable") is not False:
             log.warning(
