@@ -36,10 +36,11 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
   the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds, then
   ``cap_message_interval``: at most 80 % of the loop rate (3 ms at 400 Hz); ACCEPTED for
   messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME, ATTITUDE,
-  LOCAL_POSITION_NED; ArduPilot SYS_STATUS, PX4 ACTUATOR_OUTPUT_STATUS), FAILED for the others. SERVO_OUTPUT_RAW never streams faster than
-  ``servo_output_min_interval_ms`` (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when
-  400 Hz is asked); GET_MESSAGE_INTERVAL reports the stored interval, as
-  ``get_ap_message_interval`` reads it back, not the rate achieved (3000 µs for a 400 Hz ask).
+  LOCAL_POSITION_NED; ArduPilot SYS_STATUS, PX4 ACTUATOR_OUTPUT_STATUS), FAILED for the
+  others. SERVO_OUTPUT_RAW never streams faster than ``servo_output_min_interval_ms``
+  (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when 400 Hz is asked);
+  GET_MESSAGE_INTERVAL reports the stored interval, as ``get_ap_message_interval`` reads it
+  back, not the rate achieved (3000 µs for a 400 Hz ask).
 * SYSTEM_TIME (``time_unix_usec``, ``time_boot_ms``): in ArduPilot's EXTRA3 stream, whose
   SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until
   SET_MESSAGE_INTERVAL asks; PX4 streams it at 1 Hz on a companion (ONBOARD mode) link

@@ -122,3 +122,22 @@ def hand_in_world(vehicle: VehicleState, mount: FloatArray, hand_base: FloatArra
     state, the mount (:func:`mount_matrix`) and the hand in the arm's base frame
     (:func:`pose_matrix`), all in m."""
     return WorldPose.from_matrix(vehicle_matrix(vehicle) @ mount @ hand_base)
+
+
+def pose_error(pose: WorldPose, reference: WorldPose) -> tuple[float, float]:
+    """How far ``pose`` is from ``reference``: (distance m, rotation angle rad in [0, π]), the
+    angle of ``R_referenceᵀ · R_pose`` (for a bench's hand world error)."""
+    distance_m = float(np.linalg.norm(pose.position_m - reference.position_m))
+    relative = reference.as_matrix()[:3, :3].T @ pose.as_matrix()[:3, :3]
+    cos_angle = (np.trace(relative) - 1.0) / 2.0
+    sin_angle = (
+        np.linalg.norm(
+            [
+                relative[2, 1] - relative[1, 2],
+                relative[0, 2] - relative[2, 0],
+                relative[1, 0] - relative[0, 1],
+            ]
+        )
+        / 2.0
+    )
+    return distance_m, float(math.atan2(sin_angle, cos_angle))

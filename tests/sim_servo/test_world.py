@@ -15,6 +15,7 @@ from sim_servo.world import (
     hand_in_world,
     matrix_rpy,
     mount_matrix,
+    pose_error,
     pose_matrix,
     rpy_matrix,
 )
@@ -78,3 +79,11 @@ def test_world_pose_round_trips():
     assert WorldPose.from_dict(pose.as_dict()) == pose
     back = WorldPose.from_matrix(pose.as_matrix())
     np.testing.assert_allclose(list(back.as_dict().values()), list(pose.as_dict().values()))
+
+
+def test_pose_error_is_distance_and_rotation_angle():
+    reference = WorldPose(1.0, 2.0, -3.0, 0.1, 0.2, 0.3)
+    assert pose_error(reference, reference) == (0.0, 0.0)
+    turned = WorldPose.from_matrix(reference.as_matrix() @ pose_matrix(3, 4, 0, 0, 0, 2.0))
+    distance_m, angle_rad = pose_error(turned, reference)
+    assert distance_m == pytest.approx(0.05) and angle_rad == pytest.approx(math.radians(2.0))
