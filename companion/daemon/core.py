@@ -1268,9 +1268,9 @@ class ControlCore:
         )
         out["following"] = self._world is not None
         out.update(self._world_note if self._world is not None else {})
-        if state is not None:
+        if state is not None and self._hand_at is not None and self._hand_at[0] == position:
             hand = base_to_world(
-                self.config.arm.fk(position), state.predict(now), self.config.mount.matrix
+                Pose(*self._hand_at[1].values()), state.predict(now), self.config.mount.matrix
             )
             out["hand_ned"] = dict(zip(POSE_KEYS, hand.as_tuple(), strict=True))
         return out

@@ -77,9 +77,11 @@ CORE_FRAMES = (
     "SERVO_OUTPUT_RAW",
     "SYS_STATUS",
     "PARAM_VALUE",
-    "ATTITUDE",
-    "LOCAL_POSITION_NED",
 )
+#: The vehicle's telemetry, read with ``[world]`` on (issue 18). PX4 streams them on a
+#: companion's link unasked (100 and 30 Hz): they do not wake the control thread, which
+#: takes them on its next pass (at least every control period).
+TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
 #: Per source, at most this many motion targets a second (burst ``SOURCE_BURST``): a ground
@@ -150,7 +152,10 @@ class ArmDaemon:
         s = self.config.link
         self.link = MavlinkLink.open(s.url, link_config(s), clock=self.clock)
         self.link.subscribe(self._on_command_long, ["COMMAND_LONG"])
-        self.link.subscribe(self._on_frame, CORE_FRAMES)
+        self.link.subscribe(
+            self._on_frame,
+            CORE_FRAMES + (TELEMETRY_FRAMES if self.config.world.enabled else ()),
+        )
         self._thread = threading.Thread(target=self._run, name="armbridge-control", daemon=True)
         self._thread.start()
         log.info(
@@ -195,8 +200,9 @@ class ArmDaemon:
 
     def reload(self, new: DaemonConfig) -> list[str]:
         """Apply a re-read config (SIGHUP). Solver, motion, park and rate settings take effect
-        at once (the control socket's limits too: ``run`` hands them to its server). Link, arm,
-        calibration and the socket's path and group need a restart: they are kept as they were
+        at once (the control socket's limits too: ``run`` hands them to its server; the
+        ``[world]`` settings but ``enabled``). Link, arm, calibration, the socket's path and
+        group and ``world.enabled`` need a restart: they are kept as they were
         and named in the returned warnings, and so is a new park pose they cannot reach."""
         old = self.config
         warnings = [
@@ -207,6 +213,7 @@ class ArmDaemon:
                 ("calibration", old.calibration, new.calibration),
                 ("control.socket", old.control_socket, new.control_socket),
                 ("control.socket_group", old.control_socket_group, new.control_socket_group),
+                ("world.enabled", old.world.enabled, new.world.enabled),
             )
             if old_value != new_value
         ]
@@ -231,6 +238,8 @@ class ArmDaemon:
             park_deg=park_deg,
             control_socket=old.control_socket,
             control_socket_group=old.control_socket_group,
+            # The telemetry streams are asked for, and their frames subscribed to, at start.
+            world=dataclasses.replace(new.world, enabled=old.world.enabled),
         )
         self._new_config = self.config
         self._wake.set()
@@ -365,7 +374,8 @@ class ArmDaemon:
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
             self._frames.append((self.clock(), msg))
-        self._wake.set()
+        if msg.get_type() not in TELEMETRY_FRAMES:
+            self._wake.set()
 
     def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
         link = self.link
