@@ -98,8 +98,11 @@ READBACK_INTERVAL_S = 0.1
 READBACK_SLOW_LINK_INTERVAL_S = 1.0
 SLOW_LINK_BAUD = 230_400
 #: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
-#: the switch is off) is asked for at this interval.
-SYS_STATUS_INTERVAL_S = 0.5
+#: the switch is off) is asked for at this interval (on a serial line below SLOW_LINK_BAUD, the
+#: slower one): the switch is seen that late, and the steps sent meanwhile are stored without
+#: pulses, so what the arm may have moved then is undone while it is on (see ``_rewind``).
+SYS_STATUS_INTERVAL_S = 0.1
+SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
 #: A readback this long after an output's ACK shows what the output does with that command
 #: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
 READBACK_SETTLE_S = 0.15
@@ -248,6 +251,9 @@ class ControlCore:
             if slow_serial and self._is_ardupilot
             else READBACK_INTERVAL_S
         )
+        self._sys_status_interval_s = (
+            SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
+        )
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
         #: start, a loss or a reboot.
@@ -266,6 +272,10 @@ class ControlCore:
         #: not read yet; then no output is assumed to be in it).
         self._safety_on: bool | None = None
         self._safety_mask: int | None = None
+        #: ArduPilot: the pose commanded when a SYS_STATUS last said the switch was off, and
+        #: the pose to send the dead outputs back to once it was seen on (see ``_rewind``).
+        self._safety_off_pose: tuple[float, ...] | None = None
+        self._rewind_to: tuple[float, ...] | None = None
         #: PX4: armed, from its HEARTBEAT (None: no HEARTBEAT yet). Shown, not relied on:
         #: prearmed outputs are live while disarmed.
         self._armed: bool | None = None
@@ -376,7 +386,15 @@ class ControlCore:
             safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
             if safety_on != self._safety_on and self._is_ardupilot:
                 log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+                if safety_on and self._safety_off_pose is not None:
+                    self._rewind_to = self._safety_off_pose
+                elif not safety_on:
+                    self._rewind_to = None
             self._safety_on = safety_on
+            if not safety_on:
+                self._safety_off_pose = (
+                    self._flights[-1].step_deg if self._flights else tuple(self._position)
+                )
         elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
             # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
             value = msg.param_value
@@ -596,7 +614,10 @@ class ControlCore:
         if not self._outputs_known(now):
             return
         if self._is_ardupilot:
-            if self._dead_outputs():
+            dead = self._dead_outputs()
+            if dead and self._rewind_to is not None:
+                self._rewind(actions, dead, now)
+            if dead:
                 # The safety switch: whatever is sent is applied at once when it goes off.
                 return
         else:
@@ -673,6 +694,22 @@ class ControlCore:
         ahead = {o for f in self._flights for o in f.sent_outputs}
         base = {o: pwm for o, pwm in self._acked_pwm.items() if o not in ahead}
         self._send_step(actions, step, now, base_pwm=base)
+
+    def _rewind(self, actions: list[Action], dead: dict[int, str], now: float) -> None:
+        """ArduPilot, the safety switch seen on: it went on at some moment since the SYS_STATUS
+        before, and its outputs have held since then what they had; the steps sent meanwhile
+        are stored and would go out in one step at its release. The dead outputs are sent back
+        to the pose commanded at that SYS_STATUS (within one SYS_STATUS interval of motion of
+        what they hold), and the motion goes on from there once the switch is off."""
+        rewind, self._rewind_to = self._rewind_to, None
+        assert rewind is not None
+        current = list(self._position)
+        step = tuple(
+            rewind[i] if output in dead else current[i] for i, output in enumerate(self._outputs)
+        )
+        if step != tuple(current) or not self._settled():
+            log.info("safety switch on: the held outputs sent back to where they stopped")
+            self._send_step(actions, step, now)
 
     def _outputs_known(self, now: float) -> bool:
         """PX4: a readback since the start, link loss or reboot tells where the joints are;
@@ -970,7 +1007,7 @@ class ControlCore:
             (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, self._readback_interval_s),
         ]
         if self._is_ardupilot:
-            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))
+            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, self._sys_status_interval_s))
         for msg_id, interval_s in streams:
             actions.append(
                 SendCommand(
@@ -1120,6 +1157,10 @@ class ControlCore:
                 previous,
                 boot_ms,
             )
+            # It forgot our route (until it answers us again) and reads BRD_SAFETY_MASK
+            # anew at boot: a new mask applies only then.
+            self._heard_us = False
+            self._safety_mask = None
             self._lose_outputs(actions, "autopilot rebooted")
             self._ask_system_time(actions)
 
