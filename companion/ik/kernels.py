@@ -442,6 +442,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     jtr = np.empty(n)
     a = np.empty((n, n))
     g = np.empty(n)
+    hold = np.empty(n, dtype=np.bool_)
     q_try = q.copy()
     tol_pos = fp[F_TOL_POS]
     tol_ori = fp[F_TOL_ORI]
@@ -492,6 +493,28 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
             lam *= 10.0
             evaluate = False
             continue
+        # A joint at a limit that the step pushes further out would only be clamped back, and
+        # the clamped step is no longer a descent step: hold such joints and solve again for
+        # the others (one active-set pass). Solutions with joints at their limits converge.
+        held = 0
+        for j in range(n):
+            if jp[3, j] < 0.5 and (
+                (q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0)
+            ):
+                held += 1
+                hold[j] = True
+            else:
+                hold[j] = False
+        if 0 < held < n:
+            for r in range(n):
+                g[r] = 0.0 if hold[r] else jtr[r]
+                for c in range(n):
+                    a[r, c] = 0.0 if hold[r] or hold[c] else jtj[r, c]
+                a[r, r] = 1.0 if hold[r] else a[r, r] + lam * jtj[r, r] + 1e-9
+            if not _cholesky_solve(a, g, n):
+                lam *= 10.0
+                evaluate = False
+                continue
         evaluate = True
         for j in range(n):
             q_try[j] = _into_range(q[j] + g[j], lo[j], hi[j], jp[3, j])
@@ -689,6 +712,12 @@ def generation(
                 # Restart: the record keeps the best so far; the whole population is drawn anew.
                 # intp(0), not the literal 0: numba would compile a second specialisation.
                 _draw_population(pop, lo, hi, rng, np.intp(0))
+                # A quarter of a restart's individuals are corners of the joint box: a target
+                # reached only with joints at their limits is where LM from inside the box
+                # stalls (each step is clamped), and a corner starts LM right there.
+                for i in range(n_pop // 4):
+                    for j in range(n):
+                        pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
                 _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
                 st[S_EVALUATIONS] += n_pop
                 stuck[:] = False

@@ -80,11 +80,11 @@ class SolverSettings:
     """DE population (NP)."""
     F: float = 0.7
     """DE scale factor."""
-    Cr: float = 0.9
+    Cr: float = 0.7
     """DE crossover probability (binomial)."""
     lm_iterations: int = 30
     """Damped-least-squares steps per refinement of DE's best (at most)."""
-    lm_lambda0: float = 1e-3
+    lm_lambda0: float = 0.1
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
     lm_window: int = 4
     """LM gives up when the cost has not dropped below ``lm_progress`` × its value
