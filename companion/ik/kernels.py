@@ -4,15 +4,16 @@ DE (rand/1/bin) is the global search over the joint box. After each generation, 
 damped-least-squares (Levenberg–Marquardt) iterations with the analytic geometric Jacobian
 refine the best individual that is not yet known to be stuck. The result is clamped to the
 limits, accepted only if the pose error drops, and written back into the population. On
-stagnation the population is re-drawn and the best found so far is kept aside ("record").
+stagnation the population is re-drawn (a quarter of it at corners of the joint box) and the
+best found so far is kept aside ("record").
 
 Everything here is compiled by numba's JIT on first use (no explicit signatures: numba infers
 the types from the arrays :class:`companion.ik.solver` passes), with the on-disk cache: the
-first call after an install compiles (about 17 s of CPU; ``python -m companion.ik`` does it
-ahead of time), later processes load the cache. :func:`init_population` and
-:func:`generation` are the entry points the solver calls; they hold every other kernel, compiled
-into them. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays for
-it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
+first call after an install compiles (about 20 s of CPU; ``python -m companion.ik`` does it
+ahead of time), later processes load the cache. :func:`search` is the entry point the solver
+calls (with :func:`goal_matrix` for the pointing-direction mode); it holds every other kernel,
+compiled into it. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays
+for it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
 home), the kernels still work, compiled at every start, and a warning says how to fix it. The
 kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
@@ -141,9 +142,9 @@ def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm;
     see :mod:`companion.kinematics.arm`); ``jp`` rows: direction, offset, 1.0 for a revolute
     joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``), and (not used here) 1.0 for a
-    joint whose range holds a whole turn. With ``want_axes``, also each
-    joint's axis (the z axis it moves about or along, signed by its direction) and a point on
-    it, in the base frame, for the geometric Jacobian.
+    joint whose range holds a whole turn, the lower and the upper limits. With ``want_axes``,
+    also each joint's axis (the z axis it moves about or along, signed by its direction) and a
+    point on it, in the base frame, for the geometric Jacobian.
     """
     n = q.shape[0]
     # Rotation and position as scalars until the end: stores into ``rot``/``pos`` that the
@@ -421,12 +422,14 @@ def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr
 def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     """Damped least squares on the target residual from ``q`` (modified in place).
 
-    Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``, clamps ``q + Δq`` into the
-    limits and keeps it only if ``‖r‖`` drops (λ shrinks on success; on failure it grows and
-    the same normal equations are solved again). Stops at the tolerances, after ``iters``
-    steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a window of steps did not bring
-    the cost below ``fp[F_LM_PROGRESS]`` times what it was. ``out`` receives
-    ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps taken.
+    Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``; joints at a limit that the
+    step would push further out are then held and the system solved again for the others (one
+    active-set pass: a clamped step is no descent step, and solutions at the limits stalled).
+    It clamps ``q + Δq`` into the limits and keeps it only if ``‖r‖`` drops (λ shrinks on
+    success; on failure it grows and the same normal equations are solved again). Stops at the
+    tolerances, after ``iters`` steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a
+    window of steps did not bring the cost below ``fp[F_LM_PROGRESS]`` times what it was.
+    ``out`` receives ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps.
 
     One call site of the FK and of the residual: compiling each inlined copy of them cost
     seconds of the first compile.

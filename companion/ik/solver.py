@@ -3,17 +3,18 @@
 This is where the time budget is enforced. The search itself is memetic differential evolution,
 compiled (:mod:`companion.ik.kernels`): DE rand/1/bin is the global search, and
 damped-least-squares steps refine its best individual. This module runs it in chunks of
-generations (one compiled call each: 1, 2, 4, … up to 64 generations), reading the clock between
-chunks. It stops:
+generations (one compiled call each, :func:`kernels.search`), reading the clock between chunks;
+the first call also initialises the population. It stops:
 
 * as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
-* before a generation that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
+* before a chunk that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
   prediction is a moving average of the wall time of a generation, each sample capped at 4×
-  the average (and the first, the initialisation, counted in CPU time if that is less), so a
-  generation preempted by another process does not end the search early on a busy machine.
-  A chunk is never predicted to take more than half of the budget left, so the budget holds
-  unless one generation takes twice the average and more, or the machine does not let this
-  thread run;
+  the average, so a generation preempted by another process does not end the search early on
+  a busy machine. The average carries over from call to call (same arm, settings, thread and
+  clock); the first call with a clock calibrates it on the initialisation, counted in CPU time
+  if that is less. A chunk is never predicted to take more than half of the budget left, so
+  the budget holds unless one generation takes twice the average and more, or the machine does
+  not let this thread run;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
@@ -32,12 +33,13 @@ solutions on the same elbow/wrist branch.
 
 Importing this module does no work. The kernels are compiled lazily by numba's JIT (there are
 no explicit signatures: numba infers them from the first call) and cached on disk: the first
-:func:`warm_up` in a fresh cache compiles them (about 17 s of CPU on the development machine),
-later ones load the cache (about 0.5 s, most of it numba setting up its compiler on the first
-call). ``python -m companion.ik`` does that compile ahead of time, e.g. at install into the
-service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports READY; a first
-:func:`solve` without it calls it before its clock starts. So no budget ever pays for
-compilation.
+:func:`warm_up` in a fresh cache compiles them (about 20 s of CPU on the 2-core development
+machine), later ones load the cache (about 0.5 s on a quiet machine, most of it numba setting
+up LLVM on the first call; importing numba itself takes another 0.3–0.5 s).
+``python -m companion.ik`` does that compile ahead of time: the README's board install runs it
+into the service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports
+READY; a first :func:`solve` without it calls it before its clock starts. So no budget ever
+pays for compilation.
 """
 
 from __future__ import annotations
