@@ -14,10 +14,10 @@ boot, the arm's outputs in ``BRD_SAFETY_MASK`` at start). Each cycle, seeded:
   ``prearm_on`` / ``prearm_off`` (``COM_PREARM_MODE`` 2 / 0 by PARAM_SET from the ground
   station's link: the simulator applies it at once, prearmed from 5 s after boot), ``reboot``;
   ArduPilot ``safety_on`` / ``safety_off`` (query socket), ``reboot``, and
-  ``mask_arm`` / ``mask_none`` (a reboot, and ``BRD_SAFETY_MASK`` with or without the arm's
-  outputs by PARAM_SET as soon as it is back: ArduPilot reads the mask at boot, the simulator
-  applies it at once, so it is set while the switch is at its boot state, off). Reboots are drawn
-  half as often as the others;
+  ``mask_arm`` / ``mask_none`` (``BRD_SAFETY_MASK`` with or without the arm's outputs by
+  PARAM_SET, then a reboot: ArduPilot applies a new mask at boot, the simulator at once, which
+  is the same while the switch is off, so a mask event drawn while it is on is ``safety_off``
+  instead). Reboots are drawn half as often as the others;
 * with probability 0.7 a **target**: a random reachable pose (forward kinematics of joints drawn
   within 90 % of their limits), ``goto`` on the control socket, not waited for;
 * a **dwell** drawn log-uniformly in [min, max] (default 0.03–1 s), during which the daemon's
@@ -217,11 +217,10 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
             elif event in ("prearm_on", "prearm_off"):
                 set_param("COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
             elif event in ("mask_arm", "mask_none"):
-                # ArduPilot reads the mask at boot (@RebootRequired); the simulator applies it
-                # at once. So: reboot, and set it the moment the autopilot is back (deaf until
-                # then: set_param repeats), with the safety switch at its boot state (off).
-                sim.reboot()
+                # ArduPilot applies a new mask at boot (@RebootRequired); the simulator at once,
+                # which is the same while the switch is off (drawn only then): set, reboot.
                 set_param("BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0)
+                sim.reboot()
             elif event == "reboot":
                 sim.reboot()
             else:
@@ -235,7 +234,10 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
                 event = str(rng.choice(names, p=weights))
                 if pending is not None:
                     out.agreements.append(pending)  # censored: the next event came first
-                before = sim_live(sim.state())
+                state = sim.state()
+                if event.startswith("mask_") and state["safety_on"]:
+                    event = "safety_off"  # the mask is changed with the switch off
+                before = sim_live(state)
                 out.timeline.append((time.monotonic(), event))  # before it acts
                 act(event)
                 pending = Agreement(event, time.monotonic(), before)
@@ -332,7 +334,9 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             if category(s, r.flavour) != "disarmed"
             and s.loose(JOINT_SPEED_DEG_S, RATE_HZ, s.allowed_deg - JOINT_SPEED_DEG_S / RATE_HZ)
         )
-        worst = max((s.step_deg for s in fast if category(s, r.flavour) != "disarmed"), default=0.0)
+        worst = max(
+            (s.step_deg for s in r.steps if category(s, r.flavour) != "disarmed"), default=0.0
+        )
         rows.append([
             r.flavour, len(r.steps), by["command"], by["alive"], loose, worst, by["disarmed"],
             r.first_pulses,
