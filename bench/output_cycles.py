@@ -308,6 +308,13 @@ def events_before(run: Run, step: JointStep, *, detail: bool = False) -> str:
     return " then ".join(f"{e} ({t - t_e:.2f} s before)" for t_e, e in before) or "no event"
 
 
+def event_gap(run: Run, step: JointStep) -> float:
+    """The time between the last two events before ``step`` (inf with fewer than two)."""
+    t = run.sim_t0 + step.t_s
+    before = [t_e for t_e, _ in run.timeline if t_e <= t][-2:]
+    return before[1] - before[0] if len(before) == 2 else math.inf
+
+
 def _ms(values: list[float], q: float) -> float:
     return float(np.percentile(np.array(values) * 1e3, q)) if values else math.nan
 
@@ -410,12 +417,14 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
                 + ", ".join(f"{k} {v}" for k, v in sorted(slow_by_event.items()))
             )
         if fast:
+            pairs = Counter(events_before(r, s) for s in fast)
+            gaps: dict[str, float] = {}
+            for s in fast:
+                gaps[events_before(r, s)] = max(gaps.get(events_before(r, s), 0.0), event_gap(r, s))
             lines.append(
-                "fast daemon-side steps by the events before them: "
-                + ", ".join(
-                    f"{k} {v}"
-                    for k, v in sorted(Counter(events_before(r, s) for s in fast).items())
-                )
+                "fast daemon-side steps by the two events before them (the longest time between "
+                "those two events): "
+                + ", ".join(f"{k} {v} ({gaps[k]:.2f} s)" for k, v in sorted(pairs.items()))
             )
         for s in sorted(fast, key=lambda s: -s.step_deg)[:10]:
             lines.append(
