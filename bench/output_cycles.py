@@ -416,6 +416,12 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
                 "over the bound by event: "
                 + ", ".join(f"{k} {v}" for k, v in sorted(slow_by_event.items()))
             )
+        commands = sorted(s.step_deg for s in fast if s.cause == "command")
+        if commands:
+            lines.append(
+                f"fast command steps: {len(commands)}, median {commands[len(commands) // 2]:.1f}°, "
+                f"largest {commands[-1]:.1f}°"
+            )
         if fast:
             pairs = Counter(events_before(r, s) for s in fast)
             gaps: dict[str, float] = {}
