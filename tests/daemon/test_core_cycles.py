@@ -86,7 +86,7 @@ def test_after_a_reboot_the_autopilot_has_not_heard_us_until_it_answers_again(di
     reason="core: BRD_SAFETY_MASK is read once (while unknown) and never after a reboot, though "
     "ArduPilot applies a new mask only at boot; with the arm's outputs taken out of it, the "
     "daemon goes on sending while the switch holds them, and they jump when it is released "
-    "(bench.output_cycles: up to 61 deg at the release)",
+    "(bench.output_cycles: up to 74 deg at the release)",
 )
 def test_ardupilot_safety_mask_is_read_again_after_a_reboot():
     ap = Autopilot("ardupilot")
