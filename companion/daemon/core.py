@@ -92,6 +92,11 @@ REBOOT_BACKSTEP_MS = 100
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
 #: outputs do (issue 20). ArduPilot streams it at most every 20 ms.
 READBACK_INTERVAL_S = 0.1
+#: PX4 on a link with room for it: a readback this often sees outputs go dead (disarm, kill)
+#: sooner, so the hold at the disarmed PWM is stored before a quick re-arm would apply the
+#: pose stored before (bench.output_cycles: every fast PX4 step came from a re-arm inside the
+#: window in which the disarm was not seen yet).
+READBACK_FAST_INTERVAL_S = 0.04
 #: ArduPilot on a serial line below SLOW_LINK_BAUD: the readback only feeds status there (its
 #: safety switch comes from SYS_STATUS), and at 10 Hz its 49-byte frames (4.3 ms each at
 #: 115 200 baud) would delay an update's ACK behind them one time in twenty.
@@ -246,11 +251,14 @@ class ControlCore:
         self._readback_warned = False
         spec = parse_url(config.link.url)
         slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
-        self._readback_interval_s = (
-            READBACK_SLOW_LINK_INTERVAL_S
-            if slow_serial and self._is_ardupilot
-            else READBACK_INTERVAL_S
-        )
+        if self._is_ardupilot:
+            self._readback_interval_s = (
+                READBACK_SLOW_LINK_INTERVAL_S if slow_serial else READBACK_INTERVAL_S
+            )
+        else:
+            self._readback_interval_s = (
+                READBACK_INTERVAL_S if slow_serial else READBACK_FAST_INTERVAL_S
+            )
         self._sys_status_interval_s = (
             SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
         )
@@ -992,7 +1000,10 @@ class ControlCore:
             self._unconfirmed = None
             return
         if flights or self._last_step_s > -math.inf:
-            self._unconfirmed = tuple(self._position)
+            # The outputs hold what they were last told: the acknowledged pose, or a step that
+            # was on its way (up to PIPELINE_DEPTH of them, each a step from the one before).
+            # The oldest of those is within one step of every one of them.
+            self._unconfirmed = flights[0].step_deg if flights else tuple(self._position)
             self._resend_now = True
 
     def _ask_system_time(self, actions: list[Action]) -> None:

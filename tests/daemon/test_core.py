@@ -467,6 +467,7 @@ def test_system_time_readback_and_safety_are_asked_for_once_pinned(rig):
         ("/dev/ttyAMA0,115200", "ardupilot-lua", 1.0),  # status only: spare the slow line
         ("/dev/ttyAMA0,921600", "ardupilot", 0.1),
         ("/dev/ttyAMA0,57600", "px4", 0.1),  # PX4's liveness comes from it
+        ("udpin:0.0.0.0:14550", "px4", 0.04),  # room for it: a disarm seen sooner
     ],
 )
 def test_the_readback_is_asked_for_less_often_where_it_only_feeds_status_on_a_slow_line(
@@ -528,8 +529,10 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     request = rig.goto(tuple(p + 30.0 for p in PARK))
     rig.ack_all(rig.sent)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
-    acked = rig.core.status()["current_deg"]
+    rig.sent.clear()
     rig.advance(1.0 / RATE_HZ)  # the next step is in flight when the link goes
+    in_flight = rig.servo()
+    assert len(in_flight) == 6
     rig.sent.clear()
     rig.advance(0.1, link_up=False)
     assert rig.core.status()["holding"]
@@ -538,8 +541,9 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     rig.advance(5.0, link_up=False)
     assert rig.servo() == {}  # nothing while holding
     rig.advance(0.01)
-    # Back: every output at the acknowledged pose first, then on towards the goal.
-    assert rig.servo() == rig.calibration.angles_to_pwm_us(acked)
+    # Back: every output at the step that was on its way first (the outputs hold it or the
+    # acknowledged pose, one step apart), then on towards the goal.
+    assert rig.servo() == in_flight
 
 
 def test_shutdown_answers_everything_and_parks_every_output_directly(rig):
