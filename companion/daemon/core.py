@@ -108,6 +108,11 @@ SLOW_LINK_BAUD = 230_400
 #: pulses, so what the arm may have moved then is undone while it is on (see ``_rewind``).
 SYS_STATUS_INTERVAL_S = 0.1
 SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
+#: ArduPilot: nothing moves until a SYS_STATUS said where the safety switch is (at start, after
+#: a loss or a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then
+#: is stored and goes out in one step at its release); with none this long after asking, the
+#: arm moves without knowing (and says so once).
+SYS_STATUS_WAIT_S = 2.0
 #: A readback this long after an output's ACK shows what the output does with that command
 #: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
 READBACK_SETTLE_S = 0.15
@@ -284,6 +289,8 @@ class ControlCore:
         #: the pose to send the dead outputs back to once it was seen on (see ``_rewind``).
         self._safety_off_pose: tuple[float, ...] | None = None
         self._rewind_to: tuple[float, ...] | None = None
+        self._sys_status_asked_s = clock()
+        self._sys_status_warned = False
         #: PX4: armed, from its HEARTBEAT (None: no HEARTBEAT yet). Shown, not relied on:
         #: prearmed outputs are live while disarmed.
         self._armed: bool | None = None
@@ -622,6 +629,8 @@ class ControlCore:
         if not self._outputs_known(now):
             return
         if self._is_ardupilot:
+            if not self._safety_known(now):
+                return
             dead = self._dead_outputs()
             if dead and self._rewind_to is not None:
                 self._rewind(actions, dead, now)
@@ -718,6 +727,22 @@ class ControlCore:
         if step != tuple(current) or not self._settled():
             log.info("safety switch on: the held outputs sent back to where they stopped")
             self._send_step(actions, step, now)
+
+    def _safety_known(self, now: float) -> bool:
+        """ArduPilot: a SYS_STATUS said where the safety switch is since the start, the last
+        loss or reboot (or none came for SYS_STATUS_WAIT_S, which is said once)."""
+        if self._safety_on is not None:
+            return True
+        if now - self._sys_status_asked_s < SYS_STATUS_WAIT_S:
+            return False
+        if not self._sys_status_warned:
+            self._sys_status_warned = True
+            log.warning(
+                "no SYS_STATUS from the autopilot in %.0f s: moving without knowing its safety "
+                "switch (outputs held by it store what is sent, and jump to it at its release)",
+                SYS_STATUS_WAIT_S,
+            )
+        return True
 
     def _outputs_known(self, now: float) -> bool:
         """PX4: a readback since the start, link loss or reboot tells where the joints are;
@@ -991,6 +1016,7 @@ class ControlCore:
         self._ack_history.clear()
         self._mismatches.clear()
         self._confirmed.clear()
+        self._safety_on = None  # ArduPilot: until a SYS_STATUS says (it boots with it on)
         self._readback_since_s = self.clock()
         if not self._is_ardupilot:
             # PX4 applies what it stores in one step once its outputs are live: re-sending the
@@ -1019,6 +1045,7 @@ class ControlCore:
         ]
         if self._is_ardupilot:
             streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, self._sys_status_interval_s))
+            self._sys_status_asked_s = self.clock()
         for msg_id, interval_s in streams:
             actions.append(
                 SendCommand(
@@ -1191,6 +1218,7 @@ class ControlCore:
         # at their boot values), then the motion goes on.
         log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
+        self._safety_on = None  # it may have rebooted, with the switch on
         self._acked_pwm.clear()
         self._ack_history.clear()
         self._confirmed.clear()
