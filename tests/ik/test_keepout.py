@@ -10,25 +10,13 @@ from hypothesis import strategies as st
 from companion.ik import IKResult, StopReason, TargetMode, solve
 from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
-from companion.kinematics.collision import Box, Capsule, Cylinder, KeepOut
+from companion.kinematics.collision import KeepOut
 from companion.kinematics.frames import Mount
+from tests.support.keepout import QUAD_450
 from tests.support.timing import FakeClock
 
 ARM = Arm.default()
-DIAGONALS = (("fr", 1, 1), ("rl", -1, -1), ("fl", 1, -1), ("rr", -1, 1))
-QUAD = KeepOut(
-    ARM,
-    (
-        Box("body", (0, 0, -1), (24, 14, 10)),
-        *(Cylinder(f"prop_{n}", (15.9 * x, 15.9 * y, -6), 13.0, 2.0) for n, x, y in DIAGONALS),
-        *(
-            Capsule(f"leg_{n}", (9 * x, 9 * y, 4), (13 * x, 13 * y, 24), 1.0)
-            for n, x, y in DIAGONALS
-        ),
-    ),
-    Mount(),
-    1.0,
-)
+QUAD = KeepOut(ARM, QUAD_450, Mount(), 1.0)
 PARK_DEG = [0.0, 90.0, 0.0, 0.0, 0.0, 0.0]
 
 

@@ -11,7 +11,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.kinematics import rpy_to_matrix
 from companion.kinematics.arm import Arm
 from companion.kinematics.collision import (
     Box,
@@ -26,61 +25,12 @@ from companion.kinematics.collision import (
     segment_segment_distance,
 )
 from companion.kinematics.frames import Mount
+from tests.support.keepout import QUAD_450, point_segment, sampled_clearance
 
 ARM = Arm.default()
 MOUNT = Mount()
-# The example config's 450 quad (companion/daemon/examples/armbridge.toml).
-DIAGONALS = (("fr", 1, 1), ("rl", -1, -1), ("fl", 1, -1), ("rr", -1, 1))
-QUAD = (
-    Box("body", (0, 0, -1), (24, 14, 10)),
-    *(Cylinder(f"prop_{n}", (15.9 * x, 15.9 * y, -6), 13.0, 2.0) for n, x, y in DIAGONALS),
-    *(Capsule(f"leg_{n}", (9 * x, 9 * y, 4), (13 * x, 13 * y, 24), 1.0) for n, x, y in DIAGONALS),
-)
+QUAD = QUAD_450
 PARK = np.radians([0, 90, 0, 0, 0, 0])
-
-
-# -- independent point distances (exact, >= 0) ----------------------------------------------------
-
-
-def _point_segment(p, a, b):
-    d = b - a
-    dd = float(d @ d)
-    t = np.clip(((p - a) @ d) / dd, 0.0, 1.0) if dd > 0 else np.zeros(p.shape[:-1])
-    return np.linalg.norm(p - (a + t[..., None] * d), axis=-1)
-
-
-def _local(p, center, rpy_deg):
-    rot = rpy_to_matrix(*np.radians(rpy_deg))
-    return (p - np.asarray(center)) @ rot
-
-
-def point_distance(p, v):
-    """Distance (cm) from points ``(..., 3)`` in body FRD to volume ``v``; 0 inside."""
-    if isinstance(v, Sphere):
-        return np.maximum(np.linalg.norm(p - np.asarray(v.center_cm), axis=-1) - v.radius_cm, 0)
-    if isinstance(v, Capsule):
-        seg = _point_segment(p, np.asarray(v.from_cm), np.asarray(v.to_cm))
-        return np.maximum(seg - v.radius_cm, 0)
-    if isinstance(v, Box):
-        out = np.maximum(np.abs(_local(p, v.center_cm, v.rpy_deg)) - np.asarray(v.size_cm) / 2, 0)
-        return np.linalg.norm(out, axis=-1)
-    local = _local(p, v.center_cm, v.rpy_deg)
-    radial = np.maximum(np.hypot(local[..., 0], local[..., 1]) - v.radius_cm, 0)
-    axial = np.maximum(np.abs(local[..., 2]) - v.length_cm / 2, 0)
-    return np.hypot(radial, axial)
-
-
-def sampled_clearance(ko: KeepOut, q, points=200):
-    """Per configuration of ``q`` ``(S, n)``: the least (distance − capsule radius) over
-    ``points`` samples along every link capsule's axis and every volume (cm)."""
-    seg = ko.segments(np.atleast_2d(q))  # (S, C, 2, 3)
-    u = np.linspace(0.0, 1.0, points)[:, None]
-    pts = seg[:, :, None, 0] + u * (seg[:, :, None, 1] - seg[:, :, None, 0])  # (S, C, U, 3)
-    worst = np.full(seg.shape[0], np.inf)
-    for v in ko.volumes:
-        d = point_distance(pts, v).min(axis=2) - ko.radii_cm  # (S, C)
-        worst = np.minimum(worst, d.min(axis=1))
-    return worst
 
 
 # -- distances ------------------------------------------------------------------------------------
@@ -116,7 +66,7 @@ def test_segment_distances_match_brute_force():
     step = np.linalg.norm(p1 - p0, axis=-1) / 2000
     assert np.all(exact_box <= brute_box + 1e-9)  # never more than a point's true distance
     assert np.all(exact_box >= brute_box - step - 1e-9)  # and exact up to the sampling
-    brute_seg = np.stack([_point_segment(pts[:, i], a[i], b[i]).min() for i in range(n)])
+    brute_seg = np.stack([point_segment(pts[:, i], a[i], b[i]).min() for i in range(n)])
     exact_seg = segment_segment_distance(p0, p1, a, b)
     assert np.all(exact_seg <= brute_seg + 1e-9)
     assert np.all(exact_seg >= brute_seg - step - 1e-9)
