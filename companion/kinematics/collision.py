@@ -48,6 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
+from companion.kinematics import collision_kernels
 from companion.kinematics.arm import Arm
 from companion.kinematics.frames import Mount, invert, pose_matrix
 from companion.kinematics.rotations import FloatArray
@@ -339,6 +340,10 @@ class KeepOut:
         self._inv_frames = np.array([invert(f[i + 1]) for i in range(arm.dof)])
         self._mount = self.mount.matrix
         self._reach = self._lever_arms()
+        self._frames = np.ascontiguousarray(f)
+        self._directions = np.array(arm.directions)
+        self._offsets = np.array(arm.offsets)
+        self._revolute = np.array(arm.revolute, dtype=np.bool_)
 
     def _lever_arms(self) -> FloatArray:
         """``(C, n)``: per capsule and joint, the speed bound per unit of joint motion (cm/rad
@@ -435,7 +440,36 @@ class KeepOut:
     def clearances(self, q: FloatArray) -> FloatArray:
         """Lower bounds of the clearance (cm) between each link capsule and each volume,
         ``(S, C, V)`` for joint vectors ``(S, n)``: distance less the capsule's radius and
-        :data:`ROUNDING_CM` (negative: they overlap)."""
+        :data:`ROUNDING_CM` (negative: they overlap). Compiled
+        (:mod:`~companion.kinematics.collision_kernels`); :meth:`clearances_reference` is the
+        same in numpy, and the tests hold the two equal."""
+        q = np.ascontiguousarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != self.arm.dof:
+            raise ValueError(f"q must have shape (S, {self.arm.dof}), got {q.shape}")
+        out = np.empty((q.shape[0], len(self._radii), len(self.volumes)))
+        return collision_kernels.clearances(
+            q,
+            self._frames,
+            self._directions,
+            self._offsets,
+            self._revolute,
+            self._mount,
+            self._link_idx,
+            self._ends,
+            self._radii,
+            self._caps_a,
+            self._caps_b,
+            self._caps_r,
+            self._boxes_inv,
+            self._boxes_half,
+            self._cap_of,
+            self._box_of,
+            ROUNDING_CM,
+            out,
+        )
+
+    def clearances_reference(self, q: FloatArray) -> FloatArray:
+        """:meth:`clearances` in numpy (vectorised over samples, capsules and volumes)."""
         q = np.asarray(q, float)
         seg = self.segments(q)
         s, c = seg.shape[:2]
@@ -467,7 +501,7 @@ class KeepOut:
 
     def _as_batch(self, q: FloatArray | Sequence[float], name: str) -> FloatArray:
         arr = np.asarray(q, float)
-        if arr.shape != (self.arm.dof,) or not np.all(np.isfinite(arr)):
+        if arr.shape != (self.arm.dof,) or not math.isfinite(float(arr.sum())):
             raise ValueError(f"{name}={q!r} must be {self.arm.dof} finite joint values (rad, cm)")
         return arr.reshape(1, -1)
 
@@ -526,12 +560,15 @@ class KeepOut:
         top = float(speed.max())
         # Start with samples step_cm of link travel apart: one interval for a control tick.
         count = int(min(max(math.ceil(top / self.step_cm), 1), 256))
-        s = np.linspace(0.0, 1.0, count + 1)
+        s = np.arange(count + 1) / count
         clear = self.clearances(q0 + s[:, None] * dq).min(axis=2)  # (S, C)
         lo_s, hi_s = s[:-1], s[1:]
         lo_c, hi_c = clear[:-1], clear[1:]
         margin = self.margin_cm
         for depth in range(self.max_depth + 1):
+            bound = 0.5 * (lo_c + hi_c - speed * (hi_s - lo_s)[:, None])  # (I, C)
+            if bound.min() >= margin and clear.min() >= margin:
+                return None  # every interval proven (the common case: one check per tick)
             lo_bad = lo_c.min(axis=1) < margin
             hi_bad = hi_c.min(axis=1) < margin
             if lo_bad.any() or hi_bad.any():
@@ -539,10 +576,7 @@ class KeepOut:
                 where = float(min(lo_s[lo_bad].min(initial=2.0), hi_s[hi_bad].min(initial=2.0)))
                 q = (q0 + where * dq).reshape(1, -1)
                 return self._collision(self.clearances(q)[0], where)
-            bound = 0.5 * (lo_c + hi_c - speed * (hi_s - lo_s)[:, None])  # (I, C)
             open_ = np.flatnonzero(bound.min(axis=1) < margin)
-            if open_.size == 0:
-                return None
             if depth == self.max_depth:
                 k = open_[np.argmin(bound[open_].min(axis=1))]
                 where = float(0.5 * (lo_s[k] + hi_s[k]))
@@ -560,6 +594,7 @@ class KeepOut:
                 )
             mid_s = 0.5 * (lo_s[open_] + hi_s[open_])
             mid_c = self.clearances(q0 + mid_s[:, None] * dq).min(axis=2)
+            clear = mid_c
             lo_s = np.concatenate([lo_s[open_], mid_s])
             hi_s = np.concatenate([mid_s, hi_s[open_]])
             lo_c = np.concatenate([lo_c[open_], mid_c])
