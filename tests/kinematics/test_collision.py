@@ -72,6 +72,23 @@ def test_segment_distances_match_brute_force():
     assert np.all(exact_seg >= brute_seg - step - 1e-9)
 
 
+def test_compiled_clearances_equal_the_reference():
+    rng = np.random.default_rng(12)
+    volumes = (
+        *QUAD,
+        Sphere("ball", (30, 0, 30), 5),
+        Box("tilted", (0, 30, 30), (5, 9, 14), (10, 20, 30)),
+    )
+    ko = KeepOut(ARM, volumes, Mount((1, 2, 3), (10, -20, 30)), 1.0)
+    q = ARM.random_q_rad(rng, 500)
+    np.testing.assert_allclose(ko.clearances(q), ko.clearances_reference(q), rtol=0, atol=1e-9)
+    stanford = Arm.from_package_file("stanford.toml")  # a prismatic joint
+    shaped = dataclasses.replace(stanford, link_shapes=((), *ARM.link_shapes[1:]))
+    ko = KeepOut(shaped, volumes, MOUNT, 1.0)
+    q = stanford.random_q_rad(rng, 200)
+    np.testing.assert_allclose(ko.clearances(q), ko.clearances_reference(q), rtol=0, atol=1e-9)
+
+
 # -- the shipped quad ------------------------------------------------------------------------------
 
 
@@ -203,13 +220,17 @@ def test_a_thin_disc_between_samples_is_found():
     assert KeepOut(ARM, [disc], MOUNT, 0.0).check_motion(q0, q0) is None
 
 
-def test_the_speed_bound_holds():
+@pytest.mark.parametrize("name", ["paper_arm.toml", "stanford.toml"])
+def test_the_speed_bound_holds(name):
     """No point of any capsule moves faster than the bound, on random motions (finite
-    differences of the capsules' end points: the farthest points from every axis)."""
+    differences of the capsules' end points: the farthest points from every axis). Stanford:
+    a prismatic joint, with the papers' link shapes borrowed."""
+    arm = Arm.from_package_file(name)
+    arm = dataclasses.replace(arm, link_shapes=((), *ARM.link_shapes[1:]))
     rng = np.random.default_rng(7)
-    ko = KeepOut(ARM, QUAD, MOUNT)
-    for _ in range(30):
-        q0, q1 = ARM.random_q_rad(rng, 2)
+    ko = KeepOut(arm, QUAD, MOUNT)
+    for _ in range(15):
+        q0, q1 = arm.random_q_rad(rng, 2)
         s = np.linspace(0, 1, 2001)[:, None]
         seg = ko.segments(q0 + s * (q1 - q0))  # (S, C, 2, 3)
         speed = np.linalg.norm(np.diff(seg, axis=0), axis=-1).max(axis=(0, 2)) * 2000
