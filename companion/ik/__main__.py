@@ -1,4 +1,4 @@
-"""Compile the IK kernels into numba's disk cache ahead of time: ``python -m companion.ik``.
+"""Compile the IK and keep-out kernels into numba's cache ahead of time: ``python -m companion.ik``.
 
 Run it at install, as the user the daemon runs as and with the daemon's ``NUMBA_CACHE_DIR``
 (the shipped unit uses ``/var/cache/armbridge``), e.g.::
@@ -18,11 +18,15 @@ import time
 
 from companion.ik import kernels
 from companion.ik.solver import warm_up
+from companion.kinematics import collision_kernels
 
 
 def main() -> int:
     started = time.process_time()
     wall_s = warm_up()
+    wall_started = time.perf_counter()
+    collision_kernels.warm_up()  # the keep-out checks' kernel, in the same cache
+    wall_s += time.perf_counter() - wall_started
     cpu_s = time.process_time() - started
     where = "the numba cache" if kernels.CACHE else "nowhere (no writable cache directory)"
     print(f"IK kernels ready in {wall_s:.1f} s ({cpu_s:.1f} s CPU), stored in {where}")

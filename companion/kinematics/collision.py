@@ -340,7 +340,7 @@ class KeepOut:
         self._inv_frames = np.array([invert(f[i + 1]) for i in range(arm.dof)])
         self._mount = self.mount.matrix
         self._reach = self._lever_arms()
-        self._frames = np.ascontiguousarray(f)
+        self._frames = np.array(f)  # writable: numba types a read-only array apart
         self._directions = np.array(arm.directions)
         self._offsets = np.array(arm.offsets)
         self._revolute = np.array(arm.revolute, dtype=np.bool_)
