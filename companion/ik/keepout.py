@@ -26,7 +26,7 @@ import numpy as np
 
 from companion.ik import solver as _solver_module
 from companion.ik.solver import IKResult, TargetMode, solve, warm_up
-from companion.kinematics import Pose
+from companion.kinematics import Pose, collision_kernels
 from companion.kinematics.collision import Collision, KeepOut
 
 Clock = Callable[[], float]
@@ -121,6 +121,7 @@ def solve_clear(
     """
     if solver is solve and not _solver_module._warmed_up:
         warm_up()  # as solve() does: the budget is never for numba's compiler
+    collision_kernels.warm_up()  # nor for loading the keep-out kernel (once per process)
     started = clock()
     if not (isinstance(budget_ms, int | float) and math.isfinite(budget_ms) and budget_ms > 0):
         raise ValueError(f"budget_ms={budget_ms!r} must be a finite number > 0")
@@ -140,13 +141,11 @@ def solve_clear(
     refusal: tuple[IKResult, Collision, bool] | None = None  # (attempt, why, motion only)
     clear_starts: np.ndarray | None = None
     attempts = 0
+    check_s = 0.0  # the longest the checks of one answer took: kept free of solver time
+    floor_s = 0.0  # the shortest a solver call took: no use starting one with less left
     while attempts < max_attempts and (best is None or not best.converged):
-        left_s = deadline - clock()
-        if left_s <= 0.0:
+        if deadline - clock() - check_s <= 0.0:
             break
-        # The first try gets half the budget (a warm start normally converges in a fraction
-        # of it); later ones share what is left with the next.
-        share_s = left_s / 2 if attempts + 1 < max_attempts else left_s
         start: Sequence[float] | None
         if attempts == 0:
             start = q_start_deg
@@ -161,6 +160,13 @@ def solve_clear(
                 if len(clear_starts) == 0
                 else arm.q_to_user(clear_starts[rng.integers(len(clear_starts))]).tolist()
             )
+        left_s = deadline - clock() - check_s
+        if left_s <= floor_s:
+            break
+        # The first try gets half the budget (a warm start normally converges in a fraction
+        # of it); later ones share what is left with the next.
+        share_s = left_s / 2 if attempts + 1 < max_attempts else left_s
+        calling = clock()
         result = solver(
             arm,
             target,
@@ -173,12 +179,16 @@ def solve_clear(
             **solve_kwargs,
         )
         attempts += 1
+        checking = clock()
+        took_s = checking - calling
+        floor_s = took_s if attempts == 1 else min(floor_s, took_s)
         q = result.q_rad
         why = keepout.check(q)
         motion_only = False
         if why is None and q_start_rad is not None:
             why = keepout.check_motion(q_start_rad, q)
             motion_only = True
+        check_s = max(check_s, clock() - checking)
         if why is None:
             if _better(result, best):
                 best = result

@@ -31,8 +31,9 @@ Each lower bound above is a distance from the moving capsule to a fixed set (or 
 three), so it changes by at most ``V·|Δs|``: between two samples ``a < b`` with clearances
 ``c_a, c_b`` it stays above ``(c_a + c_b − V·(b − a)) / 2``. The motion is accepted only when,
 for every link and every interval, that is at least ``margin_cm``; intervals that fail are
-halved (up to ``max_depth`` times). So no volume, however thin, can hide between samples: a
-link crossing it would have clearance 0 somewhere inside an interval the bound proved clear.
+halved (up to ``max_depth`` times and ``max_samples`` configurations; past that, refused). So
+no volume, however thin, can hide between samples: a link crossing it would have clearance 0
+somewhere inside an interval the bound proved clear.
 
 Self-collision between the arm's own links is not checked (the arm's joint limits are trusted
 for that); the base (the part before joint 1) is fixed to the vehicle and not checked either.
@@ -278,9 +279,10 @@ class KeepOut:
 
     ``margin_cm`` (≥ 0) is the clearance every link capsule must keep from every volume;
     :meth:`check_motion` first samples a motion every ``step_cm`` of bounded link travel, then
-    halves the intervals it cannot prove clear, at most ``max_depth`` times (neither changes
-    what is accepted as clear, only how much work that takes). Raises ``ValueError`` for an arm
-    without link shapes when volumes are given (there would be nothing to check).
+    halves the intervals it cannot prove clear, at most ``max_depth`` times and ``max_samples``
+    configurations in all; a motion not proven clear by then is refused (``proven`` False).
+    None of these can let a colliding motion through; they bound the work. Raises
+    ``ValueError`` for an arm without link shapes when volumes are given (nothing to check).
     """
 
     def __init__(
@@ -291,7 +293,8 @@ class KeepOut:
         margin_cm: float = 1.0,
         *,
         max_depth: int = 12,
-        step_cm: float = 2.0,
+        step_cm: float = 4.0,
+        max_samples: int = 1024,
     ) -> None:
         self.arm = arm
         self.volumes = tuple(volumes)
@@ -308,6 +311,9 @@ class KeepOut:
         if not step_cm > 0:
             raise ValueError(f"step_cm={step_cm!r} must be > 0")
         self.step_cm = float(step_cm)
+        if max_samples < 2:
+            raise ValueError(f"max_samples={max_samples!r} must be >= 2")
+        self.max_samples = int(max_samples)
         names = [v.name for v in self.volumes]
         for v in self.volumes:
             if not isinstance(v, Sphere | Capsule | Box | Cylinder):
@@ -559,12 +565,13 @@ class KeepOut:
         dq = q1 - q0
         top = float(speed.max())
         # Start with samples step_cm of link travel apart: one interval for a control tick.
-        count = int(min(max(math.ceil(top / self.step_cm), 1), 256))
+        count = int(min(max(math.ceil(top / self.step_cm), 1), self.max_samples // 4))
         s = np.arange(count + 1) / count
         clear = self.clearances(q0 + s[:, None] * dq).min(axis=2)  # (S, C)
         lo_s, hi_s = s[:-1], s[1:]
         lo_c, hi_c = clear[:-1], clear[1:]
         margin = self.margin_cm
+        samples = count + 1
         for depth in range(self.max_depth + 1):
             bound = 0.5 * (lo_c + hi_c - speed * (hi_s - lo_s)[:, None])  # (I, C)
             if bound.min() >= margin and clear.min() >= margin:
@@ -577,7 +584,7 @@ class KeepOut:
                 q = (q0 + where * dq).reshape(1, -1)
                 return self._collision(self.clearances(q)[0], where)
             open_ = np.flatnonzero(bound.min(axis=1) < margin)
-            if depth == self.max_depth:
+            if depth == self.max_depth or samples + open_.size > self.max_samples:
                 k = open_[np.argmin(bound[open_].min(axis=1))]
                 where = float(0.5 * (lo_s[k] + hi_s[k]))
                 q = (q0 + where * dq).reshape(1, -1)
@@ -594,6 +601,7 @@ class KeepOut:
                 )
             mid_s = 0.5 * (lo_s[open_] + hi_s[open_])
             mid_c = self.clearances(q0 + mid_s[:, None] * dq).min(axis=2)
+            samples += mid_s.size
             clear = mid_c
             lo_s = np.concatenate([lo_s[open_], mid_s])
             hi_s = np.concatenate([mid_s, hi_s[open_]])

@@ -235,9 +235,16 @@ def clearances(
     return out
 
 
+_warmed_up = False
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) :func:`clearances` with the types the checks pass:
-    about 10 s of CPU on a cold cache, under a second warm."""
+    about 10 s of CPU on a cold cache, some 20 ms warm. Later calls do nothing."""
+    global _warmed_up
+    if _warmed_up:
+        return
+    _warmed_up = True
     q = np.zeros((1, 1))
     box = np.eye(4).reshape(1, 4, 4)
     clearances(
