@@ -1,8 +1,9 @@
 """What one servo update costs on the link, and whether ``rate_hz`` of them fit a serial line.
 
-On a serial link the bytes, not the round trips, set an update's time. An update is sent, its
-ACKs awaited, and only then may the next one go (one update in flight at a time), so an update
-fits the control rate when
+On a serial link the bytes, not the round trips, set an update's time. A target's first update
+must be acknowledged within its control period (the daemon may send the next step behind an
+update in flight, but a stream of one target a period falls behind when each takes longer),
+so an update fits the control rate when
 
     bytes to the FC x 10 / baud + the FC's answer time + one ACK's bytes x 10 / baud <= 1 / rate_hz
 
@@ -13,7 +14,8 @@ measured, so a fit holds for every update, not the median one:
 * ``ardupilot``: six DO_SET_SERVO back-to-back answered in 3.2 ms median, 6.0 ms max
   (ArduCopter 4.7.0-dev SITL);
 * ``ardupilot-lua``: the Lua bridge script answers in 8.9 ms median, 11.5 ms max (same SITL);
-* ``px4``: not measured; one 400 Hz main-loop pass (2.5 ms) is assumed.
+* ``px4``: DO_SET_ACTUATOR answered in 5.8 ms median, 13.0 ms max (PX4 main of 2026-03,
+  SITL with the SIH quadrotor, issue 20; the p90 was 10.8 ms).
 
 UDP and TCP links have no such byte budget here (their bandwidth is orders of magnitude above
 an arm's needs): :func:`link_budget` says so and everything fits. Pure: no I/O, no clock.
@@ -37,7 +39,7 @@ BITS_PER_BYTE = 10
 FC_ANSWER_MS: Mapping[str, tuple[float, float]] = {
     "ardupilot": (3.2, 6.0),
     "ardupilot-lua": (8.9, 11.5),
-    "px4": (2.5, 2.5),
+    "px4": (5.8, 13.0),
 }
 #: Dialects an autopilot speaks: the alternatives offered are the same autopilot's.
 AUTOPILOT_OF: Mapping[str, str] = {

@@ -21,6 +21,13 @@ instead of guessing:
 What this cannot catch: an ACK of an earlier attempt arriving late *and* one of this attempt's
 commands lost, in the same update, can complete the count with the wrong ACK. Both attempts
 carry the same values, so it matters only if the earlier attempt's command was lost too.
+
+Two updates on their way at once (the daemon's core sends the next step behind the one in
+flight) are counted the same way, in order: the oldest tracker short of ACKs takes the next
+one. A command of the first lost, the second's first ACK completes the first's count, and the
+second comes up one short: it ends unknown and is confirmed one command at a time. The second
+carries every output the first sent, so its outcome is what the outputs hold; until it comes,
+the first's verdict may name, for one output, the PWM of a command that was lost.
 """
 
 from __future__ import annotations
@@ -110,6 +117,11 @@ class UpdateTracker:
             if len(self._results) == len(self.commands):
                 self._complete_s = now_s
         return True
+
+    @property
+    def complete(self) -> bool:
+        """Every command has its ACK (its verdict may still wait out the grace period)."""
+        return self._complete_s is not None
 
     def on_statustext(self, text: str) -> None:
         match = _CHANNEL_IN_USE.search(text)

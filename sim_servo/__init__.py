@@ -10,6 +10,8 @@ Layout (one concern per module):
 * :mod:`sim_servo.config`    – settings, output function table, TOML file, validation
 * :mod:`sim_servo.servo`     – one servo's position over time (slew, deadband), pure
 * :mod:`sim_servo.hand`      – servo positions → joint angles (servo model) → hand pose (FK)
+* :mod:`sim_servo.hover`     – the vehicle's seeded hover motion in LOCAL_NED, pure
+* :mod:`sim_servo.world`     – vehicle ∘ mount ∘ hand: the hand in LOCAL_NED, pure
 * :mod:`sim_servo.faults`    – seeded drop / corrupt / latency decisions
 * :mod:`sim_servo.autopilot` – the MAVLink behaviour: bytes in, frames out, given the time
 * :mod:`sim_servo.linktiming` – when a link's frames leave (ArduPilot: delay and hold; PX4:

@@ -23,6 +23,8 @@ from typing import Any
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import (
     DEFAULT_ARM_OUTPUTS,
+    DEFAULT_ATTITUDE_RATE_HZ,
+    DEFAULT_LOCAL_POSITION_RATE_HZ,
     FLAVOURS,
     OUTPUT_COUNT,
     config_from_mapping,
@@ -40,6 +42,11 @@ from sim_servo.serial_line import MAX_BAUD, MIN_BAUD, SerialLineEndpoint
 from sim_servo.server import SimServer
 
 log = logging.getLogger("sim_servo")
+
+#: MAVLink 2 frame of ATTITUDE or LOCAL_POSITION_NED (10 header + 28 payload + 2 CRC bytes)
+#: and of HEARTBEAT (10 + 9 + 2).
+PX4_STREAM_FRAME_BYTES = 40
+HEARTBEAT_FRAME_BYTES = 21
 
 
 def _probability(text: str) -> float:
@@ -95,6 +102,16 @@ def _outputs(text: str) -> tuple[int, ...]:
         return tuple(int(part) for part in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} must be comma-separated outputs") from None
+
+
+def _triple(text: str) -> list[float]:
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r} must be three comma-separated numbers")
+    return values
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -212,6 +229,50 @@ def build_parser() -> argparse.ArgumentParser:
         type=_non_negative,
         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
         "sent, on loop passes (default 400, as ArduCopter)",
+    )
+
+    motion = parser.add_argument_group(
+        "vehicle motion (a seeded hover disturbance in LOCAL_NED; see sim_servo.hover)"
+    )
+    motion.add_argument(
+        "--hover",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="drift and tilt as a hovering vehicle in light wind (default on; --no-hover: the "
+        "vehicle holds its home, level)",
+    )
+    motion.add_argument("--hover-seed", type=int, help="seed of the hover motion (default 0)")
+    motion.add_argument(
+        "--drift-cm", type=_non_negative, help="largest drift north and east (default 10)"
+    )
+    motion.add_argument("--tilt-deg", type=_non_negative, help="largest roll and pitch (default 5)")
+    motion.add_argument(
+        "--mount-xyz-cm",
+        type=_triple,
+        metavar="X,Y,Z",
+        help="the arm base's origin in the body frame FRD (default 0,0,10: 10 cm below)",
+    )
+    motion.add_argument(
+        "--mount-rpy-deg",
+        type=_triple,
+        metavar="R,P,Y",
+        help="the arm base's orientation in the body frame FRD (default 0,0,0)",
+    )
+    motion.add_argument(
+        "--vehicle-log-hz",
+        type=_non_negative,
+        help="a 'vehicle' event (vehicle state, hand in the world) this often (default 25; 0: "
+        "none)",
+    )
+    motion.add_argument(
+        "--attitude-rate-hz",
+        type=_non_negative,
+        help="ATTITUDE before any SET_MESSAGE_INTERVAL (default: ardupilot 0, px4 100)",
+    )
+    motion.add_argument(
+        "--local-position-rate-hz",
+        type=_non_negative,
+        help="LOCAL_POSITION_NED before any SET_MESSAGE_INTERVAL (default: ardupilot 0, px4 30)",
     )
 
     timing = parser.add_argument_group(
@@ -388,6 +449,8 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
         ("system_id", args.system_id),
         ("servo_output_rate_hz", args.servo_output_rate_hz),
         ("system_time_rate_hz", args.system_time_rate_hz),
+        ("attitude_rate_hz", args.attitude_rate_hz),
+        ("local_position_rate_hz", args.local_position_rate_hz),
         ("loop_rate_hz", args.loop_rate_hz),
         ("lua_script", args.lua_script),
     ):
@@ -476,7 +539,45 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
     if args.nack_output:
         faults["nack_outputs"] = list(args.nack_output)
     data["faults"] = faults
+    vehicle = dict(data.get("vehicle", {}))
+    for key, value in (
+        ("hover", args.hover),
+        ("seed", args.hover_seed),
+        ("drift_cm", args.drift_cm),
+        ("tilt_deg", args.tilt_deg),
+        ("log_rate_hz", args.vehicle_log_hz),
+    ):
+        if value is not None:
+            vehicle[key] = value
+    mount = dict(vehicle.get("mount", {}))
+    if args.mount_xyz_cm is not None:
+        mount["xyz_cm"] = args.mount_xyz_cm
+    if args.mount_rpy_deg is not None:
+        mount["rpy_deg"] = args.mount_rpy_deg
+    if mount:
+        vehicle["mount"] = mount
+    data["vehicle"] = vehicle
+    if args.pty_baud is not None and data.get("flavour") == "px4":
+        for key, rate_hz in px4_serial_stream_rates_hz(args.pty_baud).items():
+            data.setdefault(key, rate_hz)
     return data, base_dir
+
+
+def px4_serial_stream_rates_hz(baud: int) -> dict[str, float]:
+    """PX4's ATTITUDE and LOCAL_POSITION_NED rates on a serial line at ``baud``: the ONBOARD
+    defaults (100 and 30 Hz) scaled down to the link's data rate, as PX4 scales every stream
+    (mavlink_main.cpp ``update_rate_mult``: × min(1, (datarate − constant-rate streams) /
+    the others' bytes per second), with ``MAV_x_RATE`` 0 meaning half the line, ``baud / 20``
+    bytes per second). Only the simulated streams share that budget here (a real PX4 has more
+    ONBOARD streams, so lower rates); HEARTBEAT is the constant one."""
+    datarate_b_s = baud / 20
+    rates_hz = {
+        "attitude_rate_hz": DEFAULT_ATTITUDE_RATE_HZ["px4"],
+        "local_position_rate_hz": DEFAULT_LOCAL_POSITION_RATE_HZ["px4"],
+    }
+    streamed_b_s = PX4_STREAM_FRAME_BYTES * sum(rates_hz.values())
+    multiplier = min(1.0, max(0.0, datarate_b_s - HEARTBEAT_FRAME_BYTES) / streamed_b_s)
+    return {key: rate * multiplier for key, rate in rates_hz.items()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -559,6 +660,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         outputs_us=dict(autopilot.output_us),
         gcs_url=gcs.url if gcs is not None else None,
         monotonic_s=start_s,
+        vehicle=config.vehicle.as_dict(),
     )
     print(endpoint.url, flush=True)
     if gcs is not None:

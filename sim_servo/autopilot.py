@@ -35,11 +35,12 @@ ArduPilot behaviour copied (source files in ArduPilot/ardupilot):
 * MAV_CMD_SET_MESSAGE_INTERVAL (GCS_Common.cpp ``set_message_interval``): −1 stops, 0 resets to
   the default, < 1000 µs becomes 1 ms, > 60 s becomes 60 s, otherwise whole milliseconds, then
   ``cap_message_interval``: at most 80 % of the loop rate (3 ms at 400 Hz); ACCEPTED for
-  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME; ArduPilot SYS_STATUS, PX4
-  ACTUATOR_OUTPUT_STATUS), FAILED for the others. SERVO_OUTPUT_RAW never streams faster than
-  ``servo_output_min_interval_ms`` (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when
-  400 Hz is asked); GET_MESSAGE_INTERVAL reports the stored interval, as
-  ``get_ap_message_interval`` reads it back, not the rate achieved (3000 µs for a 400 Hz ask).
+  messages we can stream (HEARTBEAT, SERVO_OUTPUT_RAW, SYSTEM_TIME, ATTITUDE,
+  LOCAL_POSITION_NED; ArduPilot SYS_STATUS, PX4 ACTUATOR_OUTPUT_STATUS), FAILED for the
+  others. SERVO_OUTPUT_RAW never streams faster than ``servo_output_min_interval_ms``
+  (ArduPilot: 20 ms, measured on SITL: at most 50 Hz even when 400 Hz is asked);
+  GET_MESSAGE_INTERVAL reports the stored interval, as ``get_ap_message_interval`` reads it
+  back, not the rate achieved (3000 µs for a 400 Hz ask).
 * SYSTEM_TIME (``time_unix_usec``, ``time_boot_ms``): in ArduPilot's EXTRA3 stream, whose
   SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until
   SET_MESSAGE_INTERVAL asks; PX4 streams it at 1 Hz on a companion (ONBOARD mode) link
@@ -92,6 +93,13 @@ PX4 flavour, as measured on PX4 SITL (main of 2026-03, SIH quadrotor; issue 20):
   commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
   main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 2.5 ms later.
 
+The vehicle moves (:mod:`sim_servo.hover`, ``[vehicle]``): ATTITUDE and LOCAL_POSITION_NED are
+streamable (ArduPilot: off until asked, SRn_EXTRA1 / SRn_POSITION 0 on Copter; PX4: 100 and
+30 Hz, its ONBOARD defaults), each frame carrying the state at exactly its ``time_boot_ms``; the
+motion goes on through a reboot. :meth:`SimAutopilot.hand_world` puts the hand in LOCAL_NED
+(vehicle ∘ mount ∘ the hand the horns give, :mod:`sim_servo.world`); the periodic ``vehicle``
+event logs both (written in batches, always before a servo's course changes).
+
 The ``output`` event logs every change of what a servo physically receives (with its cause),
 ``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone
 that no joint stepped faster than its limit.
@@ -126,9 +134,11 @@ from sim_servo.config import (
 from sim_servo.errors import SimConfigError
 from sim_servo.faults import FaultInjector
 from sim_servo.hand import HandModel
+from sim_servo.hover import HoverDisturbance, VehicleState
 from sim_servo.linktiming import LinkOutput, LoopLinkOutput
 from sim_servo.lua_bridge import MAV_CMD_USER_2, LuaScriptTiming, check_user2, refusal_text
 from sim_servo.servo import Servo, ServoParams
+from sim_servo.world import FloatArray, WorldPose, hand_in_world, mount_matrix, pose_matrix
 
 Emit = Callable[[dict[str, Any]], None]
 
@@ -164,6 +174,10 @@ PX4_FORCE_MAGIC = 21196
 #: Our links as PX4 MAVLink instances, for their ``MAV_n_FORWARD``: the companion's link (0)
 #: is instance 1 (TELEM2), the ground station's (1) instance 0 (TELEM1), as on a Pixhawk.
 PX4_FORWARD_PARAMS = {0: "MAV_1_FORWARD", 1: "MAV_0_FORWARD"}
+#: ``vehicle`` events are written in batches at most this long after they were due (a wake-up
+#: per sample would cost more than the samples), and never more than VEHICLE_LOG_MAX_S behind.
+VEHICLE_LOG_LAG_S = 0.2
+VEHICLE_LOG_MAX_S = 2.0
 #: PX4's defaults: forwarding on for instance 0 (TELEM1), off for the others.
 PX4_FORWARD_DEFAULTS = {"MAV_0_FORWARD": 1, "MAV_1_FORWARD": 0}
 
@@ -204,6 +218,17 @@ class SimAutopilot:
         self.config = config
         self.hand = hand
         self.faults = faults or FaultInjector(config.faults)
+        #: The vehicle's motion (pure, seeded): it goes on through a reboot of the autopilot.
+        self.vehicle = HoverDisturbance.from_config(config.vehicle)
+        self._mount = mount_matrix(config.vehicle.mount)
+        #: The hand in the arm's base frame for the last horn positions seen (an FK is costly).
+        self._hand_key: tuple[float, ...] | None = None
+        self._hand_base: FloatArray | None = None
+        log_rate_hz = config.vehicle.log_rate_hz
+        self._vehicle_log_s = 1.0 / log_rate_hz if log_rate_hz > 0 else 0.0
+        self._vehicle_due_s: float | None = now_s if log_rate_hz > 0 else None
+        #: Samples fall at origin + n·period (no drift from adding periods up).
+        self._vehicle_origin_s, self._vehicle_n = now_s, 0
         self._emit_sink = emit or (lambda event: None)
         self._start_s = now_s
         #: When the current boot started: time_boot, the main-loop phase (a reboot moves it).
@@ -414,6 +439,7 @@ class SimAutopilot:
     def _refresh_outputs(self, now_s: float, cause: str) -> None:
         """Bring the reported and physical PWMs up to the current state; every physical change
         moves its servo and is logged as an ``output`` event (what the servo receives)."""
+        self._run_vehicle_log(now_s)  # the samples due before a servo's course changes
         reported, physical = self._outputs_now()
         self.pwm_us = reported
         for output, pwm in physical.items():
@@ -622,6 +648,8 @@ class SimAutopilot:
         """Run the periodic work due by ``now_s``; the frames to write now, as ``(link,
         frame)``: our own (on every link, or the one a reply is for) and those routed from one
         link to another (as received: a signed frame keeps its signature)."""
+        # First: the sample's horn positions are those before this pass's commands.
+        self._run_vehicle_log(now_s)
         self._run_reboot(now_s)
         if self._rebooting_until_s is None:
             self._run_prearm(now_s)
@@ -658,6 +686,9 @@ class SimAutopilot:
                 candidates.append(prearm_s)
         if self._reboot_due_s is not None:
             candidates.append(self._reboot_due_s)
+        if self._vehicle_due_s is not None:
+            # Samples are written late, in batches (see _run_vehicle_log): no wake-up each.
+            candidates.append(self._vehicle_due_s + VEHICLE_LOG_LAG_S)
         candidates += [due for link in self._links if (due := link.next_event_s()) is not None]
         if self._moving:
             candidates.append(max(servo.arrival_s() for servo in self.servos.values()))
@@ -826,6 +857,8 @@ class SimAutopilot:
             mavlink.MAVLINK_MSG_ID_HEARTBEAT,
             mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW,
             mavlink.MAVLINK_MSG_ID_SYSTEM_TIME,
+            mavlink.MAVLINK_MSG_ID_ATTITUDE,
+            mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED,
         ]
         if self.config.flavour == "px4":
             ids.append(mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS)
@@ -840,6 +873,13 @@ class SimAutopilot:
             return max(1, round(1000.0 / self.config.servo_output_rate_hz))
         if msg_id == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME and self.config.system_time_default_hz:
             return max(1, round(1000.0 / self.config.system_time_default_hz))
+        if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE and self.config.attitude_default_hz:
+            return max(1, round(1000.0 / self.config.attitude_default_hz))
+        if (
+            msg_id == mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+            and self.config.local_position_default_hz
+        ):
+            return max(1, round(1000.0 / self.config.local_position_default_hz))
         return 0
 
     def _stream_message(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message:
@@ -865,6 +905,23 @@ class SimAutopilot:
             enabled = 0 if self.safety_on else motors
             return self._enc.sys_status_encode(
                 motors, enabled, motors, 0, 0, -1, -1, 0, 0, 0, 0, 0, 0
+            )
+        if msg_id in (mavlink.MAVLINK_MSG_ID_ATTITUDE, mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED):
+            # The state at exactly the time the stamp names (see sim_servo.hover).
+            stamp_ms = self._time_boot_us(now_s) // 1000
+            state = self.vehicle.state(self._boot_s + stamp_ms / 1000.0 - self._start_s)
+            if msg_id == mavlink.MAVLINK_MSG_ID_ATTITUDE:
+                return self._enc.attitude_encode(
+                    stamp_ms & 0xFFFFFFFF, *state.attitude_wrapped(), *state.body_rates()
+                )
+            return self._enc.local_position_ned_encode(
+                stamp_ms & 0xFFFFFFFF,
+                state.north_m,
+                state.east_m,
+                state.down_m,
+                state.vn_m_s,
+                state.ve_m_s,
+                state.vd_m_s,
             )
         if msg_id == mavlink.MAVLINK_MSG_ID_HEARTBEAT:
             return self._heartbeat()
@@ -1189,6 +1246,7 @@ class SimAutopilot:
 
     def _apply(self, output: int, pwm: int, now_s: float) -> None:
         """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command)."""
+        self._run_vehicle_log(now_s)
         self._commanded_us[output] = pwm
         self._refresh_outputs(now_s, "command")
         self._servo_event(output, pwm, now_s)
@@ -1270,6 +1328,53 @@ class SimAutopilot:
 
     def _positions(self, now_s: float) -> dict[int, float]:
         return {o: round(s.position_us(now_s), 3) for o, s in self.servos.items()}
+
+    # -- the vehicle and the hand in the world ---------------------------------------------
+
+    def hand_world(self, now_s: float, vehicle: VehicleState | None = None) -> WorldPose | None:
+        """The hand in LOCAL_NED at ``now_s``: the vehicle's pose then (``vehicle``, if already
+        computed), the mount, and the hand the servos' horns give (None without a hand model or
+        while a horn is outside its joint's PWM range)."""
+        if self.hand is None:
+            return None
+        key = tuple(round(self.servos[o].position_us(now_s), 3) for o in self.hand.outputs)
+        if key != self._hand_key:
+            pose = self.hand.state(dict(zip(self.hand.outputs, key, strict=True))).pose
+            self._hand_key = key
+            self._hand_base = None if pose is None else pose_matrix(*pose.as_tuple())
+        if self._hand_base is None:
+            return None
+        if vehicle is None:
+            vehicle = self.vehicle.state(now_s - self._start_s)
+        return hand_in_world(vehicle, self._mount, self._hand_base)
+
+    def world_sample(self, now_s: float) -> dict[str, Any]:
+        """The vehicle's state and the hand in the world at ``now_s``, JSON-ready (the
+        ``vehicle`` event's fields)."""
+        vehicle = self.vehicle.state(now_s - self._start_s)
+        hand = self.hand_world(now_s, vehicle)
+        return {
+            "vehicle": vehicle.as_dict(),
+            "hand_ned": hand.as_dict() if hand is not None else None,
+        }
+
+    def _run_vehicle_log(self, now_s: float) -> None:
+        """The ``vehicle`` events due by ``now_s``, each stamped and computed at its own due
+        time. They are written late, in batches (on any pass, at most VEHICLE_LOG_LAG_S after
+        they were due), and always before a servo is given a new course (every command and
+        output change calls this first), so the horn positions of a past sample are exact: a
+        servo's motion between two commands is known at any time. More than VEHICLE_LOG_MAX_S
+        behind (a stalled process) the cadence restarts from now."""
+        due = self._vehicle_due_s
+        if due is None or now_s < due:
+            return
+        if now_s - due > VEHICLE_LOG_MAX_S:
+            self._vehicle_origin_s, self._vehicle_n, due = now_s, 0, now_s
+        while due <= now_s:
+            self.emit(due, "vehicle", **self.world_sample(due))
+            self._vehicle_n += 1
+            due = self._vehicle_origin_s + self._vehicle_n * self._vehicle_log_s
+        self._vehicle_due_s = due
 
     def _cmd_set_message_interval(self, command: Command, now_s: float) -> int:
         msg_id_f, interval_f = command.params[0], command.params[1]
@@ -1456,6 +1561,7 @@ class SimAutopilot:
             "outputs": outputs,
             "settled": not any(s.moving(now_s) for s in self.servos.values()),
             "hand": self.hand.state(positions).as_dict() if self.hand else None,
+            **self.world_sample(now_s),
             "streams": {_message_name(m): self._interval_ms[m] for m in self._stream_msgs},
             "stats": dict(self.stats),
         }

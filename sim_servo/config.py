@@ -65,6 +65,12 @@ DEFAULT_REBOOT_GAP_S = 0.36
 #: PX4 ``PWM_MAIN_DISn`` default on boards (SITL has 900): the PWM of an output while it is not
 #: live (disarmed and not prearmed), at boot and after a kill or a reboot.
 PX4_DISARMED_PWM_US = 1000
+#: ATTITUDE and LOCAL_POSITION_NED before any SET_MESSAGE_INTERVAL (see :mod:`sim_servo.hover`).
+#: ArduCopter: in the EXTRA1 and POSITION streams, whose SRn_EXTRA1 / SRn_POSITION defaults are
+#: 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until asked. PX4: 100 Hz and 30 Hz in the
+#: ONBOARD mode of a companion link (mavlink_main.cpp ``configure_streams_to_default``).
+DEFAULT_ATTITUDE_RATE_HZ = {"ardupilot": 0.0, "px4": 100.0}
+DEFAULT_LOCAL_POSITION_RATE_HZ = {"ardupilot": 0.0, "px4": 30.0}
 #: PX4 ``COM_PREARM_MODE``: 0 disabled (default), 1 safety button, 2 always.
 PX4_PREARM_MODES = (0, 1, 2)
 #: Measured on PX4 SITL: with ``COM_PREARM_MODE`` 2 the outputs come alive 5 s after boot.
@@ -263,6 +269,94 @@ class FaultConfig:
         object.__setattr__(self, "nack_outputs", frozenset(self.nack_outputs))
 
 
+def _triple(value: Any, name: str, low: float, high: float, source: str = "") -> tuple[float, ...]:
+    if not isinstance(value, list | tuple) or len(value) != 3:
+        raise SimConfigError(f"{_where(source, name)}={value!r} must be a list of 3 numbers")
+    return tuple(_real(v, f"{name}[{i}]", low, high, source) for i, v in enumerate(value))
+
+
+@dataclass(frozen=True)
+class MountConfig:
+    """Where the arm's base sits on the vehicle: the base frame in the body frame FRD (x
+    forward, y right, z down, origin at the autopilot's body origin). ``xyz_cm`` is the base
+    origin in body FRD (cm); ``rpy_deg`` the base frame's orientation, roll/pitch/yaw with
+    ``R = Rz(yaw) · Ry(pitch) · Rx(roll)`` (as :class:`companion.kinematics.Pose`). The default:
+    an arm hanging under a quadrotor, 10 cm below the body origin, its axes the body's (its +z
+    points down)."""
+
+    xyz_cm: tuple[float, float, float] = (0.0, 0.0, 10.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "xyz_cm", _triple(self.xyz_cm, "mount xyz_cm", -500.0, 500.0))
+        object.__setattr__(self, "rpy_deg", _triple(self.rpy_deg, "mount rpy_deg", -360.0, 360.0))
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """The vehicle's motion in LOCAL_NED: a seeded hover disturbance (:mod:`sim_servo.hover`).
+
+    With ``hover`` the vehicle drifts around ``home_ned_m`` (north, east, down in m from the
+    autopilot's origin; −2: 2 m up) by at most ``drift_cm`` north and east and ``heave_cm``
+    down, tilts by at most ``tilt_deg`` in roll and pitch and wanders by at most ``yaw_deg``
+    around ``home_yaw_deg``: each a sum of ``components`` sinusoids whose periods are drawn in
+    [``period_min_s``, ``period_max_s``] (yaw: [``yaw_period_min_s``, ``yaw_period_max_s``]),
+    amplitudes and phases from ``seed``. Without it the vehicle holds ``home_ned_m`` level.
+    ``log_rate_hz``: a ``vehicle`` event (vehicle state, the hand in the world) that often in
+    the event log (0: none). ``mount``: :class:`MountConfig`.
+    """
+
+    hover: bool = True
+    seed: int = 0
+    drift_cm: float = 10.0
+    heave_cm: float = 5.0
+    tilt_deg: float = 5.0
+    yaw_deg: float = 5.0
+    period_min_s: float = 1.0
+    period_max_s: float = 5.0
+    yaw_period_min_s: float = 8.0
+    yaw_period_max_s: float = 20.0
+    components: int = 3
+    home_ned_m: tuple[float, float, float] = (0.0, 0.0, -2.0)
+    home_yaw_deg: float = 0.0
+    log_rate_hz: float = 25.0
+    mount: MountConfig = field(default_factory=MountConfig)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.hover, bool):
+            raise SimConfigError(f"vehicle hover={self.hover!r} must be true or false")
+        _int(self.seed, "vehicle seed", 0, 2**63 - 1)
+        _real(self.drift_cm, "vehicle drift_cm", 0.0, 500.0)
+        _real(self.heave_cm, "vehicle heave_cm", 0.0, 500.0)
+        _real(self.tilt_deg, "vehicle tilt_deg", 0.0, 45.0)
+        _real(self.yaw_deg, "vehicle yaw_deg", 0.0, 180.0)
+        for low_name, high_name in (
+            ("period_min_s", "period_max_s"),
+            ("yaw_period_min_s", "yaw_period_max_s"),
+        ):
+            low = _real(getattr(self, low_name), f"vehicle {low_name}", 0.05, 3600.0)
+            high = _real(getattr(self, high_name), f"vehicle {high_name}", 0.05, 3600.0)
+            if low > high:
+                raise SimConfigError(
+                    f"vehicle {low_name}={low} must not exceed vehicle {high_name}={high}"
+                )
+        _int(self.components, "vehicle components", 1, 16)
+        object.__setattr__(
+            self, "home_ned_m", _triple(self.home_ned_m, "vehicle home_ned_m", -1e6, 1e6)
+        )
+        _real(self.home_yaw_deg, "vehicle home_yaw_deg", -360.0, 360.0)
+        _real(self.log_rate_hz, "vehicle log_rate_hz", 0.0, 1000.0)
+        if not isinstance(self.mount, MountConfig):
+            raise SimConfigError(f"vehicle mount={self.mount!r} must be a MountConfig")
+
+    def as_dict(self) -> dict[str, Any]:
+        """The settings as TOML / JSON data (the ``start`` event carries them)."""
+        data = {name: getattr(self, name) for name in self.__dataclass_fields__ if name != "mount"}
+        data["home_ned_m"] = list(self.home_ned_m)
+        data["mount"] = {"xyz_cm": list(self.mount.xyz_cm), "rpy_deg": list(self.mount.rpy_deg)}
+        return data
+
+
 @dataclass(frozen=True)
 class ArmConfig:
     """Which arm the servos move and how its joints map onto outputs (the simulator's servo model).
@@ -329,6 +423,7 @@ class SimConfig:
     servo: ServoConfig = field(default_factory=ServoConfig)
     arm: ArmConfig = field(default_factory=ArmConfig)
     faults: FaultConfig = field(default_factory=FaultConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     link_timing: LinkTimingConfig = field(default_factory=LinkTimingConfig)
     px4_timing: Px4TimingConfig = field(default_factory=Px4TimingConfig)
     signing_key: bytes | None = None
@@ -343,6 +438,10 @@ class SimConfig:
     servo_output_min_interval_ms: int | None = None
     #: SYSTEM_TIME before any SET_MESSAGE_INTERVAL; None: the flavour's (ArduPilot 0, PX4 1 Hz).
     system_time_rate_hz: float | None = None
+    #: ATTITUDE / LOCAL_POSITION_NED before any SET_MESSAGE_INTERVAL; None: the flavour's
+    #: (ArduPilot 0, PX4 100 / 30 Hz).
+    attitude_rate_hz: float | None = None
+    local_position_rate_hz: float | None = None
     heartbeat_rate_hz: float = 1.0
     loop_rate_hz: float = 400.0
     #: Answer MAV_CMD_USER_2 as armbridge's Lua bridge script does (ArduPilot only).
@@ -379,6 +478,10 @@ class SimConfig:
         if self.servo_output_min_interval_ms is not None:
             _int(self.servo_output_min_interval_ms, "servo_output_min_interval_ms", 0, 60_000)
         _optional_real(self.system_time_rate_hz, "system_time_rate_hz", 0.0, 1000.0)
+        _optional_real(self.attitude_rate_hz, "attitude_rate_hz", 0.0, 1000.0)
+        _optional_real(self.local_position_rate_hz, "local_position_rate_hz", 0.0, 1000.0)
+        if not isinstance(self.vehicle, VehicleConfig):
+            raise SimConfigError(f"vehicle={self.vehicle!r} must be a VehicleConfig")
         if _real(self.heartbeat_rate_hz, "heartbeat_rate_hz", 0.0, 100.0) == 0.0:
             raise SimConfigError("heartbeat_rate_hz=0 must be > 0")
         if _real(self.loop_rate_hz, "loop_rate_hz", 0.0, 10_000.0) == 0.0:
@@ -397,6 +500,21 @@ class SimConfig:
         if self.system_time_rate_hz is not None:
             return self.system_time_rate_hz
         return DEFAULT_SYSTEM_TIME_RATE_HZ[self.flavour]
+
+    @property
+    def attitude_default_hz(self) -> float:
+        """ATTITUDE's rate before any SET_MESSAGE_INTERVAL (the flavour's when not set)."""
+        if self.attitude_rate_hz is not None:
+            return self.attitude_rate_hz
+        return DEFAULT_ATTITUDE_RATE_HZ[self.flavour]
+
+    @property
+    def local_position_default_hz(self) -> float:
+        """LOCAL_POSITION_NED's rate before any SET_MESSAGE_INTERVAL (the flavour's when not
+        set)."""
+        if self.local_position_rate_hz is not None:
+            return self.local_position_rate_hz
+        return DEFAULT_LOCAL_POSITION_RATE_HZ[self.flavour]
 
 
 def default_functions(flavour: str, arm_outputs: tuple[int, ...]) -> dict[int, int]:
@@ -456,10 +574,13 @@ _TOP_KEYS = {
     "servo_output_rate_hz",
     "servo_output_min_interval_ms",
     "system_time_rate_hz",
+    "attitude_rate_hz",
+    "local_position_rate_hz",
     "heartbeat_rate_hz",
     "loop_rate_hz",
     "lua_script",
     "signing_key_file",
+    "vehicle",
     "armed",
     "params",
     "px4_timing",
@@ -541,6 +662,8 @@ def config_from_mapping(
         "servo_output_rate_hz",
         "servo_output_min_interval_ms",
         "system_time_rate_hz",
+        "attitude_rate_hz",
+        "local_position_rate_hz",
         "heartbeat_rate_hz",
         "loop_rate_hz",
         "lua_script",
@@ -583,6 +706,14 @@ def config_from_mapping(
     if "nack_outputs" in faults:
         faults["nack_outputs"] = frozenset(faults["nack_outputs"])
     kwargs["faults"] = FaultConfig(**faults)
+    vehicle = dict(_table(data, "vehicle", source))
+    _reject_unknown(vehicle, set(VehicleConfig.__dataclass_fields__), f"[vehicle] in {source}")
+    mount = vehicle.get("mount", {})
+    if not isinstance(mount, Mapping):
+        raise SimConfigError(f"[vehicle.mount] in {source} must be a table")
+    _reject_unknown(mount, set(MountConfig.__dataclass_fields__), f"[vehicle.mount] in {source}")
+    vehicle["mount"] = MountConfig(**mount)
+    kwargs["vehicle"] = VehicleConfig(**vehicle)
     timing = _table(data, "link_timing", source)
     _reject_unknown(
         timing, set(LinkTimingConfig.__dataclass_fields__), f"[link_timing] in {source}"

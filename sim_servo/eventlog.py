@@ -11,16 +11,28 @@ What a servo physically receives is in the log: ``start`` has every output's pul
 :func:`physical_pwm_timeline` rebuilds every output's pulse over time from the log alone —
 arming, prearm, the safety switch and reboots included (``arming`` / ``prearm`` / ``safety``
 events say why).
+
+Where the hand is in the world is in the log too: the periodic ``vehicle`` events (``[vehicle]
+log_rate_hz``) carry the vehicle's state and the hand's pose in LOCAL_NED at their ``t_s``, and
+:func:`world_timeline` returns them; the ``start`` event's ``vehicle`` holds the settings (seed,
+bounds, mount) that rebuild the same motion at any time:
+``HoverDisturbance.from_config(config_from_mapping({"vehicle": start["vehicle"]}).vehicle)``.
+``vehicle`` events are written up to 0.2 s late, in batches (see
+:meth:`~sim_servo.autopilot.SimAutopilot._run_vehicle_log`): in time order among themselves, not
+with the other events.
 """
 
 from __future__ import annotations
 
 import collections
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 from sim_servo.errors import SimIOError
+from sim_servo.hover import VehicleState
+from sim_servo.world import WorldPose
 
 
 class EventLog:
@@ -76,3 +88,27 @@ def physical_pwm_timeline(events: list[dict[str, Any]]) -> dict[int, list[tuple[
                 )
             history.append((float(event["t_s"]), int(event["pwm_us"])))
     return timeline
+
+
+@dataclass(frozen=True)
+class WorldSample:
+    """One ``vehicle`` event: the time (s since start), the vehicle, the hand in LOCAL_NED
+    (None while the hand is unknown: a horn outside its joint's PWM range)."""
+
+    t_s: float
+    vehicle: VehicleState
+    hand: WorldPose | None
+
+
+def world_timeline(events: list[dict[str, Any]]) -> list[WorldSample]:
+    """The ``vehicle`` events in log order: ``[(t_s, vehicle state, hand pose in LOCAL_NED)]``,
+    for a bench computing the hand's world error over time."""
+    return [
+        WorldSample(
+            float(event["t_s"]),
+            VehicleState.from_dict(event["vehicle"]),
+            WorldPose.from_dict(event["hand_ned"]) if event["hand_ned"] is not None else None,
+        )
+        for event in events
+        if event["event"] == "vehicle"
+    ]

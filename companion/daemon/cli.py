@@ -472,10 +472,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="what must be met: the whole pose (default), the position only, or the position "
         "with the hand's z axis along the pose's (roll about it free)",
     )
+    p.add_argument(
+        "--frame",
+        choices=("base", "local_ned"),
+        default="base",
+        help="the pose's frame: the arm's base (default), or the world (LOCAL_NED, "
+        "north-east-down from the autopilot's origin, cm): the hand is held there while the "
+        "vehicle moves (needs [world] enabled)",
+    )
     p.set_defaults(
         func=lambda a: _client(
             a,
-            {"cmd": "goto", "pose": _pose(a)} | ({"mode": a.mode} if a.mode != "pose" else {}),
+            {"cmd": "goto", "pose": _pose(a)}
+            | ({"mode": a.mode} if a.mode != "pose" else {})
+            | ({"frame": a.frame} if a.frame != "base" else {}),
         )
     )
 

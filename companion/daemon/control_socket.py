@@ -6,7 +6,9 @@ line in, one per line out, in order; a connection may send many requests.
 Requests::
 
     {"cmd": "goto", "pose": [x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg]}
-    (optional "mode": "pose" | "position" | "position_axis": what of the pose must be met)
+    (optional "mode": "pose" | "position" | "position_axis": what of the pose must be met;
+    optional "frame": "base" (default) | "local_ned": the world, the hand held there while the
+    vehicle moves, with ``[world]`` on)
     {"cmd": "trajectory", "points": [[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]}
     {"cmd": "status"}
     {"cmd": "park"}
@@ -693,8 +695,12 @@ def parse_request_line(line: bytes) -> dict[str, Any] | tuple[str, Any]:
         return {"ok": False, "error": f'a request is an object with "cmd": {_COMMANDS}'}
     cmd = obj["cmd"]
     if cmd == "goto":
-        if "mode" in obj:  # what of the pose must be met (requests.TARGET_MODES)
-            return cmd, {"pose": obj.get("pose"), "mode": obj["mode"]}
+        if "mode" in obj or "frame" in obj:  # requests.TARGET_MODES, requests.TARGET_FRAMES
+            return cmd, {
+                "pose": obj.get("pose"),
+                "mode": obj.get("mode", "pose"),
+                "frame": obj.get("frame", "base"),
+            }
         return cmd, obj.get("pose")
     if cmd == "trajectory":
         points = obj.get("points")

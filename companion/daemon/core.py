@@ -14,8 +14,10 @@ Rules:
   per joint, the angle whose PWM it accepted. Motion steps from there, so a partial update can
   neither break the speed limit nor make the status lie.
 * **Pipelined updates.** An update's commands go out back-to-back and its ACKs are counted
-  (:mod:`firmware_interface.updates`). One update is in flight at a time. When the outputs' state
-  is unknown (ACKs missing), the same values are re-sent (``command_retries`` more times at
+  (:mod:`firmware_interface.updates`). The next step may go out behind the update in flight
+  (at most ``PIPELINE_DEPTH`` on their way), re-sending every output the one ahead sent, so
+  when the one ahead ends unanswered the one behind decides. When the outputs' state is
+  unknown (ACKs missing), the same values are re-sent (``command_retries`` more times at
   once), and the arm does not move on before they are confirmed. An update that stays unknown
   fails the targets waiting on it; ``UPDATE_ATTEMPTS`` of them in a row abandon the motion.
 * **A refused output stops the motion** with the autopilot's reason; what did move is reported
@@ -62,7 +64,8 @@ from companion.kinematics.arm import Pose
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
 from firmware_interface.link import is_autopilot_heartbeat
-from firmware_interface.updates import ServoCommand, UpdateTracker
+from firmware_interface.transport import parse_url
+from firmware_interface.updates import ServoCommand, UpdateOutcome, UpdateState, UpdateTracker
 
 log = logging.getLogger("armbridge")
 
@@ -89,6 +92,11 @@ REBOOT_BACKSTEP_MS = 100
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
 #: outputs do (issue 20). ArduPilot streams it at most every 20 ms.
 READBACK_INTERVAL_S = 0.1
+#: ArduPilot on a serial line below SLOW_LINK_BAUD: the readback only feeds status there (its
+#: safety switch comes from SYS_STATUS), and at 10 Hz its 49-byte frames (4.3 ms each at
+#: 115 200 baud) would delay an update's ACK behind them one time in twenty.
+READBACK_SLOW_LINK_INTERVAL_S = 1.0
+SLOW_LINK_BAUD = 230_400
 #: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
 #: the switch is off) is asked for at this interval.
 SYS_STATUS_INTERVAL_S = 0.5
@@ -109,6 +117,9 @@ VERDICT_TIMEOUT_S = 2.0
 READBACK_TOLERANCE_US = 1
 #: PX4: with no readback this long after the link came up, move without it (and say so).
 READBACK_WAIT_S = 2.0
+#: Updates on their way at once: one, and the next step behind it (see ``_pipeline``). The
+#: next step after that waits: a deeper pipe would only queue stale steps.
+PIPELINE_DEPTH = 2
 
 Solve = Callable[[Pose, Sequence[float], str], Any]  # (pose, q_start_deg, mode) → ik.IKResult
 
@@ -204,7 +215,8 @@ class ControlCore:
         self._trajectory: list[tuple[float, Pose]] = []
         self._trajectory_t0 = 0.0
         self._waiting: list[_Waiting] = []  # accepted, first step not sent yet
-        self._inflight: _InFlight | None = None
+        #: Updates on their way, oldest first: at most PIPELINE_DEPTH (see _maybe_send).
+        self._flights: collections.deque[_InFlight] = collections.deque()
         self._unanswered = 0
         self._last_step_s = -math.inf
         self._next_tick_s = clock()
@@ -229,6 +241,13 @@ class ControlCore:
         #: READBACK_WAIT_S after it with none (a firmware that does not stream it).
         self._readback_since_s = clock()
         self._readback_warned = False
+        spec = parse_url(config.link.url)
+        slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
+        self._readback_interval_s = (
+            READBACK_SLOW_LINK_INTERVAL_S
+            if slow_serial and self._is_ardupilot
+            else READBACK_INTERVAL_S
+        )
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
         #: start, a loss or a reboot.
@@ -331,19 +350,23 @@ class ControlCore:
         if source != self._pinned:
             self.counters["foreign_frames"] += 1
             return actions
-        inflight = self._inflight
         if kind == "COMMAND_ACK":
             if msg.target_component in (0, self.config.link.component_id):
                 self._heard_us = True  # it answered us: it knows our route
-            if inflight is not None and msg.target_component in (0, self.config.link.component_id):
-                inflight.tracker.on_ack(msg.command, msg.result, self.clock())
+                # Counted in order: the oldest update still short of ACKs takes it (the
+                # autopilot answers one link's commands in the order they came); once all
+                # are complete, the newest counts it as one too many.
+                for flight in self._flights:
+                    if not flight.tracker.complete or flight is self._flights[-1]:
+                        flight.tracker.on_ack(msg.command, msg.result, self.clock())
+                        break
                 self._poll_update(actions)
         elif kind == "STATUSTEXT":
-            if inflight is not None:
-                text = msg.text
-                if isinstance(text, bytes | bytearray):
-                    text = text.decode("ascii", "replace")
-                inflight.tracker.on_statustext(str(text))
+            text = msg.text
+            if isinstance(text, bytes | bytearray):
+                text = text.decode("ascii", "replace")
+            for flight in self._flights:
+                flight.tracker.on_statustext(str(text))
         elif kind == "SYSTEM_TIME":
             self._on_system_time(actions, int(msg.time_boot_ms))
         elif kind == "SERVO_OUTPUT_RAW":
@@ -387,8 +410,8 @@ class ControlCore:
     def next_wake_s(self) -> float:
         """When :meth:`tick` next has something to do (daemon clock)."""
         wake = self._next_tick_s
-        if self._inflight is not None:
-            wake = min(wake, self._inflight.tracker.next_event_s())
+        for flight in self._flights:
+            wake = min(wake, flight.tracker.next_event_s())
         return wake
 
     def shutdown(self, *, park: bool) -> list[Action]:
@@ -409,10 +432,10 @@ class ControlCore:
     def finish(self) -> list[Action]:
         """The daemon exits now: whatever still waits on an update is answered."""
         actions: list[Action] = []
-        if self._inflight is not None:
-            for w in self._inflight.waiting:
+        for flight in self._flights:
+            for w in flight.waiting:
                 self._answer(actions, w.request, Reply(Outcome.FAILED, "daemon stopped"))
-            self._inflight = None
+        self._flights.clear()
         return actions
 
     def internal_error(self, reply: Reply) -> list[Action]:
@@ -421,12 +444,14 @@ class ControlCore:
         are re-sent before anything moves again."""
         actions: list[Action] = []
         self.counters["internal_errors"] += 1
-        inflight, self._inflight = self._inflight, None
-        if inflight is not None:
+        flights = list(self._flights)
+        self._flights.clear()
+        for inflight in flights:
             for w in inflight.waiting:
                 self._answer(actions, w.request, reply)
             for output in inflight.sent_outputs:
                 self._acked_pwm.pop(output, None)
+        if flights:
             self._unconfirmed = tuple(self._position)
         self._stop_motion(actions, reply)
         return actions
@@ -439,7 +464,7 @@ class ControlCore:
     @property
     def idle(self) -> bool:
         """No update in flight."""
-        return self._inflight is None
+        return not self._flights
 
     # -- requests ---------------------------------------------------------------------------
 
@@ -456,6 +481,14 @@ class ControlCore:
             raise ValueError(f"invalid target: {exc}") from exc
 
     def _goto(self, actions: list[Action], request: Request | None, target: Target) -> bool:
+        if target.frame != "base":
+            reply = Reply(
+                Outcome.DENIED,
+                f"frame={target.frame!r}: world-frame targets are not enabled on this daemon",
+            )
+            if request is not None:
+                self._answer(actions, request, reply)
+            return False
         pose = target.pose
         start = self._goal if self._goal is not None else tuple(self._position)
         result = self._solve(pose, start, target.mode)
@@ -541,16 +574,23 @@ class ControlCore:
     def _settled(self) -> bool:
         return (
             self._unconfirmed is None
-            and self._inflight is None
+            and not self._flights
             and all(o in self._acked_pwm or o in self._refused for o in self._outputs)
         )
 
     def _maybe_send(self, actions: list[Action], *, immediate: bool) -> None:
-        """Start the next update if one is due and none is in flight. ``immediate``: only if a
-        newly accepted target waits (its first step does not wait for the next tick)."""
-        if self._inflight is not None or not self._link_up:
+        """Start the next update if one is due. ``immediate``: only if a newly accepted target
+        waits (its first step does not wait for the next tick).
+
+        With an update in flight, the next one may go out behind it (``_pipeline``), so a
+        target does not wait out the round trip of the step before it (on a 115 200-baud line
+        an update takes 13–21 ms of a 20 ms slot)."""
+        if not self._link_up:
             return
         if immediate and not self._waiting:
+            return
+        if self._flights:
+            self._pipeline(actions)
             return
         now = self.clock()
         if not self._outputs_known(now):
@@ -593,6 +633,47 @@ class ControlCore:
             step = limit_step(self._position, goal, max_step_deg)
         self._send_step(actions, step, now)
 
+    def _pipeline(self, actions: list[Action]) -> None:
+        """Send the next step behind the update in flight, without waiting for its ACKs.
+
+        Only in the plain case: one update in flight (PIPELINE_DEPTH), in its first attempt,
+        every output acknowledged before it (none unknown after a loss, a reboot or an update
+        that ended unanswered), every output live (and, on PX4, confirmed live by the
+        readback).
+        The step is computed from the one in flight (as if acknowledged) at the speed limit,
+        and it **re-sends every output the updates ahead of it sent**, at its own values: the
+        ACKs are counted in order (:mod:`firmware_interface.updates`), so if one ahead ends
+        unanswered or miscounted, this one's outcome alone says where those outputs are
+        (see :meth:`_poll_update`)."""
+        head = self._flights[-1]
+        if (
+            len(self._flights) >= PIPELINE_DEPTH
+            or head.attempt
+            or head.pending
+            or self._unconfirmed is not None
+            or not self._acked_pwm.keys() >= set(self._outputs)
+            or self._dead_outputs()
+        ):
+            return
+        now = self.clock()
+        if head.tracker.poll(now) is not None:
+            return  # its verdict is in (or its time is up): resolved first, then we go on
+        if not self._is_ardupilot and (
+            self._hold_now or not self._confirmed.issuperset(self._outputs)
+        ):
+            return
+        goal = self._goal
+        if goal is None or goal == head.step_deg:
+            return
+        period = 1.0 / self.config.rate_hz
+        max_step_deg = self.config.joint_speed_deg_s * min(period, now - self._last_step_s)
+        if not max_step_deg > 0:
+            return
+        step = limit_step(head.step_deg, goal, max_step_deg)
+        ahead = {o for f in self._flights for o in f.sent_outputs}
+        base = {o: pwm for o, pwm in self._acked_pwm.items() if o not in ahead}
+        self._send_step(actions, step, now, base_pwm=base)
+
     def _outputs_known(self, now: float) -> bool:
         """PX4: a readback since the start, link loss or reboot tells where the joints are;
         without one for READBACK_WAIT_S, go on from the acknowledged pose (and say so once)."""
@@ -617,16 +698,24 @@ class ControlCore:
         *,
         everything: bool = False,
         timeout_s: float | None = None,
+        base_pwm: dict[int, int] | None = None,
     ) -> None:
+        """Send the update to ``step``; outputs whose PWM ``base_pwm`` (default: the
+        acknowledged PWMs) already holds are left out, unless ``everything``."""
+        if base_pwm is None:
+            base_pwm = self._acked_pwm
         try:
             pwm = self.config.calibration.angles_to_pwm_us(step)
-            commands = self._dialect.plan(pwm, None if everything else self._acked_pwm)
+            commands = self._dialect.plan(pwm, None if everything else base_pwm)
         except CalibrationError as exc:  # unreachable by construction; refuse, never clamp
             log.error("calibration refused a step, holding: %s", exc)
             self._fail_motion(actions, f"calibration refused a step: {exc}")
             return
         waiting, self._waiting = self._waiting, []
         if not commands:  # every output already holds this step
+            if self._flights:  # (behind an update: it already carries this step)
+                self._flights[-1].waiting.extend(waiting)
+                return
             self._position = list(step)
             self._unconfirmed = None
             for w in waiting:
@@ -636,7 +725,7 @@ class ControlCore:
             timeout_s = self.config.link.command_timeout_s
         tracker = UpdateTracker(commands, sent_s=now, timeout_s=timeout_s)
         sent = frozenset(o for c in commands for o in c.outputs)
-        self._inflight = _InFlight(step, pwm, sent, tracker, now, waiting, timeout_s)
+        self._flights.append(_InFlight(step, pwm, sent, tracker, now, waiting, timeout_s))
         self._last_step_s = now
         self._emit(actions, commands, 0)
 
@@ -649,18 +738,18 @@ class ControlCore:
         timeout_s: float | None = None,
     ) -> None:
         """Everything to ``step`` at once, past the speed limit (park on shutdown)."""
-        if self._inflight is not None:
-            # Its answers would be counted into this update; the autopilot handles frames in
-            # order, so the direct step lands last whatever happens to the one in flight.
-            for w in self._inflight.waiting:
+        # Their answers would be counted into this update; the autopilot handles frames in
+        # order, so the direct step lands last whatever happens to those in flight.
+        for flight in self._flights:
+            for w in flight.waiting:
                 self._answer(
                     actions,
                     w.request,
                     Reply(Outcome.FAILED, "interrupted by a park before it was confirmed"),
                 )
-            for o in self._inflight.sent_outputs:
+            for o in flight.sent_outputs:
                 self._acked_pwm.pop(o, None)
-            self._inflight = None
+        self._flights.clear()
         self._unconfirmed = None
         self._send_step(actions, step, self.clock(), everything=force, timeout_s=timeout_s)
 
@@ -670,13 +759,39 @@ class ControlCore:
             actions.append(SendCommand(self._pinned, c.command, c.params, attempt))
 
     def _poll_update(self, actions: list[Action]) -> None:
-        inflight = self._inflight
-        if inflight is None:
-            return
         now = self.clock()
-        outcome = inflight.tracker.poll(now)
-        if outcome is None:
+        while self._flights:
+            inflight = self._flights[0]
+            outcome = inflight.tracker.poll(now)
+            if outcome is None:
+                return
+            if len(self._flights) > 1 and (outcome.unknown or outcome.state is UpdateState.UNKNOWN):
+                self._fold_into_next(actions, inflight, outcome.reason)
+                continue
+            if len(self._flights) > 1:
+                inflight.accepted.update(outcome.accepted)
+                inflight.refused.update(outcome.refused)
+                self._resolve_update(actions, inflight, now)
+                continue
+            self._poll_last(actions, inflight, outcome, now)
             return
+
+    def _fold_into_next(self, actions: list[Action], inflight: _InFlight, reason: str) -> None:
+        """An update with one behind it ended unanswered (or miscounted): the one behind
+        re-sent every output it sent, so its outcome will say where they are. Until then they
+        are unknown; the targets whose first step it was wait on the one behind."""
+        self._flights.popleft()
+        log.info("servo update unconfirmed (%s); the update behind it decides", reason)
+        for output in inflight.sent_outputs:
+            self._acked_pwm.pop(output, None)
+        self._flights[0].waiting[:0] = inflight.waiting
+        self.counters["servo_errors"] += 1
+
+    def _poll_last(
+        self, actions: list[Action], inflight: _InFlight, outcome: UpdateOutcome, now: float
+    ) -> None:
+        """The outcome of the only update in flight: resolve it, or confirm what it left
+        unknown one command at a time."""
         inflight.accepted.update(outcome.accepted)
         inflight.refused.update(outcome.refused)
         unknown = set(outcome.unknown)
@@ -712,7 +827,8 @@ class ControlCore:
         self, actions: list[Action], inflight: _InFlight, now: float, *, unknown: str = ""
     ) -> None:
         """Every command of the update has its verdict (or ``unknown`` says why not)."""
-        self._inflight = None
+        assert self._flights and self._flights[0] is inflight
+        self._flights.popleft()
         joint_of = {o: i for i, o in enumerate(self._outputs)}
         for output, pwm in inflight.accepted.items():
             self._acked_pwm[output] = pwm
@@ -816,9 +932,10 @@ class ControlCore:
     def _lose_outputs(self, actions: list[Action], reason: str) -> None:
         """The autopilot's outputs are unknown (link lost, reboot): re-send them all at the
         acknowledged pose before moving on; targets waiting are TEMPORARILY_REJECTED."""
-        inflight, self._inflight = self._inflight, None
+        flights = list(self._flights)
+        self._flights.clear()
         rejected = Reply(Outcome.TEMPORARILY_REJECTED, reason)
-        unanswered = (inflight.waiting if inflight else []) + self._waiting
+        unanswered = [w for f in flights for w in f.waiting] + self._waiting
         for w in unanswered:
             self._answer(actions, w.request, rejected)
         self._waiting.clear()
@@ -837,7 +954,7 @@ class ControlCore:
             # from there at the speed limit.
             self._unconfirmed = None
             return
-        if inflight is not None or self._last_step_s > -math.inf:
+        if flights or self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)
             self._resend_now = True
 
@@ -850,7 +967,7 @@ class ControlCore:
         self._system_time_asked_s = self.clock()
         streams = [
             (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S),
-            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, READBACK_INTERVAL_S),
+            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, self._readback_interval_s),
         ]
         if self._is_ardupilot:
             streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))
@@ -893,15 +1010,19 @@ class ControlCore:
             if shown is None:
                 continue
             if acked is None:
-                if self._inflight is None and output not in self._ack_history:
+                if not self._flights and output not in self._ack_history:
                     # Nothing of ours acknowledged yet (start, reboot): the joint is where the
                     # output puts it, not at the assumed start pose.
                     self._position[joint_of[output]] = self._angle_shown(output, shown)
                 continue
             expected = self._expected_pwms(output, now)
-            if not expected:
-                continue  # acknowledged too lately to be shown yet
-            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected):
+            # PX4 applies a command on its output cycle and answers it on its commander's: a
+            # readback in between shows a step on its way, not acknowledged yet. It is ours,
+            # so the output is live.
+            on_its_way = {
+                f.pwm_by_output[output] for f in self._flights if output in f.pwm_by_output
+            }
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
                 self._mismatches[output] = 0
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
@@ -911,6 +1032,8 @@ class ControlCore:
                 if self._not_live.pop(output, None) is not None:
                     log.info("output %d live again (shows %d us)", output, shown)
                 continue
+            if not expected:
+                continue  # acknowledged too lately to be shown yet
             # A live output that stops showing what it acknowledged long ago was disarmed,
             # killed or rebooted: no second look (PX4 would apply our stored pose at once on
             # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).
@@ -1022,7 +1145,7 @@ class ControlCore:
         if not self._is_ardupilot:
             # PX4 (see _lose_outputs): never re-send a stale pose; the readback says where.
             self._readback_since_s = now
-        elif self._inflight is None and self._last_step_s > -math.inf:
+        elif not self._flights and self._last_step_s > -math.inf:
             self._unconfirmed = tuple(self._position)
             self._resend_now = True
         self._ask_system_time(actions)
@@ -1095,7 +1218,7 @@ class ControlCore:
             # The hand where the acknowledged joints put it (forward kinematics of current_deg).
             "hand": dict(self._hand_at[1]),
             "goal_deg": list(self._goal) if self._goal is not None else None,
-            "moving": self._inflight is not None
+            "moving": bool(self._flights)
             or (self._goal is not None and (self._goal != position or not self._settled())),
             "last_pwm_us": dict(self._acked_pwm) or None,
             # What the outputs do (issue 20): not live = disarmed / safety on, with why.

@@ -134,22 +134,32 @@ def as_pose(value: Any) -> Pose:
 #: What of a target must be met (the solver's ``TargetMode`` by value): the whole pose; the
 #: position only; the position and the hand's z axis pointing along the target orientation's.
 TARGET_MODES = ("pose", "position", "position_axis")
-#: MAV_CMD_USER_1 param7 → target mode. 3-15 are kept for more modes, 16 and up for target
-#: frames (issue 18: world-frame targets).
-MAVLINK_TARGET_MODES = {0.0: "pose", 1.0: "position", 2.0: "position_axis"}
+#: The frame a target's pose is given in: the arm's base frame, or the world (MAVLink's
+#: LOCAL_NED: north-east-down from the autopilot's origin, cm and degrees like every pose
+#: here), where the daemon holds the hand while the vehicle moves (issue 18).
+TARGET_FRAMES = ("base", "local_ned")
+#: MAV_CMD_USER_1 param7 → (target mode, frame): 0-2 the modes in the base frame; 3-15 are
+#: kept for more modes; 16 + mode in LOCAL_NED (16 pose, 17 position, 18 position_axis).
+MAVLINK_TARGET_MODES = {
+    float(offset + i): (mode, frame)
+    for offset, frame in ((0, "base"), (16, "local_ned"))
+    for i, mode in enumerate(TARGET_MODES)
+}
 
 
 @dataclass(frozen=True)
 class Target:
-    """A ``goto``: the pose, and what of it must be met (:data:`TARGET_MODES`)."""
+    """A ``goto``: the pose, what of it must be met (:data:`TARGET_MODES`), and the frame it
+    is given in (:data:`TARGET_FRAMES`)."""
 
     pose: Pose
     mode: str = "pose"
+    frame: str = "base"
 
 
 def as_target(value: Any) -> Target:
-    """A :class:`Target` from a Target, a pose (mode ``pose``), or ``{"pose": ..., "mode":
-    ...}``; ``ValueError`` names what is wrong."""
+    """A :class:`Target` from a Target, a pose (mode ``pose``, base frame), or ``{"pose":
+    ..., "mode": ..., "frame": ...}``; ``ValueError`` names what is wrong."""
     if isinstance(value, Target):
         return value
     if isinstance(value, dict):
@@ -157,17 +167,23 @@ def as_target(value: Any) -> Target:
         if mode not in TARGET_MODES:
             raise ValueError(
                 f"mode={mode!r} is not one of {', '.join(TARGET_MODES)} "
-                "(MAV_CMD_USER_1 param7: 0 pose, 1 position, 2 position_axis)"
+                "(MAV_CMD_USER_1 param7: 0 pose, 1 position, 2 position_axis; +16 in LOCAL_NED)"
             )
-        return Target(as_pose(value.get("pose")), mode)
+        frame = value.get("frame", "base")
+        if frame not in TARGET_FRAMES:
+            raise ValueError(f"frame={frame!r} is not one of {', '.join(TARGET_FRAMES)}")
+        return Target(as_pose(value.get("pose")), mode, frame)
     return Target(as_pose(value))
 
 
 def mavlink_target_payload(params: Sequence[float], param7: float) -> dict[str, Any]:
-    """A USER_1's payload: params 1-6 the pose, param7 the target mode (an unknown one is
-    refused by :func:`as_target`, naming it)."""
-    mode = MAVLINK_TARGET_MODES.get(param7) if math.isfinite(param7) else None
-    return {"pose": tuple(params), "mode": mode or f"param7={param7:g}"}
+    """A USER_1's payload: params 1-6 the pose, param7 the target mode and frame (an unknown
+    one is refused by :func:`as_target`, naming it)."""
+    known = MAVLINK_TARGET_MODES.get(param7) if math.isfinite(param7) else None
+    if known is None:
+        return {"pose": tuple(params), "mode": f"param7={param7:g}"}
+    mode, frame = known
+    return {"pose": tuple(params), "mode": mode, "frame": frame}
 
 
 def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:

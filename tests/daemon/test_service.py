@@ -287,7 +287,7 @@ def test_an_accepted_motion_survives_an_unanswered_update(autopilot):
                 "link": {
                     "url": f"udpout:127.0.0.1:{endpoint.port}",
                     "loss_timeout_s": 30.0,
-                    "command_timeout_s": 0.1,
+                    "command_timeout_s": 0.5,  # ample on a loaded machine
                     "command_retries": 0,
                 },
                 "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 100.0},

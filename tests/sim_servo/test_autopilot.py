@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.kinematics.rotations import rpy_to_matrix
 from firmware_interface.calibration import default_calibration
 from sim_servo.autopilot import PX4_FORCE_MAGIC as PX4_FORCE
 from sim_servo.autopilot import SimAutopilot
@@ -26,11 +27,12 @@ from sim_servo.config import (
     LinkTimingConfig,
     Px4TimingConfig,
     SimConfig,
+    VehicleConfig,
     config_from_mapping,
     ready_setup,
 )
 from sim_servo.errors import SimConfigError
-from sim_servo.eventlog import physical_pwm_timeline
+from sim_servo.eventlog import physical_pwm_timeline, world_timeline
 from sim_servo.hand import HandModel
 
 KEY = bytes(range(32))
@@ -324,8 +326,8 @@ def test_message_interval_special_values():
     h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, -1)  # stop
     h.run_for(0.01)
     assert h.of_type("SERVO_OUTPUT_RAW", h.run_for(1.0)) == []
-    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_ATTITUDE, 100_000)
-    assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_FAILED
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAVLINK_MSG_ID_VFR_HUD, 100_000)
+    assert acks(h.run_for(0.01))[0].result == mavlink.MAV_RESULT_FAILED  # not simulated
 
 
 def test_default_servo_output_rate_from_config():
@@ -1438,3 +1440,129 @@ def test_output_events_replay_every_physical_pwm(flavour):
     start = {"t_s": 0.0, "event": "start", "outputs_us": {str(o): p for o, p in first.items()}}
     timeline = physical_pwm_timeline([start, *h.events])
     assert {o: history[-1][1] for o, history in timeline.items()} == h.ap.output_us
+
+
+# -- the vehicle: ATTITUDE, LOCAL_POSITION_NED, the hand in the world ------------------------
+
+ATTITUDE = mavlink.MAVLINK_MSG_ID_ATTITUDE
+LOCAL_POSITION_NED = mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+
+
+def test_ardupilot_streams_attitude_and_local_position_only_when_asked_at_the_rate_asked():
+    h = Harness()
+    msgs = h.run_for(1.0)
+    assert h.of_type("ATTITUDE", msgs) == h.of_type("LOCAL_POSITION_NED", msgs) == []  # SRn_ 0
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, ATTITUDE, 20_000)  # 50 Hz
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, LOCAL_POSITION_NED, 100_000)  # 10 Hz
+    msgs = h.run_for(1.0 - 1e-6)  # handled on the main-loop pass at 1.0 s
+    assert [a.result for a in acks(msgs)] == [mavlink.MAV_RESULT_ACCEPTED] * 2
+    attitude, position = h.of_type("ATTITUDE", msgs), h.of_type("LOCAL_POSITION_NED", msgs)
+    assert (len(attitude), len(position)) == (50, 10)
+    stamps = [m.time_boot_ms for m in attitude]
+    assert {b - a for a, b in zip(stamps, stamps[1:], strict=False)} == {20}
+    assert [m.time_boot_ms for m in position][:3] == [1000, 1100, 1200]
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_attitude_and_local_position_carry_the_vehicle_state_at_their_stamp(flavour):
+    h = Harness(SimConfig(flavour=flavour, attitude_rate_hz=40, local_position_rate_hz=40))
+    msgs = h.run_for(2.0 - 1e-6)
+    hover = h.ap.vehicle
+    attitude = h.of_type("ATTITUDE", msgs)
+    assert len(attitude) == 80  # t = 0, 25 ms, … 1.975 s
+    for msg in attitude:
+        state = hover.state(msg.time_boot_ms / 1000.0)  # booted at the start: same clock
+        expected = (*state.attitude_wrapped(), *state.body_rates())
+        got = (msg.roll, msg.pitch, msg.yaw, msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)  # float32 on the wire
+    for msg in h.of_type("LOCAL_POSITION_NED", msgs):
+        state = hover.state(msg.time_boot_ms / 1000.0)
+        expected = (*state.position_m, *state.velocity_m_s)
+        got = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-7)
+    assert msgs and abs(attitude[-1].roll) > 1e-4  # it does move (hover is on by default)
+
+
+def test_px4_streams_attitude_at_100_hz_and_local_position_at_30_hz_by_default():
+    h = Harness(SimConfig(flavour="px4"))
+    msgs = h.run_for(1.0 - 1e-6)
+    assert len(h.of_type("ATTITUDE", msgs)) == 100
+    # 30 Hz in whole ms: every 33 ms, so 0 … 990 ms.
+    assert len(h.of_type("LOCAL_POSITION_NED", msgs)) == 31
+    h.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, ATTITUDE, -1)
+    h.run_for(0.01)
+    assert h.of_type("ATTITUDE", h.run_for(0.5)) == []
+    assert h.ap.snapshot(h.now)["streams"]["ATTITUDE"] == 0
+
+
+def test_the_vehicle_goes_on_through_a_reboot_and_its_frames_restart_with_time_boot():
+    h = Harness(SimConfig(attitude_rate_hz=10))
+    h.run_for(1.0)
+    h.ap.reboot(h.now, gap_s=0.5)
+    msgs = h.run_for(1.0)
+    after = h.of_type("ATTITUDE", msgs)
+    assert [m.time_boot_ms for m in after][:2] == [0, 100]  # from the boot 1.5 s after start
+    state = h.ap.vehicle.state(1.5)
+    assert after[0].roll == pytest.approx(state.roll_rad, rel=1e-6)
+
+
+def test_vehicle_events_log_the_vehicle_and_the_hand_in_the_world():
+    h = Harness(SimConfig(vehicle=VehicleConfig(log_rate_hz=20, seed=5)))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1800)
+    h.run_for(1.0)
+    samples = world_timeline(h.events)
+    assert [s.t_s for s in samples][:3] == [0.0, 0.05, 0.1]
+    assert len(samples) == 21
+    mount = VehicleConfig().mount
+    rot_m = rpy_to_matrix(*np.radians(mount.rpy_deg))
+    for sample in samples[::4]:
+        assert sample.vehicle == h.ap.vehicle.state(sample.vehicle.t_s)
+        assert sample.vehicle.t_s == pytest.approx(sample.t_s, abs=1e-6)
+        # The hand from the horn positions then (the servos' own model), independently composed.
+        positions = {o: s.position_us(START_S + sample.t_s) for o, s in h.ap.servos.items()}
+        pose = h.hand.state(positions).pose
+        v = sample.vehicle
+        rot_v = rpy_to_matrix(v.roll_rad, v.pitch_rad, v.yaw_rad)
+        rot_h = rpy_to_matrix(*np.radians([pose.roll_deg, pose.pitch_deg, pose.yaw_deg]))
+        hand_base_m = np.array([pose.x_cm, pose.y_cm, pose.z_cm]) / 100.0
+        expected = v.position_m + rot_v @ (np.array(mount.xyz_cm) / 100.0 + rot_m @ hand_base_m)
+        np.testing.assert_allclose(sample.hand.position_m, expected, atol=1e-6)
+        np.testing.assert_allclose(
+            rpy_to_matrix(sample.hand.roll_rad, sample.hand.pitch_rad, sample.hand.yaw_rad),
+            rot_v @ rot_m @ rot_h,
+            atol=1e-6,
+        )
+    # The servo on output 10 moved meanwhile: the hand in the world moved with it.
+    first, last = samples[0].hand, samples[-1].hand
+    assert np.linalg.norm(first.position_m - last.position_m) > 0.05
+    state = h.ap.snapshot(h.now)
+    assert state["vehicle"]["t_s"] == pytest.approx(1.0)
+    assert state["hand_ned"]["down_m"] == pytest.approx(last.down_m, abs=0.01)
+
+
+def test_no_vehicle_events_at_rate_0_and_an_unknown_hand_is_none():
+    h = Harness(SimConfig(vehicle=VehicleConfig(log_rate_hz=0)))
+    h.run_for(1.0)
+    assert world_timeline(h.events) == []
+    h = Harness(SimConfig(vehicle=VehicleConfig(log_rate_hz=10)))
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 2400)  # beyond the joint's PWM range
+    h.run_for(1.0)
+    assert world_timeline(h.events)[-1].hand is None
+
+
+def test_vehicle_samples_written_late_keep_the_horn_positions_of_their_time():
+    h = Harness(SimConfig(vehicle=VehicleConfig(hover=False, log_rate_hz=100)))
+    h.run_for(0.5)
+    assert len(world_timeline(h.events)) == 51  # a pass writes every sample due
+    # No wake-up for each sample: the next one is written on any pass, at the latest 0.2 s late.
+    assert h.ap.next_event_s(h.now) == pytest.approx(h.now + 0.01 + 0.2)
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 10, 1800)  # handled at the next pass, ≤ 2.5 ms
+    h.run_for(1.0)
+    ack_t_s = next(e["t_s"] for e in h.events if e["event"] == "ack")
+    samples = world_timeline(h.events)
+    assert len(samples) == 151  # 0 … 1.5 s, none lost to the batching
+    before = [s.hand for s in samples if s.t_s <= ack_t_s]
+    after = [s.hand for s in samples if s.t_s > ack_t_s]
+    assert len(before) == 51 and all(hand == before[0] for hand in before)
+    assert after[0] != before[0]  # the horn started at once
+    assert after[-1] != after[0] and after[-1] == after[-2]  # it moved, then stopped

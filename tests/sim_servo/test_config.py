@@ -10,8 +10,10 @@ from sim_servo.config import (
     ArmConfig,
     FaultConfig,
     LinkTimingConfig,
+    MountConfig,
     ServoConfig,
     SimConfig,
+    VehicleConfig,
     config_from_mapping,
     load_key,
     load_toml,
@@ -235,3 +237,64 @@ def test_flags_override_the_file():
     assert (config.faults.reboot_after_s, config.faults.reboot_gap_s) == (7, 0.5)
     assert config.link_timing == LinkTimingConfig(output_delay_ms=0.5, hold_ms=3, burst_frames=3)
     assert config.system_time_default_hz == 2
+
+
+def test_vehicle_and_mount_tables_from_toml_and_the_stream_defaults():
+    config = config_from_mapping(
+        {
+            "attitude_rate_hz": 50,
+            "vehicle": {
+                "hover": False,
+                "seed": 3,
+                "drift_cm": 6.0,
+                "home_ned_m": [1, 2, -5],
+                "mount": {"xyz_cm": [2, 0, 12], "rpy_deg": [180, 0, 90]},
+            },
+        }
+    )
+    assert config.attitude_default_hz == 50.0 and config.local_position_default_hz == 0.0
+    vehicle = config.vehicle
+    assert (vehicle.hover, vehicle.seed, vehicle.drift_cm, vehicle.home_ned_m) == (
+        False,
+        3,
+        6.0,
+        (1.0, 2.0, -5.0),
+    )
+    assert vehicle.mount == MountConfig((2.0, 0.0, 12.0), (180.0, 0.0, 90.0))
+    assert vehicle.as_dict()["mount"] == {"xyz_cm": [2.0, 0.0, 12.0], "rpy_deg": [180.0, 0.0, 90.0]}
+    assert config_from_mapping(vehicle_data := {"vehicle": vehicle.as_dict()}).vehicle == vehicle
+    assert vehicle_data["vehicle"]["seed"] == 3
+    for example in (EXAMPLE, EXAMPLE.parent / "quad_arm_px4.toml"):  # the defaults, written out
+        assert config_from_mapping(load_toml(example)).vehicle == VehicleConfig()
+    # The shared default: an arm hanging 10 cm under the body origin, axes the body's.
+    assert VehicleConfig().mount == MountConfig((0.0, 0.0, 10.0), (0.0, 0.0, 0.0))
+    px4 = SimConfig(flavour="px4")
+    assert (px4.attitude_default_hz, px4.local_position_default_hz) == (100.0, 30.0)
+    assert (SimConfig().attitude_default_hz, SimConfig().local_position_default_hz) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"vehicle": {"colour": 1}}, r"unknown keys \['colour'\] in \[vehicle\]"),
+        (
+            {"vehicle": {"mount": {"xyz": [0, 0, 0]}}},
+            r"unknown keys \['xyz'\] in \[vehicle.mount\]",
+        ),
+        ({"vehicle": {"mount": {"xyz_cm": [0, 0]}}}, r"mount xyz_cm=\[0, 0\] must be a list of 3"),
+        ({"vehicle": {"mount": {"rpy_deg": [0, 0, 400]}}}, r"mount rpy_deg\[2\]=400 outside"),
+        ({"vehicle": {"hover": "yes"}}, "vehicle hover='yes' must be true or false"),
+        ({"vehicle": {"tilt_deg": 50}}, r"vehicle tilt_deg=50 outside \[0.0, 45.0\]"),
+        (
+            {"vehicle": {"period_min_s": 6.0}},
+            "vehicle period_min_s=6.0 must not exceed vehicle period_max_s=5.0",
+        ),
+        ({"vehicle": {"home_ned_m": [0, 0, "x"]}}, r"vehicle home_ned_m\[2\]='x' is not a finite"),
+        ({"vehicle": {"log_rate_hz": -1}}, "vehicle log_rate_hz=-1 outside"),
+        ({"vehicle": {"mount": 3}}, r"\[vehicle.mount\] in <dict> must be a table"),
+        ({"local_position_rate_hz": -1}, "local_position_rate_hz=-1 outside"),
+    ],
+)
+def test_vehicle_settings_are_validated(data, message):
+    with pytest.raises(SimConfigError, match=message):
+        config_from_mapping(data)

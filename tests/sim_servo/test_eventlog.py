@@ -4,8 +4,17 @@ import json
 
 import pytest
 
+from sim_servo.config import MountConfig, VehicleConfig
 from sim_servo.errors import SimIOError
-from sim_servo.eventlog import EventLog, physical_pwm_timeline, read_events
+from sim_servo.eventlog import (
+    EventLog,
+    WorldSample,
+    physical_pwm_timeline,
+    read_events,
+    world_timeline,
+)
+from sim_servo.hover import HoverDisturbance
+from sim_servo.world import WorldPose
 
 
 def test_lines_are_json_and_flushed(tmp_path):
@@ -44,3 +53,22 @@ def test_physical_pwm_timeline_from_the_log():
         physical_pwm_timeline(
             [*events, {"t_s": 3.0, "event": "output", "output": 9, "pwm_us": 1, "from_us": 1500}]
         )
+
+
+def test_world_timeline_from_the_vehicle_events():
+    vehicle = HoverDisturbance.from_config(VehicleConfig(seed=2)).state(0.5)
+    hand = WorldPose(1.0, 0.0, -1.5, 0.0, 0.1, 0.2)
+    events = [
+        {"t_s": 0.0, "event": "start", "vehicle": VehicleConfig(seed=2).as_dict()},
+        {"t_s": 0.5, "event": "vehicle", "vehicle": vehicle.as_dict(), "hand_ned": hand.as_dict()},
+        {"t_s": 0.6, "event": "output", "output": 9, "pwm_us": 1700, "from_us": 1000},
+        {"t_s": 0.7, "event": "vehicle", "vehicle": vehicle.as_dict(), "hand_ned": None},
+    ]
+    # Through JSON, as a bench reads the file.
+    timeline = world_timeline(json.loads(json.dumps(events)))
+    assert timeline == [WorldSample(0.5, vehicle, hand), WorldSample(0.7, vehicle, None)]
+    # The start event's settings rebuild the same motion.
+    rebuilt = HoverDisturbance.from_config(VehicleConfig(**{
+        **events[0]["vehicle"], "mount": MountConfig(**events[0]["vehicle"]["mount"])
+    }))  # fmt: skip
+    assert rebuilt.state(0.5) == vehicle

@@ -19,6 +19,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.__main__ import build_parser, config_data, main
 from sim_servo.config import config_from_mapping
+from sim_servo.eventlog import world_timeline
+from sim_servo.hover import HoverDisturbance
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
 
@@ -131,6 +133,9 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
 
     client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 36, 50_000)  # 20 Hz
     assert client.wait_for(ack_for(511)).result == mavlink.MAV_RESULT_ACCEPTED
+    client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 30, 20_000)  # ATTITUDE at 50 Hz
+    assert client.wait_for(ack_for(511)).result == mavlink.MAV_RESULT_ACCEPTED
+    attitude = client.wait_for(is_type("ATTITUDE"))
     raw = client.wait_for(is_type("SERVO_OUTPUT_RAW"))
     assert raw.servo9_raw == 1800 and raw.servo2_raw == 1000
     first = len(client.log)
@@ -147,7 +152,17 @@ def test_udp_heartbeat_accept_refuse_stream_and_clean_stop(udp_sim):
     events = sim.events()
     assert events[0]["event"] == "start" and events[-1]["event"] == "stop"
     commands = [e for e in events if e["event"] == "rx" and e["msg"] == "COMMAND_LONG"]
-    assert [e["fields"]["command"] for e in commands] == [183, 183, 22, 511]
+    assert [e["fields"]["command"] for e in commands] == [183, 183, 22, 511, 511]
+    # The moving vehicle: the start event's settings rebuild the motion the frames carried,
+    # and the log holds the hand in the world.
+    hover = HoverDisturbance.from_config(
+        config_from_mapping({"vehicle": events[0]["vehicle"]}).vehicle
+    )
+    state = hover.state(attitude.time_boot_ms / 1000.0)  # booted at the start
+    assert attitude.roll == pytest.approx(state.roll_rad, rel=1e-6, abs=1e-7)
+    assert attitude.yawspeed == pytest.approx(state.body_rates()[2], rel=1e-6, abs=1e-7)
+    samples = world_timeline(events)
+    assert len(samples) >= 25 and all(s.hand is not None for s in samples)
 
 
 @pytest.mark.slow
@@ -422,3 +437,41 @@ def test_help_documents_the_vehicle_setup_flags(capsys):
     text = capsys.readouterr().out
     for flag in ("--ready", "--param", "--armed", "--safety", "--px4-forward-delay-ms", "'kill'"):
         assert flag in text
+
+
+def test_vehicle_motion_flags():
+    default = settings()
+    assert default.vehicle.hover is True and default.vehicle.log_rate_hz == 25.0
+    still = settings("--no-hover", "--vehicle-log-hz", "0", "--attitude-rate-hz", "50")
+    assert (still.vehicle.hover, still.vehicle.log_rate_hz, still.attitude_rate_hz) == (
+        False,
+        0.0,
+        50.0,
+    )
+    moved = settings(
+        "--hover-seed", "9", "--drift-cm", "6", "--tilt-deg", "2", "--mount-xyz-cm", "1,2,15",
+        "--mount-rpy-deg", "180,0,0", "--local-position-rate-hz", "10",
+    )  # fmt: skip
+    assert (moved.vehicle.seed, moved.vehicle.drift_cm, moved.vehicle.tilt_deg) == (9, 6.0, 2.0)
+    assert moved.vehicle.mount.xyz_cm == (1.0, 2.0, 15.0)
+    assert moved.vehicle.mount.rpy_deg == (180.0, 0.0, 0.0)
+    assert moved.local_position_rate_hz == 10.0
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--udp", "127.0.0.1:0", "--mount-xyz-cm", "1,2"])
+
+
+def test_px4_scales_its_streams_to_half_a_serial_line():
+    def on_pty(*argv: str):
+        data, base_dir = config_data(build_parser().parse_args(["--pty", *argv]))
+        return config_from_mapping(data, base_dir=base_dir)
+
+    # PX4: MAV_x_RATE 0 is baud / 20 bytes/s; 130 frames/s of 40 bytes need 5200 B/s.
+    slow = on_pty("--flavour", "px4", "--pty-baud", "57600")
+    assert slow.attitude_rate_hz == pytest.approx(100 * (2880 - 21) / 5200)
+    assert slow.local_position_rate_hz == pytest.approx(30 * (2880 - 21) / 5200)
+    fast = on_pty("--flavour", "px4", "--pty-baud", "115200")
+    assert (fast.attitude_rate_hz, fast.local_position_rate_hz) == (100.0, 30.0)
+    asked = on_pty("--flavour", "px4", "--pty-baud", "57600", "--attitude-rate-hz", "5")
+    assert asked.attitude_rate_hz == 5.0  # a flag wins
+    assert on_pty("--pty-baud", "57600").attitude_rate_hz is None  # ArduPilot: its SRn_ 0
+    assert on_pty("--flavour", "px4").attitude_rate_hz is None  # no line: the ONBOARD defaults
