@@ -42,7 +42,7 @@ from companion.ik import TargetMode, warm_up
 from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.collision import KeepOut
-from companion.kinematics.frames import Mount, invert
+from companion.kinematics.vehicle import Mount, invert
 from tests.support.keepout import QUAD_450, sampled_clearance
 
 MARGIN_CM = 1.0

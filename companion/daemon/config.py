@@ -19,7 +19,7 @@ from pathlib import Path
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.kinematics.arm import Arm
 from companion.kinematics.collision import Box, Capsule, Cylinder, KeepOut, Sphere, Volume
-from companion.kinematics.frames import Mount
+from companion.kinematics.vehicle import Mount
 from companion.tomltable import Table, load_toml
 from firmware_interface import (
     SERVO_DIALECTS,

@@ -3,7 +3,7 @@
 Pure numpy, no I/O, no clocks. Lengths in cm, joints in joint units (rad; cm for a prismatic
 joint). The arm's links carry capsules (:class:`~companion.kinematics.arm.LinkCapsule`, from the
 arm file); the volumes are written in the vehicle's body frame FRD, and the arm's base sits in
-it at a :class:`~companion.kinematics.frames.Mount`.
+it at a :class:`~companion.kinematics.vehicle.Mount`.
 
 Volumes: :class:`Sphere`, :class:`Capsule` (legs), :class:`Box` (the body; oriented by
 ``rpy_deg``, axis-aligned at 0) and :class:`Cylinder` (propeller discs: a thin cylinder about its
@@ -51,8 +51,8 @@ from numpy.typing import ArrayLike
 
 from companion.kinematics import collision_kernels
 from companion.kinematics.arm import Arm
-from companion.kinematics.frames import Mount, invert, pose_matrix
-from companion.kinematics.rotations import FloatArray
+from companion.kinematics.rotations import FloatArray, rpy_to_matrix
+from companion.kinematics.vehicle import Mount, invert, transform
 
 #: Subtracted from every computed distance (cm): float64 rounding on arms of metres is ~1e-13.
 ROUNDING_CM = 1e-7
@@ -271,7 +271,14 @@ def segment_box_distance(p0: FloatArray, p1: FloatArray, half_cm: FloatArray) ->
 
 # -- the prepared check ---------------------------------------------------------------------------
 
-_TURN_45 = pose_matrix((0.0, 0.0, 0.0), (0.0, 0.0, math.pi / 4))
+
+def _pose(center_cm: Sequence[float], rpy_deg: Sequence[float]) -> FloatArray:
+    """A volume's pose in body FRD (4×4, cm) from its centre and roll/pitch/yaw (deg)."""
+    roll, pitch, yaw = np.radians(rpy_deg)
+    return transform(rpy_to_matrix(roll, pitch, yaw), center_cm)
+
+
+_TURN_45 = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 45.0))
 
 
 class KeepOut:
@@ -399,10 +406,10 @@ class KeepOut:
                 caps_r.append(v.radius_cm)
             elif isinstance(v, Box):
                 box_of[v_index, 0] = len(boxes_half)
-                boxes_inv.append(invert(pose_matrix(v.center_cm, np.radians(v.rpy_deg))))
+                boxes_inv.append(invert(_pose(v.center_cm, v.rpy_deg)))
                 boxes_half.append(np.asarray(v.size_cm) / 2)
             else:  # Cylinder: its bounding capsule and two bounding square prisms
-                pose = pose_matrix(v.center_cm, np.radians(v.rpy_deg))
+                pose = _pose(v.center_cm, v.rpy_deg)
                 axis = pose[:3, 2] * (v.length_cm / 2)
                 cap_of[v_index] = len(caps_r)
                 caps_a.append(pose[:3, 3] - axis)

@@ -11,7 +11,7 @@ from companion.ik import IKResult, StopReason, TargetMode, solve
 from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.collision import KeepOut
-from companion.kinematics.frames import Mount
+from companion.kinematics.vehicle import Mount
 from tests.support.keepout import QUAD_450
 from tests.support.timing import FakeClock
 

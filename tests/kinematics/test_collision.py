@@ -25,7 +25,7 @@ from companion.kinematics.collision import (
     segment_box_distance,
     segment_segment_distance,
 )
-from companion.kinematics.frames import Mount
+from companion.kinematics.vehicle import Mount
 from tests.support.keepout import QUAD_450, point_segment, sampled_clearance
 
 ARM = Arm.default()
