@@ -374,7 +374,7 @@ def _check_rest_pose_clear(
     """The park pose (or, without one, the assumed start pose) keeps the margin from every
     keep-out volume: the arm starts there, and goes there on ``park``."""
     pose = start_pose_deg(arm, park_deg)
-    hit = keepout.check(arm.q_from_user(pose))
+    hit = keepout.check(arm.q_from_user(pose), reference=True)  # no numba in check-config
     if hit is None:
         return
     index = next(i for i, v in enumerate(keepout.volumes, start=1) if v.name == hit.volume)

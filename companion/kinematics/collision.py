@@ -49,7 +49,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from companion.kinematics import collision_kernels
 from companion.kinematics.arm import Arm
 from companion.kinematics.rotations import FloatArray, rpy_to_matrix
 from companion.kinematics.vehicle import Mount, invert, transform
@@ -456,6 +455,9 @@ class KeepOut:
         :data:`ROUNDING_CM` (negative: they overlap). Compiled
         (:mod:`~companion.kinematics.collision_kernels`); :meth:`clearances_reference` is the
         same in numpy, and the tests hold the two equal."""
+        # Imported here: numba costs a start-up that config checks (check-config) must not pay.
+        from companion.kinematics import collision_kernels
+
         q = np.ascontiguousarray(q, dtype=float)
         if q.ndim != 2 or q.shape[1] != self.arm.dof:
             raise ValueError(f"q must have shape (S, {self.arm.dof}), got {q.shape}")
@@ -541,13 +543,17 @@ class KeepOut:
             return np.ones(q.shape[0], dtype=bool)
         return self.clearances(q).min(axis=(1, 2)) >= self.margin_cm
 
-    def check(self, q_rad: FloatArray | Sequence[float]) -> Collision | None:
+    def check(
+        self, q_rad: FloatArray | Sequence[float], *, reference: bool = False
+    ) -> Collision | None:
         """None if the configuration ``q_rad`` (joint units) keeps every link ``margin_cm`` from
-        every volume, else the worst link and volume."""
+        every volume, else the worst link and volume. ``reference``: computed by
+        :meth:`clearances_reference` (numpy only, no numba to load: for one-off checks such as
+        the config's)."""
         q = self._as_batch(q_rad, "q_rad")
         if not self.volumes or not len(self._radii):
             return None
-        clear = self.clearances(q)[0]
+        clear = (self.clearances_reference if reference else self.clearances)(q)[0]
         if clear.min() >= self.margin_cm:
             return None
         return self._collision(clear)

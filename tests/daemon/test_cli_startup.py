@@ -60,6 +60,18 @@ def test_check_config_does_not_load_the_solver(tmp_path):
     assert (loaded, rc) == ([], "0")
 
 
+def test_check_config_with_keepout_volumes_does_not_load_numba(tmp_path):
+    """The park pose is checked against the volumes in numpy (the compiled checks would load,
+    or on a cold cache compile, numba)."""
+    from importlib import resources
+
+    example = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
+    config = tmp_path / "armbridge.toml"
+    config.write_text(example.replace('socket = "/run/armbridge/control.sock"', 'socket = ""'))
+    loaded, rc = run_cli("check-config", str(config))
+    assert (loaded, rc) == ([], "0")
+
+
 def test_the_probe_would_see_the_solver():
     """The check above can fail: ``solve`` does load it."""
     loaded, rc = run_cli("solve", "30", "10", "20", "0", "45", "0", "--budget-ms", "50")
