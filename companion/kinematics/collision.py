@@ -1,8 +1,8 @@
 """Keep-out checks: the arm's link capsules against keep-out volumes on the vehicle.
 
 numpy, its hot loop compiled (:mod:`~companion.kinematics.collision_kernels`, with this
-module's numpy version as the reference); no I/O, no clocks. Lengths in cm, joints in joint units (rad; cm for a prismatic
-joint). The arm's links carry capsules (:class:`~companion.kinematics.arm.LinkCapsule`, from the
+module's numpy version as the reference); no I/O, no clocks. Lengths in cm, joints in joint
+units (rad; cm for a prismatic joint). The arm's links carry capsules (:class:`~companion.kinematics.arm.LinkCapsule`, from the
 arm file); the volumes are written in the vehicle's body frame FRD, and the arm's base sits in
 it at a :class:`~companion.kinematics.vehicle.Mount`.
 
