@@ -2,9 +2,10 @@
 
 numpy, its hot loop compiled (:mod:`~companion.kinematics.collision_kernels`, with this
 module's numpy version as the reference); no I/O, no clocks. Lengths in cm, joints in joint
-units (rad; cm for a prismatic joint). The arm's links carry capsules (:class:`~companion.kinematics.arm.LinkCapsule`, from the
-arm file); the volumes are written in the vehicle's body frame FRD, and the arm's base sits in
-it at a :class:`~companion.kinematics.vehicle.Mount`.
+units (rad; cm for a prismatic joint). The arm's links carry capsules
+(:class:`~companion.kinematics.arm.LinkCapsule`, from the arm file); the volumes are written in
+the vehicle's body frame FRD, and the arm's base sits in it at a
+:class:`~companion.kinematics.vehicle.Mount`.
 
 Volumes: :class:`Sphere`, :class:`Capsule` (legs), :class:`Box` (the body; oriented by
 ``rpy_deg``, axis-aligned at 0) and :class:`Cylinder` (propeller discs: a thin cylinder about its
