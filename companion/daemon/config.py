@@ -18,6 +18,8 @@ from pathlib import Path
 
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.kinematics.arm import Arm
+from companion.kinematics.collision import Box, Capsule, Cylinder, KeepOut, Sphere, Volume
+from companion.kinematics.vehicle import Mount
 from companion.tomltable import Table, load_toml
 from firmware_interface import (
     SERVO_DIALECTS,
@@ -82,6 +84,12 @@ IDLE_TIMEOUT_S = (0.1, 3600.0)
 #: A trim corrects a horn's mounting (one spline tooth is 80-130 us); past 500 us, half a
 #: standard 1000-2000 us servo's travel, it is a different calibration: set pwm_min/max_us.
 TRIM_US_MAX = 500
+#: Keep-out volumes and the mount sit on the vehicle: a coordinate beyond 10 m of its body
+#: origin, or a volume larger than that, is a typo (a unit slip), not a drone.
+VEHICLE_EXTENT_CM = 1000.0
+#: The clearance kept between the arm's link capsules and every keep-out volume. 0 trusts the
+#: shapes exactly; past 50 cm, a small arm under a quad could not move at all.
+KEEPOUT_MARGIN_CM = (0.0, 50.0)
 
 
 @dataclass(frozen=True)
@@ -138,9 +146,28 @@ class DaemonConfig:
     control_socket_group: str | None = None
     control_max_connections: int = 32
     control_idle_timeout_s: float = 30.0
+    #: Where the arm's base sits in the vehicle's body frame FRD (``[mount]``).
+    mount: Mount = Mount()
+    #: Keep-out volumes in the body frame FRD (``[[keepout]]``); none by default.
+    keepout: tuple[Volume, ...] = ()
+    #: Clearance kept from every keep-out volume (``safety.keepout_margin_cm``).
+    keepout_margin_cm: float = 1.0
+
+    def keepout_check(self) -> KeepOut:
+        """The arm, mount, volumes and margin, prepared for the keep-out checks."""
+        return KeepOut(self.arm, self.keepout, self.mount, self.keepout_margin_cm)
 
 
-_SECTIONS = ("link", "arm", "solver", "control", "joint")
+_SECTIONS = ("link", "arm", "solver", "control", "joint", "mount", "safety", "keepout")
+_MOUNT_KEYS = ("xyz_cm", "rpy_deg")
+_SAFETY_KEYS = ("keepout_margin_cm",)
+#: Per keep-out volume type, its fields besides ``name`` and ``type``.
+_KEEPOUT_KEYS = {
+    "sphere": ("center_cm", "radius_cm"),
+    "capsule": ("from_cm", "to_cm", "radius_cm"),
+    "box": ("center_cm", "size_cm", "rpy_deg"),
+    "cylinder": ("center_cm", "radius_cm", "length_cm", "rpy_deg"),
+}
 _LINK_KEYS = (
     "url",
     "dialect",
@@ -219,6 +246,12 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
                 raise control.fail(key, 'set with control.socket = "" (there is no socket)')
     calibration = _parse_calibration(root, arm)
     _check_pwm_covers_arm(source, arm, calibration, park)
+    mount = _parse_mount(root.table("mount", allowed=_MOUNT_KEYS))
+    volumes = _parse_keepout(root, arm)
+    margin = root.table("safety", allowed=_SAFETY_KEYS).number(
+        "keepout_margin_cm", 1.0, min_value=KEEPOUT_MARGIN_CM[0], max_value=KEEPOUT_MARGIN_CM[1]
+    )
+    _check_rest_pose_clear(root, arm, park, KeepOut(arm, volumes, mount, margin))
     return DaemonConfig(
         source=source,
         link=link,
@@ -238,6 +271,122 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
             "max_connections", 32, min_value=MAX_CONNECTIONS[0], max_value=MAX_CONNECTIONS[1]
         ),
         control_idle_timeout_s=_bounded(control, "idle_timeout_s", 30.0, IDLE_TIMEOUT_S),
+        mount=mount,
+        keepout=volumes,
+        keepout_margin_cm=margin,
+    )
+
+
+def _vehicle_point(
+    t: Table, key: str, default: list[float] | None = None
+) -> tuple[float, float, float]:
+    """3 numbers (cm) within :data:`VEHICLE_EXTENT_CM` of the body origin."""
+    values = t.numbers(key, length=3) if default is None else t.numbers(key, default, length=3)
+    for i, v in enumerate(values):
+        if abs(v) > VEHICLE_EXTENT_CM:
+            raise t.fail(
+                f"{key}[{i}]",
+                f"{v:g} outside [{-VEHICLE_EXTENT_CM:g}, {VEHICLE_EXTENT_CM:g}] cm (body frame)",
+            )
+    return (values[0], values[1], values[2])
+
+
+def _angles(t: Table, key: str) -> tuple[float, float, float]:
+    rpy = t.numbers(key, [0.0, 0.0, 0.0], length=3)
+    for i, v in enumerate(rpy):
+        if abs(v) > 360.0:
+            raise t.fail(f"{key}[{i}]", f"{v:g} outside [-360, 360] deg")
+    return (rpy[0], rpy[1], rpy[2])
+
+
+def _size(t: Table, key: str) -> float:
+    return t.number(key, min_value=None, max_value=VEHICLE_EXTENT_CM, positive=True)
+
+
+def _parse_mount(t: Table) -> Mount:
+    """``[mount]``: the arm base in body FRD (default: 10 cm under the body origin, base axes
+    along the body's)."""
+    xyz = _vehicle_point(t, "xyz_cm", [0.0, 0.0, 10.0])
+    return Mount(xyz, _angles(t, "rpy_deg"))
+
+
+def _parse_keepout(root: Table, arm: Arm) -> tuple[Volume, ...]:
+    """``[[keepout]]``: named volumes in body FRD (cm, degrees); none if absent."""
+    if "keepout" not in root or root.data["keepout"] == []:
+        return ()
+    rows = root.tables("keepout")
+    volumes: list[Volume] = []
+    seen: dict[str, int] = {}
+    for index, row in enumerate(rows, start=1):
+        kind = row.string("type", choices=tuple(_KEEPOUT_KEYS))
+        Table(row.data, row.source, row.prefix, allowed=("name", "type", *_KEEPOUT_KEYS[kind]))
+        name = row.string("name")
+        if name in seen:
+            raise row.fail("name", f"{name!r} is already the name of keepout[{seen[name]}]")
+        seen[name] = index
+        volume: Volume
+        if kind == "sphere":
+            volume = Sphere(name, _vehicle_point(row, "center_cm"), _size(row, "radius_cm"))
+        elif kind == "capsule":
+            volume = Capsule(
+                name,
+                _vehicle_point(row, "from_cm"),
+                _vehicle_point(row, "to_cm"),
+                _size(row, "radius_cm"),
+            )
+        elif kind == "box":
+            size = _vehicle_point(row, "size_cm")
+            for i, v in enumerate(size):
+                if not v > 0:
+                    raise row.fail(f"size_cm[{i}]", f"{v:g} must be > 0")
+            volume = Box(name, _vehicle_point(row, "center_cm"), size, _angles(row, "rpy_deg"))
+        elif kind == "cylinder":
+            volume = Cylinder(
+                name,
+                _vehicle_point(row, "center_cm"),
+                _size(row, "radius_cm"),
+                _size(row, "length_cm"),
+                _angles(row, "rpy_deg"),
+            )
+        else:  # pragma: no cover - string(choices=) refused it
+            raise row.fail("type", f"{kind!r}")
+        volumes.append(volume)
+    if not arm.has_shapes:
+        raise root.fail(
+            "keepout",
+            f"arm {arm.name} has no link shapes: keep-out volumes need them (link_radius or "
+            "capsules in the arm file, <collision> in a URDF)",
+        )
+    return tuple(volumes)
+
+
+def start_pose_deg(arm: Arm, park_deg: tuple[float, ...] | None) -> tuple[float, ...]:
+    """Where the daemon assumes the arm is before any acknowledgement: the park pose, else
+    the middle of every joint's range (as the control core does)."""
+    if park_deg is not None:
+        return park_deg
+    return tuple(math.degrees((j.min_rad + j.max_rad) / 2) for j in arm.joints)
+
+
+def _check_rest_pose_clear(
+    root: Table, arm: Arm, park_deg: tuple[float, ...] | None, keepout: KeepOut
+) -> None:
+    """The park pose (or, without one, the assumed start pose) keeps the margin from every
+    keep-out volume: the arm starts there, and goes there on ``park``."""
+    pose = start_pose_deg(arm, park_deg)
+    hit = keepout.check(arm.q_from_user(pose), reference=True)  # no numba in check-config
+    if hit is None:
+        return
+    index = next(i for i, v in enumerate(keepout.volumes, start=1) if v.name == hit.volume)
+    what = (
+        f"arm.park_deg {list(pose)}"
+        if park_deg is not None
+        else f"the start pose {[round(a, 3) for a in pose]} (the middle of each joint's range; "
+        "set arm.park_deg)"
+    )
+    raise root.fail(
+        f"keepout[{index}]",
+        f"{what} is not clear: {hit.reason}",
     )
 
 

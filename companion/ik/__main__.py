@@ -1,4 +1,4 @@
-"""Compile the IK kernels into numba's disk cache ahead of time: ``python -m companion.ik``.
+"""Compile the IK and keep-out kernels into numba's cache ahead of time: ``python -m companion.ik``.
 
 Run it at install with the daemon's ``NUMBA_CACHE_DIR`` and the installed package (the shipped
 unit uses ``/var/cache/armbridge``; README "Running on a board")::
@@ -26,11 +26,15 @@ from numba.core import config as numba_config
 
 from companion.ik import kernels
 from companion.ik.solver import warm_up
+from companion.kinematics import collision_kernels
 
 
 def main() -> int:
     started = time.process_time()
     wall_s = warm_up()
+    wall_started = time.perf_counter()
+    collision_kernels.warm_up()  # the keep-out checks' kernel, in the same cache
+    wall_s += time.perf_counter() - wall_started
     cpu_s = time.process_time() - started
     where = (
         f"the numba cache ({getattr(numba_config, 'CACHE_DIR', '') or 'numba default'}) for "

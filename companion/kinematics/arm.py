@@ -9,6 +9,7 @@ from a URDF (:mod:`companion.kinematics.urdf`)::
     arm = Arm.from_toml("my_arm.toml")
     arm = Arm.from_urdf("my_arm.urdf")
     pose = arm.fk([q1, ..., q6])           # degrees (cm for prismatic joints) -> Pose
+    arm.link_shapes                        # per joint: its link's collision capsules (cm)
 
 Centimetres and degrees live at this boundary (the papers' units); inside, angles are radians
 and lengths centimetres.
@@ -35,7 +36,7 @@ import math
 import numbers
 import tomllib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 from functools import cached_property
 from importlib import resources
@@ -232,12 +233,43 @@ def as_matrix_tuple(matrix: FloatArray) -> Matrix:
 
 
 @dataclass(frozen=True)
+class LinkCapsule:
+    """A collision capsule of one link: the points within ``radius_cm`` of the segment
+    ``from_cm`` → ``to_cm``, in the link's frame (cm).
+
+    Link ``i``'s frame is the frame joint ``i`` moves in, turned (or slid) by the joint:
+    ``F_0 · M_1 · … · F_{i−1} · M_i`` in the module docstring's chain. Its origin is on joint
+    ``i``'s axis and its z axis is that axis; joint ``i + 1``'s origin (the hand's, for the
+    last joint) is at the translation of ``F_i``. A zero-length segment is a sphere.
+    """
+
+    from_cm: tuple[float, float, float]
+    to_cm: tuple[float, float, float]
+    radius_cm: float
+
+    def __post_init__(self) -> None:
+        for name in ("from_cm", "to_cm"):
+            value = tuple(float(v) for v in getattr(self, name))
+            if len(value) != 3 or not all(math.isfinite(v) for v in value):
+                raise ValueError(f"LinkCapsule.{name}={value!r} must be 3 finite numbers")
+            object.__setattr__(self, name, value)
+        radius = float(self.radius_cm)
+        if not (math.isfinite(radius) and radius > 0.0):
+            raise ValueError(f"LinkCapsule.radius_cm={self.radius_cm!r} must be finite and > 0")
+        object.__setattr__(self, "radius_cm", radius)
+
+
+@dataclass(frozen=True)
 class Arm:
     """A serial arm: joints, the fixed transforms between them (cm), base and tool.
 
     ``frames`` holds ``F_0 … F_n`` of the module docstring, base and tool folded in. ``base``
     and ``tool`` are kept for reference (None = identity); ``convention`` is the DH convention
     of an arm built from DH rows, None for one built from a URDF.
+
+    ``link_shapes`` holds, per joint, the collision capsules of the link that joint moves
+    (:class:`LinkCapsule`, in that link's frame); empty (the default) for an arm without
+    shapes. The keep-out checks (:mod:`companion.kinematics.collision`) need them.
     """
 
     name: str
@@ -246,6 +278,7 @@ class Arm:
     convention: DHConvention | None = None
     base: Matrix | None = None
     tool: Matrix | None = None
+    link_shapes: tuple[tuple[LinkCapsule, ...], ...] = ()
 
     def __post_init__(self) -> None:
         if not self.joints:
@@ -255,6 +288,16 @@ class Arm:
                 f"an arm of {len(self.joints)} joints needs {len(self.joints) + 1} frames, "
                 f"got {len(self.frames)}"
             )
+        if self.link_shapes and len(self.link_shapes) != len(self.joints):
+            raise ValueError(
+                f"link_shapes must have one entry per joint ({len(self.joints)}), "
+                f"got {len(self.link_shapes)}"
+            )
+
+    @property
+    def has_shapes(self) -> bool:
+        """True if at least one link has a collision capsule."""
+        return any(self.link_shapes)
 
     # -- construction -------------------------------------------------------------------------
 
@@ -506,7 +549,18 @@ class Arm:
 
 # -- TOML parsing ---------------------------------------------------------------------------------
 
-_TOP_FIELDS = ("name", "convention", "length_unit", "dof", "joint", "base", "tool")
+_TOP_FIELDS = (
+    "name",
+    "convention",
+    "length_unit",
+    "dof",
+    "joint",
+    "base",
+    "tool",
+    "link_radius",
+)
+_SHAPE_FIELDS = ("link_radius", "capsules")
+_CAPSULE_FIELDS = ("from", "to", "radius")
 _REVOLUTE_FIELDS = (
     "name",
     "type",
@@ -517,6 +571,7 @@ _REVOLUTE_FIELDS = (
     "offset_deg",
     "min_deg",
     "max_deg",
+    *_SHAPE_FIELDS,
 )
 _PRISMATIC_FIELDS = (
     "name",
@@ -528,6 +583,7 @@ _PRISMATIC_FIELDS = (
     "offset",
     "min",
     "max",
+    *_SHAPE_FIELDS,
 )
 _FRAME_FIELDS = ("xyz", "rpy_deg")
 
@@ -602,4 +658,53 @@ def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
     joints = [_parse_joint(row, i, to_cm) for i, row in enumerate(rows, start=1)]
     base = _parse_frame(root, "base", to_cm)
     tool = _parse_frame(root, "tool", to_cm)
-    return Arm.from_dh(name, convention, joints, base=base, tool=tool)
+    arm = Arm.from_dh(name, convention, joints, base=base, tool=tool)
+    default_radius = (
+        root.number("link_radius", positive=True) * to_cm if "link_radius" in root else None
+    )
+    shapes = tuple(_parse_shapes(row, arm, i, default_radius, to_cm) for i, row in enumerate(rows))
+    return replace(arm, link_shapes=shapes) if any(shapes) else arm
+
+
+def _parse_shapes(
+    row: Table, arm: Arm, index: int, default_radius_cm: float | None, to_cm: float
+) -> tuple[LinkCapsule, ...]:
+    """A joint's link shapes: ``capsules = [{from, to, radius}, …]`` (link frame, the file's
+    length unit; ``[]`` for none), else one capsule from the link's origin to the next joint's
+    (the hand's, for the last joint) of radius ``link_radius`` (the joint's, else the arm's)."""
+    if "capsules" in row:
+        if "link_radius" in row:
+            raise row.fail("link_radius", "give either link_radius or capsules, not both")
+        items = row.data["capsules"]
+        if not isinstance(items, list):
+            raise row.fail(
+                "capsules", f"must be a list of {{from, to, radius}} tables, got {items!r}"
+            )
+        out = []
+        for k, item in enumerate(items):
+            t = Table(
+                item,
+                row.source,
+                row.name(f"capsules[{k}]"),
+                allowed=_CAPSULE_FIELDS,
+                error=row.error,
+            )
+            start = [v * to_cm for v in t.numbers("from", length=3)]
+            end = [v * to_cm for v in t.numbers("to", length=3)]
+            out.append(
+                LinkCapsule(
+                    from_cm=(start[0], start[1], start[2]),
+                    to_cm=(end[0], end[1], end[2]),
+                    radius_cm=t.number("radius", positive=True) * to_cm,
+                )
+            )
+        return tuple(out)
+    radius = (
+        row.number("link_radius", positive=True) * to_cm
+        if "link_radius" in row
+        else default_radius_cm
+    )
+    if radius is None:
+        return ()
+    end = arm.frames_array[index + 1][:3, 3]
+    return (LinkCapsule((0.0, 0.0, 0.0), (float(end[0]), float(end[1]), float(end[2])), radius),)

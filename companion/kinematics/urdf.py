@@ -7,7 +7,7 @@ dozen lines, and those packages pull in lxml, trimesh or ROS-era code for meshes
 transmissions we never use. The XML comes from the operator's own arm file, not from the network,
 but it is still read as untrusted text: ElementTree expands no external entities.
 
-What is taken:
+What is taken (and ``<collision>`` shapes, below):
 
 * the chain from the root link (the one link that is no joint's child) to ``tip_link`` (default:
   the end of the only path; a link with two child joints on the way is refused, naming them);
@@ -16,6 +16,21 @@ What is taken:
   folded into the transforms around them (or the base and tool at either end);
 * ``floating`` and ``planar`` joints, ``<mimic>``, a zero axis and unknown types are refused with
   an :class:`~companion.errors.ArmConfigError` naming the joint.
+
+Collision shapes (for the keep-out checks, :mod:`~companion.kinematics.collision`): the
+``<collision>`` elements of each link the chain moves (a moving joint's child and the links fixed
+to it) become that joint's :class:`~companion.kinematics.arm.LinkCapsule` list, each the
+smallest capsule of its kind that contains the shape (so a check errs on the safe side):
+
+* ``<sphere radius>``: the sphere itself (a zero-length capsule);
+* ``<capsule radius length>``: itself (``length``: the cylindrical part, between the cap centres);
+* ``<cylinder radius length>``: the capsule of the same radius along its axis, ``length`` long;
+* ``<box size>``: a capsule along its longest edge, as long as that edge, of radius the half
+  diagonal of the other two;
+* ``<mesh>``: not read (it would need the mesh file): give such a link a primitive as well.
+
+The root link's (and any link before the first moving joint's) collisions are fixed to the
+vehicle and not taken.
 
 Each moving joint ``origin · Rot(axis, q)`` becomes ``(origin · R_a) · Rz(q) · R_aᵀ`` with
 ``R_a`` taking z onto the axis, so the arm has the one form the solver uses (module docstring of
@@ -26,12 +41,13 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from companion.errors import ArmConfigError
-from companion.kinematics.arm import Arm, Joint, JointKind, transform
+from companion.kinematics.arm import Arm, Joint, JointKind, LinkCapsule, transform
 from companion.kinematics.rotations import FloatArray
 
 M_TO_CM = 100.0
@@ -90,6 +106,67 @@ def _z_onto(axis: FloatArray) -> FloatArray:
     return out
 
 
+def _positive_attr(source: str, field: str, element: ET.Element, key: str) -> float:
+    text = element.get(key)
+    try:
+        value = float(text) if text is not None else math.nan
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ArmConfigError(source, field, f"{key}={text!r} must be a finite number > 0")
+    return value
+
+
+def _link_capsules(source: str, link: ET.Element, attach: FloatArray) -> list[LinkCapsule]:
+    """The bounding capsules of ``link``'s ``<collision>`` primitives (module docstring), in
+    the arm's link frame: ``attach`` takes the URDF link's coordinates (m → cm done) there."""
+    out = []
+    lname = link.get("name") or "?"
+    for k, collision in enumerate(link.findall("collision")):
+        field = f"link {lname}.collision[{k}]"
+        geometry = collision.find("geometry")
+        shape = None if geometry is None else next(iter(geometry), None)
+        if shape is None:
+            raise ArmConfigError(source, field, "needs a <geometry> with one shape")
+        origin = collision.find("origin")
+        xyz = _floats(
+            source, f"{field}.origin.xyz", None if origin is None else origin.get("xyz"), "0 0 0"
+        )
+        rpy = _floats(
+            source, f"{field}.origin.rpy", None if origin is None else origin.get("rpy"), "0 0 0"
+        )
+        place = attach @ transform(np.asarray(xyz) * M_TO_CM, rpy)
+        half = np.zeros(3)
+        if shape.tag == "sphere":
+            radius = _positive_attr(source, f"{field}.sphere", shape, "radius")
+        elif shape.tag in ("cylinder", "capsule"):
+            radius = _positive_attr(source, f"{field}.{shape.tag}", shape, "radius")
+            half[2] = _positive_attr(source, f"{field}.{shape.tag}", shape, "length") / 2
+        elif shape.tag == "box":
+            size = np.asarray(_floats(source, f"{field}.box.size", shape.get("size"), ""))
+            if not np.all(size > 0):
+                raise ArmConfigError(source, f"{field}.box.size", f"must be > 0, got {size}")
+            axis = int(np.argmax(size))
+            others = np.delete(size, axis)
+            half[axis] = size[axis] / 2
+            radius = float(np.hypot(others[0], others[1])) / 2
+        elif shape.tag == "mesh":
+            continue
+        else:
+            raise ArmConfigError(
+                source, field, f"<{shape.tag}> is not one of sphere, capsule, cylinder, box, mesh"
+            )
+        ends = [place[:3, :3] @ (sign * half * M_TO_CM) + place[:3, 3] for sign in (-1, 1)]
+        out.append(
+            LinkCapsule(
+                (float(ends[0][0]), float(ends[0][1]), float(ends[0][2])),
+                (float(ends[1][0]), float(ends[1][1]), float(ends[1][2])),
+                radius * M_TO_CM,
+            )
+        )
+    return out
+
+
 def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None) -> Arm:
     """Build an :class:`Arm` from URDF text (see the module docstring for what is accepted)."""
     try:
@@ -99,7 +176,8 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
     if root.tag != "robot":
         raise ArmConfigError(source, "<file>", f"the root element is <{root.tag}>, not <robot>")
     name = root.get("name") or Path(source).stem or "arm"
-    links = {link.get("name") or "" for link in root.findall("link")}
+    link_elements = {link.get("name") or "": link for link in root.findall("link")}
+    links = set(link_elements)
     joints = root.findall("joint")
     by_child: dict[str, ET.Element] = {}
     by_parent: dict[str, list[ET.Element]] = {}
@@ -155,6 +233,8 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
     before: list[FloatArray] = []
     after: list[FloatArray] = []
     pending = np.eye(4)
+    shapes: list[list[LinkCapsule]] = []
+    attach = np.eye(4)  # the current URDF link's frame in the last moving joint's link frame
     for j in path:
         jname = j.get("name") or "?"
         field = f"joint {jname}"
@@ -173,6 +253,9 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
         placed = pending @ transform(np.asarray(xyz) * M_TO_CM, rpy)
         if kind_text == "fixed":
             pending = placed
+            if shapes:
+                attach = attach @ transform(np.asarray(xyz) * M_TO_CM, rpy)
+                shapes[-1] += _link_capsules(source, link_elements[child_of[id(j)]], attach)
             continue
         if kind_text not in _MOVING:
             allowed = "revolute, continuous, prismatic, fixed"
@@ -204,8 +287,14 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
         before.append(placed @ rot)
         after.append(rot.T.copy())
         pending = np.eye(4)
+        # The URDF child link's frame is origin · Rot(axis, q) = (our link frame) · R_aᵀ.
+        attach = rot.T.copy()
+        shapes.append(_link_capsules(source, link_elements[child_of[id(j)]], attach))
     if not arm_joints:
         raise ArmConfigError(source, "<robot>", "no moving joint on the chain")
     if len(after) > 0:
         after[-1] = after[-1] @ pending
-    return Arm.from_parts(name, arm_joints, before, after)
+    arm = Arm.from_parts(name, arm_joints, before, after)
+    if any(shapes):
+        arm = replace(arm, link_shapes=tuple(tuple(s) for s in shapes))
+    return arm

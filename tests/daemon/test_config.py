@@ -10,6 +10,7 @@ import pytest
 
 from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
+from tests.support.keepout import QUAD_450
 
 EXAMPLE = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
 
@@ -32,12 +33,15 @@ def test_example_config_loads_with_documented_defaults(tmp_path):
 
 
 def test_every_value_the_example_sets_is_the_default(tmp_path):
-    """The example config says "every field is listed with its default" (park_deg excepted,
-    and marked so): loaded, it is the same config as the URL alone."""
+    """The example config says "every field is listed with its default" (park_deg and the
+    keep-out volumes excepted, and marked so: a park pose and a vehicle are the user's own, and
+    the default is none of either): loaded, it is the same config as the URL alone."""
     example = load_config(write(tmp_path, EXAMPLE))
     minimal = load_config(write(tmp_path, '[link]\nurl = "udpout:127.0.0.1:14550"\n', "min.toml"))
     assert example.park_deg == (0, 90, 0, 0, 0, 0) and minimal.park_deg is None
-    assert dataclasses.replace(example, source=minimal.source, park_deg=None) == minimal
+    assert len(example.keepout) == 9 and minimal.keepout == ()
+    same = dataclasses.replace(example, source=minimal.source, park_deg=None, keepout=())
+    assert same == minimal
 
 
 def test_minimal_config_needs_only_the_url(tmp_path):
@@ -159,6 +163,61 @@ BAD = [
         lambda t: t.replace('# file = "my_arm.toml"', 'file = "missing.toml"'),
         "arm.file",
         "cannot read",
+    ),
+    (
+        "mount too far",
+        lambda t: t.replace("xyz_cm = [0.0, 0.0, 10.0]", "xyz_cm = [0.0, 0.0, 1e4]"),
+        "mount.xyz_cm[2]",
+        "outside [-1000, 1000]",
+    ),
+    (
+        "keep-out type",
+        lambda t: t.replace('type = "box"', 'type = "cone"'),
+        "keepout[1].type",
+        "sphere, capsule, box, cylinder",
+    ),
+    (
+        "keep-out field of another type",
+        lambda t: t.replace("size_cm = [24.0, 14.0, 10.0]", "radius_cm = 5.0"),
+        "keepout[1].radius_cm",
+        "unknown field",
+    ),
+    (
+        "keep-out size",
+        lambda t: t.replace("size_cm = [24.0, 14.0, 10.0]", "size_cm = [24.0, 0.0, 10.0]"),
+        "keepout[1].size_cm[1]",
+        "must be > 0",
+    ),
+    (
+        "keep-out radius",
+        lambda t: t.replace("radius_cm = 13.0", "radius_cm = -13.0", 1),
+        "keepout[2].radius_cm",
+        "-13.0 outside (0, 1000]",
+    ),
+    (
+        "keep-out name twice",
+        lambda t: t.replace('name = "prop_rear_left"', 'name = "body"'),
+        "keepout[3].name",
+        "already the name of keepout[1]",
+    ),
+    (
+        "keep-out missing field",
+        lambda t: t.replace("length_cm = 2.0\n", "", 1),
+        "keepout[2].length_cm",
+        "missing",
+    ),
+    (
+        "margin",
+        lambda t: t.replace("keepout_margin_cm = 1.0", "keepout_margin_cm = -1"),
+        "safety.keepout_margin_cm",
+        "outside [0, 50]",
+    ),
+    (
+        "park inside a leg",
+        lambda t: t.replace("park_deg = [0, 90, 0, 0, 0, 0]", "park_deg = [45, 90, 0, 0, 0, 0]"),
+        "keepout[6]",
+        "arm.park_deg [45.0, 90.0, 0.0, 0.0, 0.0, 0.0] is not clear: the link of joint q2 "
+        "overlaps keep-out volume 'leg_front_right'",
     ),
 ]
 
@@ -391,3 +450,44 @@ def test_a_urdf_arm_file_loads_and_a_prismatic_arm_is_refused_naming_the_joint(t
             )
         )
     assert info.value.field == "arm.file" and "is prismatic" in str(info.value)
+
+
+# -- keep-out volumes -----------------------------------------------------------------------------
+
+
+def test_example_keepout_volumes_and_mount(tmp_path):
+    cfg = load_config(write(tmp_path, EXAMPLE))
+    names = [v.name for v in cfg.keepout]
+    assert names[0] == "body" and len([n for n in names if n.startswith("prop_")]) == 4
+    assert cfg.mount.xyz_cm == (0.0, 0.0, 10.0) and cfg.keepout_margin_cm == 1.0
+    assert cfg.keepout_check().check(cfg.arm.q_from_user(cfg.park_deg)) is None
+    # The quad the tests and bench/keepout.py use is this one, field for field.
+    renamed = [dataclasses.replace(v, name=v.name.replace("front_right", "fr")
+                                   .replace("rear_left", "rl").replace("front_left", "fl")
+                                   .replace("rear_right", "rr")) for v in cfg.keepout]  # fmt: skip
+    assert renamed == list(QUAD_450)
+
+
+def test_empty_keepout_list_and_the_start_pose(tmp_path):
+    assert parse_config(config(keepout=[])).keepout == ()
+    # Without park_deg the start pose is mid-range, [0, 90, 0, 0, 0, 10]: clear of a sphere
+    # ahead of the hand, refused once the sphere sits on the upper arm.
+    ball = {"name": "ball", "type": "sphere", "center_cm": [90.0, 0.0, 10.0], "radius_cm": 5.0}
+    assert len(parse_config(config(keepout=[ball])).keepout) == 1
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(keepout=[dict(ball, center_cm=[20.0, 0.0, 10.0])]))
+    assert info.value.field == "keepout[1]"
+    assert "the start pose [0.0, 90.0, 0.0, 0.0, 0.0, 10.0]" in str(info.value)
+    assert "'ball'" in str(info.value) and "q2" in str(info.value)
+
+
+def test_keepout_needs_an_arm_with_shapes(tmp_path):
+    arm = (resources.files("companion.kinematics") / "arms" / "paper_arm.toml").read_text()
+    bare = "\n".join(line for line in arm.splitlines() if "link_radius" not in line)
+    (tmp_path / "bare.toml").write_text(bare)
+    ball = {"name": "ball", "type": "sphere", "center_cm": [90.0, 0.0, 10.0], "radius_cm": 5.0}
+    data = config(arm={"file": "bare.toml"}, keepout=[ball])
+    with pytest.raises(ConfigError) as info:
+        parse_config(data, source=str(tmp_path / "c.toml"))
+    assert info.value.field == "keepout" and "no link shapes" in str(info.value)
+    assert parse_config(config(arm={"file": "bare.toml"}), source=str(tmp_path / "c.toml"))

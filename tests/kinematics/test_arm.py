@@ -275,3 +275,77 @@ def test_joint_type_errors_name_the_field(tmp_path, edit, field):
     with pytest.raises(ArmConfigError) as info:
         Arm.from_toml(_write(tmp_path, edit(PAPER_TOML)))
     assert info.value.field == field
+
+
+# -- link shapes (collision capsules) -------------------------------------------------------------
+
+
+def test_default_arm_links_are_capsules_between_joint_origins():
+    arm = Arm.default()
+    assert arm.has_shapes and len(arm.link_shapes) == 6
+    radii = [cap.radius_cm for shapes in arm.link_shapes for cap in shapes]
+    assert radii == [2.5, 2.5, 3.0, 2.5, 2.5, 3.0]
+    # Each default capsule ends where the next joint's frame starts (the hand, for q6).
+    q = np.radians([[20, 60, -30, 10, 40, -20]])
+    axes, hand = arm.joint_frames(q)
+    for i, (cap,) in enumerate(arm.link_shapes):
+        nxt = axes[0, i + 1] if i + 1 < arm.dof else hand[0]
+        link = nxt @ np.linalg.inv(arm.frames_array[i + 1])
+        np.testing.assert_allclose(link[:3, 3], axes[0, i][:3, 3], atol=1e-12)  # on the axis
+        np.testing.assert_allclose(link[:3, :3] @ cap.to_cm + link[:3, 3], nxt[:3, 3], atol=1e-9)
+
+
+def test_explicit_capsules_and_units(tmp_path):
+    text = PAPER_TOML.replace('length_unit = "cm"', 'length_unit = "mm"').replace(
+        "link_radius = 3.0\n",
+        "capsules = [{from = [0, 0, -10], to = [0, 0, 10], radius = 30},"
+        " {from = [0, 0, 0], to = [50, 0, 0], radius = 5}]\n",
+        1,
+    )
+    arm = Arm.from_toml(_write(tmp_path, text))
+    caps = arm.link_shapes[2]
+    assert [c.radius_cm for c in caps] == [3.0, 0.5]
+    assert caps[0].from_cm == (0.0, 0.0, -1.0) and caps[1].to_cm == (5.0, 0.0, 0.0)
+    assert arm.link_shapes[1][0].radius_cm == 0.25  # link_radius = 2.5 read as mm
+
+
+def test_capsules_empty_list_leaves_a_link_bare_and_no_radius_no_shapes(tmp_path):
+    bare = PAPER_TOML.replace("link_radius = 3.0\n", "capsules = []\n", 1)
+    assert Arm.from_toml(_write(tmp_path, bare)).link_shapes[2] == ()
+    none = "\n".join(line for line in PAPER_TOML.splitlines() if "link_radius" not in line)
+    arm = Arm.from_toml(_write(tmp_path, none))
+    assert arm.link_shapes == () and not arm.has_shapes
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda t: t.replace("link_radius = 2.5", "link_radius = -1"), "link_radius"),
+        (lambda t: t.replace("link_radius = 3.0", "link_radius = 0", 1), "joint[3].link_radius"),
+        (
+            lambda t: t.replace(
+                "link_radius = 3.0", "capsules = [{from = [0, 0], to = [0, 0, 1]}]"
+            ),
+            "joint[3].capsules[0].from",
+        ),
+        (
+            lambda t: t.replace(
+                "link_radius = 3.0",
+                "capsules = [{from = [0,0,0], to = [0,0,1], radius = 1, r = 2}]",
+            ),
+            "joint[3].capsules[0].r",
+        ),
+        (
+            lambda t: t.replace("link_radius = 3.0", 'capsules = "big"', 1),
+            "joint[3].capsules",
+        ),
+        (
+            lambda t: t.replace("link_radius = 3.0", "link_radius = 3.0\ncapsules = []", 1),
+            "joint[3].link_radius",
+        ),
+    ],
+)
+def test_shape_errors_name_the_joint_and_field(tmp_path, edit, field):
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_toml(_write(tmp_path, edit(PAPER_TOML)))
+    assert info.value.field == field

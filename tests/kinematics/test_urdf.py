@@ -103,3 +103,55 @@ def test_not_xml_and_missing_file(tmp_path):
         parse_urdf("<robot")
     with pytest.raises(ArmConfigError, match="cannot read"):
         load_urdf(tmp_path / "none.urdf")
+
+
+def _link(name, *collisions):
+    return f'<link name="{name}">{"".join(collisions)}</link>'
+
+
+def _collision(geometry, origin=""):
+    return f"<collision>{origin}<geometry>{geometry}</geometry></collision>"
+
+
+def test_collision_primitives_become_bounding_capsules_in_the_link_frame():
+    joints = _joint("j1", "revolute", "l0", "l1", '<axis xyz="1 0 0"/>') + _joint(
+        "tipfix", "fixed", "l1", "l2", '<origin xyz="0 0 0.2"/>', limit=""
+    )
+    links = (
+        _link("l0", _collision('<box size="1 1 1"/>'))  # the base: fixed to the vehicle, skipped
+        + _link(
+            "l1",
+            _collision('<cylinder radius="0.02" length="0.1"/>', '<origin xyz="0 0 0.05"/>'),
+            _collision('<box size="0.02 0.3 0.04"/>'),
+            _collision('<mesh filename="x.stl"/>'),
+        )
+        + _link("l2", _collision('<sphere radius="0.03"/>'))
+    )
+    arm = parse_urdf(f'<robot name="t">{links}{joints}</robot>')
+    (caps,) = arm.link_shapes
+    assert [c.radius_cm for c in caps] == pytest.approx([2.0, math.hypot(2, 4) / 2, 3.0])
+    # Where the shapes are in the base frame at q = 0.3 rad about the URDF's x axis.
+    axes, hand = arm.joint_frames(np.array([[0.3]]))
+    link = hand[0] @ np.linalg.inv(arm.frames_array[1])
+    world = [
+        [link[:3, :3] @ np.asarray(p) + link[:3, 3] for p in (c.from_cm, c.to_cm)] for c in caps
+    ]
+    rot = np.array(
+        [[1, 0, 0], [0, math.cos(0.3), -math.sin(0.3)], [0, math.sin(0.3), math.cos(0.3)]]
+    )
+    np.testing.assert_allclose(world[0], [rot @ [0, 0, 0], rot @ [0, 0, 10]], atol=1e-9)
+    np.testing.assert_allclose(world[1], [rot @ [0, -15, 0], rot @ [0, 15, 0]], atol=1e-9)
+    np.testing.assert_allclose(world[2], [rot @ [0, 0, 20], rot @ [0, 0, 20]], atol=1e-9)
+
+
+def test_collision_errors_name_the_link():
+    joints = _joint("j1", "revolute", "l0", "l1")
+    for geometry, field in (
+        ('<sphere radius="-1"/>', "link l1.collision[0].sphere"),
+        ('<cylinder radius="1"/>', "link l1.collision[0].cylinder"),
+        ('<cone radius="1"/>', "link l1.collision[0]"),
+    ):
+        text = f'<robot name="t">{_link("l0")}{_link("l1", _collision(geometry))}{joints}</robot>'
+        with pytest.raises(ArmConfigError) as info:
+            parse_urdf(text)
+        assert info.value.field == field
