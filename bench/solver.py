@@ -304,11 +304,14 @@ def overrun_row(arm: Arm, budget_ms: float, count: int, seed: int) -> dict:
     }
 
 
-def first_call(cache_dir: str | None) -> dict:
+def first_call(cache_dir: str | None, without_scipy: bool = False) -> dict:
     """Import, ``ik.warm_up()`` and the first solve in a fresh interpreter; ``cache_dir`` forces
-    numba's cache there (an empty one: the first run ever)."""
+    numba's cache there (an empty one: the first run ever). ``without_scipy``: as installed on
+    a board, where scipy (a bench extra) is absent; numba imports it when it is there, on its
+    first call (~0.3 s more), to find a BLAS."""
     code = (
-        "import time; t0 = time.perf_counter()\n"
+        ("import sys; sys.modules['scipy'] = None\n" if without_scipy else "")
+        + "import time; t0 = time.perf_counter()\n"
         "from companion.kinematics import Arm\n"
         "from companion import ik\n"
         "t1 = time.perf_counter(); warm_s = ik.warm_up()\n"
@@ -404,6 +407,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as empty:
             start = [
                 dict(cache="numba cache warm", **first_call(None)),
+                dict(cache="numba cache warm, no scipy (a board)", **first_call(None, True)),
                 dict(cache="empty numba cache (first run ever)", **first_call(empty)),
             ]
         lines += ["First call after import (fresh interpreter):", ""] + table(start)

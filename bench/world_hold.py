@@ -36,9 +36,8 @@ from bench.loopback import ControlClient, Stack, cpu_s, load_average
 from bench.report import machine, md_table, write_markdown
 from companion import ik
 from companion.kinematics.arm import Arm, Pose
-from companion.kinematics.frames import Mount
 from companion.kinematics.rotations import rotation_angle, rpy_to_matrix
-from companion.kinematics.vehicle import base_to_world, transform, world_to_base
+from companion.kinematics.vehicle import Mount, base_to_world, transform, world_to_base
 from firmware_interface.calibration import default_calibration
 from sim_servo.eventlog import world_timeline
 

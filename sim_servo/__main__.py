@@ -1,6 +1,7 @@
 """``python -m sim_servo``: a simulated flight controller with servos, for tests without hardware.
 
-The first line on stdout is the link URL to give the daemon (``udpout:127.0.0.1:PORT``,
+The first line on stdout is the link URL to give the daemon (``udpout:127.0.0.1:PORT``;
+with ``--udpout``, where we send to a daemon that listens, ``udpin:127.0.0.1:PORT``;
 ``tcp:127.0.0.1:PORT``, ``/dev/pts/N,115200`` or, with ``--pty-link``, ``PATH,115200``), printed
 once the port is open. With ``--gcs`` a second line ``gcs udpout:HOST:PORT`` gives the ground
 station's address: frames between the two links are routed as ArduPilot routes them (see
@@ -33,7 +34,14 @@ from sim_servo.config import (
     parse_withhold,
     ready_setup,
 )
-from sim_servo.endpoints import Endpoint, PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
+from sim_servo.endpoints import (
+    Endpoint,
+    PtyEndpoint,
+    TcpEndpoint,
+    UdpEndpoint,
+    UdpOutEndpoint,
+    parse_host_port,
+)
 from sim_servo.errors import SimConfigError, SimError
 from sim_servo.eventlog import EventLog
 from sim_servo.faults import FaultInjector
@@ -127,6 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--udp",
         metavar="HOST:PORT",
         help="serve MAVLink 2 on UDP (port 0: any free port); replies go to the last sender",
+    )
+    where.add_argument(
+        "--udpout",
+        metavar="HOST:PORT",
+        help="send MAVLink 2 on UDP to a companion listening at HOST:PORT, from a free port "
+        "(real PX4 and ArduPilot SITL connect out this way); the first line is "
+        "'udpin:HOST:PORT', the daemon's link.url",
     )
     where.add_argument("--tcp", metavar="HOST:PORT", help="listen on TCP for one client")
     where.add_argument(
@@ -612,6 +627,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             gcs = UdpEndpoint(*parse_host_port(args.gcs, "--gcs"))
         if args.udp:
             endpoint = UdpEndpoint(*parse_host_port(args.udp, "--udp"))
+        elif args.udpout:
+            host, port = parse_host_port(args.udpout, "--udpout")
+            if port == 0:
+                raise SimConfigError("--udpout needs the companion's port, not 0")
+            endpoint = UdpOutEndpoint(host, port)
         elif args.tcp:
             endpoint = TcpEndpoint(*parse_host_port(args.tcp, "--tcp"))
         elif args.pty_baud is not None:

@@ -9,7 +9,8 @@ serial port are lost.
 
 ``url`` is what the daemon should be given to reach us (a link URL in the form the daemon's
 ``link.url`` setting takes): ``udpout:HOST:PORT``, ``tcp:HOST:PORT``, ``/dev/pts/N,115200`` or, with
-a stable link name (``--pty-link``), ``PATH,115200``.
+a stable link name (``--pty-link``), ``PATH,115200``; for :class:`UdpOutEndpoint`, which sends to
+a companion that listens, ``udpin:HOST:PORT`` (the address the daemon must listen on).
 """
 
 from __future__ import annotations
@@ -111,6 +112,73 @@ class UdpEndpoint(Endpoint):
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+
+
+class UdpOutEndpoint(Endpoint):
+    """Sends to HOST:PORT from a port of its own (``bind_port``, 0: any free one), as real PX4
+    and ArduPilot SITL connect out to a companion (PX4: ``mavlink start -o PORT``, frames to
+    14540 by default); the companion listens (``udpin:HOST:PORT``).
+
+    Datagrams are read from any sender. The first one re-aims our frames at its sender, once
+    (PX4's ``mavlink_receiver``: the client's source address is adopted from the first frame
+    and then kept); later senders are read but never move it. Until a companion listens, the
+    frames we send are lost, as UDP loses them (a refused send is counted, never raised)."""
+
+    def __init__(self, host: str, port: int, bind_port: int = 0) -> None:
+        self._sock: socket.socket | None = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            # Bound to the address that routes to the companion (127.0.0.1 for a local one).
+            self._sock.bind((_local_address_for(host), bind_port))
+        except OSError as exc:
+            self._sock.close()
+            raise SimIOError(f"cannot bind UDP for {host}:{port}: {exc}") from exc
+        self._sock.setblocking(False)
+        self.local = self._sock.getsockname()[:2]
+        self.url = f"udpin:{host}:{port}"
+        self.peer: tuple[str, int] = (host, port)
+        self._adopted = False
+
+    def fds(self) -> list[int]:
+        return [self._sock.fileno()] if self._sock is not None else []
+
+    def read_ready(self, fd: int) -> bytes:
+        if self._sock is None:
+            return b""
+        try:
+            data, sender = self._sock.recvfrom(_READ_CHUNK)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as exc:  # ICMP port unreachable: nobody listens there (yet)
+            log.debug("UDP receive: %s", exc)
+            return b""
+        if not self._adopted:
+            self.peer, self._adopted = sender[:2], True
+        return data
+
+    def write(self, frame: bytes) -> None:
+        if self._sock is None:
+            self.dropped_writes += 1
+            return
+        try:
+            self._sock.sendto(frame, self.peer)
+        except OSError as exc:  # e.g. ECONNREFUSED reported from an earlier datagram
+            self.dropped_writes += 1
+            log.debug("UDP send: %s", exc)
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+
+def _local_address_for(host: str) -> str:
+    """The local address the kernel would send to ``host`` from (no packet is sent)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect((host, 9))
+        except OSError as exc:
+            raise SimIOError(f"no route to {host}: {exc}") from exc
+        return str(probe.getsockname()[0])
 
 
 class TcpEndpoint(Endpoint):

@@ -86,6 +86,15 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     )
     for warning in motor_output_warnings(cfg.link.dialect, cfg.calibration.outputs):
         print(f"{args.config}: warning: {warning}", file=sys.stderr)
+    if cfg.keepout:
+        names = ", ".join(v.name for v in cfg.keepout)
+        print(f"{args.config}: keep-out: {names} (margin {cfg.keepout_margin_cm:g} cm)")
+    else:
+        print(
+            f"{args.config}: warning: no [[keepout]] volumes: nothing keeps the arm off the "
+            "vehicle (see the example config)",
+            file=sys.stderr,
+        )
     budget = link_budget_of(cfg)
     if not budget.fits:  # a serial link too slow for this dialect at control.rate_hz
         print(f"{args.config}: warning: {budget.message}", file=sys.stderr)

@@ -19,7 +19,7 @@ from pathlib import Path
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.kinematics.arm import Arm
 from companion.kinematics.collision import Box, Capsule, Cylinder, KeepOut, Sphere, Volume
-from companion.kinematics.frames import Mount
+from companion.kinematics.vehicle import Mount
 from companion.tomltable import Table, load_toml
 from firmware_interface import (
     SERVO_DIALECTS,
@@ -415,7 +415,7 @@ def _check_rest_pose_clear(
     """The park pose (or, without one, the assumed start pose) keeps the margin from every
     keep-out volume: the arm starts there, and goes there on ``park``."""
     pose = start_pose_deg(arm, park_deg)
-    hit = keepout.check(arm.q_from_user(pose))
+    hit = keepout.check(arm.q_from_user(pose), reference=True)  # no numba in check-config
     if hit is None:
         return
     index = next(i for i, v in enumerate(keepout.volumes, start=1) if v.name == hit.volume)

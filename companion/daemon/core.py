@@ -94,14 +94,27 @@ REBOOT_BACKSTEP_MS = 100
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
 #: outputs do (issue 20). ArduPilot streams it at most every 20 ms.
 READBACK_INTERVAL_S = 0.1
+#: PX4 on a link with room for it: a readback this often sees outputs go dead (disarm, kill)
+#: sooner, so the hold at the disarmed PWM is stored before a quick re-arm would apply the
+#: pose stored before (bench.output_cycles: every fast PX4 step came from a re-arm inside the
+#: window in which the disarm was not seen yet).
+READBACK_FAST_INTERVAL_S = 0.04
 #: ArduPilot on a serial line below SLOW_LINK_BAUD: the readback only feeds status there (its
 #: safety switch comes from SYS_STATUS), and at 10 Hz its 49-byte frames (4.3 ms each at
 #: 115 200 baud) would delay an update's ACK behind them one time in twenty.
 READBACK_SLOW_LINK_INTERVAL_S = 1.0
 SLOW_LINK_BAUD = 230_400
 #: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
-#: the switch is off) is asked for at this interval.
-SYS_STATUS_INTERVAL_S = 0.5
+#: the switch is off) is asked for at this interval (on a serial line below SLOW_LINK_BAUD, the
+#: slower one): the switch is seen that late, and the steps sent meanwhile are stored without
+#: pulses, so what the arm may have moved then is undone while it is on (see ``_rewind``).
+SYS_STATUS_INTERVAL_S = 0.1
+SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
+#: ArduPilot: nothing moves until a SYS_STATUS said where the safety switch is (at start, after
+#: a loss or a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then
+#: is stored and goes out in one step at its release); with none this long after asking, the
+#: arm moves without knowing (and says so once).
+SYS_STATUS_WAIT_S = 2.0
 #: A readback this long after an output's ACK shows what the output does with that command
 #: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
 READBACK_SETTLE_S = 0.15
@@ -251,10 +264,16 @@ class ControlCore:
         self._readback_warned = False
         spec = parse_url(config.link.url)
         slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
-        self._readback_interval_s = (
-            READBACK_SLOW_LINK_INTERVAL_S
-            if slow_serial and self._is_ardupilot
-            else READBACK_INTERVAL_S
+        if self._is_ardupilot:
+            self._readback_interval_s = (
+                READBACK_SLOW_LINK_INTERVAL_S if slow_serial else READBACK_INTERVAL_S
+            )
+        else:
+            self._readback_interval_s = (
+                READBACK_INTERVAL_S if slow_serial else READBACK_FAST_INTERVAL_S
+            )
+        self._sys_status_interval_s = (
+            SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
         )
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
@@ -274,6 +293,12 @@ class ControlCore:
         #: not read yet; then no output is assumed to be in it).
         self._safety_on: bool | None = None
         self._safety_mask: int | None = None
+        #: ArduPilot: the pose commanded when a SYS_STATUS last said the switch was off, and
+        #: the pose to send the dead outputs back to once it was seen on (see ``_rewind``).
+        self._safety_off_pose: tuple[float, ...] | None = None
+        self._rewind_to: tuple[float, ...] | None = None
+        self._sys_status_asked_s = clock()
+        self._sys_status_warned = False
         #: PX4: armed, from its HEARTBEAT (None: no HEARTBEAT yet). Shown, not relied on:
         #: prearmed outputs are live while disarmed.
         self._armed: bool | None = None
@@ -392,7 +417,15 @@ class ControlCore:
             safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
             if safety_on != self._safety_on and self._is_ardupilot:
                 log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+                if safety_on and self._safety_off_pose is not None:
+                    self._rewind_to = self._safety_off_pose
+                elif not safety_on:
+                    self._rewind_to = None
             self._safety_on = safety_on
+            if not safety_on:
+                self._safety_off_pose = (
+                    self._flights[-1].step_deg if self._flights else tuple(self._position)
+                )
         elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
             self._telemetry.on_frame(msg, self.clock() if received_s is None else received_s)
         elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
@@ -625,7 +658,12 @@ class ControlCore:
         if not self._outputs_known(now):
             return
         if self._is_ardupilot:
-            if self._dead_outputs():
+            if not self._safety_known(now):
+                return
+            dead = self._dead_outputs()
+            if dead and self._rewind_to is not None:
+                self._rewind(actions, dead, now)
+            if dead:
                 # The safety switch: whatever is sent is applied at once when it goes off.
                 return
         else:
@@ -702,6 +740,38 @@ class ControlCore:
         ahead = {o for f in self._flights for o in f.sent_outputs}
         base = {o: pwm for o, pwm in self._acked_pwm.items() if o not in ahead}
         self._send_step(actions, step, now, base_pwm=base)
+
+    def _rewind(self, actions: list[Action], dead: dict[int, str], now: float) -> None:
+        """ArduPilot, the safety switch seen on: it went on at some moment since the SYS_STATUS
+        before, and its outputs have held since then what they had; the steps sent meanwhile
+        are stored and would go out in one step at its release. The dead outputs are sent back
+        to the pose commanded at that SYS_STATUS (within one SYS_STATUS interval of motion of
+        what they hold), and the motion goes on from there once the switch is off."""
+        rewind, self._rewind_to = self._rewind_to, None
+        assert rewind is not None
+        current = list(self._position)
+        step = tuple(
+            rewind[i] if output in dead else current[i] for i, output in enumerate(self._outputs)
+        )
+        if step != tuple(current) or not self._settled():
+            log.info("safety switch on: the held outputs sent back to where they stopped")
+            self._send_step(actions, step, now)
+
+    def _safety_known(self, now: float) -> bool:
+        """ArduPilot: a SYS_STATUS said where the safety switch is since the start, the last
+        loss or reboot (or none came for SYS_STATUS_WAIT_S, which is said once)."""
+        if self._safety_on is not None:
+            return True
+        if now - self._sys_status_asked_s < SYS_STATUS_WAIT_S:
+            return False
+        if not self._sys_status_warned:
+            self._sys_status_warned = True
+            log.warning(
+                "no SYS_STATUS from the autopilot in %.0f s: moving without knowing its safety "
+                "switch (outputs held by it store what is sent, and jump to it at its release)",
+                SYS_STATUS_WAIT_S,
+            )
+        return True
 
     def _outputs_known(self, now: float) -> bool:
         """PX4: a readback since the start, link loss or reboot tells where the joints are;
@@ -978,6 +1048,7 @@ class ControlCore:
         self._mismatches.clear()
         self._confirmed.clear()
         self._telemetry.reset()
+        self._safety_on = None  # ArduPilot: until a SYS_STATUS says (it boots with it on)
         self._readback_since_s = self.clock()
         if not self._is_ardupilot:
             # PX4 applies what it stores in one step once its outputs are live: re-sending the
@@ -987,7 +1058,10 @@ class ControlCore:
             self._unconfirmed = None
             return
         if flights or self._last_step_s > -math.inf:
-            self._unconfirmed = tuple(self._position)
+            # The outputs hold what they were last told: the acknowledged pose, or a step that
+            # was on its way (up to PIPELINE_DEPTH of them, each a step from the one before).
+            # The oldest of those is within one step of every one of them.
+            self._unconfirmed = flights[0].step_deg if flights else tuple(self._position)
             self._resend_now = True
 
     def _ask_system_time(self, actions: list[Action]) -> None:
@@ -1002,7 +1076,8 @@ class ControlCore:
             (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, self._readback_interval_s),
         ]
         if self._is_ardupilot:
-            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, SYS_STATUS_INTERVAL_S))
+            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, self._sys_status_interval_s))
+            self._sys_status_asked_s = self.clock()
         world = self.config.world
         if world.enabled:
             streams += [
@@ -1158,6 +1233,10 @@ class ControlCore:
                 previous,
                 boot_ms,
             )
+            # It forgot our route (until it answers us again) and reads BRD_SAFETY_MASK
+            # anew at boot: a new mask applies only then.
+            self._heard_us = False
+            self._safety_mask = None
             self._lose_outputs(actions, "autopilot rebooted")
             self._ask_system_time(actions)
 
@@ -1177,6 +1256,7 @@ class ControlCore:
         # at their boot values), then the motion goes on.
         log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
+        self._safety_on = None  # it may have rebooted, with the switch on
         self._acked_pwm.clear()
         self._ack_history.clear()
         self._confirmed.clear()

@@ -4,15 +4,16 @@ DE (rand/1/bin) is the global search over the joint box. After each generation, 
 damped-least-squares (Levenberg–Marquardt) iterations with the analytic geometric Jacobian
 refine the best individual that is not yet known to be stuck. The result is clamped to the
 limits, accepted only if the pose error drops, and written back into the population. On
-stagnation the population is re-drawn and the best found so far is kept aside ("record").
+stagnation the population is re-drawn (a quarter of it at corners of the joint box) and the
+best found so far is kept aside ("record").
 
 Everything here is compiled by numba's JIT on first use (no explicit signatures: numba infers
 the types from the arrays :class:`companion.ik.solver` passes), with the on-disk cache: the
-first call after an install compiles (about 17 s of CPU; ``python -m companion.ik`` does it
-ahead of time), later processes load the cache. :func:`init_population` and
-:func:`generation` are the entry points the solver calls; they hold every other kernel, compiled
-into them. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays for
-it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
+first call after an install compiles (about 20 s of CPU; ``python -m companion.ik`` does it
+ahead of time), later processes load the cache. :func:`search` is the entry point the solver
+calls (with :func:`goal_matrix` for the pointing-direction mode); it holds every other kernel,
+compiled into it. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays
+for it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
 home), the kernels still work, compiled at every start, and a warning says how to fix it. The
 kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
@@ -73,21 +74,29 @@ if not CACHE:
     )
 
 DEG_PER_RAD = 180.0 / math.pi
+RAD_PER_DEG = math.pi / 180.0  # what math.radians multiplies by
 TWO_PI = 2.0 * math.pi
 
 # Layout of the float parameter vector ``fp``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-N_FPARAMS = 8
+F_SPREAD = 8
+N_FPARAMS = 9
 # Layout of the integer parameter vector ``ip``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
 N_IPARAMS = 4
 # Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
 MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
+# Flags of :func:`search`'s ``start`` (the low two bits are the mode).
+START_HAS_PREV, START_GOAL_SET, START_NEW = 4, 8, 16
 # Layout of the integer state vector ``st`` (counters the Python loop reads).
 S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
 N_STATE = 5
 # Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
 R_COST, R_POS_CM, R_ORI_DEG = range(3)
+# Layout of ``out`` (what :func:`search` returns to Python, 7 + 2n floats): the record, the
+# counters, then the record's joints in joint units (rad, cm) and in user units (deg, cm).
+O_COST, O_POS_CM, O_ORI_DEG, O_GENERATIONS, O_EVALUATIONS, O_LM_ITERATIONS, O_RESTARTS = range(7)
+O_Q = 7
 
 _U64 = nb.types.uint64
 
@@ -133,41 +142,61 @@ def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm;
     see :mod:`companion.kinematics.arm`); ``jp`` rows: direction, offset, 1.0 for a revolute
     joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``), and (not used here) 1.0 for a
-    joint whose range holds a whole turn. With ``want_axes``, also each
-    joint's axis (the z axis it moves about or along, signed by its direction) and a point on
-    it, in the base frame, for the geometric Jacobian.
+    joint whose range holds a whole turn, the lower and the upper limits. With ``want_axes``,
+    also each joint's axis (the z axis it moves about or along, signed by its direction) and a
+    point on it, in the base frame, for the geometric Jacobian.
     """
     n = q.shape[0]
-    for r in range(3):
-        pos[r] = frames[0, r, 3]
-        for c in range(3):
-            rot[r, c] = frames[0, r, c]
+    # Rotation and position as scalars until the end: stores into ``rot``/``pos`` that the
+    # compiler cannot prove apart from ``frames`` would be re-read at every step.
+    r00, r01, r02, p0 = frames[0, 0, 0], frames[0, 0, 1], frames[0, 0, 2], frames[0, 0, 3]
+    r10, r11, r12, p1 = frames[0, 1, 0], frames[0, 1, 1], frames[0, 1, 2], frames[0, 1, 3]
+    r20, r21, r22, p2 = frames[0, 2, 0], frames[0, 2, 1], frames[0, 2, 2], frames[0, 2, 3]
     for i in range(n):
         v = jp[0, i] * q[i] + jp[1, i]
         if want_axes:
-            for k in range(3):
-                axes[i, k] = rot[k, 2] * jp[0, i]
-                points[i, k] = pos[k]
+            d = jp[0, i]
+            axes[i, 0] = r02 * d
+            axes[i, 1] = r12 * d
+            axes[i, 2] = r22 * d
+            points[i, 0] = p0
+            points[i, 1] = p1
+            points[i, 2] = p2
         if jp[2, i] > 0.5:
             cv = math.cos(v)
             sv = math.sin(v)
-            for k in range(3):
-                r0 = rot[k, 0]
-                r1 = rot[k, 1]
-                rot[k, 0] = r0 * cv + r1 * sv
-                rot[k, 1] = r1 * cv - r0 * sv
+            r00, r01 = r00 * cv + r01 * sv, r01 * cv - r00 * sv
+            r10, r11 = r10 * cv + r11 * sv, r11 * cv - r10 * sv
+            r20, r21 = r20 * cv + r21 * sv, r21 * cv - r20 * sv
         else:
-            for k in range(3):
-                pos[k] += rot[k, 2] * v
-        f = frames[i + 1]
-        for k in range(3):
-            r0 = rot[k, 0]
-            r1 = rot[k, 1]
-            r2 = rot[k, 2]
-            pos[k] += r0 * f[0, 3] + r1 * f[1, 3] + r2 * f[2, 3]
-            rot[k, 0] = r0 * f[0, 0] + r1 * f[1, 0] + r2 * f[2, 0]
-            rot[k, 1] = r0 * f[0, 1] + r1 * f[1, 1] + r2 * f[2, 1]
-            rot[k, 2] = r0 * f[0, 2] + r1 * f[1, 2] + r2 * f[2, 2]
+            p0 += r02 * v
+            p1 += r12 * v
+            p2 += r22 * v
+        f = i + 1
+        f00, f01, f02, f03 = frames[f, 0, 0], frames[f, 0, 1], frames[f, 0, 2], frames[f, 0, 3]
+        f10, f11, f12, f13 = frames[f, 1, 0], frames[f, 1, 1], frames[f, 1, 2], frames[f, 1, 3]
+        f20, f21, f22, f23 = frames[f, 2, 0], frames[f, 2, 1], frames[f, 2, 2], frames[f, 2, 3]
+        p0 += r00 * f03 + r01 * f13 + r02 * f23
+        p1 += r10 * f03 + r11 * f13 + r12 * f23
+        p2 += r20 * f03 + r21 * f13 + r22 * f23
+        r00, r01, r02 = (
+            r00 * f00 + r01 * f10 + r02 * f20,
+            r00 * f01 + r01 * f11 + r02 * f21,
+            r00 * f02 + r01 * f12 + r02 * f22,
+        )
+        r10, r11, r12 = (
+            r10 * f00 + r11 * f10 + r12 * f20,
+            r10 * f01 + r11 * f11 + r12 * f21,
+            r10 * f02 + r11 * f12 + r12 * f22,
+        )
+        r20, r21, r22 = (
+            r20 * f00 + r21 * f10 + r22 * f20,
+            r20 * f01 + r21 * f11 + r22 * f21,
+            r20 * f02 + r21 * f12 + r22 * f22,
+        )
+    rot[0, 0], rot[0, 1], rot[0, 2], pos[0] = r00, r01, r02, p0
+    rot[1, 0], rot[1, 1], rot[1, 2], pos[1] = r10, r11, r12, p1
+    rot[2, 0], rot[2, 1], rot[2, 2], pos[2] = r20, r21, r22, p2
 
 
 @nb.njit(cache=CACHE)
@@ -305,36 +334,42 @@ def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
 
 @nb.njit(cache=CACHE)
 def _cholesky_solve(a, b, n):
-    """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``."""
+    """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``.
+
+    ``a``'s lower triangle becomes the Cholesky factor, with the inverse of each diagonal
+    element stored on the diagonal (multiplications instead of divisions).
+    """
     for j in range(n):
         s = a[j, j]
         for k in range(j):
             s -= a[j, k] * a[j, k]
-        if s <= 0.0:
+        if not s > 0.0:
             return False
-        a[j, j] = math.sqrt(s)
+        inv = 1.0 / math.sqrt(s)
+        a[j, j] = inv
         for i in range(j + 1, n):
             s = a[i, j]
             for k in range(j):
                 s -= a[i, k] * a[j, k]
-            a[i, j] = s / a[j, j]
+            a[i, j] = s * inv
     for i in range(n):
         s = b[i]
         for k in range(i):
             s -= a[i, k] * b[k]
-        b[i] = s / a[i, i]
+        b[i] = s * a[i, i]
     for i in range(n - 1, -1, -1):
         s = b[i]
         for k in range(i + 1, n):
             s -= a[k, i] * b[k]
-        b[i] = s / a[i, i]
+        b[i] = s * a[i, i]
     return True
 
 
 @nb.njit(cache=CACHE)
 def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr):
-    """Fill ``jac`` (6×n, the residual's Jacobian), ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
-    n = jac.shape[1]
+    """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
+    ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
+    n = jac.shape[0]
     wx = wy = wz = 0.0
     if mode == MODE_AXIS:
         # The hand axis in the base frame: a turn about it leaves the residual alone, so the
@@ -342,53 +377,59 @@ def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr
         wx = rot[0, 0] * goal[0, 0] + rot[0, 1] * goal[1, 0] + rot[0, 2] * goal[2, 0]
         wy = rot[1, 0] * goal[0, 0] + rot[1, 1] * goal[1, 0] + rot[1, 2] * goal[2, 0]
         wz = rot[2, 0] * goal[0, 0] + rot[2, 1] * goal[1, 0] + rot[2, 2] * goal[2, 0]
+    r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
     for j in range(n):
         zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
         if jp[2, j] > 0.5:
             dx = pos[0] - points[j, 0]
             dy = pos[1] - points[j, 1]
             dz = pos[2] - points[j, 2]
-            jac[0, j] = zy * dz - zz * dy
-            jac[1, j] = zz * dx - zx * dz
-            jac[2, j] = zx * dy - zy * dx
+            a0 = zy * dz - zz * dy
+            a1 = zz * dx - zx * dz
+            a2 = zx * dy - zy * dx
             if mode == MODE_POSITION:
                 zx, zy, zz = 0.0, 0.0, 0.0
             elif mode == MODE_AXIS:
                 along = zx * wx + zy * wy + zz * wz
                 zx, zy, zz = zx - along * wx, zy - along * wy, zz - along * wz
-            jac[3, j] = zx * DEG_PER_RAD
-            jac[4, j] = zy * DEG_PER_RAD
-            jac[5, j] = zz * DEG_PER_RAD
+            a3 = zx * DEG_PER_RAD
+            a4 = zy * DEG_PER_RAD
+            a5 = zz * DEG_PER_RAD
         else:
-            jac[0, j] = zx
-            jac[1, j] = zy
-            jac[2, j] = zz
-            jac[3, j] = 0.0
-            jac[4, j] = 0.0
-            jac[5, j] = 0.0
-    for r in range(n):
-        s = 0.0
-        for k in range(6):
-            s += jac[k, r] * res[k]
-        jtr[r] = s
-        for c in range(r + 1):
-            s = 0.0
-            for k in range(6):
-                s += jac[k, r] * jac[k, c]
-            jtj[r, c] = s
-            jtj[c, r] = s
+            a0, a1, a2, a3, a4, a5 = zx, zy, zz, 0.0, 0.0, 0.0
+        jac[j, 0] = a0
+        jac[j, 1] = a1
+        jac[j, 2] = a2
+        jac[j, 3] = a3
+        jac[j, 4] = a4
+        jac[j, 5] = a5
+        # Row j of the products, against the rows computed so far (scalars: no inner loop).
+        jtr[j] = a0 * r0 + a1 * r1 + a2 * r2 + a3 * r3 + a4 * r4 + a5 * r5
+        for c in range(j + 1):
+            s = (
+                a0 * jac[c, 0]
+                + a1 * jac[c, 1]
+                + a2 * jac[c, 2]
+                + a3 * jac[c, 3]
+                + a4 * jac[c, 4]
+                + a5 * jac[c, 5]
+            )
+            jtj[j, c] = s
+            jtj[c, j] = s
 
 
 @nb.njit(cache=CACHE)
 def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     """Damped least squares on the target residual from ``q`` (modified in place).
 
-    Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``, clamps ``q + Δq`` into the
-    limits and keeps it only if ``‖r‖`` drops (λ shrinks on success; on failure it grows and
-    the same normal equations are solved again). Stops at the tolerances, after ``iters``
-    steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a window of steps did not bring
-    the cost below ``fp[F_LM_PROGRESS]`` times what it was. ``out`` receives
-    ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps taken.
+    Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``; joints at a limit that the
+    step would push further out are then held and the system solved again for the others (one
+    active-set pass: a clamped step is no descent step, and solutions at the limits stalled).
+    It clamps ``q + Δq`` into the limits and keeps it only if ``‖r‖`` drops (λ shrinks on
+    success; on failure it grows and the same normal equations are solved again). Stops at the
+    tolerances, after ``iters`` steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a
+    window of steps did not bring the cost below ``fp[F_LM_PROGRESS]`` times what it was.
+    ``out`` receives ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps.
 
     One call site of the FK and of the residual: compiling each inlined copy of them cost
     seconds of the first compile.
@@ -399,11 +440,12 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     axes = np.empty((n, 3))
     points = np.empty((n, 3))
     res = np.empty(6)
-    jac = np.empty((6, n))
+    jac = np.empty((n, 6))
     jtj = np.empty((n, n))
     jtr = np.empty(n)
     a = np.empty((n, n))
     g = np.empty(n)
+    hold = np.empty(n, dtype=np.bool_)
     q_try = q.copy()
     tol_pos = fp[F_TOL_POS]
     tol_ori = fp[F_TOL_ORI]
@@ -454,6 +496,28 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
             lam *= 10.0
             evaluate = False
             continue
+        # A joint at a limit that the step pushes further out would only be clamped back, and
+        # the clamped step is no longer a descent step: hold such joints and solve again for
+        # the others (one active-set pass). Solutions with joints at their limits converge.
+        held = 0
+        for j in range(n):
+            if jp[3, j] < 0.5 and (
+                (q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0)
+            ):
+                held += 1
+                hold[j] = True
+            else:
+                hold[j] = False
+        if 0 < held < n:
+            for r in range(n):
+                g[r] = 0.0 if hold[r] else jtr[r]
+                for c in range(n):
+                    a[r, c] = 0.0 if hold[r] or hold[c] else jtj[r, c]
+                a[r, r] = 1.0 if hold[r] else a[r, r] + lam * jtj[r, r] + 1e-9
+            if not _cholesky_solve(a, g, n):
+                lam *= 10.0
+                evaluate = False
+                continue
         evaluate = True
         for j in range(n):
             q_try[j] = _into_range(q[j] + g[j], lo[j], hi[j], jp[3, j])
@@ -651,9 +715,125 @@ def generation(
                 # Restart: the record keeps the best so far; the whole population is drawn anew.
                 # intp(0), not the literal 0: numba would compile a second specialisation.
                 _draw_population(pop, lo, hi, rng, np.intp(0))
+                # A quarter of a restart's individuals are corners of the joint box: a target
+                # reached only with joints at their limits is where LM from inside the box
+                # stalls (each step is clamped), and a corner starts LM right there.
+                for i in range(n_pop // 4):
+                    for j in range(n):
+                        pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
                 _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
                 st[S_EVALUATIONS] += n_pop
                 stuck[:] = False
                 st[S_STALE] = 0
                 st[S_RESTARTS] += 1
     return False
+
+
+@nb.njit(cache=CACHE)
+def _report(st, record, record_q, jp, out):
+    out[O_COST] = record[R_COST]
+    out[O_POS_CM] = record[R_POS_CM]
+    out[O_ORI_DEG] = record[R_ORI_DEG]
+    out[O_GENERATIONS] = st[S_GENERATIONS]
+    out[O_EVALUATIONS] = st[S_EVALUATIONS]
+    out[O_LM_ITERATIONS] = st[S_LM_ITERATIONS]
+    out[O_RESTARTS] = st[S_RESTARTS]
+    n = record_q.shape[0]
+    for j in range(n):
+        out[O_Q + j] = record_q[j]
+        out[O_Q + n + j] = record_q[j] * DEG_PER_RAD if jp[2, j] > 0.5 else record_q[j]
+
+
+@nb.njit(cache=CACHE)
+def search(
+    pop,
+    cost,
+    stuck,
+    frames,
+    jp,
+    goal,
+    q_start,
+    fp,
+    ip,
+    rng,
+    st,
+    record,
+    record_q,
+    out,
+    start,
+    x_cm,
+    y_cm,
+    z_cm,
+    roll_deg,
+    pitch_deg,
+    yaw_deg,
+    gens,
+):
+    """The solver's one compiled entry point: up to ``gens`` generations of a search.
+
+    ``start`` 0 goes on with the search in the arrays. ``START_NEW | mode`` (a ``MODE_*``),
+    with ``START_HAS_PREV`` for a warm start and ``START_GOAL_SET`` when the caller has filled
+    ``goal`` itself (else it is built from the pose arguments, cm and degrees), first starts a
+    new one: :func:`init_population` from ``q_start`` (also the warm start's movement
+    reference). ``jp`` rows 4 and 5 are the lower and
+    upper limits. Returns True once the tolerances are met; ``out`` receives the best so far
+    (layout ``O_*``) either way. The per-call values are scalar arguments and the first call
+    does the initialisation too: each call from Python, and each numpy item it sets, costs
+    time (about 1 µs for this call's 22 arguments, 0.1 µs per item).
+    """
+    lo = jp[4]
+    hi = jp[5]
+    done = False
+    if start & START_NEW:
+        ip[I_MODE] = start & 3
+        ip[I_HAS_PREV] = 1 if start & START_HAS_PREV else 0
+        if not start & START_GOAL_SET:
+            goal_matrix(
+                x_cm,
+                y_cm,
+                z_cm,
+                roll_deg * RAD_PER_DEG,
+                pitch_deg * RAD_PER_DEG,
+                yaw_deg * RAD_PER_DEG,
+                goal,
+            )
+        done = init_population(
+            pop,
+            cost,
+            stuck,
+            lo,
+            hi,
+            frames,
+            jp,
+            goal,
+            q_start,
+            fp,
+            ip,
+            rng,
+            st,
+            record,
+            record_q,
+            q_start,
+            fp[F_SPREAD],
+        )
+    if not done and gens > 0:
+        done = generation(
+            pop,
+            cost,
+            stuck,
+            lo,
+            hi,
+            frames,
+            jp,
+            goal,
+            q_start,
+            fp,
+            ip,
+            rng,
+            st,
+            record,
+            record_q,
+            gens,
+        )
+    _report(st, record, record_q, jp, out)
+    return done

@@ -3,17 +3,18 @@
 This is where the time budget is enforced. The search itself is memetic differential evolution,
 compiled (:mod:`companion.ik.kernels`): DE rand/1/bin is the global search, and
 damped-least-squares steps refine its best individual. This module runs it in chunks of
-generations (one compiled call each: 1, 2, 4, … up to 64 generations), reading the clock between
-chunks. It stops:
+generations (one compiled call each, :func:`kernels.search`), reading the clock between chunks;
+the first call also initialises the population. It stops:
 
 * as soon as the hand is within ``tol_pos_cm`` and ``tol_ori_deg`` of the target (CONVERGED);
-* before a generation that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
+* before a chunk that is predicted not to finish inside ``budget_ms`` (DEADLINE). The
   prediction is a moving average of the wall time of a generation, each sample capped at 4×
-  the average (and the first, the initialisation, counted in CPU time if that is less), so a
-  generation preempted by another process does not end the search early on a busy machine.
-  A chunk is never predicted to take more than half of the budget left, so the budget holds
-  unless one generation takes twice the average and more, or the machine does not let this
-  thread run;
+  the average, so a generation preempted by another process does not end the search early on
+  a busy machine. The average carries over from call to call (same arm, settings, thread and
+  clock); the first call with a clock calibrates it on the initialisation, counted in CPU time
+  if that is less. A chunk is never predicted to take more than half of the budget left, so
+  the budget holds unless one generation takes twice the average and more, or the machine does
+  not let this thread run;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
@@ -32,12 +33,13 @@ solutions on the same elbow/wrist branch.
 
 Importing this module does no work. The kernels are compiled lazily by numba's JIT (there are
 no explicit signatures: numba infers them from the first call) and cached on disk: the first
-:func:`warm_up` in a fresh cache compiles them (about 17 s of CPU on the development machine),
-later ones load the cache (about 0.5 s, most of it numba setting up its compiler on the first
-call). ``python -m companion.ik`` does that compile ahead of time, e.g. at install into the
-service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports READY; a first
-:func:`solve` without it calls it before its clock starts. So no budget ever pays for
-compilation.
+:func:`warm_up` in a fresh cache compiles them (about 20 s of CPU on the 2-core development
+machine), later ones load the cache (about 0.5 s on a quiet machine, most of it numba setting
+up LLVM on the first call; importing numba itself takes another 0.3–0.5 s).
+``python -m companion.ik`` does that compile ahead of time: the README's board install runs it
+into the service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports
+READY; a first :func:`solve` without it calls it before its clock starts. So no budget ever
+pays for compilation.
 """
 
 from __future__ import annotations
@@ -80,11 +82,11 @@ class SolverSettings:
     """DE population (NP)."""
     F: float = 0.7
     """DE scale factor."""
-    Cr: float = 0.9
+    Cr: float = 0.7
     """DE crossover probability (binomial)."""
     lm_iterations: int = 30
     """Damped-least-squares steps per refinement of DE's best (at most)."""
-    lm_lambda0: float = 1e-3
+    lm_lambda0: float = 0.1
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
     lm_window: int = 4
     """LM gives up when the cost has not dropped below ``lm_progress`` × its value
@@ -206,6 +208,8 @@ def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
             [1.0 if j.revolute else 0.0 for j in arm.joints],
             # A whole turn within the limits: the kernels wrap such a joint instead of clamping.
             [1.0 if j.revolute and j.upper - j.lower >= 2 * math.pi else 0.0 for j in arm.joints],
+            arm.lower_q,
+            arm.upper_q,
         ]
     )
     return _ArmArrays(
@@ -302,64 +306,70 @@ def solve(
     pose = target if type(target) is Pose else _as_pose(target)
     budget_s = _positive("budget_ms", budget_ms) * 1e-3
     ws = _workspace(arm, settings)
-    fp, ip = ws.fp, ws.ip
-    fp[kernels.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
-    fp[kernels.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
+    # Tolerances are written only when they change: each numpy item set costs ~0.1 µs.
+    if tol_pos_cm is not ws.tol_pos_cm or tol_ori_deg is not ws.tol_ori_deg:
+        ws.fp[kernels.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
+        ws.fp[kernels.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
+        ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
     if mode is TargetMode.POSE:
-        mode_id = kernels.MODE_POSE
+        start = kernels.START_NEW | kernels.MODE_POSE
     elif mode is TargetMode.POSITION:
-        mode_id = kernels.MODE_POSITION
+        start = kernels.START_NEW | kernels.MODE_POSITION
     elif mode is TargetMode.POSITION_AXIS:
-        mode_id = kernels.MODE_AXIS
+        start = kernels.START_NEW | kernels.MODE_AXIS | kernels.START_GOAL_SET
+        _axis_goal(pose, tool_axis, direction, ws.goal)
     else:
         raise ValueError(f"mode={mode!r} must be one of {', '.join(m.name for m in TargetMode)}")
-    ip[kernels.I_MODE] = mode_id
-    if q_start_deg is None:
-        ip[kernels.I_HAS_PREV] = 0
-    else:
+    if q_start_deg is not None:
         q_start = np.asarray(q_start_deg, dtype=float)
-        n = ws.lower.shape[0]
+        n = ws.n
         if q_start.shape != (n,) or not np.all(np.isfinite(q_start)):
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
         np.clip(q_start * ws.to_joint, ws.lower, ws.upper, out=ws.q_start)
-        ip[kernels.I_HAS_PREV] = 1
-    ws.rng[0] = _seed_value(seed)
-    goal = ws.goal
-    kernels.goal_matrix(
-        pose.x_cm,
-        pose.y_cm,
-        pose.z_cm,
-        math.radians(pose.roll_deg),
-        math.radians(pose.pitch_deg),
-        math.radians(pose.yaw_deg),
-        goal,
-    )
-    if mode_id == kernels.MODE_AXIS:
-        hand_axis = _unit("tool_axis", tool_axis)
-        goal[:3, 2] = (
-            goal[:3, :3] @ hand_axis if direction is None else _unit("direction", direction)
-        )
-        goal[:3, 0] = hand_axis
+        start |= kernels.START_HAS_PREV
+    ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
     st = ws.st
     max_gens = settings.max_generations
+    search = kernels.search
+    x_cm, y_cm, z_cm = pose.x_cm, pose.y_cm, pose.z_cm
+    roll_deg, pitch_deg, yaw_deg = pose.roll_deg, pose.pitch_deg, pose.yaw_deg
 
-    cpu_before = cpu_clock()
-    done = kernels.init_population(*args, ws.q_start, ws.spread_rad)
-    now = clock()
     # The wall time of the next generation: a moving average of the past ones (per generation
     # of a chunk), each sample capped at 4× the estimate, so one chunk preempted by another
     # process moves it by at most 75 % (and that wears off); before, "the slowest generation
-    # so far" ended the search at half the budget on a busy machine. The first sample, the
-    # initialisation, counts only its CPU time if that is less: an initialisation preempted
-    # for 11 ms must not make every generation look 11 ms long. Later samples are wall time,
-    # so a thread that only gets half a core predicts its generations at their real length.
-    # Chunks double from one generation up to 64, never predicted past half of what is left
-    # of the budget: one generation can cost several times the average (a restart, a full LM
+    # so far" ended the search at half the budget on a busy machine. Later samples are wall
+    # time, so a thread that only gets half a core predicts its generations at their real
+    # length. Chunks double up to 64 generations, never predicted past half of what is left of
+    # the budget: one generation can cost several times the average (a restart, a full LM
     # run), so the last one gets that margin; at most two average generations go unused.
-    estimate_s = min(now - started, cpu_clock() - cpu_before)
-    chunk = 1
+    #
+    # The estimate carries over from one call to the next (same arm, settings, thread and
+    # clock), so a call starts with the initialisation and a first chunk in one compiled call.
+    # The first call with a clock calibrates it: the initialisation alone (about one
+    # generation's work), counted in CPU time if that is less, so an initialisation preempted
+    # for 11 ms does not make every generation look 11 ms long. Carried over, the estimate
+    # stays within 4× of that calibration either way.
+    if ws.clock is clock:
+        estimate_s = ws.estimate_s
+        gens = min(_FIRST_CHUNK, max_gens)
+        remaining_s = budget_s - (clock() - started)
+        if (gens + 1) * estimate_s > 0.5 * remaining_s:
+            gens = max(0, int(0.5 * remaining_s / estimate_s) - 1) if remaining_s > 0.0 else 0
+        before = clock()
+        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
+        now = clock()
+        sample_s = (now - before) / (gens + 1)
+        estimate_s += 0.25 * (min(sample_s, 4.0 * estimate_s) - estimate_s)
+        chunk = min(2 * max(gens, 1), 64)
+    else:
+        cpu_before = cpu_clock()
+        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, 0)
+        now = clock()
+        estimate_s = min(now - started, cpu_clock() - cpu_before)
+        ws.calibration_s = estimate_s
+        chunk = 1
     while True:
         if done:
             reason = StopReason.CONVERGED
@@ -376,30 +386,61 @@ def solve(
             if gens < 1:
                 reason = StopReason.DEADLINE
                 break
-        done = kernels.generation(*args, gens)
+        done = search(*args, 0, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
         after = clock()
         sample_s = (after - now) / gens
         now = after
         estimate_s += 0.25 * (min(sample_s, 4.0 * estimate_s) - estimate_s)
         chunk = min(2 * chunk, 64)
+    calibration_s = ws.calibration_s
+    ws.estimate_s = min(max(estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
+    ws.clock = clock
 
-    record = ws.record.tolist()
-    record_q = ws.record_q
-    counts = st.tolist()
-    return IKResult(
-        q_deg=tuple((record_q * ws.to_user).tolist()),
-        pos_err_cm=record[kernels.R_POS_CM],
-        ori_err_deg=record[kernels.R_ORI_DEG],
-        cost=record[kernels.R_COST],
-        converged=reason is StopReason.CONVERGED,
-        elapsed_ms=(clock() - started) * 1e3,
-        generations=counts[kernels.S_GENERATIONS],
-        evaluations=counts[kernels.S_EVALUATIONS],
-        lm_iterations=counts[kernels.S_LM_ITERATIONS],
-        restarts=counts[kernels.S_RESTARTS],
-        stop_reason=reason,
-        q=tuple(record_q.tolist()),
+    out = ws.out.tolist()
+    n = ws.n
+    # The frozen dataclass's own __init__ sets its 12 fields one object.__setattr__ at a time
+    # (~2 µs); filling the instance's dict is the same object for a third of that.
+    result = _new_result(IKResult)
+    fields = result.__dict__
+    fields["q_deg"] = tuple(out[kernels.O_Q + n :])
+    fields["pos_err_cm"] = out[kernels.O_POS_CM]
+    fields["ori_err_deg"] = out[kernels.O_ORI_DEG]
+    fields["cost"] = out[kernels.O_COST]
+    fields["converged"] = reason is StopReason.CONVERGED
+    fields["elapsed_ms"] = (clock() - started) * 1e3
+    fields["generations"] = int(out[kernels.O_GENERATIONS])
+    fields["evaluations"] = int(out[kernels.O_EVALUATIONS])
+    fields["lm_iterations"] = int(out[kernels.O_LM_ITERATIONS])
+    fields["restarts"] = int(out[kernels.O_RESTARTS])
+    fields["stop_reason"] = reason
+    fields["q"] = tuple(out[kernels.O_Q : kernels.O_Q + n])
+    return result
+
+
+_new_result = object.__new__
+
+
+def _axis_goal(
+    pose: Pose, tool_axis: Sequence[float], direction: Sequence[float] | None, goal: FloatArray
+) -> None:
+    """POSITION_AXIS's goal: the target position, the hand axis (hand frame) as column 0 and
+    the direction it must point along (base frame) as column 2 (see ``kernels.residual``)."""
+    kernels.goal_matrix(
+        pose.x_cm,
+        pose.y_cm,
+        pose.z_cm,
+        math.radians(pose.roll_deg),
+        math.radians(pose.pitch_deg),
+        math.radians(pose.yaw_deg),
+        goal,
     )
+    hand_axis = _unit("tool_axis", tool_axis)
+    goal[:3, 2] = goal[:3, :3] @ hand_axis if direction is None else _unit("direction", direction)
+    goal[:3, 0] = hand_axis
+
+
+_FIRST_CHUNK = 4
+"""Generations the first compiled call runs after the initialisation, once calibrated."""
 
 
 class _Workspace:
@@ -413,7 +454,9 @@ class _Workspace:
         self.settings = settings
         self.lower, self.upper = k.lower, k.upper
         self.to_joint, self.to_user = k.to_joint, k.to_user
+        self.n = n
         self.fp = np.zeros(kernels.N_FPARAMS)
+        self.fp[kernels.F_SPREAD] = math.radians(settings.warm_spread_deg)
         self.fp[kernels.F_SCALE] = settings.F
         self.fp[kernels.F_CR] = settings.Cr
         self.fp[kernels.F_MOVE_W] = settings.movement_weight
@@ -429,13 +472,18 @@ class _Workspace:
         self.q_start = np.zeros(n)
         self.record = np.full(3, np.inf)
         self.record_q = np.zeros(n)
-        self.spread_rad = math.radians(settings.warm_spread_deg)
+        self.out = np.zeros(kernels.O_Q + 2 * n)
+        # The deadline's estimate of a generation's wall time, carried from call to call, and
+        # the clock it was measured on (see solve()).
+        self.clock: Clock | None = None
+        self.tol_pos_cm: object = None
+        self.tol_ori_deg: object = None
+        self.estimate_s = 0.0
+        self.calibration_s = 0.0
         self.args = (
             np.empty((size, n)),
             np.empty(size),
             np.zeros(size, dtype=np.bool_),
-            k.lower,
-            k.upper,
             k.frames,
             k.jp,
             self.goal,
@@ -446,6 +494,7 @@ class _Workspace:
             self.st,
             self.record,
             self.record_q,
+            self.out,
         )
 
 

@@ -1,9 +1,11 @@
 """Keep-out checks: the arm's link capsules against keep-out volumes on the vehicle.
 
-Pure numpy, no I/O, no clocks. Lengths in cm, joints in joint units (rad; cm for a prismatic
-joint). The arm's links carry capsules (:class:`~companion.kinematics.arm.LinkCapsule`, from the
-arm file); the volumes are written in the vehicle's body frame FRD, and the arm's base sits in
-it at a :class:`~companion.kinematics.frames.Mount`.
+numpy, its hot loop compiled (:mod:`~companion.kinematics.collision_kernels`, with this
+module's numpy version as the reference); no I/O, no clocks. Lengths in cm, joints in joint
+units (rad; cm for a prismatic joint). The arm's links carry capsules
+(:class:`~companion.kinematics.arm.LinkCapsule`, from the arm file); the volumes are written in
+the vehicle's body frame FRD, and the arm's base sits in it at a
+:class:`~companion.kinematics.vehicle.Mount`.
 
 Volumes: :class:`Sphere`, :class:`Capsule` (legs), :class:`Box` (the body; oriented by
 ``rpy_deg``, axis-aligned at 0) and :class:`Cylinder` (propeller discs: a thin cylinder about its
@@ -19,8 +21,10 @@ so an error only ever refuses a clear configuration, never accepts a colliding o
 * capsule–cylinder: conservative. The distance to a set is at most the distance to any subset,
   so the distance to the cylinder is at least the largest of the distances to three sets that
   contain it: its bounding capsule (axis segment, same radius), its bounding square prism, and
-  that prism turned 45° about the axis (an octagonal prism together). Off the rim's diagonal
-  this is exact; at worst (next to the rim, between the prisms' corners) it is ~8 % short.
+  that prism turned 45° about the axis (an octagonal prism together). Beside the rim (within
+  the disc's thickness) and over the disc this is exact; above or below the rim's edge it can
+  be short by up to about 11 % of the radius (1.4 cm for a 13 cm disc, sampled), where the
+  octagon's corners stick out of the circle.
 
 :meth:`KeepOut.check_motion` checks the whole straight-line joint motion between two
 configurations, not samples of it. Every point of a link moves, per unit of the motion's
@@ -31,8 +35,9 @@ Each lower bound above is a distance from the moving capsule to a fixed set (or 
 three), so it changes by at most ``V·|Δs|``: between two samples ``a < b`` with clearances
 ``c_a, c_b`` it stays above ``(c_a + c_b − V·(b − a)) / 2``. The motion is accepted only when,
 for every link and every interval, that is at least ``margin_cm``; intervals that fail are
-halved (up to ``max_depth`` times). So no volume, however thin, can hide between samples: a
-link crossing it would have clearance 0 somewhere inside an interval the bound proved clear.
+halved (up to ``max_depth`` times and ``max_samples`` configurations; past that, refused). So
+no volume, however thin, can hide between samples: a link crossing it would have clearance 0
+somewhere inside an interval the bound proved clear.
 
 Self-collision between the arm's own links is not checked (the arm's joint limits are trusted
 for that); the base (the part before joint 1) is fixed to the vehicle and not checked either.
@@ -49,8 +54,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from companion.kinematics.arm import Arm
-from companion.kinematics.frames import Mount, invert, pose_matrix
-from companion.kinematics.rotations import FloatArray
+from companion.kinematics.rotations import FloatArray, rpy_to_matrix
+from companion.kinematics.vehicle import Mount, invert, transform
 
 #: Subtracted from every computed distance (cm): float64 rounding on arms of metres is ~1e-13.
 ROUNDING_CM = 1e-7
@@ -269,7 +274,14 @@ def segment_box_distance(p0: FloatArray, p1: FloatArray, half_cm: FloatArray) ->
 
 # -- the prepared check ---------------------------------------------------------------------------
 
-_TURN_45 = pose_matrix((0.0, 0.0, 0.0), (0.0, 0.0, math.pi / 4))
+
+def _pose(center_cm: Sequence[float], rpy_deg: Sequence[float]) -> FloatArray:
+    """A volume's pose in body FRD (4×4, cm) from its centre and roll/pitch/yaw (deg)."""
+    roll, pitch, yaw = np.radians(rpy_deg)
+    return transform(rpy_to_matrix(roll, pitch, yaw), center_cm)
+
+
+_TURN_45 = _pose((0.0, 0.0, 0.0), (0.0, 0.0, 45.0))
 
 
 class KeepOut:
@@ -277,9 +289,10 @@ class KeepOut:
 
     ``margin_cm`` (≥ 0) is the clearance every link capsule must keep from every volume;
     :meth:`check_motion` first samples a motion every ``step_cm`` of bounded link travel, then
-    halves the intervals it cannot prove clear, at most ``max_depth`` times (neither changes
-    what is accepted as clear, only how much work that takes). Raises ``ValueError`` for an arm
-    without link shapes when volumes are given (there would be nothing to check).
+    halves the intervals it cannot prove clear, at most ``max_depth`` times and ``max_samples``
+    configurations in all; a motion not proven clear by then is refused (``proven`` False).
+    None of these can let a colliding motion through; they bound the work. Raises
+    ``ValueError`` for an arm without link shapes when volumes are given (nothing to check).
     """
 
     def __init__(
@@ -290,7 +303,8 @@ class KeepOut:
         margin_cm: float = 1.0,
         *,
         max_depth: int = 12,
-        step_cm: float = 2.0,
+        step_cm: float = 4.0,
+        max_samples: int = 1024,
     ) -> None:
         self.arm = arm
         self.volumes = tuple(volumes)
@@ -307,6 +321,9 @@ class KeepOut:
         if not step_cm > 0:
             raise ValueError(f"step_cm={step_cm!r} must be > 0")
         self.step_cm = float(step_cm)
+        if max_samples < 2:
+            raise ValueError(f"max_samples={max_samples!r} must be >= 2")
+        self.max_samples = int(max_samples)
         names = [v.name for v in self.volumes]
         for v in self.volumes:
             if not isinstance(v, Sphere | Capsule | Box | Cylinder):
@@ -339,6 +356,10 @@ class KeepOut:
         self._inv_frames = np.array([invert(f[i + 1]) for i in range(arm.dof)])
         self._mount = self.mount.matrix
         self._reach = self._lever_arms()
+        self._frames = np.array(f)  # writable: numba types a read-only array apart
+        self._directions = np.array(arm.directions)
+        self._offsets = np.array(arm.offsets)
+        self._revolute = np.array(arm.revolute, dtype=np.bool_)
 
     def _lever_arms(self) -> FloatArray:
         """``(C, n)``: per capsule and joint, the speed bound per unit of joint motion (cm/rad
@@ -388,10 +409,10 @@ class KeepOut:
                 caps_r.append(v.radius_cm)
             elif isinstance(v, Box):
                 box_of[v_index, 0] = len(boxes_half)
-                boxes_inv.append(invert(pose_matrix(v.center_cm, np.radians(v.rpy_deg))))
+                boxes_inv.append(invert(_pose(v.center_cm, v.rpy_deg)))
                 boxes_half.append(np.asarray(v.size_cm) / 2)
             else:  # Cylinder: its bounding capsule and two bounding square prisms
-                pose = pose_matrix(v.center_cm, np.radians(v.rpy_deg))
+                pose = _pose(v.center_cm, v.rpy_deg)
                 axis = pose[:3, 2] * (v.length_cm / 2)
                 cap_of[v_index] = len(caps_r)
                 caps_a.append(pose[:3, 3] - axis)
@@ -435,7 +456,39 @@ class KeepOut:
     def clearances(self, q: FloatArray) -> FloatArray:
         """Lower bounds of the clearance (cm) between each link capsule and each volume,
         ``(S, C, V)`` for joint vectors ``(S, n)``: distance less the capsule's radius and
-        :data:`ROUNDING_CM` (negative: they overlap)."""
+        :data:`ROUNDING_CM` (negative: they overlap). Compiled
+        (:mod:`~companion.kinematics.collision_kernels`); :meth:`clearances_reference` is the
+        same in numpy, and the tests hold the two equal."""
+        # Imported here: numba costs a start-up that config checks (check-config) must not pay.
+        from companion.kinematics import collision_kernels
+
+        q = np.ascontiguousarray(q, dtype=float)
+        if q.ndim != 2 or q.shape[1] != self.arm.dof:
+            raise ValueError(f"q must have shape (S, {self.arm.dof}), got {q.shape}")
+        out = np.empty((q.shape[0], len(self._radii), len(self.volumes)))
+        return collision_kernels.clearances(
+            q,
+            self._frames,
+            self._directions,
+            self._offsets,
+            self._revolute,
+            self._mount,
+            self._link_idx,
+            self._ends,
+            self._radii,
+            self._caps_a,
+            self._caps_b,
+            self._caps_r,
+            self._boxes_inv,
+            self._boxes_half,
+            self._cap_of,
+            self._box_of,
+            ROUNDING_CM,
+            out,
+        )
+
+    def clearances_reference(self, q: FloatArray) -> FloatArray:
+        """:meth:`clearances` in numpy (vectorised over samples, capsules and volumes)."""
         q = np.asarray(q, float)
         seg = self.segments(q)
         s, c = seg.shape[:2]
@@ -467,7 +520,7 @@ class KeepOut:
 
     def _as_batch(self, q: FloatArray | Sequence[float], name: str) -> FloatArray:
         arr = np.asarray(q, float)
-        if arr.shape != (self.arm.dof,) or not np.all(np.isfinite(arr)):
+        if arr.shape != (self.arm.dof,) or not math.isfinite(float(arr.sum())):
             raise ValueError(f"{name}={q!r} must be {self.arm.dof} finite joint values (rad, cm)")
         return arr.reshape(1, -1)
 
@@ -494,13 +547,17 @@ class KeepOut:
             return np.ones(q.shape[0], dtype=bool)
         return self.clearances(q).min(axis=(1, 2)) >= self.margin_cm
 
-    def check(self, q_rad: FloatArray | Sequence[float]) -> Collision | None:
+    def check(
+        self, q_rad: FloatArray | Sequence[float], *, reference: bool = False
+    ) -> Collision | None:
         """None if the configuration ``q_rad`` (joint units) keeps every link ``margin_cm`` from
-        every volume, else the worst link and volume."""
+        every volume, else the worst link and volume. ``reference``: computed by
+        :meth:`clearances_reference` (numpy only, no numba to load: for one-off checks such as
+        the config's)."""
         q = self._as_batch(q_rad, "q_rad")
         if not self.volumes or not len(self._radii):
             return None
-        clear = self.clearances(q)[0]
+        clear = (self.clearances_reference if reference else self.clearances)(q)[0]
         if clear.min() >= self.margin_cm:
             return None
         return self._collision(clear)
@@ -525,13 +582,17 @@ class KeepOut:
         dq = q1 - q0
         top = float(speed.max())
         # Start with samples step_cm of link travel apart: one interval for a control tick.
-        count = int(min(max(math.ceil(top / self.step_cm), 1), 256))
-        s = np.linspace(0.0, 1.0, count + 1)
+        count = int(min(max(math.ceil(top / self.step_cm), 1), self.max_samples // 4))
+        s = np.arange(count + 1) / count
         clear = self.clearances(q0 + s[:, None] * dq).min(axis=2)  # (S, C)
         lo_s, hi_s = s[:-1], s[1:]
         lo_c, hi_c = clear[:-1], clear[1:]
         margin = self.margin_cm
+        samples = count + 1
         for depth in range(self.max_depth + 1):
+            bound = 0.5 * (lo_c + hi_c - speed * (hi_s - lo_s)[:, None])  # (I, C)
+            if bound.min() >= margin and clear.min() >= margin:
+                return None  # every interval proven (the common case: one check per tick)
             lo_bad = lo_c.min(axis=1) < margin
             hi_bad = hi_c.min(axis=1) < margin
             if lo_bad.any() or hi_bad.any():
@@ -539,11 +600,8 @@ class KeepOut:
                 where = float(min(lo_s[lo_bad].min(initial=2.0), hi_s[hi_bad].min(initial=2.0)))
                 q = (q0 + where * dq).reshape(1, -1)
                 return self._collision(self.clearances(q)[0], where)
-            bound = 0.5 * (lo_c + hi_c - speed * (hi_s - lo_s)[:, None])  # (I, C)
             open_ = np.flatnonzero(bound.min(axis=1) < margin)
-            if open_.size == 0:
-                return None
-            if depth == self.max_depth:
+            if depth == self.max_depth or samples + open_.size > self.max_samples:
                 k = open_[np.argmin(bound[open_].min(axis=1))]
                 where = float(0.5 * (lo_s[k] + hi_s[k]))
                 q = (q0 + where * dq).reshape(1, -1)
@@ -560,6 +618,8 @@ class KeepOut:
                 )
             mid_s = 0.5 * (lo_s[open_] + hi_s[open_])
             mid_c = self.clearances(q0 + mid_s[:, None] * dq).min(axis=2)
+            samples += mid_s.size
+            clear = mid_c
             lo_s = np.concatenate([lo_s[open_], mid_s])
             hi_s = np.concatenate([mid_s, hi_s[open_]])
             lo_c = np.concatenate([lo_c[open_], mid_c])

@@ -21,6 +21,8 @@ a hovering vehicle's acceleration changes the position by ``a·t²/2`` (1 m/s² 
 from __future__ import annotations
 
 import math
+import numbers
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,3 +120,42 @@ def world_to_base(target_world: Pose, t_world_body: FloatArray, t_body_base: Flo
 def base_to_world(hand_base: Pose, t_world_body: FloatArray, t_body_base: FloatArray) -> Pose:
     """A hand pose in the arm's base frame, in the world (NED, cm)."""
     return Pose.from_matrix(t_world_body @ t_body_base @ hand_base.as_matrix())
+
+
+def _finite_triple(owner: str, name: str, values: Sequence[object]) -> tuple[float, float, float]:
+    items = list(values)
+    if len(items) != 3:
+        raise ValueError(f"{owner}.{name}={values!r} must be 3 numbers")
+    out = []
+    for i, v in enumerate(items):
+        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
+            raise ValueError(f"{owner}.{name}[{i}]={v!r} must be a finite number")
+        out.append(float(v))
+    return (out[0], out[1], out[2])
+
+
+@dataclass(frozen=True)
+class Mount:
+    """The config's mount (``[mount]``): the arm's base origin in body FRD, ``xyz_cm``, and the
+    base axes' orientation, ``rpy_deg`` (the :class:`Pose` convention).
+
+    The default is an arm hanging under a quadrotor: base axes = body axes (its +z points
+    down), 10 cm below the body origin.
+    """
+
+    xyz_cm: tuple[float, float, float] = (0.0, 0.0, 10.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "xyz_cm", _finite_triple("Mount", "xyz_cm", self.xyz_cm))
+        object.__setattr__(self, "rpy_deg", _finite_triple("Mount", "rpy_deg", self.rpy_deg))
+
+    @property
+    def matrix(self) -> FloatArray:
+        """``T_body_base`` (4×4, cm): :func:`mount_transform` of the two fields."""
+        return mount_transform(self.xyz_cm, self.rpy_deg)
+
+    def to_body(self, points_cm: ArrayLike) -> FloatArray:
+        """Points ``(..., 3)`` in the arm's base frame → body FRD (cm)."""
+        m = self.matrix
+        return np.asarray(points_cm, float) @ m[:3, :3].T + m[:3, 3]

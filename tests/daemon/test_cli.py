@@ -61,7 +61,23 @@ def test_check_config_warns_of_a_joint_on_a_default_motor_output(tmp_path, capsy
     px4 = tmp_path / "px4.toml"
     px4.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\ndialect = "px4"\n' + joints)
     assert main(["check-config", str(px4)]) == 0
-    assert "warning" not in capsys.readouterr().err
+    assert "drives a motor" not in capsys.readouterr().err
+
+
+def test_check_config_lists_the_keepout_volumes_or_warns_of_none(tmp_path, capsys):
+    from importlib import resources
+
+    example = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
+    path = tmp_path / "example.toml"
+    path.write_text(example.replace('socket = "/run/armbridge/control.sock"', 'socket = ""'))
+    assert main(["check-config", str(path)]) == 0
+    out = capsys.readouterr()
+    assert "keep-out: body, prop_front_right" in out.out and "margin 1 cm" in out.out
+    assert "[[keepout]]" not in out.err
+    bare = tmp_path / "bare.toml"
+    bare.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n')
+    assert main(["check-config", str(bare)]) == 0
+    assert "no [[keepout]] volumes" in capsys.readouterr().err
 
 
 def test_run_with_broken_config_exits_2_and_sends_nothing(tmp_path, capsys):

@@ -10,6 +10,7 @@ import pytest
 
 from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
+from tests.support.keepout import QUAD_450
 
 EXAMPLE = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
 
@@ -460,6 +461,11 @@ def test_example_keepout_volumes_and_mount(tmp_path):
     assert names[0] == "body" and len([n for n in names if n.startswith("prop_")]) == 4
     assert cfg.mount.xyz_cm == (0.0, 0.0, 10.0) and cfg.keepout_margin_cm == 1.0
     assert cfg.keepout_check().check(cfg.arm.q_from_user(cfg.park_deg)) is None
+    # The quad the tests and bench/keepout.py use is this one, field for field.
+    renamed = [dataclasses.replace(v, name=v.name.replace("front_right", "fr")
+                                   .replace("rear_left", "rl").replace("front_left", "fl")
+                                   .replace("rear_right", "rr")) for v in cfg.keepout]  # fmt: skip
+    assert renamed == list(QUAD_450)
 
 
 def test_empty_keepout_list_and_the_start_pose(tmp_path):

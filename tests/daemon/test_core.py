@@ -128,7 +128,10 @@ class Rig:
 
     def up(self):
         self.heartbeat()
-        return self.tick()
+        sent = self.tick()
+        if self.config.link.dialect.startswith("ardupilot"):
+            self.sys_status(safety_on=False)  # ArduPilot moves once it knows the switch is off
+        return sent
 
     def request(self, kind, payload=None, **kw) -> Request:
         request = Request(kind, payload, received_s=self.clock(), **kw)
@@ -470,6 +473,7 @@ def test_system_time_readback_and_safety_are_asked_for_once_pinned(rig):
         ("/dev/ttyAMA0,115200", "ardupilot-lua", 1.0),  # status only: spare the slow line
         ("/dev/ttyAMA0,921600", "ardupilot", 0.1),
         ("/dev/ttyAMA0,57600", "px4", 0.1),  # PX4's liveness comes from it
+        ("udpin:0.0.0.0:14550", "px4", 0.04),  # room for it: a disarm seen sooner
     ],
 )
 def test_the_readback_is_asked_for_less_often_where_it_only_feeds_status_on_a_slow_line(
@@ -505,6 +509,11 @@ def test_a_reboot_within_the_loss_timeout_is_seen_and_every_output_resent(rig):
     assert status["last_pwm_us"] is None
     assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
     rig.advance(1.0 / RATE_HZ)
+    # ArduPilot boots with its safety switch on (BRD_SAFETY_DEFLT): what is sent before a
+    # SYS_STATUS says where it is would be stored, and go out in one step at its release.
+    assert rig.servo() == {}
+    rig.sys_status(safety_on=False)
+    rig.advance(1.0 / RATE_HZ)
     assert sorted(rig.servo()) == [9, 10, 11, 12, 13, 14]  # every output, not only changes
 
 
@@ -516,6 +525,9 @@ def test_system_time_going_quiet_resends_every_output_at_once_even_with_the_arm_
     rig.sent.clear()
     rig.advance(1.5)  # no SYSTEM_TIME: the autopilot may have rebooted and forgotten it
     assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
+    assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
+    rig.sys_status(safety_on=False)
+    rig.advance(1.0 / RATE_HZ)
     # A reboot left the outputs at their boot values: the acknowledged PWMs go out again with
     # no new target (before: only with the next target).
     assert rig.servo() == acked
@@ -531,8 +543,10 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     request = rig.goto(tuple(p + 30.0 for p in PARK))
     rig.ack_all(rig.sent)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
-    acked = rig.core.status()["current_deg"]
+    rig.sent.clear()
     rig.advance(1.0 / RATE_HZ)  # the next step is in flight when the link goes
+    in_flight = rig.servo()
+    assert len(in_flight) == 6
     rig.sent.clear()
     rig.advance(0.1, link_up=False)
     assert rig.core.status()["holding"]
@@ -541,8 +555,12 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     rig.advance(5.0, link_up=False)
     assert rig.servo() == {}  # nothing while holding
     rig.advance(0.01)
-    # Back: every output at the acknowledged pose first, then on towards the goal.
-    assert rig.servo() == rig.calibration.angles_to_pwm_us(acked)
+    assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
+    rig.sys_status(safety_on=False)
+    rig.advance(1.0 / RATE_HZ)
+    # Back: every output at the step that was on its way first (the outputs hold it or the
+    # acknowledged pose, one step apart), then on towards the goal.
+    assert rig.servo() == in_flight
 
 
 def test_shutdown_answers_everything_and_parks_every_output_directly(rig):

@@ -137,6 +137,27 @@ def test_lm_converges_from_nearby_and_stays_in_limits():
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_lm_converges_to_a_solution_with_joints_at_their_limits(seed):
+    # Every joint of the solution on a limit (Panda: 7 joints, none turning all the way), the
+    # start inside the box: LM holds the joints a step pushes out and still converges.
+    arm = Arm.from_package_file("panda.toml")
+    k = kernel_arrays(arm)
+    fp = np.zeros(kernels.N_FPARAMS)
+    fp[kernels.F_TOL_POS] = 1e-9
+    fp[kernels.F_TOL_ORI] = 1e-9
+    fp[kernels.F_LM_LAMBDA0] = 0.1
+    rng = np.random.default_rng(seed)
+    at_upper = rng.random(arm.dof) < 0.5
+    q_true = np.where(at_upper, k.upper, k.lower)
+    goal = arm.fk_matrix(q_true)
+    q = q_true + np.where(at_upper, -1.0, 1.0) * np.radians(rng.uniform(2.0, 4.0, arm.dof))
+    out = np.empty(3)
+    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 60, out)
+    assert out[1] < 1e-6 and out[2] < 1e-6
+    assert np.all(q >= k.lower) and np.all(q <= k.upper)
+
+
 def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
     k, fp, _, _ = _lm_inputs(PAPER, 6)
     q_outside = np.radians([0.0, -40.0, 0.0, 0.0, 0.0, 0.0])  # q2 below its 0° limit

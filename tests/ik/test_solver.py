@@ -31,21 +31,19 @@ def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
 
 
 def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, init_cpu_s=0.0):
-    """The kernels advance ``clock`` as if initialising took ``init_s`` and each generation
+    """The kernel advances ``clock`` as if initialising took ``init_s`` and each generation
     took ``per_generation_s`` (a callable of the generation's index); ``cpu_clock``, if given,
     advances by ``init_cpu_s`` for the initialisation and like ``clock`` for generations."""
-    real_init, real_generation = kernels.init_population, kernels.generation
+    real_search = kernels.search
     count = [0]
 
-    def init_population(*args):
-        done = real_init(*args)
-        clock.advance(init_s)
-        if cpu_clock is not None:
-            cpu_clock.advance(init_cpu_s)
-        return done
-
-    def generation(*args):
-        done = real_generation(*args)
+    def search(*args):
+        fresh = args[14] & kernels.START_NEW  # start
+        done = real_search(*args)
+        if fresh:
+            clock.advance(init_s)
+            if cpu_clock is not None:
+                cpu_clock.advance(init_cpu_s)
         for _ in range(args[-1]):
             step = per_generation_s(count[0])
             clock.advance(step)
@@ -54,8 +52,7 @@ def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, i
             count[0] += 1
         return done
 
-    monkeypatch.setattr(kernels, "init_population", init_population)
-    monkeypatch.setattr(kernels, "generation", generation)
+    monkeypatch.setattr(kernels, "search", search)
 
 
 def test_deadline_on_a_fake_clock(monkeypatch):
@@ -395,3 +392,25 @@ def test_initialisation_preempted_for_half_the_budget_does_not_end_the_search(mo
     assert res.stop_reason is StopReason.DEADLINE
     assert res.generations > 40
     assert 19.0 <= res.elapsed_ms <= 20.0
+
+
+def test_the_estimate_carries_over_to_the_next_call_on_the_same_clock(monkeypatch):
+    # Second call on the same clock: the initialisation and a first chunk run in one compiled
+    # call, sized by the estimate the first call left (1 ms a generation), and the budget holds.
+    clock = FakeClock(0.0)
+    _charged_run(monkeypatch, clock, 1e-3, lambda i: 1e-3)
+    solve(ARM, G, budget_ms=10.5, seed=1, clock=clock, cpu_clock=clock)
+    calls = []
+    real = kernels.search
+
+    def counting(*args):
+        calls.append(args[-1])
+        return real(*args)
+
+    monkeypatch.setattr(kernels, "search", counting)
+    started = clock()
+    res = solve(ARM, G, budget_ms=10.5, seed=1, clock=clock, cpu_clock=clock)
+    assert res.stop_reason is StopReason.DEADLINE
+    assert calls[0] == 4  # the initialisation plus 4 generations in the first call
+    assert clock() - started <= 10.5e-3
+    assert res.generations >= 7

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from companion.kinematics.arm import Arm
-from companion.kinematics.frames import Mount
 from companion.kinematics.rotations import rpy_to_matrix
-from companion.kinematics.vehicle import base_to_world, transform
+from companion.kinematics.vehicle import Mount, base_to_world, transform
 from tests.support.timing import WAIT_S, wait_until
 
 pytestmark = pytest.mark.slow

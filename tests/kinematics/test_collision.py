@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from companion.kinematics import rpy_to_matrix
+from companion.kinematics import collision_kernels
 from companion.kinematics.arm import Arm
 from companion.kinematics.collision import (
     Box,
@@ -25,62 +25,13 @@ from companion.kinematics.collision import (
     segment_box_distance,
     segment_segment_distance,
 )
-from companion.kinematics.frames import Mount
+from companion.kinematics.vehicle import Mount
+from tests.support.keepout import QUAD_450, point_segment, sampled_clearance
 
 ARM = Arm.default()
 MOUNT = Mount()
-# The example config's 450 quad (companion/daemon/examples/armbridge.toml).
-DIAGONALS = (("fr", 1, 1), ("rl", -1, -1), ("fl", 1, -1), ("rr", -1, 1))
-QUAD = (
-    Box("body", (0, 0, -1), (24, 14, 10)),
-    *(Cylinder(f"prop_{n}", (15.9 * x, 15.9 * y, -6), 13.0, 2.0) for n, x, y in DIAGONALS),
-    *(Capsule(f"leg_{n}", (9 * x, 9 * y, 4), (13 * x, 13 * y, 24), 1.0) for n, x, y in DIAGONALS),
-)
+QUAD = QUAD_450
 PARK = np.radians([0, 90, 0, 0, 0, 0])
-
-
-# -- independent point distances (exact, >= 0) ----------------------------------------------------
-
-
-def _point_segment(p, a, b):
-    d = b - a
-    dd = float(d @ d)
-    t = np.clip(((p - a) @ d) / dd, 0.0, 1.0) if dd > 0 else np.zeros(p.shape[:-1])
-    return np.linalg.norm(p - (a + t[..., None] * d), axis=-1)
-
-
-def _local(p, center, rpy_deg):
-    rot = rpy_to_matrix(*np.radians(rpy_deg))
-    return (p - np.asarray(center)) @ rot
-
-
-def point_distance(p, v):
-    """Distance (cm) from points ``(..., 3)`` in body FRD to volume ``v``; 0 inside."""
-    if isinstance(v, Sphere):
-        return np.maximum(np.linalg.norm(p - np.asarray(v.center_cm), axis=-1) - v.radius_cm, 0)
-    if isinstance(v, Capsule):
-        seg = _point_segment(p, np.asarray(v.from_cm), np.asarray(v.to_cm))
-        return np.maximum(seg - v.radius_cm, 0)
-    if isinstance(v, Box):
-        out = np.maximum(np.abs(_local(p, v.center_cm, v.rpy_deg)) - np.asarray(v.size_cm) / 2, 0)
-        return np.linalg.norm(out, axis=-1)
-    local = _local(p, v.center_cm, v.rpy_deg)
-    radial = np.maximum(np.hypot(local[..., 0], local[..., 1]) - v.radius_cm, 0)
-    axial = np.maximum(np.abs(local[..., 2]) - v.length_cm / 2, 0)
-    return np.hypot(radial, axial)
-
-
-def sampled_clearance(ko: KeepOut, q, points=200):
-    """Per configuration of ``q`` ``(S, n)``: the least (distance − capsule radius) over
-    ``points`` samples along every link capsule's axis and every volume (cm)."""
-    seg = ko.segments(np.atleast_2d(q))  # (S, C, 2, 3)
-    u = np.linspace(0.0, 1.0, points)[:, None]
-    pts = seg[:, :, None, 0] + u * (seg[:, :, None, 1] - seg[:, :, None, 0])  # (S, C, U, 3)
-    worst = np.full(seg.shape[0], np.inf)
-    for v in ko.volumes:
-        d = point_distance(pts, v).min(axis=2) - ko.radii_cm  # (S, C)
-        worst = np.minimum(worst, d.min(axis=1))
-    return worst
 
 
 # -- distances ------------------------------------------------------------------------------------
@@ -116,10 +67,27 @@ def test_segment_distances_match_brute_force():
     step = np.linalg.norm(p1 - p0, axis=-1) / 2000
     assert np.all(exact_box <= brute_box + 1e-9)  # never more than a point's true distance
     assert np.all(exact_box >= brute_box - step - 1e-9)  # and exact up to the sampling
-    brute_seg = np.stack([_point_segment(pts[:, i], a[i], b[i]).min() for i in range(n)])
+    brute_seg = np.stack([point_segment(pts[:, i], a[i], b[i]).min() for i in range(n)])
     exact_seg = segment_segment_distance(p0, p1, a, b)
     assert np.all(exact_seg <= brute_seg + 1e-9)
     assert np.all(exact_seg >= brute_seg - step - 1e-9)
+
+
+def test_compiled_clearances_equal_the_reference():
+    rng = np.random.default_rng(12)
+    volumes = (
+        *QUAD,
+        Sphere("ball", (30, 0, 30), 5),
+        Box("tilted", (0, 30, 30), (5, 9, 14), (10, 20, 30)),
+    )
+    ko = KeepOut(ARM, volumes, Mount((1, 2, 3), (10, -20, 30)), 1.0)
+    q = ARM.random_q_rad(rng, 200)
+    np.testing.assert_allclose(ko.clearances(q), ko.clearances_reference(q), rtol=0, atol=1e-9)
+    stanford = Arm.from_package_file("stanford.toml")  # a prismatic joint
+    shaped = dataclasses.replace(stanford, link_shapes=((), *ARM.link_shapes[1:]))
+    ko = KeepOut(shaped, volumes, MOUNT, 1.0)
+    q = stanford.random_q_rad(rng, 100)
+    np.testing.assert_allclose(ko.clearances(q), ko.clearances_reference(q), rtol=0, atol=1e-9)
 
 
 # -- the shipped quad ------------------------------------------------------------------------------
@@ -192,7 +160,7 @@ def _q(unit):
     return ARM.lower_q + np.asarray(unit) * (ARM.upper_q - ARM.lower_q)
 
 
-@settings(max_examples=80, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(volumes=_volumes, unit=_unit, mount=_mount, margin=st.floats(0, 3))
 def test_an_accepted_configuration_is_clear_by_dense_sampling(volumes, unit, mount, margin):
     ko = KeepOut(ARM, volumes, mount, margin)
@@ -202,11 +170,11 @@ def test_an_accepted_configuration_is_clear_by_dense_sampling(volumes, unit, mou
 
 
 def test_accepted_configurations_are_clear_in_bulk():
-    """The same property over 1000 random configurations against the quad and a cloud of
+    """The same property over 500 random configurations against the quad and a cloud of
     volumes, in one batch; and for exact shapes the checker refuses no more than needed (a
     sampled clearance above the margin + the sampling gap is accepted)."""
     rng = np.random.default_rng(1818)
-    q = ARM.random_q_rad(rng, 1000)
+    q = ARM.random_q_rad(rng, 500)
     cloud = [
         Sphere("ball", (30, 10, 30), 8),
         Box("crate", (0, -30, 40), (10, 20, 15), (10, 20, 30)),
@@ -224,7 +192,7 @@ def test_accepted_configurations_are_clear_in_bulk():
     assert np.all(exact.clear_mask(q)[sampled >= 1.0 + gap])
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=20, deadline=None)
 @given(volumes=_volumes, a=_unit, b=_unit, margin=st.floats(0, 2))
 def test_an_accepted_motion_is_clear_by_dense_sampling(volumes, a, b, margin):
     ko = KeepOut(ARM, volumes, MOUNT, margin)
@@ -253,16 +221,20 @@ def test_a_thin_disc_between_samples_is_found():
     assert KeepOut(ARM, [disc], MOUNT, 0.0).check_motion(q0, q0) is None
 
 
-def test_the_speed_bound_holds():
+@pytest.mark.parametrize("name", ["paper_arm.toml", "stanford.toml"])
+def test_the_speed_bound_holds(name):
     """No point of any capsule moves faster than the bound, on random motions (finite
-    differences of the capsules' end points: the farthest points from every axis)."""
+    differences of the capsules' end points: the farthest points from every axis). Stanford:
+    a prismatic joint, with the papers' link shapes borrowed."""
+    arm = Arm.from_package_file(name)
+    arm = dataclasses.replace(arm, link_shapes=((), *ARM.link_shapes[1:]))
     rng = np.random.default_rng(7)
-    ko = KeepOut(ARM, QUAD, MOUNT)
-    for _ in range(30):
-        q0, q1 = ARM.random_q_rad(rng, 2)
-        s = np.linspace(0, 1, 2001)[:, None]
+    ko = KeepOut(arm, QUAD, MOUNT)
+    for _ in range(10):
+        q0, q1 = arm.random_q_rad(rng, 2)
+        s = np.linspace(0, 1, 1001)[:, None]
         seg = ko.segments(q0 + s * (q1 - q0))  # (S, C, 2, 3)
-        speed = np.linalg.norm(np.diff(seg, axis=0), axis=-1).max(axis=(0, 2)) * 2000
+        speed = np.linalg.norm(np.diff(seg, axis=0), axis=-1).max(axis=(0, 2)) * 1000
         assert np.all(speed <= ko.speeds(q0, q1) * (1 + 1e-9))
 
 
@@ -276,3 +248,10 @@ def test_a_grazing_motion_is_refused_as_unproven():
     hit = ko.check_motion(q0, q1)
     assert hit is not None and hit.volume == "p" and not hit.proven
     assert check_motion(ARM, q0, q1, ko.volumes, MOUNT, float(least) - 0.5) is None
+
+
+def test_warm_up_compiles_the_one_specialisation_the_checks_use():
+    # A read-only or differently typed array would make numba compile (~10 s) a second time.
+    collision_kernels.warm_up()
+    KeepOut(ARM, QUAD, MOUNT).check(PARK)
+    assert len(collision_kernels.clearances.signatures) == 1

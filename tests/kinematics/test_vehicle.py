@@ -6,6 +6,7 @@ import pytest
 from companion.kinematics.arm import Pose
 from companion.kinematics.vehicle import (
     MAX_PREDICT_S,
+    Mount,
     VehicleState,
     base_to_world,
     mount_transform,
@@ -79,3 +80,26 @@ def test_a_non_finite_state_is_refused_naming_the_field(field):
             values["rpy_rad"],
             values["body_rates_rad_s"],
         )
+
+
+# -- the config's mount (keep-out checks) ----------------------------------------------------------
+
+
+def test_default_mount_hangs_the_arm_10_cm_below_the_body_origin():
+    mount = Mount()
+    np.testing.assert_allclose(mount.to_body([0.0, 0.0, 5.0]), [0.0, 0.0, 15.0])  # base +z: down
+    np.testing.assert_allclose(mount.matrix, mount_transform((0, 0, 10), (0, 0, 0)))
+    turned = Mount((5.0, -2.0, 8.0), (0.0, 0.0, 90.0))  # base x along the body's y (right)
+    np.testing.assert_allclose(turned.to_body([10.0, 0.0, 0.0]), [5.0, 8.0, 8.0], atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"xyz_cm": (0.0, math.nan, 0.0)}, r"Mount.xyz_cm\[1\]"),
+        ({"rpy_deg": (0.0, 0.0)}, "rpy_deg"),
+    ],
+)
+def test_bad_mount_names_the_field(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        Mount(**kwargs)

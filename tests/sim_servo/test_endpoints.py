@@ -8,7 +8,13 @@ import time
 
 import pytest
 
-from sim_servo.endpoints import PtyEndpoint, TcpEndpoint, UdpEndpoint, parse_host_port
+from sim_servo.endpoints import (
+    PtyEndpoint,
+    TcpEndpoint,
+    UdpEndpoint,
+    UdpOutEndpoint,
+    parse_host_port,
+)
 from sim_servo.errors import SimIOError
 
 
@@ -158,5 +164,47 @@ def test_only_a_pty_reopens():
     try:
         with pytest.raises(SimIOError, match="cannot reopen"):
             endpoint.reopen()
+    finally:
+        endpoint.close()
+
+
+def test_udpout_sends_first_then_answers_the_first_sender_only():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as companion:
+        companion.bind(("127.0.0.1", 0))
+        companion.settimeout(5)
+        port = companion.getsockname()[1]
+        endpoint = UdpOutEndpoint("127.0.0.1", port)
+        try:
+            assert endpoint.url == f"udpin:127.0.0.1:{port}"
+            endpoint.write(b"heartbeat")  # sent before anyone spoke to us: a companion's udpin
+            data, sender = companion.recvfrom(100)
+            assert data == b"heartbeat" and sender == tuple(endpoint.local)
+            companion.sendto(b"command", sender)
+            assert pump(endpoint) == b"command"
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+                other.settimeout(5)
+                other.sendto(b"intruder", sender)
+                assert pump(endpoint) == b"intruder"  # read, but it does not move the peer
+                endpoint.write(b"ack")
+                assert companion.recvfrom(100)[0] == b"ack"
+                with pytest.raises(TimeoutError):
+                    other.settimeout(0.05)
+                    other.recvfrom(100)
+        finally:
+            endpoint.close()
+        assert endpoint.closed
+        endpoint.write(b"late")
+        assert endpoint.dropped_writes == 1
+
+
+def test_udpout_to_nobody_counts_instead_of_raising():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gone:
+        gone.bind(("127.0.0.1", 0))
+        port = gone.getsockname()[1]
+    endpoint = UdpOutEndpoint("127.0.0.1", port)  # nobody listens there any more
+    try:
+        for _ in range(3):  # the ICMP refusal of one may surface on the next send
+            endpoint.write(b"heartbeat")
+        assert endpoint.dropped_writes <= 3 and not endpoint.closed
     finally:
         endpoint.close()

@@ -2,7 +2,8 @@
 
 It decodes everything the link sends (so frames are checked independently of the code under
 test), answers COMMAND_LONG with COMMAND_ACK according to a small script, and sends HEARTBEAT /
-STATUSTEXT / SERVO_OUTPUT_RAW only when the test asks.
+STATUSTEXT / SERVO_OUTPUT_RAW only when the test asks, and one SYS_STATUS (the safety switch
+off) when asked for that stream.
 """
 
 from __future__ import annotations
@@ -145,6 +146,9 @@ class ScriptedPeer:
         # ArduPilot queues STATUSTEXT for its main loop, so it goes out after the ACK.
         self.statustext_after_ack = True
         self.statustext_delay_s = 0.02
+        #: Asked for SYS_STATUS (as the daemon's core does of ArduPilot), send one saying the
+        #: safety switch is off (None: send none, as an autopilot that never says).
+        self.safety_on: bool | None = False
         self.ack_result = mavlink.MAV_RESULT_ACCEPTED
         self.on_command: Callable | None = None
         self._cond = threading.Condition()
@@ -210,6 +214,16 @@ class ScriptedPeer:
                 cmd.command, result, 0, 0, cmd.get_srcSystem(), cmd.get_srcComponent()
             )
         )
+        if (
+            cmd.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+            and int(cmd.param1) == mavlink.MAVLINK_MSG_ID_SYS_STATUS
+            and self.safety_on is not None
+        ):
+            outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            enabled = 0 if self.safety_on else outputs
+            self.send(
+                self.mav.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+            )
         if text is not None and self.statustext_after_ack:
             # One main-loop pass later, as ArduPilot's queued STATUSTEXT goes out.
             timer = threading.Timer(self.statustext_delay_s, self.send_statustext, (text,))

@@ -1,0 +1,131 @@
+"""solve_clear: never a colliding answer, whatever the solver returns; refusals say why."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from companion.ik import IKResult, StopReason, TargetMode, solve
+from companion.ik.keepout import ClearVerdict, solve_clear
+from companion.kinematics.arm import Arm, Pose
+from companion.kinematics.collision import KeepOut
+from companion.kinematics.vehicle import Mount
+from tests.support.keepout import QUAD_450
+from tests.support.timing import FakeClock
+
+ARM = Arm.default()
+QUAD = KeepOut(ARM, QUAD_450, Mount(), 1.0)
+PARK_DEG = [0.0, 90.0, 0.0, 0.0, 0.0, 0.0]
+
+
+class FakeSolver:
+    """Answers with configurations drawn from its own generator (seeded per call), converged or
+    not at random, and advances a fake clock by ``cost_s`` per call."""
+
+    def __init__(self, clock: FakeClock, rng: np.random.Generator, cost_s: float = 0.002):
+        self.clock, self.rng, self.cost_s = clock, rng, cost_s
+        self.calls: list[dict] = []
+
+    def __call__(self, arm, target, **kwargs) -> IKResult:
+        self.calls.append(kwargs)
+        self.clock.advance(min(self.cost_s, kwargs["budget_ms"] * 1e-3))
+        q = arm.random_q_rad(self.rng, 1)[0]
+        converged = bool(self.rng.random() < 0.7)
+        return IKResult(
+            q_deg=tuple(arm.q_to_user(q).tolist()),
+            pos_err_cm=0.0 if converged else 5.0,
+            ori_err_deg=0.0,
+            cost=0.0 if converged else 25.0,
+            converged=converged,
+            elapsed_ms=self.cost_s * 1e3,
+            generations=1,
+            evaluations=1,
+            lm_iterations=0,
+            restarts=0,
+            stop_reason=StopReason.CONVERGED if converged else StopReason.DEADLINE,
+            q=tuple(q.tolist()),
+        )
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32), warm=st.booleans(), attempts=st.integers(1, 4))
+def test_never_a_colliding_answer_or_motion(seed, warm, attempts):
+    clock = FakeClock()
+    fake = FakeSolver(clock, np.random.default_rng(seed))
+    start = PARK_DEG if warm else None
+    out = solve_clear(
+        QUAD, Pose(40, 0, 10, 0, 0, 0), budget_ms=20, seed=seed, q_start_deg=start,
+        max_attempts=attempts, clock=clock, solver=fake,
+    )  # fmt: skip
+    assert out.attempts == len(fake.calls) <= attempts
+    if out.verdict in (ClearVerdict.COLLIDES, ClearVerdict.MOTION_COLLIDES):
+        assert out.collision is not None and out.collision.link and out.collision.volume
+    assert (out.verdict is ClearVerdict.CLEAR) == (out.result is not None and out.result.converged)
+    if out.result is not None:  # whatever the verdict, the configuration offered is clear
+        q = out.result.q_rad
+        assert QUAD.check(q) is None
+        if warm:
+            assert QUAD.check_motion(ARM.q_from_user(PARK_DEG), q) is None
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32), cost_ms=st.floats(0.1, 30))
+def test_the_budget_is_shared_between_attempts(seed, cost_ms):
+    clock = FakeClock()
+    fake = FakeSolver(clock, np.random.default_rng(seed), cost_s=cost_ms * 1e-3)
+    out = solve_clear(QUAD, Pose(40, 0, 10, 0, 0, 0), budget_ms=20, seed=seed, clock=clock,
+                      solver=fake)  # fmt: skip
+    assert out.elapsed_ms <= 20 + 1e-6 and all(0 < c["budget_ms"] <= 20 for c in fake.calls)
+
+
+def test_a_colliding_warm_answer_is_solved_again_from_elsewhere():
+    clock = FakeClock()
+    answers = iter([[0, 180, 0, 0, 0, 0], [0, 60, 30, 0, 0, 0]])  # into the body, then clear
+
+    def solver(arm, target, **kwargs):
+        q_deg = next(answers)
+        q = arm.q_from_user(q_deg)
+        return IKResult(tuple(q_deg), 0, 0, 0, True, 1, 1, 1, 0, 0, StopReason.CONVERGED, tuple(q))
+
+    out = solve_clear(
+        QUAD, Pose(0, 0, 0, 0, 0, 0), q_start_deg=PARK_DEG, clock=clock, solver=solver
+    )
+    assert out.verdict is ClearVerdict.CLEAR and out.attempts == 2
+    assert out.result.q_deg == (0, 60, 30, 0, 0, 0)
+
+
+def test_a_target_above_the_body_is_refused_naming_link_and_volume():
+    # 45 cm above the arm's base, just ahead of its axis: the upper arm must rise through the
+    # body. Each attempt converges at once (colliding): the generous budget only keeps a loaded
+    # machine from cutting the attempts short.
+    out = solve_clear(
+        QUAD, Pose(10, 0, -45, 0, 0, 0), budget_ms=2000, seed=3, q_start_deg=PARK_DEG,
+        mode=TargetMode.POSITION, tol_pos_cm=0.05, max_attempts=4,
+    )  # fmt: skip
+    assert out.refused and out.verdict is ClearVerdict.COLLIDES and out.attempts == 4
+    assert (out.collision.link, out.collision.volume) == ("q2", "body") and out.collision.proven
+    # Whatever it offers instead (here: nothing) is clear, and not at the target.
+    assert out.result is None or (QUAD.check(out.result.q_rad) is None and not out.result.converged)
+
+
+def test_a_clear_target_is_reached_with_the_real_solver():
+    target = Pose(45, 5, 20, 0, 0, 0)  # ahead of and below the vehicle
+    out = solve_clear(
+        QUAD, target, budget_ms=50, seed=4, q_start_deg=PARK_DEG, mode=TargetMode.POSITION,
+        tol_pos_cm=0.05,
+    )  # fmt: skip
+    assert out.verdict is ClearVerdict.CLEAR and out.result.converged
+    assert QUAD.check(out.result.q_rad) is None
+    plain = solve(ARM, target, budget_ms=50, seed=4, q_start_deg=PARK_DEG, mode=TargetMode.POSITION)
+    assert plain.converged
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="budget_ms"):
+        solve_clear(QUAD, Pose(0, 0, 0, 0, 0, 0), budget_ms=0)
+    with pytest.raises(ValueError, match="q_start_deg"):
+        solve_clear(QUAD, Pose(0, 0, 0, 0, 0, 0), q_start_deg=[0, 1])
+    with pytest.raises(ValueError, match="max_attempts"):
+        solve_clear(QUAD, Pose(0, 0, 0, 0, 0, 0), max_attempts=0)
