@@ -47,6 +47,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig
@@ -62,6 +63,7 @@ from companion.daemon.requests import (
 )
 from companion.daemon.telemetry import VehicleTelemetry
 from companion.kinematics.arm import Pose
+from companion.kinematics.collision import KeepOut
 from companion.kinematics.vehicle import base_to_world, world_to_base
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
@@ -316,11 +318,15 @@ class ControlCore:
             "foreign_frames": 0,
             "autopilot_reboots": 0,
             "internal_errors": 0,
+            "keepout_refusals": 0,
         }
         self.last_target: dict[str, Any] | None = None
         self._hand_at: tuple[tuple[float, ...], dict[str, float]] | None = None
         #: (kind, source) → (when its last "accepted" line was logged, how many since)
         self._accept_log: dict[tuple[str, Any], tuple[float, int]] = {}
+        # -- keep-out volumes (issue 18), prepared once per config --
+        self._keepout_of: DaemonConfig | None = None
+        self._keepout_obj: KeepOut | None = None
         # -- world-frame targets (issue 18) --
         self._telemetry = VehicleTelemetry()
         #: The target held in the world (None: none), and what following it last found.
@@ -574,6 +580,15 @@ class ControlCore:
             else:
                 log.warning("trajectory point refused: %s", reply.message)
             return False
+        hit = self._keepout_hit(result.q_deg)
+        if hit is not None:
+            self.counters["keepout_refusals"] += 1
+            reply = Reply(Outcome.FAILED, f"keep-out: the solution {hit}", result)
+            if request is not None:
+                self._answer(actions, request, reply)
+            else:
+                log.warning("trajectory point refused: %s", reply.message)
+            return False
         try:
             self.config.calibration.angles_to_pwm_us(result.q_deg)
         except CalibrationError as exc:  # the config check makes this unreachable; stay safe
@@ -810,6 +825,17 @@ class ControlCore:
             log.error("calibration refused a step, holding: %s", exc)
             self._fail_motion(actions, f"calibration refused a step: {exc}")
             return
+        keepout = self._keepout()
+        if keepout is not None:
+            # The motion from the step commanded last (what the outputs will hold) to this one,
+            # proven clear of every volume, or not sent.
+            before = self._flights[-1].step_deg if self._flights else tuple(self._position)
+            collision = keepout.check_motion(np.radians(before), np.radians(step))
+            if collision is not None:
+                self.counters["keepout_refusals"] += 1
+                log.error("keep-out: a step refused, holding: %s", collision.reason)
+                self._fail_motion(actions, f"keep-out: {collision.reason}")
+                return
         waiting, self._waiting = self._waiting, []
         if not commands:  # every output already holds this step
             if self._flights:  # (behind an update: it already carries this step)
@@ -1268,6 +1294,24 @@ class ControlCore:
             self._resend_now = True
         self._ask_system_time(actions)
 
+    # -- keep-out volumes (issue 18) ---------------------------------------------------------
+
+    def _keepout(self) -> KeepOut | None:
+        """The config's keep-out volumes, prepared (None: none configured)."""
+        config = self.config
+        if self._keepout_of is not config:
+            self._keepout_of = config
+            self._keepout_obj = config.keepout_check() if config.keepout else None
+        return self._keepout_obj
+
+    def _keepout_hit(self, q_deg: Sequence[float]) -> str | None:
+        """Why a configuration is refused (a link within the margin of a volume), or None."""
+        keepout = self._keepout()
+        if keepout is None:
+            return None
+        collision = keepout.check(np.radians(np.asarray(q_deg, float)))
+        return None if collision is None else f"puts {collision.reason}"
+
     # -- world-frame targets (issue 18) ------------------------------------------------------
 
     def _world_refusal(self, target: Target) -> Reply | None:
@@ -1316,6 +1360,10 @@ class ControlCore:
         budget_ms = min(self.config.budget_ms, 1000.0 * WORLD_SOLVE_SHARE / self.config.rate_hz)
         result = self._solve(pose, start, target.mode, budget_ms)
         self.counters["solved"] += 1
+        hit = self._keepout_hit(result.q_deg) if result.converged else None
+        if hit is not None:
+            self._world_note = {"reachable": False, "reason": f"keep-out: the solution {hit}"}
+            return
         if result.converged:
             self._goal = tuple(float(q) for q in result.q_deg)
             self._world_note = {"reachable": True, "reason": None, "solve_ms": result.elapsed_ms}

@@ -141,6 +141,10 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         "STATUS=loading the IK kernels (the first start compiles them)",
     )
     log.info("IK kernels ready in %.2f s", ik.warm_up())
+    if config.keepout:
+        from companion.kinematics import collision_kernels
+
+        collision_kernels.warm_up()  # the checks on every step: compiled before READY
     # The start-up heap (numpy, numba, pymavlink: ~120k objects) never dies. Frozen, the
     # collector's full passes skip it: one took ~55 ms here, long enough to stall the control
     # thread past a 20 ms target slot; after the freeze it takes microseconds.

@@ -966,3 +966,42 @@ def test_a_world_frame_target_is_refused_while_world_targets_are_off(rig):
     reply = rig.reply(request)
     assert reply.outcome is Outcome.DENIED and "local_ned" in reply.message
     assert not [c for c in rig.sent if c.command == SERVO]
+
+
+# -- keep-out volumes (issue 18) ------------------------------------------------------------
+
+
+def keepout_rig(q_in_the_way) -> Rig:
+    """A rig whose config has a 4 cm sphere around the hand of ``q_in_the_way`` (body frame)."""
+    from companion.kinematics.vehicle import Mount
+
+    arm = Rig().config.arm
+    centre = Mount().to_body(arm.fk(q_in_the_way).position_cm)
+    sphere = {"name": "ball", "type": "sphere", "center_cm": list(centre), "radius_cm": 4.0}
+    rig = Rig(sections={"keepout": [sphere]})
+    rig.up()
+    return rig
+
+
+def test_a_target_whose_solution_hits_a_keepout_volume_is_refused_naming_it():
+    goal = tuple(p + d for p, d in zip(PARK, (30.0, 0, 0, 0, 0, 0), strict=True))
+    rig = keepout_rig(goal)
+    reply = rig.reply(rig.goto(goal))
+    assert reply.outcome is Outcome.FAILED and "keep-out" in reply.message
+    assert "'ball'" in reply.message
+    assert rig.servo() == {} and rig.core.status()["counters"]["keepout_refusals"] == 1
+
+
+def test_a_motion_through_a_keepout_volume_stops_before_it():
+    # The goal is clear, the way there is not: the first step into the ball is not sent.
+    rig = keepout_rig(tuple(p + d for p, d in zip(PARK, (20.0, 0, 0, 0, 0, 0), strict=True)))
+    goal = tuple(p + d for p, d in zip(PARK, (40.0, 0, 0, 0, 0, 0), strict=True))
+    request = rig.goto(goal)
+    for _ in range(40):  # 3 deg a tick
+        rig.ack_all(rig.sent)
+        rig.sent.clear()
+        rig.advance(1.0 / RATE_HZ)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED  # its first step was clear
+    status = rig.core.status()
+    assert status["goal_deg"] is None and status["counters"]["keepout_refusals"] == 1
+    assert 5.0 < status["current_deg"][0] < 20.0  # stopped on the way, short of the ball
