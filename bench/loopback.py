@@ -21,6 +21,7 @@ import argparse
 import json
 import math
 import os
+import select
 import socket
 import tempfile
 import time
@@ -74,45 +75,51 @@ class ControlClient:
 class ControlSocketInput:
     """Targets as ``goto`` requests on the control socket; the reply is the client's ACK.
 
-    Requests may be sent without waiting (``send``), answers collected in order (``poll``).
+    Requests may be sent without waiting (``send``), answers collected as they come (``poll``).
+    A connection answers one request at a time (the daemon reads its next once it answered the
+    one before), so a client streaming targets faster than an update's round trip spreads them
+    over ``connections`` connections, round robin.
     """
 
     name = "control socket"
 
-    def __init__(self, stack: Stack) -> None:
-        self.client = ControlClient(stack.control_path)
-        self._buffer = b""
+    def __init__(self, stack: Stack, connections: int = 1) -> None:
+        self.clients = [ControlClient(stack.control_path) for _ in range(connections)]
+        self.client = self.clients[0]
+        self._buffers = {id(c): b"" for c in self.clients}
+        self._next = 0
 
     def send(self, pose: Sequence[float]) -> float:
         """Send one target; the monotonic time it left."""
         line = (json.dumps({"cmd": "goto", "pose": list(pose)}) + "\n").encode()
+        client = self.clients[self._next]
+        self._next = (self._next + 1) % len(self.clients)
         sent_s = time.monotonic()
-        self.client.sock.sendall(line)
+        client.sock.sendall(line)
         return sent_s
 
     def poll(self, timeout_s: float) -> list[dict[str, Any]]:
-        """The answers that arrive within ``timeout_s`` (at least one read), in order:
-        ``answered_s``, ``outcome``, and the daemon's ``timing`` and ``solve_ms``."""
-        sock = self.client.sock
-        sock.settimeout(max(timeout_s, 1e-6))
-        try:
-            chunk = sock.recv(65536)
-        except TimeoutError:
-            return []
-        if not chunk:
-            raise ConnectionError("the daemon closed the control socket")
-        answered_s = time.monotonic()
-        self._buffer += chunk
+        """The answers that arrive within ``timeout_s`` (at least one read): ``answered_s``,
+        ``outcome``, and the daemon's ``timing`` and ``solve_ms``."""
+        socks = {c.sock: c for c in self.clients}
+        ready, _, _ = select.select(list(socks), [], [], max(timeout_s, 0.0))
         answers = []
-        while b"\n" in self._buffer:
-            line, self._buffer = self._buffer.split(b"\n", 1)
-            reply = json.loads(line)
-            answers.append({
-                "answered_s": answered_s,
-                "outcome": reply.get("outcome", "error"),
-                "timing": reply.get("timing"),
-                "solve_ms": (reply.get("solve") or {}).get("elapsed_ms"),
-            })  # fmt: skip
+        for sock in ready:
+            chunk = sock.recv(65536)
+            if not chunk:
+                raise ConnectionError("the daemon closed the control socket")
+            answered_s = time.monotonic()
+            key = id(socks[sock])
+            self._buffers[key] += chunk
+            while b"\n" in self._buffers[key]:
+                line, self._buffers[key] = self._buffers[key].split(b"\n", 1)
+                reply = json.loads(line)
+                answers.append({
+                    "answered_s": answered_s,
+                    "outcome": reply.get("outcome", "error"),
+                    "timing": reply.get("timing"),
+                    "solve_ms": (reply.get("solve") or {}).get("elapsed_ms"),
+                })  # fmt: skip
         return answers
 
     def update_ends(
@@ -139,7 +146,8 @@ class ControlSocketInput:
         return ends
 
     def close(self) -> None:
-        self.client.close()
+        for client in self.clients:
+            client.close()
 
 
 class MavlinkInput:

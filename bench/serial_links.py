@@ -23,9 +23,11 @@ maximum (1000 °/s); targets come over the control socket, so only servo traffic
   (ArduCopter 4.7.0-dev SITL over TCP: six pipelined DO_SET_SERVO 3.2 ms, the Lua script
   8.9 ms; PX4 not measured: 2.5 ms assumed). ``sim/pred`` is the simulated median over it.
 * **50 Hz stream** (``bench/sustained.py``'s figure-eight, open loop, one target every 20 ms
-  for ``--duration-s``): a miss is a target not ACCEPTED (a newer one replaced it while it
-  waited: CANCELLED) or whose first update's last ACK came later than 20 ms after its slot;
-  with the daemon 4 targets behind, a slot is skipped (a miss) rather than queued.
+  for ``--duration-s``, round robin over 4 control-socket connections, as a client streaming
+  targets must: a connection answers one request at a time): a miss is a target not ACCEPTED
+  (a newer one replaced it while it waited: CANCELLED) or whose first update's last ACK came
+  later than 20 ms after its slot; with the daemon 4 targets behind, a slot is skipped (a
+  miss) rather than queued.
 """
 
 from __future__ import annotations
@@ -148,7 +150,10 @@ def latency(stack: Stack, poses: list[Pose], seed: int) -> dict:
 
 def stream(stack: Stack, duration_s: float, period_s: float = 4.0) -> dict:
     arm = Arm.default()
-    source = ControlSocketInput(stack)
+    # Round robin over MAX_OUTSTANDING connections: one connection answers one request at a
+    # time, so on one a target would wait for the answer to the one before (an update's round
+    # trip, 15-20 ms here) before the daemon even read it.
+    source = ControlSocketInput(stack, connections=MAX_OUTSTANDING)
     sent: list[float] = []
     answers: list[dict] = []
     skipped = 0

@@ -143,6 +143,8 @@ Solve = Callable[[Pose, Sequence[float], str, float | None], Any]
 #: A world-frame target is solved again every control tick in at most this share of the
 #: period (warm, it converges in ~0.1 ms; an unreachable one costs the whole of it).
 WORLD_SOLVE_SHARE = 0.1
+#: A stream asked to stop (SET_MESSAGE_INTERVAL param2 = -1).
+STOP_STREAM = -1.0
 #: Before any update's round trip was measured, the link's one-way latency is taken as this.
 WORLD_DEFAULT_ONE_WAY_S = 0.005
 
@@ -1110,12 +1112,28 @@ class ControlCore:
                 (mavlink.MAVLINK_MSG_ID_ATTITUDE, 1.0 / world.telemetry_hz),
                 (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1.0 / world.telemetry_hz),
             ]
+        elif not self._is_ardupilot:
+            # PX4 streams them unasked on a companion's (ONBOARD) link, 100 and 30 Hz: half a
+            # 115 200-baud line, in the way of every ACK. Unread here, they are stopped (on
+            # this link only: a ground station's has its own).
+            streams += [
+                (mavlink.MAVLINK_MSG_ID_ATTITUDE, STOP_STREAM),
+                (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, STOP_STREAM),
+            ]
         for msg_id, interval_s in streams:
             actions.append(
                 SendCommand(
                     self._pinned,
                     mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-                    (float(msg_id), interval_s * 1e6, 0.0, 0.0, 0.0, 0.0, 0.0),
+                    (
+                        float(msg_id),
+                        -1.0 if interval_s < 0 else interval_s * 1e6,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                    ),  # fmt: skip
                 )
             )
         if self._is_ardupilot and self._safety_mask is None:

@@ -1005,3 +1005,18 @@ def test_a_motion_through_a_keepout_volume_stops_before_it():
     status = rig.core.status()
     assert status["goal_deg"] is None and status["counters"]["keepout_refusals"] == 1
     assert 5.0 < status["current_deg"][0] < 20.0  # stopped on the way, short of the ball
+
+
+def test_px4_telemetry_streams_nobody_reads_are_stopped_on_our_link():
+    # PX4 streams ATTITUDE (100 Hz) and LOCAL_POSITION_NED (30 Hz) on a companion's link unasked:
+    # half a 115 200-baud line. With world-frame targets off the daemon stops both.
+    rig = Rig(dialect="px4")
+    rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    rig.tick()
+    asks = {
+        int(c.params[0]): c.params[1]
+        for c in rig.sent
+        if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    }
+    assert asks[mavlink.MAVLINK_MSG_ID_ATTITUDE] == -1
+    assert asks[mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED] == -1
