@@ -60,7 +60,11 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
     started = time.monotonic()
     with Stack(
         dialect=args.dialect,
-        daemon={"control": {"rate_hz": args.rate_hz}, "world": {"enabled": True}},
+        daemon={
+            "control": {"rate_hz": args.rate_hz},
+            "arm": {"joint_speed_deg_s": args.joint_speed_deg_s},
+            "world": {"enabled": True, "lead_ms": args.lead_ms},
+        },
         sim_args=("--hover-seed", str(args.seed), "--vehicle-log-hz", "50"),
     ) as stack:
         client = ControlClient(stack.control_path)
@@ -74,7 +78,12 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
                     raise RuntimeError("no ATTITUDE / LOCAL_POSITION_NED within 10 s")
                 time.sleep(0.05)
             request: dict = (
-                {"cmd": "goto", "pose": list(world.as_tuple()), "frame": "local_ned"}
+                {
+                    "cmd": "goto",
+                    "pose": list(world.as_tuple()),
+                    "frame": "local_ned",
+                    "mode": args.mode,
+                }
                 if compensate
                 else {"cmd": "goto", "pose": list(hand.as_tuple())}
             )
@@ -88,6 +97,8 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
             while time.monotonic() - started < args.start_s + args.duration_s + 1.0:
                 time.sleep(0.05)
             cpu_pct = 100.0 * (cpu_s(stack.daemon_pid) - cpu0) / (time.monotonic() - wall0)
+            client.close()  # idle past control.idle_timeout_s: the daemon closed it
+            client = ControlClient(stack.control_path)
             status = client.request({"cmd": "status"})["status"]
         finally:
             client.close()
@@ -161,6 +172,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the hover disturbance's seed")
     parser.add_argument("--dialect", default="ardupilot", choices=("ardupilot", "px4"))
     parser.add_argument("--rate-hz", type=float, default=50.0)
+    parser.add_argument("--joint-speed-deg-s", type=float, default=60.0, help="the default 60")
+    parser.add_argument("--lead-ms", type=float, default=20.0, help="world.lead_ms (default 20)")
+    parser.add_argument(
+        "--mode",
+        default="position",
+        choices=("pose", "position", "position_axis"),
+        help="what of the world target is held (default: the position; the paper arm's "
+        "whole pose is out of reach for some of a 10 cm / 5 deg hover)",
+    )
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
     load_before = load_average()
@@ -183,7 +203,8 @@ def main(argv: list[str] | None = None) -> int:
         "",
         f"`{' '.join(['python -m bench.world_hold', *sys.argv[1:]])}` on {machine()}; load "
         f"before {load_before}, after {load_average()}. Dialect {args.dialect}, control "
-        f"{args.rate_hz:g} Hz, hover seed {args.seed}, simulator time "
+        f"{args.rate_hz:g} Hz, joint speed {args.joint_speed_deg_s:g} °/s, world.lead_ms "
+        f"{args.lead_ms:g}, mode {args.mode}, hover seed {args.seed}, simulator time "
         f"[{args.start_s:g}, {args.start_s + args.duration_s:g}] s.",
         "",
         *md_table(

@@ -36,6 +36,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -66,6 +67,8 @@ __all__ = ["ArmDaemon", "Outcome", "Reply"]
 
 log = logging.getLogger("armbridge")
 
+#: The status snapshot is rebuilt at most this often (and after every request and answer).
+STATUS_PERIOD_S = 0.02
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
 #: The frame types the core reads.
@@ -125,6 +128,7 @@ class ArmDaemon:
         self._core = ControlCore(config, solve=self._solve, clock=clock)
         self._frames: collections.deque[Any] = collections.deque()
         self._frames_lock = threading.Lock()
+        self._status_s = -math.inf
         self._counts_lock = threading.Lock()
         # Counted here, added to the core's counters in status(): refused before the core.
         self._counts = {
@@ -460,7 +464,13 @@ class ArmDaemon:
         for request in requests:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
-        self._status = core.status()
+        # The snapshot other threads read: at most every STATUS_PERIOD_S (the control thread
+        # wakes for every ACK, six an update; building it each time was most of its CPU with
+        # world targets on), at once after a request, and before any answer (_carry_out).
+        now = self.clock()
+        if requests or now - self._status_s >= STATUS_PERIOD_S:
+            self._status = core.status()
+            self._status_s = now
 
     def _request(self, request: Request) -> None:
         self._carry_out(self._core.request(request))
