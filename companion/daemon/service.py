@@ -538,6 +538,10 @@ class ArmDaemon:
             except Exception:
                 log.exception("internal error while recovering")
             if request is not None:
+                try:  # as _carry_out does: the snapshot first, so it counts the error
+                    self._status = self._core.status()
+                except Exception:
+                    log.exception("internal error while recovering")
                 request.answer(reply)
 
     def _shutdown(self) -> None:
