@@ -55,22 +55,10 @@ from numpy.typing import ArrayLike
 
 from companion.kinematics.arm import Arm
 from companion.kinematics.rotations import FloatArray, rpy_to_matrix
-from companion.kinematics.vehicle import Mount, invert, transform
+from companion.kinematics.vehicle import Mount, finite_triple, invert, transform
 
 #: Subtracted from every computed distance (cm): float64 rounding on arms of metres is ~1e-13.
 ROUNDING_CM = 1e-7
-
-
-def _triple(owner: str, name: str, values: Sequence[object]) -> tuple[float, float, float]:
-    items = list(values)
-    if len(items) != 3:
-        raise ValueError(f"{owner}.{name}={values!r} must be 3 numbers")
-    out = []
-    for i, v in enumerate(items):
-        if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(float(v)):
-            raise ValueError(f"{owner}.{name}[{i}]={v!r} must be a finite number")
-        out.append(float(v))
-    return (out[0], out[1], out[2])
 
 
 def _positive(owner: str, name: str, value: object) -> float:
@@ -98,7 +86,7 @@ class Sphere:
 
     def __post_init__(self) -> None:
         _name("Sphere", self.name)
-        object.__setattr__(self, "center_cm", _triple("Sphere", "center_cm", self.center_cm))
+        object.__setattr__(self, "center_cm", finite_triple("Sphere", "center_cm", self.center_cm))
         object.__setattr__(self, "radius_cm", _positive("Sphere", "radius_cm", self.radius_cm))
 
 
@@ -113,8 +101,8 @@ class Capsule:
 
     def __post_init__(self) -> None:
         _name("Capsule", self.name)
-        object.__setattr__(self, "from_cm", _triple("Capsule", "from_cm", self.from_cm))
-        object.__setattr__(self, "to_cm", _triple("Capsule", "to_cm", self.to_cm))
+        object.__setattr__(self, "from_cm", finite_triple("Capsule", "from_cm", self.from_cm))
+        object.__setattr__(self, "to_cm", finite_triple("Capsule", "to_cm", self.to_cm))
         object.__setattr__(self, "radius_cm", _positive("Capsule", "radius_cm", self.radius_cm))
 
 
@@ -130,12 +118,12 @@ class Box:
 
     def __post_init__(self) -> None:
         _name("Box", self.name)
-        object.__setattr__(self, "center_cm", _triple("Box", "center_cm", self.center_cm))
-        size = _triple("Box", "size_cm", self.size_cm)
+        object.__setattr__(self, "center_cm", finite_triple("Box", "center_cm", self.center_cm))
+        size = finite_triple("Box", "size_cm", self.size_cm)
         for i, v in enumerate(size):
             _positive("Box", f"size_cm[{i}]", v)
         object.__setattr__(self, "size_cm", size)
-        object.__setattr__(self, "rpy_deg", _triple("Box", "rpy_deg", self.rpy_deg))
+        object.__setattr__(self, "rpy_deg", finite_triple("Box", "rpy_deg", self.rpy_deg))
 
 
 @dataclass(frozen=True)
@@ -152,10 +140,12 @@ class Cylinder:
 
     def __post_init__(self) -> None:
         _name("Cylinder", self.name)
-        object.__setattr__(self, "center_cm", _triple("Cylinder", "center_cm", self.center_cm))
+        object.__setattr__(
+            self, "center_cm", finite_triple("Cylinder", "center_cm", self.center_cm)
+        )
         object.__setattr__(self, "radius_cm", _positive("Cylinder", "radius_cm", self.radius_cm))
         object.__setattr__(self, "length_cm", _positive("Cylinder", "length_cm", self.length_cm))
-        object.__setattr__(self, "rpy_deg", _triple("Cylinder", "rpy_deg", self.rpy_deg))
+        object.__setattr__(self, "rpy_deg", finite_triple("Cylinder", "rpy_deg", self.rpy_deg))
 
 
 Volume = Sphere | Capsule | Box | Cylinder

@@ -122,7 +122,8 @@ def base_to_world(hand_base: Pose, t_world_body: FloatArray, t_body_base: FloatA
     return Pose.from_matrix(t_world_body @ t_body_base @ hand_base.as_matrix())
 
 
-def _finite_triple(owner: str, name: str, values: Sequence[object]) -> tuple[float, float, float]:
+def finite_triple(owner: str, name: str, values: Sequence[object]) -> tuple[float, float, float]:
+    """Three finite numbers as floats, or ``ValueError`` naming ``owner.name`` (and the index)."""
     items = list(values)
     if len(items) != 3:
         raise ValueError(f"{owner}.{name}={values!r} must be 3 numbers")
@@ -147,8 +148,8 @@ class Mount:
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "xyz_cm", _finite_triple("Mount", "xyz_cm", self.xyz_cm))
-        object.__setattr__(self, "rpy_deg", _finite_triple("Mount", "rpy_deg", self.rpy_deg))
+        object.__setattr__(self, "xyz_cm", finite_triple("Mount", "xyz_cm", self.xyz_cm))
+        object.__setattr__(self, "rpy_deg", finite_triple("Mount", "rpy_deg", self.rpy_deg))
 
     @property
     def matrix(self) -> FloatArray:

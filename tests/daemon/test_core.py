@@ -769,22 +769,14 @@ class Px4Outputs:
         self.shown = shown
 
     def handle(self) -> None:
-        """Apply and acknowledge every DO_SET_ACTUATOR sent so far."""
-        commands = [c for c in self.rig.sent if c.command == ACTUATOR]
-        self.rig.sent.clear()
-        for c in commands:
-            for slot, output in enumerate(self.rig.calibration.outputs):
-                value = c.params[slot]
-                if not math.isnan(value):
-                    joint = self.rig.calibration.for_output(output)
-                    span = joint.pwm_max_us - joint.pwm_min_us
-                    self.stored[output] = round(joint.pwm_min_us + (value + 1) / 2 * span)
-            self._refresh()
+        """Apply and acknowledge every DO_SET_ACTUATOR sent so far, one after the other."""
+        for _ in self.apply(one=True):
             self.rig.ack(command=ACTUATOR)
 
-    def apply(self) -> list[SendCommand]:
+    def apply(self, one: bool = False) -> list[SendCommand]:
         """Apply every DO_SET_ACTUATOR sent so far, its ACK not sent yet (PX4 answers on its
-        commander's cycle, after the output cycle may have applied it)."""
+        commander's cycle, after the output cycle may have applied it); ``one``: each command's
+        outputs change apart (as many physical moves as commands)."""
         commands = [c for c in self.rig.sent if c.command == ACTUATOR]
         self.rig.sent.clear()
         for c in commands:
@@ -794,6 +786,8 @@ class Px4Outputs:
                     joint = self.rig.calibration.for_output(output)
                     span = joint.pwm_max_us - joint.pwm_min_us
                     self.stored[output] = round(joint.pwm_min_us + (value + 1) / 2 * span)
+            if one:
+                self._refresh()
         self._refresh()
         return commands
 
