@@ -40,6 +40,7 @@ from companion.kinematics.rotations import rotation_angle, rpy_to_matrix
 from companion.kinematics.vehicle import Mount, base_to_world, transform, world_to_base
 from firmware_interface.calibration import default_calibration
 from sim_servo.eventlog import world_timeline
+from sim_servo.world import WorldPose, pose_error
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The arm's configuration held (the demo's comfortable pose).
@@ -120,13 +121,17 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
 
 
 def errors(samples: list, world: Pose) -> tuple[np.ndarray, np.ndarray]:
-    target = world.as_matrix()
-    pos, ori = [], []
-    for s in samples:
-        m = s.hand.as_matrix()
-        pos.append(100.0 * float(np.linalg.norm(m[:3, 3] - target[:3, 3] / 100.0)))
-        ori.append(math.degrees(float(rotation_angle(m[:3, :3], target[:3, :3]))))
-    return np.asarray(pos), np.asarray(ori)
+    """Per sample: the hand's distance from ``world`` (cm) and its rotation from it (°), by the
+    simulator's own :func:`sim_servo.world.pose_error`."""
+    target = WorldPose(
+        world.x_cm / 100.0, world.y_cm / 100.0, world.z_cm / 100.0, *map(math.radians, (
+            world.roll_deg, world.pitch_deg, world.yaw_deg))
+    )  # fmt: skip
+    pairs = [pose_error(s.hand, target) for s in samples]
+    return (
+        np.array([100.0 * d for d, _ in pairs]),
+        np.array([math.degrees(a) for _, a in pairs]),
+    )
 
 
 def quantisation_floor(samples: list, world: Pose, seed: int) -> tuple[np.ndarray, np.ndarray]:

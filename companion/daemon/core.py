@@ -729,31 +729,31 @@ class ControlCore:
         ACKs are counted in order (:mod:`firmware_interface.updates`), so if one ahead ends
         unanswered or miscounted, this one's outcome alone says where those outputs are
         (see :meth:`_poll_update`)."""
-        head = self._flights[-1]
+        last = self._flights[-1]
         if (
             len(self._flights) >= PIPELINE_DEPTH
-            or head.attempt
-            or head.pending
+            or last.attempt
+            or last.pending
             or self._unconfirmed is not None
             or not self._acked_pwm.keys() >= set(self._outputs)
             or self._dead_outputs()
         ):
             return
         now = self.clock()
-        if head.tracker.poll(now) is not None:
+        if last.tracker.poll(now) is not None:
             return  # its verdict is in (or its time is up): resolved first, then we go on
         if not self._is_ardupilot and (
             self._hold_now or not self._confirmed.issuperset(self._outputs)
         ):
             return
         goal = self._goal
-        if goal is None or goal == head.step_deg:
+        if goal is None or goal == last.step_deg:
             return
         period = 1.0 / self.config.rate_hz
         max_step_deg = self.config.joint_speed_deg_s * min(period, now - self._last_step_s)
         if not max_step_deg > 0:
             return
-        step = limit_step(head.step_deg, goal, max_step_deg)
+        step = limit_step(last.step_deg, goal, max_step_deg)
         ahead = {o for f in self._flights for o in f.sent_outputs}
         base = {o: pwm for o, pwm in self._acked_pwm.items() if o not in ahead}
         self._send_step(actions, step, now, base_pwm=base)
@@ -1416,7 +1416,7 @@ class ControlCore:
         out.update(self._world_note if self._world is not None else {})
         if state is not None and self._hand_at is not None and self._hand_at[0] == position:
             hand = base_to_world(
-                Pose(*self._hand_at[1].values()), state.predict(now), self.config.mount.matrix
+                Pose(**self._hand_at[1]), state.predict(now), self.config.mount.matrix
             )
             out["hand_ned"] = dict(zip(POSE_KEYS, hand.as_tuple(), strict=True))
         return out
