@@ -24,10 +24,13 @@ maximum (1000 °/s); targets come over the control socket, so only servo traffic
   8.9 ms; PX4 not measured: 2.5 ms assumed). ``sim/pred`` is the simulated median over it.
 * **50 Hz stream** (``bench/sustained.py``'s figure-eight, open loop, one target every 20 ms
   for ``--duration-s``, round robin over 4 control-socket connections, as a client streaming
-  targets must: a connection answers one request at a time): a miss is a target not ACCEPTED
-  (a newer one replaced it while it waited: CANCELLED) or whose first update's last ACK came
-  later than 20 ms after its slot; with the daemon 4 targets behind, a slot is skipped (a
-  miss) rather than queued.
+  targets must: a connection answers one request at a time): a miss, as in
+  ``bench/sustained.py`` (issue 13's definition), is a target not ACCEPTED (a newer one replaced
+  it while it waited: CANCELLED) or whose first update the autopilot had not carried out within
+  the target's 20 ms slot (its last servo command handled; for the Lua bridge, the script
+  setting the outputs); with the daemon 4 targets behind, a slot is skipped (a miss) rather than
+  queued. Beside it, how many updates' last ACK was back at the daemon later than the slot (the
+  ACK's bytes on the line come on top).
 """
 
 from __future__ import annotations
@@ -71,7 +74,9 @@ HEADERS = (
     "update p50 / p99 / max",
     "target→last ACK p50 / p99",
     "50 Hz misses",
-    "stream p99 slot→ACK",
+    "stream slot→servos p50 / p99 / max",
+    "ACKs later than the slot",
+    "stream slot→ACK p99",
 )
 
 
@@ -181,20 +186,39 @@ def stream(stack: Stack, duration_s: float, period_s: float = 4.0) -> dict:
             answers += source.poll(left)
     finally:
         source.close()
+    return {"sent": sent, "skipped": skipped, "answers": answers, "source": source}
+
+
+def stream_misses(run: dict, events: list[dict]) -> dict:
+    """The stream's figures from its answers and the simulator's log (issue 13's definition, as
+    ``bench/sustained.py``): a miss is a slot skipped, a target not ACCEPTED (a newer one
+    replaced it while it waited: CANCELLED), or one whose first update the autopilot had not
+    carried out within its 20 ms slot (the last servo command handled; for the Lua bridge the
+    script setting the outputs). Separately, ``late_ack``: the update's last ACK back at the
+    daemon later than the slot (it adds the ACK's bytes on the line)."""
+    sent, answers = run["sent"], run["answers"]
     # Replies come as targets end: a replaced one (CANCELLED) at once, so not in send order.
     # An accepted one is matched to its slot by when the daemon received it.
     slots_s = np.array(sent)
-    late = []
     accepted = [a for a in answers if a.get("outcome") == "accepted"]
-    cancelled = sum(a.get("outcome") == "cancelled" for a in answers)
-    for answer in accepted:
+    ends = run["source"].update_ends(events, accepted, since_s=sent[0] if sent else 0.0)
+    late, late_ack = [], []
+    for answer, end_s in zip(accepted, ends, strict=True):
         timing = answer.get("timing") or {}
         received_s = timing.get("received_s", math.inf)
         k = max(0, int(np.searchsorted(slots_s, received_s, side="right")) - 1)
-        done_s = timing.get("acked_s", timing.get("solved_s", math.inf))
-        late.append(done_s - slots_s[k])
-    misses = skipped + len(sent) - len(accepted) + sum(x > SLOT_S for x in late)
-    return {"targets": len(sent) + skipped, "misses": misses, "cancelled": cancelled, "late": late}
+        late.append(end_s - slots_s[k])
+        late_ack.append(timing.get("acked_s", timing.get("solved_s", math.inf)) - slots_s[k])
+    cancelled = sum(a.get("outcome") == "cancelled" for a in answers)
+    misses = run["skipped"] + len(sent) - len(accepted) + sum(x > SLOT_S for x in late)
+    return {
+        "targets": len(sent) + run["skipped"],
+        "misses": misses,
+        "cancelled": cancelled,
+        "late": late,
+        "late_ack": late_ack,
+        "acks_late": sum(x > SLOT_S for x in late_ack),
+    }
 
 
 def run(args: argparse.Namespace) -> list[dict]:
@@ -208,8 +232,8 @@ def run(args: argparse.Namespace) -> list[dict]:
             transport = ("--pty", "--pty-baud", str(baud))
             with Stack(dialect=dialect, daemon=daemon, transport=transport) as stack:
                 lat = latency(stack, poses, args.seed)
-                sus = stream(stack, args.duration_s)
-                stack.stop()
+                streamed = stream(stack, args.duration_s)
+                sus = stream_misses(streamed, stack.stop())
             cost = update_cost(dialect, calibration, baud)
             model = model_update_s(dialect, baud, calibration, 400, args.seed)
             results.append(
@@ -225,12 +249,14 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         t50, t99, _ = percentiles_ms(r["target"])
         m50, _, mmax = percentiles_ms(r["model"])
         pred = r["cost"].median_ms
-        _, late99, _ = percentiles_ms(r["late"])
+        s50, s99, smax = percentiles_ms(r["late"])
+        _, ack99, _ = percentiles_ms(r["late_ack"])
         rows.append([
             r["dialect"], r["baud"], r["cost"].to_fc_bytes, f"{pred:.1f}",
             f"{m50:.1f} / {mmax:.1f}", f"{m50 / pred:.2f}",
             f"{u50:.1f} / {u99:.1f} / {umax:.1f}", f"{t50:.1f} / {t99:.1f}",
-            f"{r['misses']} / {r['targets']}", f"{late99:.1f}",
+            f"{r['misses']} / {r['targets']}", f"{s50:.1f} / {s99:.1f} / {smax:.1f}",
+            r["acks_late"], f"{ack99:.1f}",
         ])  # fmt: skip
     lines = [
         "# Serial links: target → last ACK and the 50 Hz stream, by dialect and baud",
