@@ -48,6 +48,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from bench.loopback import ControlSocketInput, Stack, answer_one, load_average, percentiles_ms
 from bench.report import machine, md_table, write_markdown
 from bench.sustained import figure_eight
+from companion.daemon.core import stream_intervals_s, stream_requests
 from companion.kinematics.arm import Arm, Pose
 from firmware_interface.calibration import ArmCalibration, default_calibration
 from firmware_interface.link_budget import update_cost
@@ -94,7 +95,7 @@ def model_update_s(
     config = SimConfig(
         flavour="px4" if dialect == "px4" else "ardupilot",
         lua_script=dialect == "ardupilot-lua",
-        link_timing=LinkTimingConfig.instant(),  # as --pty-baud sets it
+        link_timing=LinkTimingConfig(hold_ms=0.0),  # as --pty-baud sets it
     )
     ap = SimAutopilot(config, now_s=0.0)
     down = SerialLine(baud, split_frames=True)
@@ -104,8 +105,26 @@ def model_update_s(
     enc = mavlink.MAVLink(None, 1, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
     dec = mavlink.MAVLink(None)
     rng = np.random.default_rng(seed)
+    # The streams the daemon asks for on such a line (PX4's unasked ATTITUDE and
+    # LOCAL_POSITION_NED stopped), asked at 0.5 s: their answers are out before the first update.
+    readback_s, sys_status_s = stream_intervals_s(
+        ardupilot=dialect != "px4", url=f"/dev/ttyS0,{baud}"
+    )
+    asks = b"".join(
+        enc.command_long_encode(
+            1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+            msg_id, -1.0 if interval_s < 0 else interval_s * 1e6, 0, 0, 0, 0, 0,
+        ).pack(enc)
+        for msg_id, interval_s in stream_requests(
+            ardupilot=dialect != "px4",
+            readback_interval_s=readback_s,
+            sys_status_interval_s=sys_status_s,
+            world_telemetry_hz=None,
+        )
+    )  # fmt: skip
+    ap.receive(asks, 0.5)
     out = []
-    now = 0.0
+    now = 0.5
     for k in range(samples):
         start = 1.0 + 0.1 * k + rng.uniform(0.0, 0.01)
         commands = planner.plan(pwm)
