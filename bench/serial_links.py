@@ -15,9 +15,13 @@ daemon runs the shipped defaults but ``control.rate_hz`` = 50 and the joint spee
 maximum (1000 °/s); targets come over the control socket, so only servo traffic uses the line.
 
 * **Latency**: ``--targets`` reachable targets one at a time (each 0–50 ms after the previous
-  answer, seeded): ``update`` = the daemon started the target's first servo update → it had
-  every ACK (``timing.first_out_s`` → ``acked_s``), and ``target → last ACK`` = the daemon
-  received the target → that last ACK (``received_s`` → ``acked_s``: adds the solve).
+  answer, seeded), twice: **from rest** (each sent once the arm is still, so its first update
+  has the line to itself, as issue 19's figure is one update's) and **mid-motion** (the
+  previous target's later steps, speed-limited, may still be on their way: its first update
+  then goes out behind one of them and waits for its bytes and its answer). ``update`` = the
+  daemon started the target's first servo update → it had every ACK (``timing.first_out_s`` →
+  ``acked_s``, from rest), and ``target → last ACK`` = the daemon received the target → that
+  last ACK (``received_s`` → ``acked_s``: adds the solve).
 * **Predicted** update (``firmware_interface.link_budget``): the commands' bytes + the last
   ACK's bytes at the baud rate + the flight controller's *measured* median answer time
   (ArduCopter 4.7.0-dev SITL over TCP: six pipelined DO_SET_SERVO 3.2 ms, the Lua script
@@ -56,6 +60,7 @@ from firmware_interface.servo import make_servo_dialect
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import LinkTimingConfig, SimConfig
 from sim_servo.serial_line import ARDUPILOT_MAVLINK_TX_BUFFER_BYTES, SerialLine
+from tests.support.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 SLOT_S = 0.02  # 50 Hz
@@ -73,7 +78,8 @@ HEADERS = (
     "sim model p50 / max",
     "model/pred",
     "update p50 / p99 / max",
-    "target→last ACK p50 / p99",
+    "target→last ACK p50 / p99 (from rest)",
+    "target→last ACK p50 / p99 (mid-motion)",
     "50 Hz misses",
     "stream slot→servos p50 / p99 / max",
     "ACKs later than the slot",
@@ -154,12 +160,18 @@ def model_update_s(
     return out
 
 
-def latency(stack: Stack, poses: list[Pose], seed: int) -> dict:
+def latency(stack: Stack, poses: list[Pose], seed: int, *, from_rest: bool) -> dict:
+    """Targets one at a time, each 0–``GAP_MS`` after the previous answer. ``from_rest``: each
+    only once the arm is still (status ``moving`` false: no update on its way), so its first
+    update has the line to itself; otherwise while the previous target's later steps may
+    still be on their way (its first update then goes out behind one of them)."""
     source = ControlSocketInput(stack)
     rng = np.random.default_rng(seed + 1)
     update_s, target_s, outcomes = [], [], {}
     try:
         for pose in poses:
+            if from_rest:
+                wait_until(lambda: not stack.status()["moving"], 5.0)
             time.sleep(rng.uniform(0.0, GAP_MS / 1e3))
             rec = answer_one(source, pose.as_tuple())
             outcomes[rec["outcome"]] = outcomes.get(rec["outcome"], 0) + 1
@@ -250,13 +262,22 @@ def run(args: argparse.Namespace) -> list[dict]:
             print(f"{dialect} at {baud} baud ...", file=sys.stderr, flush=True)
             transport = ("--pty", "--pty-baud", str(baud))
             with Stack(dialect=dialect, daemon=daemon, transport=transport) as stack:
-                lat = latency(stack, poses, args.seed)
+                lat = latency(stack, poses, args.seed, from_rest=True)
+                moving = latency(stack, poses, args.seed + 7, from_rest=False)
                 streamed = stream(stack, args.duration_s)
                 sus = stream_misses(streamed, stack.stop())
             cost = update_cost(dialect, calibration, baud)
             model = model_update_s(dialect, baud, calibration, 400, args.seed)
             results.append(
-                {"baud": baud, "dialect": dialect, "cost": cost, "model": model, **lat, **sus}
+                {
+                    "baud": baud,
+                    "dialect": dialect,
+                    "cost": cost,
+                    "model": model,
+                    **lat,
+                    "target_moving": moving["target"],
+                    **sus,
+                }
             )
     return results
 
@@ -266,6 +287,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
     for r in results:
         u50, u99, umax = percentiles_ms(r["update"])
         t50, t99, _ = percentiles_ms(r["target"])
+        mt50, mt99, _ = percentiles_ms(r["target_moving"])
         m50, _, mmax = percentiles_ms(r["model"])
         pred = r["cost"].median_ms
         s50, s99, smax = percentiles_ms(r["late"])
@@ -273,7 +295,8 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         rows.append([
             r["dialect"], r["baud"], r["cost"].to_fc_bytes, f"{pred:.1f}",
             f"{m50:.1f} / {mmax:.1f}", f"{m50 / pred:.2f}",
-            f"{u50:.1f} / {u99:.1f} / {umax:.1f}", f"{t50:.1f} / {t99:.1f}",
+            f"{u50:.1f} / {u99:.1f} / {umax:.1f}",
+            f"{t50:.1f} / {t99:.1f}", f"{mt50:.1f} / {mt99:.1f}",
             f"{r['misses']} / {r['targets']}", f"{s50:.1f} / {s99:.1f} / {smax:.1f}",
             r["acks_late"], f"{ack99:.1f}",
         ])  # fmt: skip
