@@ -261,6 +261,18 @@ INPUTS: dict[str, Callable[[Stack], Any]] = {
 DEFAULT_INPUT = "mavlink"
 
 
+def ram_dir() -> str | None:
+    """A RAM-backed directory for the stacks' files (``/dev/shm`` where it is writable; None:
+    the system's temporary directory). The simulator's JSON event log is written on every pass
+    of its loop, the daemon's log on stderr into a file: on a disk file system a write now and
+    then waits for the journal's commit (ext4: the file's mtime), and a frame waits behind it,
+    a stall no flight controller has (it keeps no such log) and no daemon under systemd has
+    (it logs into journald's socket). The bench measures the daemon and the link, not the
+    bench's own logging."""
+    shm = "/dev/shm"
+    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+
+
 class Stack:
     """The simulator and the daemon as subprocesses on UDP loopback (a context manager), by the
     tests' harnesses (:class:`~tests.support.sim_process.SimProcess`,
@@ -283,7 +295,7 @@ class Stack:
         transport: Sequence[str] = ("--udp", "127.0.0.1:0"),
     ) -> None:
         self.dialect = dialect
-        self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
+        self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-", dir=ram_dir())
         tmp = Path(self._tmp.name)
         flavour = "px4" if dialect == "px4" else "ardupilot"
         if dialect == "ardupilot-lua":
