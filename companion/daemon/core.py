@@ -475,6 +475,16 @@ class ControlCore:
             wake = min(wake, flight.tracker.next_event_s())
         return wake
 
+    def acks_to_progress(self) -> int:
+        """How many more servo COMMAND_ACKs may arrive before one of them changes anything:
+        the oldest update short of ACKs decides nothing until its count is complete
+        (:meth:`UpdateTracker.poll`); 1 when none is short (the driver may then wake for
+        each)."""
+        for flight in self._flights:
+            if not flight.tracker.complete:
+                return max(1, flight.tracker.acks_missing)
+        return 1
+
     def shutdown(self, *, park: bool) -> list[Action]:
         """Stop: answer everything waiting, and send the park pose directly if asked."""
         actions: list[Action] = []

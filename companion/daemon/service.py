@@ -128,6 +128,13 @@ class ArmDaemon:
         self._core = ControlCore(config, solve=self._solve, clock=clock)
         self._frames: collections.deque[Any] = collections.deque()
         self._frames_lock = threading.Lock()
+        # ACCEPTED COMMAND_ACKs queued for the core and taken by it (under _frames_lock): the
+        # reader wakes the control thread only once the queue holds the ACK that completes the
+        # oldest update's count (_arm_ack_wake); the ones before it decide nothing, and
+        # ArduPilot answers an update's six DO_SET_SERVO with six frames.
+        self._acks_queued = 0
+        self._acks_fed = 0
+        self._acks_wake_at = 1
         # The status snapshot is built on the control thread when some thread asked for one
         # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
         # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
@@ -394,13 +401,20 @@ class ArmDaemon:
         self.intake.submit(request)
 
     def _on_frame(self, msg: Any) -> None:
+        kind = msg.get_type()
+        counted = kind == "COMMAND_ACK" and msg.result == mavlink.MAV_RESULT_ACCEPTED
         with self._frames_lock:
             if len(self._frames) >= FRAME_QUEUE_MAX:
-                self._frames.popleft()
+                self._acks_fed += self._frames.popleft()[2]
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
-            self._frames.append((self.clock(), msg))
-        if msg.get_type() not in TELEMETRY_FRAMES:
+            self._frames.append((self.clock(), msg, counted))
+            if counted:
+                self._acks_queued += 1
+                wake = self._acks_queued >= self._acks_wake_at
+            else:
+                wake = kind not in TELEMETRY_FRAMES
+        if wake:
             self._wake.set()
 
     def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
@@ -471,6 +485,7 @@ class ArmDaemon:
             self._wake.clear()
             if self._closing is None:
                 self._guarded("control loop", None, self._step)
+                self._arm_ack_wake()
             self._last_tick = self.clock()
         self._guarded("shutdown", None, self._shutdown)
 
@@ -495,6 +510,15 @@ class ArmDaemon:
                 self._status_built = asked
                 self._status_cond.notify_all()
 
+    def _arm_ack_wake(self) -> None:
+        """The ACK count at which the reader wakes us (any other ACK, and every other frame
+        the core reads but the telemetry, wakes us at once); wakes us now if it is queued."""
+        with self._frames_lock:
+            self._acks_wake_at = self._acks_fed + self._core.acks_to_progress()
+            due = self._acks_queued >= self._acks_wake_at
+        if due:
+            self._wake.set()
+
     def _request(self, request: Request) -> None:
         self._carry_out(self._core.request(request))
 
@@ -504,7 +528,8 @@ class ArmDaemon:
             with self._frames_lock:
                 if not self._frames:
                     return
-                received_s, msg = self._frames.popleft()
+                received_s, msg, counted = self._frames.popleft()
+                self._acks_fed += counted
             self._carry_out(core.frame(msg, received_s))
 
     def _tick(self) -> list[Action]:
