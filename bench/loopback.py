@@ -37,7 +37,12 @@ from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import wait_until
 
-SERVO_COMMANDS = {183: "DO_SET_SERVO", 187: "DO_SET_ACTUATOR", 31011: "USER_2 (Lua bridge)"}
+MAV_CMD_USER_2 = 31011  # the Lua bridge's command
+SERVO_COMMANDS = {
+    183: "DO_SET_SERVO",
+    187: "DO_SET_ACTUATOR",
+    MAV_CMD_USER_2: "USER_2 (Lua bridge)",
+}
 WAIT_S = 30.0
 
 try:  # PNG plots when matplotlib is installed (the `plots` extra); the Markdown never needs it
@@ -256,6 +261,18 @@ INPUTS: dict[str, Callable[[Stack], Any]] = {
 DEFAULT_INPUT = "mavlink"
 
 
+def ram_dir() -> str | None:
+    """A RAM-backed directory for the stacks' files (``/dev/shm`` where it is writable; None:
+    the system's temporary directory). The simulator's JSON event log is written on every pass
+    of its loop, the daemon's log on stderr into a file: on a disk file system a write now and
+    then waits for the journal's commit (ext4: the file's mtime), and a frame waits behind it,
+    a stall no flight controller has (it keeps no such log) and no daemon under systemd has
+    (it logs into journald's socket). The bench measures the daemon and the link, not the
+    bench's own logging."""
+    shm = "/dev/shm"
+    return shm if os.path.isdir(shm) and os.access(shm, os.W_OK) else None
+
+
 class Stack:
     """The simulator and the daemon as subprocesses on UDP loopback (a context manager), by the
     tests' harnesses (:class:`~tests.support.sim_process.SimProcess`,
@@ -278,7 +295,7 @@ class Stack:
         transport: Sequence[str] = ("--udp", "127.0.0.1:0"),
     ) -> None:
         self.dialect = dialect
-        self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-")
+        self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-", dir=ram_dir())
         tmp = Path(self._tmp.name)
         flavour = "px4" if dialect == "px4" else "ardupilot"
         if dialect == "ardupilot-lua":
@@ -362,15 +379,22 @@ def _servo_and_acks(
     events: list[dict[str, Any]], since_s: float = -math.inf
 ) -> list[tuple[float, str]]:
     """In the simulator's log order, on CLOCK_MONOTONIC, from ``since_s`` on: ``(t, "servo")``
-    for each servo command it handled (DO_SET_SERVO or DO_SET_ACTUATOR) and ``(t, "ack")`` for
-    each COMMAND_ACK to a target command (USER_1) that it routed from the daemon."""
+    for each servo command it handled (DO_SET_SERVO or DO_SET_ACTUATOR: when it read the frame;
+    the Lua bridge's USER_2: when the script set the outputs, its ``ack`` event, since the
+    script runs several ms after the frame came in) and ``(t, "ack")`` for each COMMAND_ACK to a
+    target command (USER_1) that it routed from the daemon."""
     start = next(e for e in events if e["event"] == "start")
     t0 = start["monotonic_s"]
     out = []
     for e in events:
-        if e["event"] != "rx" or t0 + e["t_s"] < since_s:
+        if t0 + e["t_s"] < since_s:
             continue
-        if e["msg"] == "COMMAND_LONG" and e["fields"]["command"] in SERVO_COMMANDS:
+        if e["event"] == "ack" and e.get("command") == MAV_CMD_USER_2:
+            out.append((t0 + e["t_s"], "servo"))
+        if e["event"] != "rx":
+            continue
+        command = e["fields"].get("command") if e["msg"] == "COMMAND_LONG" else None
+        if command in SERVO_COMMANDS and command != MAV_CMD_USER_2:
             out.append((t0 + e["t_s"], "servo"))
         elif e["msg"] == "COMMAND_ACK" and e["fields"]["command"] == mavlink.MAV_CMD_USER_1:
             out.append((t0 + e["t_s"], "ack"))

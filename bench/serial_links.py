@@ -15,19 +15,26 @@ daemon runs the shipped defaults but ``control.rate_hz`` = 50 and the joint spee
 maximum (1000 °/s); targets come over the control socket, so only servo traffic uses the line.
 
 * **Latency**: ``--targets`` reachable targets one at a time (each 0–50 ms after the previous
-  answer, seeded): ``update`` = the daemon started the target's first servo update → it had
-  every ACK (``timing.first_out_s`` → ``acked_s``), and ``target → last ACK`` = the daemon
-  received the target → that last ACK (``received_s`` → ``acked_s``: adds the solve).
+  answer, seeded), twice: **from rest** (each sent once the arm is still, so its first update
+  has the line to itself, as issue 19's figure is one update's) and **mid-motion** (the
+  previous target's later steps, speed-limited, may still be on their way: its first update
+  then goes out behind one of them and waits for its bytes and its answer). ``update`` = the
+  daemon started the target's first servo update → it had every ACK (``timing.first_out_s`` →
+  ``acked_s``, from rest), and ``target → last ACK`` = the daemon received the target → that
+  last ACK (``received_s`` → ``acked_s``: adds the solve).
 * **Predicted** update (``firmware_interface.link_budget``): the commands' bytes + the last
   ACK's bytes at the baud rate + the flight controller's *measured* median answer time
   (ArduCopter 4.7.0-dev SITL over TCP: six pipelined DO_SET_SERVO 3.2 ms, the Lua script
   8.9 ms; PX4 not measured: 2.5 ms assumed). ``sim/pred`` is the simulated median over it.
 * **50 Hz stream** (``bench/sustained.py``'s figure-eight, open loop, one target every 20 ms
   for ``--duration-s``, round robin over 4 control-socket connections, as a client streaming
-  targets must: a connection answers one request at a time): a miss is a target not ACCEPTED
-  (a newer one replaced it while it waited: CANCELLED) or whose first update's last ACK came
-  later than 20 ms after its slot; with the daemon 4 targets behind, a slot is skipped (a
-  miss) rather than queued.
+  targets must: a connection answers one request at a time): a miss, as in
+  ``bench/sustained.py`` (issue 13's definition), is a target not ACCEPTED (a newer one replaced
+  it while it waited: CANCELLED) or whose first update the autopilot had not carried out within
+  the target's 20 ms slot (its last servo command handled; for the Lua bridge, the script
+  setting the outputs); with the daemon 4 targets behind, a slot is skipped (a miss) rather than
+  queued. Beside it, how many updates' last ACK was back at the daemon later than the slot (the
+  ACK's bytes on the line come on top).
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from bench.loopback import ControlSocketInput, Stack, answer_one, load_average, percentiles_ms
 from bench.report import machine, md_table, write_markdown
 from bench.sustained import figure_eight
+from companion.daemon.core import stream_intervals_s, stream_requests
 from companion.kinematics.arm import Arm, Pose
 from firmware_interface.calibration import ArmCalibration, default_calibration
 from firmware_interface.link_budget import update_cost
@@ -52,6 +60,7 @@ from firmware_interface.servo import make_servo_dialect
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import LinkTimingConfig, SimConfig
 from sim_servo.serial_line import ARDUPILOT_MAVLINK_TX_BUFFER_BYTES, SerialLine
+from tests.support.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 SLOT_S = 0.02  # 50 Hz
@@ -69,9 +78,12 @@ HEADERS = (
     "sim model p50 / max",
     "model/pred",
     "update p50 / p99 / max",
-    "target→last ACK p50 / p99",
+    "target→last ACK p50 / p99 (from rest)",
+    "target→last ACK p50 / p99 (mid-motion)",
     "50 Hz misses",
-    "stream p99 slot→ACK",
+    "stream slot→servos p50 / p99 / max",
+    "ACKs later than the slot",
+    "stream slot→ACK p99",
 )
 
 
@@ -89,7 +101,7 @@ def model_update_s(
     config = SimConfig(
         flavour="px4" if dialect == "px4" else "ardupilot",
         lua_script=dialect == "ardupilot-lua",
-        link_timing=LinkTimingConfig.instant(),  # as --pty-baud sets it
+        link_timing=LinkTimingConfig(hold_ms=0.0),  # as --pty-baud sets it
     )
     ap = SimAutopilot(config, now_s=0.0)
     down = SerialLine(baud, split_frames=True)
@@ -99,8 +111,26 @@ def model_update_s(
     enc = mavlink.MAVLink(None, 1, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
     dec = mavlink.MAVLink(None)
     rng = np.random.default_rng(seed)
+    # The streams the daemon asks for on such a line (PX4's unasked ATTITUDE and
+    # LOCAL_POSITION_NED stopped), asked at 0.5 s: their answers are out before the first update.
+    readback_s, sys_status_s = stream_intervals_s(
+        ardupilot=dialect != "px4", url=f"/dev/ttyS0,{baud}"
+    )
+    asks = b"".join(
+        enc.command_long_encode(
+            1, 1, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+            msg_id, -1.0 if interval_s < 0 else interval_s * 1e6, 0, 0, 0, 0, 0,
+        ).pack(enc)
+        for msg_id, interval_s in stream_requests(
+            ardupilot=dialect != "px4",
+            readback_interval_s=readback_s,
+            sys_status_interval_s=sys_status_s,
+            world_telemetry_hz=None,
+        )
+    )  # fmt: skip
+    ap.receive(asks, 0.5)
     out = []
-    now = 0.0
+    now = 0.5
     for k in range(samples):
         start = 1.0 + 0.1 * k + rng.uniform(0.0, 0.01)
         commands = planner.plan(pwm)
@@ -130,12 +160,18 @@ def model_update_s(
     return out
 
 
-def latency(stack: Stack, poses: list[Pose], seed: int) -> dict:
+def latency(stack: Stack, poses: list[Pose], seed: int, *, from_rest: bool) -> dict:
+    """Targets one at a time, each 0–``GAP_MS`` after the previous answer. ``from_rest``: each
+    only once the arm is still (status ``moving`` false: no update on its way), so its first
+    update has the line to itself; otherwise while the previous target's later steps may
+    still be on their way (its first update then goes out behind one of them)."""
     source = ControlSocketInput(stack)
     rng = np.random.default_rng(seed + 1)
     update_s, target_s, outcomes = [], [], {}
     try:
         for pose in poses:
+            if from_rest:
+                wait_until(lambda: not stack.status()["moving"], 5.0)
             time.sleep(rng.uniform(0.0, GAP_MS / 1e3))
             rec = answer_one(source, pose.as_tuple())
             outcomes[rec["outcome"]] = outcomes.get(rec["outcome"], 0) + 1
@@ -181,20 +217,39 @@ def stream(stack: Stack, duration_s: float, period_s: float = 4.0) -> dict:
             answers += source.poll(left)
     finally:
         source.close()
+    return {"sent": sent, "skipped": skipped, "answers": answers, "source": source}
+
+
+def stream_misses(run: dict, events: list[dict]) -> dict:
+    """The stream's figures from its answers and the simulator's log (issue 13's definition, as
+    ``bench/sustained.py``): a miss is a slot skipped, a target not ACCEPTED (a newer one
+    replaced it while it waited: CANCELLED), or one whose first update the autopilot had not
+    carried out within its 20 ms slot (the last servo command handled; for the Lua bridge the
+    script setting the outputs). Separately, ``late_ack``: the update's last ACK back at the
+    daemon later than the slot (it adds the ACK's bytes on the line)."""
+    sent, answers = run["sent"], run["answers"]
     # Replies come as targets end: a replaced one (CANCELLED) at once, so not in send order.
     # An accepted one is matched to its slot by when the daemon received it.
     slots_s = np.array(sent)
-    late = []
     accepted = [a for a in answers if a.get("outcome") == "accepted"]
-    cancelled = sum(a.get("outcome") == "cancelled" for a in answers)
-    for answer in accepted:
+    ends = run["source"].update_ends(events, accepted, since_s=sent[0] if sent else 0.0)
+    late, late_ack = [], []
+    for answer, end_s in zip(accepted, ends, strict=True):
         timing = answer.get("timing") or {}
         received_s = timing.get("received_s", math.inf)
         k = max(0, int(np.searchsorted(slots_s, received_s, side="right")) - 1)
-        done_s = timing.get("acked_s", timing.get("solved_s", math.inf))
-        late.append(done_s - slots_s[k])
-    misses = skipped + len(sent) - len(accepted) + sum(x > SLOT_S for x in late)
-    return {"targets": len(sent) + skipped, "misses": misses, "cancelled": cancelled, "late": late}
+        late.append(end_s - slots_s[k])
+        late_ack.append(timing.get("acked_s", timing.get("solved_s", math.inf)) - slots_s[k])
+    cancelled = sum(a.get("outcome") == "cancelled" for a in answers)
+    misses = run["skipped"] + len(sent) - len(accepted) + sum(x > SLOT_S for x in late)
+    return {
+        "targets": len(sent) + run["skipped"],
+        "misses": misses,
+        "cancelled": cancelled,
+        "late": late,
+        "late_ack": late_ack,
+        "acks_late": sum(x > SLOT_S for x in late_ack),
+    }
 
 
 def run(args: argparse.Namespace) -> list[dict]:
@@ -207,13 +262,22 @@ def run(args: argparse.Namespace) -> list[dict]:
             print(f"{dialect} at {baud} baud ...", file=sys.stderr, flush=True)
             transport = ("--pty", "--pty-baud", str(baud))
             with Stack(dialect=dialect, daemon=daemon, transport=transport) as stack:
-                lat = latency(stack, poses, args.seed)
-                sus = stream(stack, args.duration_s)
-                stack.stop()
+                lat = latency(stack, poses, args.seed, from_rest=True)
+                moving = latency(stack, poses, args.seed + 7, from_rest=False)
+                streamed = stream(stack, args.duration_s)
+                sus = stream_misses(streamed, stack.stop())
             cost = update_cost(dialect, calibration, baud)
             model = model_update_s(dialect, baud, calibration, 400, args.seed)
             results.append(
-                {"baud": baud, "dialect": dialect, "cost": cost, "model": model, **lat, **sus}
+                {
+                    "baud": baud,
+                    "dialect": dialect,
+                    "cost": cost,
+                    "model": model,
+                    **lat,
+                    "target_moving": moving["target"],
+                    **sus,
+                }
             )
     return results
 
@@ -223,14 +287,18 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
     for r in results:
         u50, u99, umax = percentiles_ms(r["update"])
         t50, t99, _ = percentiles_ms(r["target"])
+        mt50, mt99, _ = percentiles_ms(r["target_moving"])
         m50, _, mmax = percentiles_ms(r["model"])
         pred = r["cost"].median_ms
-        _, late99, _ = percentiles_ms(r["late"])
+        s50, s99, smax = percentiles_ms(r["late"])
+        _, ack99, _ = percentiles_ms(r["late_ack"])
         rows.append([
             r["dialect"], r["baud"], r["cost"].to_fc_bytes, f"{pred:.1f}",
             f"{m50:.1f} / {mmax:.1f}", f"{m50 / pred:.2f}",
-            f"{u50:.1f} / {u99:.1f} / {umax:.1f}", f"{t50:.1f} / {t99:.1f}",
-            f"{r['misses']} / {r['targets']}", f"{late99:.1f}",
+            f"{u50:.1f} / {u99:.1f} / {umax:.1f}",
+            f"{t50:.1f} / {t99:.1f}", f"{mt50:.1f} / {mt99:.1f}",
+            f"{r['misses']} / {r['targets']}", f"{s50:.1f} / {s99:.1f} / {smax:.1f}",
+            r["acks_late"], f"{ack99:.1f}",
         ])  # fmt: skip
     lines = [
         "# Serial links: target → last ACK and the 50 Hz stream, by dialect and baud",

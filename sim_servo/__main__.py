@@ -473,8 +473,10 @@ def config_data(args: argparse.Namespace) -> tuple[dict[str, Any], Path | None]:
             data[key] = value
     timing = dict(data.get("link_timing", {}))
     if args.pty_baud is not None and not timing:
-        # The hold was fitted to TCP; a serial line's own timing is the bytes (serial_line.py).
-        timing = {"output_delay_ms": 0.0, "hold_ms": 0.0}
+        # The hold was fitted to TCP (a receiver's delayed ACK); a serial line's own timing is
+        # the bytes (serial_line.py). The output delay is the autopilot's own floor (a burst's
+        # answers leave no sooner on any link), so it stays.
+        timing = {"hold_ms": 0.0}
     for key, value in (
         ("output_delay_ms", args.link_delay_ms),
         ("hold_ms", args.link_hold_ms),

@@ -110,7 +110,7 @@ from __future__ import annotations
 import math
 import struct
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -399,15 +399,17 @@ class SimAutopilot:
         mask = self.params["BRD_SAFETY_MASK"].value
         return not self.safety_on or bool(mask >> (output - 1) & 1)
 
-    def _outputs_now(self) -> tuple[dict[int, int], dict[int, int]]:
-        """(reported, physical) PWM of every output in the current state.
+    def _outputs_now(
+        self, outputs: Iterable[int] | None = None
+    ) -> tuple[dict[int, int], dict[int, int]]:
+        """(reported, physical) PWM of every output (or of ``outputs``) in the current state.
 
         PX4 reports what it outputs. ArduPilot reports the PWM it was given (SERVO_OUTPUT_RAW
         reads back what the output driver was told), while the safety switch keeps an output
         out of ``BRD_SAFETY_MASK`` without pulses. During a reboot nothing has pulses."""
         reported: dict[int, int] = {}
         physical: dict[int, int] = {}
-        for output in range(1, OUTPUT_COUNT + 1):
+        for output in range(1, OUTPUT_COUNT + 1) if outputs is None else outputs:
             if self.config.flavour == "px4":
                 reported[output] = self._px4_output_us(output)
                 physical[output] = reported[output]
@@ -436,12 +438,16 @@ class SimAutopilot:
             return low  # motors idle at their minimum once armed
         return disarmed
 
-    def _refresh_outputs(self, now_s: float, cause: str) -> None:
+    def _refresh_outputs(
+        self, now_s: float, cause: str, outputs: Iterable[int] | None = None
+    ) -> None:
         """Bring the reported and physical PWMs up to the current state; every physical change
-        moves its servo and is logged as an ``output`` event (what the servo receives)."""
+        moves its servo and is logged as an ``output`` event (what the servo receives).
+        ``outputs``: only those changed (a command to one output; the rest of the state is as
+        the last full refresh left it)."""
         self._run_vehicle_log(now_s)  # the samples due before a servo's course changes
-        reported, physical = self._outputs_now()
-        self.pwm_us = reported
+        reported, physical = self._outputs_now(outputs)
+        self.pwm_us = reported if outputs is None else {**self.pwm_us, **reported}
         for output, pwm in physical.items():
             before = self.output_us.get(output)
             if before == pwm:
@@ -1248,7 +1254,7 @@ class SimAutopilot:
         """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command)."""
         self._run_vehicle_log(now_s)
         self._commanded_us[output] = pwm
-        self._refresh_outputs(now_s, "command")
+        self._refresh_outputs(now_s, "command", (output,))
         self._servo_event(output, pwm, now_s)
         if self.output_us[output] == pwm:
             # A command re-sends the pulse even when it is unchanged (the servo's own timing).

@@ -36,7 +36,11 @@ from sim_servo.world import WorldPose
 
 
 class EventLog:
-    """Writes events to ``path`` (None: memory only) and keeps the last ``keep``."""
+    """Writes events to ``path`` (None: memory only) and keeps the last ``keep``.
+
+    An event is only kept when it is emitted; it is turned into JSON and written at
+    :meth:`flush` (the server's, once its frames of the pass are out), so the JSON's cost never
+    delays a frame. Events are not changed after they are emitted."""
 
     def __init__(self, path: str | Path | None = None, keep: int = 10_000) -> None:
         self._file: IO[str] | None = None
@@ -46,19 +50,29 @@ class EventLog:
             except OSError as exc:
                 raise SimIOError(f"cannot open event log {str(path)!r}: {exc}") from exc
         self.recent: collections.deque[dict[str, Any]] = collections.deque(maxlen=keep)
+        self._unwritten: list[dict[str, Any]] = []
 
     def __call__(self, event: dict[str, Any]) -> None:
         self.recent.append(event)
         if self._file is not None:
-            self._file.write(json.dumps(event, separators=(",", ":"), default=str) + "\n")
+            self._unwritten.append(event)
 
     def flush(self) -> None:
         if self._file is not None:
+            if self._unwritten:
+                events, self._unwritten = self._unwritten, []
+                self._file.write(
+                    "".join(
+                        json.dumps(event, separators=(",", ":"), default=str) + "\n"
+                        for event in events
+                    )
+                )
             self._file.flush()
 
     def close(self) -> None:
         if self._file is not None:
-            self._file.close()  # flushes
+            self.flush()
+            self._file.close()
             self._file = None
 
 

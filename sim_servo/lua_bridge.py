@@ -12,11 +12,12 @@ The simulator re-implements the rules from the script's description (it may not 
 When: ArduPilot hands the frame to the script's queue on the main-loop pass that reads it
 (0–2.5 ms at 400 Hz, the autopilot's own inbox), the script picks it up on its next run, every
 :data:`SCRIPT_PERIOD_MS` (the scripting thread runs at a lower rate than the main loop), and
-answers :data:`SCRIPT_ANSWER_MS` later. Fitted to what was measured on ArduCopter 4.7.0-dev
-SITL (send → ACK median 8.9 ms, max 11.5 ms): the sum of the two waits has its median at
-(2.5 + 2.7) / 2 = 2.6 ms and its maximum at 5.2 ms, so 6.3 + 2.6 = 8.9 and 6.3 + 5.2 = 11.5.
-That measurement was over TCP; here the figure is the script's own, and a link's time (the
-TCP-fitted hold, or a serial line's bytes) comes on top.
+answers :data:`SCRIPT_ANSWER_MS` later; the answer then leaves through the link's output, whose
+floor (``LinkTimingConfig.output_delay_ms``, 1.0 ms) holds for every frame the autopilot
+writes. Fitted to what was measured on ArduCopter 4.7.0-dev SITL (send → ACK median 8.9 ms,
+max 11.5 ms): the sum of the two waits has its median at (2.5 + 2.7) / 2 = 2.6 ms and its
+maximum at 5.2 ms, so 5.3 + 2.6 + 1.0 = 8.9 and 5.3 + 5.2 + 1.0 = 11.5. That measurement was
+over TCP; the TCP-fitted hold, or a serial line's bytes, come on top.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from dataclasses import dataclass
 
 MAV_CMD_USER_2 = 31011
 SCRIPT_PERIOD_MS = 2.7
-SCRIPT_ANSWER_MS = 6.3
+SCRIPT_ANSWER_MS = 5.3
 SLOTS = 6
 #: The script drives SERVO1 … SERVO32; a board without SERVOn parameters refuses output n.
 MAX_OUTPUT = 32

@@ -145,6 +145,54 @@ Solve = Callable[[Pose, Sequence[float], str, float | None], Any]
 WORLD_SOLVE_SHARE = 0.1
 #: A stream asked to stop (SET_MESSAGE_INTERVAL param2 = -1).
 STOP_STREAM = -1.0
+
+
+def stream_intervals_s(*, ardupilot: bool, url: str) -> tuple[float, float]:
+    """(SERVO_OUTPUT_RAW, SYS_STATUS) intervals for a link: slower on a serial line below
+    :data:`SLOW_LINK_BAUD`, where every byte up delays the ACKs behind it."""
+    spec = parse_url(url)
+    slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
+    if ardupilot:
+        readback_s = READBACK_SLOW_LINK_INTERVAL_S if slow_serial else READBACK_INTERVAL_S
+    else:
+        readback_s = READBACK_INTERVAL_S if slow_serial else READBACK_FAST_INTERVAL_S
+    sys_status_s = SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
+    return readback_s, sys_status_s
+
+
+def stream_requests(
+    *,
+    ardupilot: bool,
+    readback_interval_s: float,
+    sys_status_interval_s: float,
+    world_telemetry_hz: float | None,
+) -> list[tuple[int, float]]:
+    """The streams the core asks for (message id, interval in s; :data:`STOP_STREAM`: stop):
+    SYSTEM_TIME (reboots), SERVO_OUTPUT_RAW (what the outputs do), from ArduPilot SYS_STATUS
+    (its safety switch), and ATTITUDE / LOCAL_POSITION_NED at ``world_telemetry_hz`` when
+    world targets are on (None: off). Also what ``bench/serial_links.py``'s line model asks."""
+    streams = [
+        (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S),
+        (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, readback_interval_s),
+    ]
+    if ardupilot:
+        streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, sys_status_interval_s))
+    if world_telemetry_hz is not None:
+        streams += [
+            (mavlink.MAVLINK_MSG_ID_ATTITUDE, 1.0 / world_telemetry_hz),
+            (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1.0 / world_telemetry_hz),
+        ]
+    elif not ardupilot:
+        # PX4 streams them unasked on a companion's (ONBOARD) link, 100 and 30 Hz: half a
+        # 115 200-baud line, in the way of every ACK. Unread here, they are stopped (on this
+        # link only: a ground station's has its own).
+        streams += [
+            (mavlink.MAVLINK_MSG_ID_ATTITUDE, STOP_STREAM),
+            (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, STOP_STREAM),
+        ]
+    return streams
+
+
 #: Before any update's round trip was measured, the link's one-way latency is taken as this.
 WORLD_DEFAULT_ONE_WAY_S = 0.005
 
@@ -266,18 +314,8 @@ class ControlCore:
         #: READBACK_WAIT_S after it with none (a firmware that does not stream it).
         self._readback_since_s = clock()
         self._readback_warned = False
-        spec = parse_url(config.link.url)
-        slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
-        if self._is_ardupilot:
-            self._readback_interval_s = (
-                READBACK_SLOW_LINK_INTERVAL_S if slow_serial else READBACK_INTERVAL_S
-            )
-        else:
-            self._readback_interval_s = (
-                READBACK_INTERVAL_S if slow_serial else READBACK_FAST_INTERVAL_S
-            )
-        self._sys_status_interval_s = (
-            SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
+        self._readback_interval_s, self._sys_status_interval_s = stream_intervals_s(
+            ardupilot=self._is_ardupilot, url=config.link.url
         )
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
@@ -1110,27 +1148,16 @@ class ControlCore:
         if self._pinned is None:
             return
         self._system_time_asked_s = self.clock()
-        streams = [
-            (mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S),
-            (mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW, self._readback_interval_s),
-        ]
+        streams = stream_requests(
+            ardupilot=self._is_ardupilot,
+            readback_interval_s=self._readback_interval_s,
+            sys_status_interval_s=self._sys_status_interval_s,
+            world_telemetry_hz=self.config.world.telemetry_hz
+            if self.config.world.enabled
+            else None,
+        )
         if self._is_ardupilot:
-            streams.append((mavlink.MAVLINK_MSG_ID_SYS_STATUS, self._sys_status_interval_s))
             self._sys_status_asked_s = self.clock()
-        world = self.config.world
-        if world.enabled:
-            streams += [
-                (mavlink.MAVLINK_MSG_ID_ATTITUDE, 1.0 / world.telemetry_hz),
-                (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 1.0 / world.telemetry_hz),
-            ]
-        elif not self._is_ardupilot:
-            # PX4 streams them unasked on a companion's (ONBOARD) link, 100 and 30 Hz: half a
-            # 115 200-baud line, in the way of every ACK. Unread here, they are stopped (on
-            # this link only: a ground station's has its own).
-            streams += [
-                (mavlink.MAVLINK_MSG_ID_ATTITUDE, STOP_STREAM),
-                (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, STOP_STREAM),
-            ]
         for msg_id, interval_s in streams:
             actions.append(
                 SendCommand(

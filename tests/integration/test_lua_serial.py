@@ -7,6 +7,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.service import Outcome
+from sim_servo.lua_bridge import SCRIPT_ANSWER_MS
 from tests.integration.test_faults import (
     QUANT_ORI_DEG,
     QUANT_POS_CM,
@@ -46,9 +47,9 @@ def test_ardupilot_lua_dialect_over_a_115200_baud_pty(sims):
         answers = [e for e in events if e["event"] == "ack" and e["command"] == MAV_CMD_USER_2]
         assert len(frames) == 2
         assert [a["result"] for a in answers] == [0, 0]
-        # The script answers no sooner than its fixed part (6.3 ms) after the frame was whole.
+        # The script answers no sooner than its fixed part after the frame was whole.
         for frame, answer in zip(frames, answers, strict=True):
-            assert answer["t_s"] - frame["t_s"] >= 0.0063 - 1e-6
+            assert answer["t_s"] - frame["t_s"] >= SCRIPT_ANSWER_MS / 1e3 - 1e-6
         assert daemon.status()["counters"]["servo_errors"] == 0
     finally:
         daemon.close()

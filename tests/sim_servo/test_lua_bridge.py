@@ -85,8 +85,9 @@ def test_answer_time_spans_the_measured_median_and_max():
         delays.append((timing.answer_s(handed) - arrived) * 1e3)
     delays.sort()
     assert min(delays) >= SCRIPT_ANSWER_MS - 1e-6
-    assert max(delays) <= SCRIPT_ANSWER_MS + SCRIPT_PERIOD_MS + 2.5 + 1e-6  # 11.5 ms
-    assert delays[len(delays) // 2] == pytest.approx(8.9, abs=0.3)
+    assert max(delays) <= SCRIPT_ANSWER_MS + SCRIPT_PERIOD_MS + 2.5 + 1e-6  # 10.5 ms
+    # + the link's 1.0 ms output floor: SITL's measured 8.9 ms median, 11.5 ms max.
+    assert delays[len(delays) // 2] + 1.0 == pytest.approx(8.9, abs=0.3)
 
 
 def lua_harness(**config) -> Harness:
