@@ -397,6 +397,9 @@ class MavlinkLink:
         self._state_lock = threading.Lock()
         self._sub_lock = threading.Lock()
         self._subscriptions: list[Subscription] = []
+        # Per message type, the subscriptions that take it (built on first use; cleared when
+        # one is added or cancelled): the reader dispatches a few hundred frames a second.
+        self._subs_by_type: dict[str, tuple[Subscription, ...]] = {}
         self._state_callbacks: list[Callable[[LinkState], None]] = []
         self._published_state = LinkState.WAITING
         self._stop = threading.Event()
@@ -652,6 +655,7 @@ class MavlinkLink:
         sub = Subscription(self, callback, frozenset(types) if types is not None else None)
         with self._sub_lock:
             self._subscriptions.append(sub)
+            self._subs_by_type = {}
         return sub
 
     def messages(self, types: Iterable[str] | None = None, maxsize: int = 256) -> MessageQueue:
@@ -662,16 +666,21 @@ class MavlinkLink:
         with self._sub_lock:
             if sub in self._subscriptions:
                 self._subscriptions.remove(sub)
+                self._subs_by_type = {}
 
     def _handle(self, msg: MavMessage) -> None:
         if isinstance(msg, mavlink.MAVLink_bad_data):
             self._count_bad(msg)
             return
         self._counts["rx_messages"] += 1
-        if msg.get_type() == "HEARTBEAT":
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
             self._handle_heartbeat(msg)
         with self._sub_lock:
-            subscriptions = [s for s in self._subscriptions if s.matches(msg)]
+            subscriptions = self._subs_by_type.get(kind)
+            if subscriptions is None:
+                subscriptions = tuple(s for s in self._subscriptions if s.matches(msg))
+                self._subs_by_type[kind] = subscriptions
         for sub in subscriptions:
             sub.callback(msg)
 

@@ -149,6 +149,20 @@ def test_cancelled_subscription_gets_nothing_more(udp_peer, udp_link):
     assert [m.text for m in seen] == ["one"]
 
 
+def test_a_subscription_added_later_gets_the_next_frames_of_a_type_already_dispatched(
+    udp_peer, udp_link
+):
+    first, second = [], []
+    udp_link.subscribe(first.append, ["STATUSTEXT"])
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.send_statustext("one")
+    assert wait_until(lambda: len(first) == 1)
+    udp_link.subscribe(second.append, ["STATUSTEXT"])
+    udp_peer.send_statustext("two")
+    assert wait_until(lambda: len(first) == 2)
+    assert [m.text for m in second] == ["two"]
+
+
 def test_udpin_replies_to_whoever_spoke_first():
     with MavlinkLink.open("udpin:127.0.0.1:0", LinkConfig(**FAST)) as link:
         port = link.transport.local_address[1]
