@@ -324,6 +324,37 @@ class _Codec(mavlink.MAVLink):
         stale, self._stale = self._stale, []
         return stale
 
+    def parse_datagram(self, data: bytes) -> list[Any]:
+        """The frames of one datagram, each standing alone (any partial frame before it is
+        forgotten). A datagram holding exactly one MAVLink 2 frame (what an autopilot on UDP
+        mostly sends) goes straight to :meth:`decode`, which checks it as pymavlink's byte
+        parser would (length, CRC, signature) at half the cost; anything else takes that
+        parser, which also finds the frames in what is not one clean frame."""
+        self.reset_parser()
+        n = len(data)
+        if (
+            n >= 3
+            and data[0] == mavlink.PROTOCOL_MARKER_V2
+            and self.robust_parsing
+            and self.callback is None
+        ):
+            flags = data[2]
+            signed = flags & mavlink.MAVLINK_IFLAG_SIGNED
+            size = data[1] + mavlink.HEADER_LEN_V2 + 2
+            if signed:
+                size += mavlink.MAVLINK_SIGNATURE_BLOCK_LEN
+            if size == n and not flags & ~mavlink.MAVLINK_IFLAG_SIGNED:
+                # As pymavlink's parse_char does for one whole frame (robust parsing).
+                self.total_bytes_received += n
+                self.total_packets_received += 1
+                frame = bytearray(data)
+                try:
+                    return [self.decode(frame)]
+                except mavlink.MAVError as reason:
+                    self.total_receive_errors += 1
+                    return [mavlink.MAVLink_bad_data(frame, reason.message)]
+        return self.parse_buffer(data) or []
+
     def reset_parser(self) -> None:
         """Forget any partial frame (a datagram transport: each datagram stands alone)."""
         self.buf = bytearray()
@@ -366,6 +397,9 @@ class MavlinkLink:
         self._state_lock = threading.Lock()
         self._sub_lock = threading.Lock()
         self._subscriptions: list[Subscription] = []
+        # Per message type, the subscriptions that take it (built on first use; cleared when
+        # one is added or cancelled): the reader dispatches a few hundred frames a second.
+        self._subs_by_type: dict[str, tuple[Subscription, ...]] = {}
         self._state_callbacks: list[Callable[[LinkState], None]] = []
         self._published_state = LinkState.WAITING
         self._stop = threading.Event()
@@ -621,6 +655,7 @@ class MavlinkLink:
         sub = Subscription(self, callback, frozenset(types) if types is not None else None)
         with self._sub_lock:
             self._subscriptions.append(sub)
+            self._subs_by_type = {}
         return sub
 
     def messages(self, types: Iterable[str] | None = None, maxsize: int = 256) -> MessageQueue:
@@ -631,16 +666,21 @@ class MavlinkLink:
         with self._sub_lock:
             if sub in self._subscriptions:
                 self._subscriptions.remove(sub)
+                self._subs_by_type = {}
 
     def _handle(self, msg: MavMessage) -> None:
         if isinstance(msg, mavlink.MAVLink_bad_data):
             self._count_bad(msg)
             return
         self._counts["rx_messages"] += 1
-        if msg.get_type() == "HEARTBEAT":
+        kind = msg.get_type()
+        if kind == "HEARTBEAT":
             self._handle_heartbeat(msg)
         with self._sub_lock:
-            subscriptions = [s for s in self._subscriptions if s.matches(msg)]
+            subscriptions = self._subs_by_type.get(kind)
+            if subscriptions is None:
+                subscriptions = tuple(s for s in self._subscriptions if s.matches(msg))
+                self._subs_by_type[kind] = subscriptions
         for sub in subscriptions:
             sub.callback(msg)
 
@@ -728,8 +768,9 @@ class MavlinkLink:
         """Decode and dispatch what one read returned (udpin: choose the peer; module
         docstring)."""
         if transport.datagrams:
-            self._decoder.reset_parser()
-        msgs = self._decoder.parse_buffer(data) or []
+            msgs = self._decoder.parse_datagram(data)
+        else:
+            msgs = self._decoder.parse_buffer(data) or []
         stale = self._decoder.take_stale()
         if not isinstance(transport, UdpInTransport) or sender is None:
             for msg in msgs:

@@ -119,6 +119,11 @@ class UpdateTracker:
         return True
 
     @property
+    def acks_missing(self) -> int:
+        """ACKs still to come before the count is complete (0 once it is)."""
+        return len(self.commands) - len(self._results)
+
+    @property
     def complete(self) -> bool:
         """Every command has its ACK (its verdict may still wait out the grace period)."""
         return self._complete_s is not None

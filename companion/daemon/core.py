@@ -374,6 +374,7 @@ class ControlCore:
         self._world_note: dict[str, Any] = {}
         #: Recent updates' round trips (s), for the link's one-way latency.
         self._round_trips: collections.deque[float] = collections.deque(maxlen=32)
+        self._mount_cache: tuple[Any, Any] | None = None
 
     # -- events -----------------------------------------------------------------------------
 
@@ -512,6 +513,16 @@ class ControlCore:
         for flight in self._flights:
             wake = min(wake, flight.tracker.next_event_s())
         return wake
+
+    def acks_to_progress(self) -> int:
+        """How many more servo COMMAND_ACKs may arrive before one of them changes anything:
+        the oldest update short of ACKs decides nothing until its count is complete
+        (:meth:`UpdateTracker.poll`); 1 when none is short (the driver may then wake for
+        each)."""
+        for flight in self._flights:
+            if not flight.tracker.complete:
+                return max(1, flight.tracker.acks_missing)
+        return 1
 
     def shutdown(self, *, park: bool) -> list[Action]:
         """Stop: answer everything waiting, and send the park pose directly if asked."""
@@ -1390,7 +1401,14 @@ class ControlCore:
         trips = sorted(self._round_trips)
         one_way_s = trips[len(trips) // 2] / 2.0 if trips else WORLD_DEFAULT_ONE_WAY_S
         apply_s = now + one_way_s + world.lead_ms / 1000.0
-        return world_to_base(target.pose, state.predict(apply_s), self.config.mount.matrix)
+        return world_to_base(target.pose, state.predict(apply_s), self._mount_matrix())
+
+    def _mount_matrix(self) -> Any:
+        """``T_body_base`` of the config's mount, built once per mount (40 µs a tick)."""
+        mount = self.config.mount
+        if self._mount_cache is None or self._mount_cache[0] is not mount:
+            self._mount_cache = (mount, mount.matrix)
+        return self._mount_cache[1]
 
     def _follow_world(self) -> None:
         """Each tick: the held world target solved again (warm) for where the vehicle will be.
@@ -1442,9 +1460,7 @@ class ControlCore:
         out["following"] = self._world is not None
         out.update(self._world_note if self._world is not None else {})
         if state is not None and self._hand_at is not None and self._hand_at[0] == position:
-            hand = base_to_world(
-                Pose(**self._hand_at[1]), state.predict(now), self.config.mount.matrix
-            )
+            hand = base_to_world(Pose(**self._hand_at[1]), state.predict(now), self._mount_matrix())
             out["hand_ned"] = dict(zip(POSE_KEYS, hand.as_tuple(), strict=True))
         return out
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -67,8 +66,9 @@ __all__ = ["ArmDaemon", "Outcome", "Reply"]
 
 log = logging.getLogger("armbridge")
 
-#: The status snapshot is rebuilt at most this often (and after every request and answer).
-STATUS_PERIOD_S = 0.02
+#: A thread asking for status waits this long at most for the control thread to build a fresh
+#: snapshot (it builds one at the end of its step); past it, the last one is served.
+STATUS_WAIT_S = 0.25
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
 #: The frame types the core reads.
@@ -128,7 +128,19 @@ class ArmDaemon:
         self._core = ControlCore(config, solve=self._solve, clock=clock)
         self._frames: collections.deque[Any] = collections.deque()
         self._frames_lock = threading.Lock()
-        self._status_s = -math.inf
+        # ACCEPTED COMMAND_ACKs queued for the core and taken by it (under _frames_lock): the
+        # reader wakes the control thread only once the queue holds the ACK that completes the
+        # oldest update's count (_arm_ack_wake); the ones before it decide nothing, and
+        # ArduPilot answers an update's six DO_SET_SERVO with six frames.
+        self._acks_queued = 0
+        self._acks_fed = 0
+        self._acks_wake_at = 1
+        # The status snapshot is built on the control thread when some thread asked for one
+        # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
+        # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
+        self._status_cond = threading.Condition()
+        self._status_asked = 0
+        self._status_built = 0
         self._counts_lock = threading.Lock()
         # Counted here, added to the core's counters in status(): refused before the core.
         self._counts = {
@@ -319,7 +331,10 @@ class ArmDaemon:
 
     def status(self) -> dict[str, Any]:
         """A snapshot: link state, joints, per-output state, last target, counters (any
-        thread)."""
+        thread). Built fresh by the control thread for the caller (waiting at most
+        ``STATUS_WAIT_S`` for the end of its step), so it counts every answer given before the
+        call; on the control thread itself (an answer's callback), built at once."""
+        self._refresh_status()
         link = self.link
         status = dict(self._status)
         counters = dict(status["counters"])
@@ -337,6 +352,20 @@ class ArmDaemon:
         status["link_fault"] = link.fault if link is not None else None
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
+
+    def _refresh_status(self) -> None:
+        thread = self._thread
+        if thread is None or self._closing is not None or not thread.is_alive():
+            return  # not started, stopping or stopped: the last snapshot is the final one
+        if threading.current_thread() is thread:
+            self._status = self._core.status()
+            return
+        with self._status_cond:
+            self._status_asked += 1
+            wanted = self._status_asked
+        self._wake.set()
+        with self._status_cond:
+            self._status_cond.wait_for(lambda: self._status_built >= wanted, STATUS_WAIT_S)
 
     # -- link input (reader thread: never waits) ----------------------------------------------
 
@@ -372,13 +401,20 @@ class ArmDaemon:
         self.intake.submit(request)
 
     def _on_frame(self, msg: Any) -> None:
+        kind = msg.get_type()
+        counted = kind == "COMMAND_ACK" and msg.result == mavlink.MAV_RESULT_ACCEPTED
         with self._frames_lock:
             if len(self._frames) >= FRAME_QUEUE_MAX:
-                self._frames.popleft()
+                self._acks_fed += self._frames.popleft()[2]
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
-            self._frames.append((self.clock(), msg))
-        if msg.get_type() not in TELEMETRY_FRAMES:
+            self._frames.append((self.clock(), msg, counted))
+            if counted:
+                self._acks_queued += 1
+                wake = self._acks_queued >= self._acks_wake_at
+            else:
+                wake = kind not in TELEMETRY_FRAMES
+        if wake:
             self._wake.set()
 
     def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
@@ -449,6 +485,7 @@ class ArmDaemon:
             self._wake.clear()
             if self._closing is None:
                 self._guarded("control loop", None, self._step)
+                self._arm_ack_wake()
             self._last_tick = self.clock()
         self._guarded("shutdown", None, self._shutdown)
 
@@ -464,13 +501,23 @@ class ArmDaemon:
         for request in requests:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
-        # The snapshot other threads read: at most every STATUS_PERIOD_S (the control thread
-        # wakes for every ACK, six an update; building it each time was most of its CPU with
-        # world targets on), at once after a request, and before any answer (_carry_out).
-        now = self.clock()
-        if requests or now - self._status_s >= STATUS_PERIOD_S:
+        # The snapshot other threads asked for (status()), once for all of them.
+        with self._status_cond:
+            asked = self._status_asked
+        if asked > self._status_built:
             self._status = core.status()
-            self._status_s = now
+            with self._status_cond:
+                self._status_built = asked
+                self._status_cond.notify_all()
+
+    def _arm_ack_wake(self) -> None:
+        """The ACK count at which the reader wakes us (any other ACK, and every other frame
+        the core reads but the telemetry, wakes us at once); wakes us now if it is queued."""
+        with self._frames_lock:
+            self._acks_wake_at = self._acks_fed + self._core.acks_to_progress()
+            due = self._acks_queued >= self._acks_wake_at
+        if due:
+            self._wake.set()
 
     def _request(self, request: Request) -> None:
         self._carry_out(self._core.request(request))
@@ -481,7 +528,8 @@ class ArmDaemon:
             with self._frames_lock:
                 if not self._frames:
                     return
-                received_s, msg = self._frames.popleft()
+                received_s, msg, counted = self._frames.popleft()
+                self._acks_fed += counted
             self._carry_out(core.frame(msg, received_s))
 
     def _tick(self) -> list[Action]:
@@ -515,12 +563,9 @@ class ArmDaemon:
                 link.send(link.mav.param_request_read_encode(*read.target, read.name.encode(), -1))
             except LinkError as exc:
                 log.warning("%s not asked for: %s", read.name, exc)
-        answers = [a for a in actions if isinstance(a, Answer)]
-        if answers:
-            # Before the answers: a client that asks for status once answered sees its request
-            # counted (the snapshot is otherwise refreshed only at the end of the step).
-            self._status = self._core.status()
-        for action in answers:
+        # A client that asks for status once answered sees its request counted: status()
+        # waits for a snapshot built after it asked (on this thread: builds one at once).
+        for action in (a for a in actions if isinstance(a, Answer)):
             reply = action.reply
             if action.request.answer(reply) and reply.outcome is not Outcome.ACCEPTED:
                 self.intake.refusals.note(action.request.kind, reply.outcome, reply.message)

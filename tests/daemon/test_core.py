@@ -195,6 +195,30 @@ def test_an_update_goes_out_back_to_back_and_is_answered_once_every_ack_is_in(ri
     assert status["current_deg"] == pytest.approx(near(PARK))
 
 
+def test_acks_to_progress_counts_down_the_oldest_update_short_of_acks(rig):
+    # The service wakes its control thread only on the ACK that can change something: a
+    # partial count decides nothing (the tracker's verdict waits for the last one).
+    assert rig.core.acks_to_progress() == 1  # nothing in flight: any ACK may matter
+    rig.goto(PARK)
+    rig.ack_all(rig.sent)
+    rig.sent.clear()
+    rig.clock.advance(0.02)
+    first = rig.goto(near(PARK))
+    assert rig.core.acks_to_progress() == 6
+    rig.ack()
+    rig.ack()
+    assert rig.core.acks_to_progress() == 4 and not first.answered
+    rig.clock.advance(0.01)
+    rig.goto(tuple(p + 20.0 for p in PARK))  # a second update behind the first
+    assert rig.core.acks_to_progress() == 4  # still the oldest's count
+    for _ in range(3):
+        rig.ack()
+    assert rig.core.acks_to_progress() == 1 and not first.answered
+    rig.ack()
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    assert rig.core.acks_to_progress() == 6  # now the one behind
+
+
 def test_only_outputs_whose_pwm_changed_are_sent(rig):
     rig.ack_all(rig.take(rig.core.request(Request("goto", near(PARK)))))
     rig.sent.clear()

@@ -21,6 +21,7 @@ from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from sim_servo.query import query
+from tests.daemon.test_core import PARK, Rig, near
 from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
 from tests.support.sim_process import assert_within_quantisation
 from tests.support.timing import wait_until
@@ -441,3 +442,74 @@ def test_statustext_fits_in_50_characters_cut_at_a_word():
     assert Reply(Outcome.DENIED, "x" * 80).statustext() == "x" * 47 + "..."
     assert Reply(Outcome.FAILED, "pose ±1°").statustext() == "pose ?1?"
     assert Reply(Outcome.FAILED, "long " * 20, brief="short").statustext() == "short"
+
+
+def _ack_frame(result=mavlink.MAV_RESULT_ACCEPTED):
+    codec = mavlink.MAVLink(None, 1, 1)
+    frame = codec.command_ack_encode(mavlink.MAV_CMD_DO_SET_SERVO, result, 0, 0, 1, 191)
+    return mavlink.MAVLink(None).parse_buffer(frame.pack(codec))[0]
+
+
+def test_the_control_thread_is_woken_by_the_ack_that_completes_an_update_not_by_each():
+    """In-process, no threads: the reader's side (_on_frame) and the control thread's
+    (_feed_frames, _arm_ack_wake) around a core driven as in test_core."""
+    rig = Rig()
+    rig.up()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    request = daemon.new_request("goto", near(PARK))
+    daemon._carry_out(rig.core.request(request))  # six DO_SET_SERVO out (no link: not sent)
+    daemon._arm_ack_wake()
+    for _ in range(5):
+        daemon._on_frame(_ack_frame())
+        assert not daemon._wake.is_set()
+    daemon._on_frame(_ack_frame())
+    assert daemon._wake.is_set()
+    daemon._wake.clear()
+    daemon._feed_frames()
+    assert request.future.result(0).outcome is Outcome.ACCEPTED
+    daemon._arm_ack_wake()
+    # Nothing in flight: any ACK wakes it; so does every other frame the core reads but the
+    # vehicle's telemetry, and a refusal at once, whatever the count.
+    daemon._on_frame(_ack_frame())
+    assert daemon._wake.is_set()
+    daemon._wake.clear()
+    daemon._feed_frames()
+    daemon._arm_ack_wake()
+    rig.clock.advance(0.02)
+    second = daemon.new_request("goto", PARK)
+    daemon._carry_out(rig.core.request(second))
+    daemon._arm_ack_wake()
+    codec = mavlink.MAVLink(None, 1, 1)
+    attitude = codec.attitude_encode(1000, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0).pack(codec)
+    daemon._on_frame(mavlink.MAVLink(None).parse_buffer(attitude)[0])
+    assert not daemon._wake.is_set()
+    daemon._on_frame(_ack_frame(mavlink.MAV_RESULT_FAILED))
+    assert daemon._wake.is_set()
+    # ACKs queued before the count was set (they came during the step) wake it at once.
+    daemon._wake.clear()
+    daemon._feed_frames()
+    for _ in range(5):
+        daemon._on_frame(_ack_frame())
+    daemon._arm_ack_wake()
+    assert daemon._wake.is_set()
+
+
+def test_status_is_built_for_whoever_asks_and_only_then():
+    daemon = ArmDaemon(parse_config({"link": {"url": URL}}))
+    builds, steps = [], []
+    core_status, step = daemon._core.status, daemon._step
+    daemon._core.status = lambda: builds.append(1) or core_status()  # type: ignore[method-assign]
+    daemon._step = lambda: steps.append(1) or step()  # type: ignore[method-assign]
+    # The control thread alone (no link: the core sees it down and ticks on).
+    daemon._thread = threading.Thread(target=daemon._run, daemon=True)
+    daemon._thread.start()
+    try:
+        assert wait_until(lambda: len(steps) >= 5, WAIT_S)
+        assert builds == []
+        daemon._core.counters["solved"] = 7  # before the call: the snapshot must count it
+        assert daemon.status()["counters"]["solved"] == 7
+        assert len(builds) == 1
+    finally:
+        daemon.close()
+    assert not daemon._thread.is_alive()

@@ -6,7 +6,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
-from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
+from firmware_interface.link import LinkConfig, LinkState, MavlinkLink, _Codec
 from firmware_interface.transport import open_transport, parse_url
 from tests.support.mavlink_peer import PtyEndpoint, ScriptedPeer, TcpEndpoint, UdpEndpoint
 from tests.support.timing import wait_until
@@ -147,6 +147,20 @@ def test_cancelled_subscription_gets_nothing_more(udp_peer, udp_link):
     udp_peer.send_heartbeat()
     udp_link.wait_for_autopilot(timeout_s=5.0)  # ordered after "two" on the same socket
     assert [m.text for m in seen] == ["one"]
+
+
+def test_a_subscription_added_later_gets_the_next_frames_of_a_type_already_dispatched(
+    udp_peer, udp_link
+):
+    first, second = [], []
+    udp_link.subscribe(first.append, ["STATUSTEXT"])
+    udp_peer.wait_for_messages("HEARTBEAT")
+    udp_peer.send_statustext("one")
+    assert wait_until(lambda: len(first) == 1)
+    udp_link.subscribe(second.append, ["STATUSTEXT"])
+    udp_peer.send_statustext("two")
+    assert wait_until(lambda: len(first) == 2)
+    assert [m.text for m in second] == ["two"]
 
 
 def test_udpin_replies_to_whoever_spoke_first():
@@ -317,3 +331,60 @@ def test_send_many_writes_its_messages_in_one_datagram(clock):
     finally:
         link.close()
         peer.close()
+
+
+def _decoded(msgs):
+    return [
+        (
+            m.get_type(),
+            getattr(m, "reason", None),
+            None if m.get_type() == "BAD_DATA" else m.to_dict(),
+        )
+        for m in msgs
+    ]
+
+
+def test_a_datagram_decodes_as_pymavlinks_byte_parser_decodes_it():
+    """parse_datagram's one-frame shortcut gives what parse_buffer gives: messages, refusals
+    and counters, signed frames (and their replay) included."""
+    key = bytes(range(32))
+    sender = mavlink.MAVLink(None, 1, 1)
+    signer = mavlink.MAVLink(None, 1, 1)
+    signer.signing.secret_key = key
+    signer.signing.sign_outgoing = True
+    signer.signing.timestamp = 1000
+    forger = mavlink.MAVLink(None, 1, 1)
+    forger.signing.secret_key = bytes(32)
+    forger.signing.sign_outgoing = True
+    forger.signing.timestamp = 5000
+    ack = sender.command_ack_encode(183, 0, 0, 0, 1, 191).pack(sender)
+    attitude = sender.attitude_encode(1000, 0.1, -0.2, 0.3, 0.01, 0.02, 0.03).pack(sender)
+    signed = signer.command_ack_encode(183, 4, 0, 0, 1, 191).pack(signer)
+    datagrams = [
+        ack,
+        attitude,
+        ack[:-1] + bytes([ack[-1] ^ 0xFF]),  # bad CRC
+        ack + attitude,  # two frames
+        ack[:-3],  # cut short
+        ack + b"\x00",  # a byte too many
+        b"\x00\x01garbage",
+        bytes([ack[0], ack[1], 0x02]) + ack[3:],  # an unknown incompat flag
+        sender.heartbeat_encode(6, 8, 0, 0, 4).pack(sender, force_mavlink1=True),
+    ]
+    for unsigned_codec in (False, True):
+        fast, slow = (_Codec(None, 1, 191) for _ in range(2))
+        cases = list(datagrams)
+        if unsigned_codec:
+            cases += [signed, signed, forger.command_ack_encode(183, 0, 0, 0, 1, 191).pack(forger)]
+            for codec in (fast, slow):
+                codec.signing.secret_key = key
+        for codec in (fast, slow):
+            codec.robust_parsing = True
+        for data in cases:
+            slow.reset_parser()
+            expected = _decoded(slow.parse_buffer(data) or [])
+            assert _decoded(fast.parse_datagram(data)) == expected, data
+        for counter in ("total_packets_received", "total_receive_errors", "total_bytes_received"):
+            assert getattr(fast, counter) == getattr(slow, counter), counter
+    # The cases above took both paths, and the signed ones were told apart.
+    assert [m.get_type() for m in fast.parse_datagram(signed)] == ["BAD_DATA"]  # replayed
