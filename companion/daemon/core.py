@@ -828,8 +828,10 @@ class ControlCore:
         if keepout is not None:
             # The motion from the step commanded last (what the outputs will hold) to this one,
             # proven clear of every volume, or not sent.
+            # Both as the servos get them: the PWM rounded to whole µs (a link of 60 cm moves
+            # up to ~0.05 cm with that rounding; seen crossing the margin in bench.keepout_daemon).
             before = self._flights[-1].step_deg if self._flights else tuple(self._position)
-            collision = keepout.check_motion(np.radians(before), np.radians(step))
+            collision = keepout.check_motion(self._as_sent_rad(before), self._as_sent_rad(step))
             if collision is not None:
                 self.counters["keepout_refusals"] += 1
                 log.error("keep-out: a step refused, holding: %s", collision.reason)
@@ -1386,8 +1388,18 @@ class ControlCore:
         keepout = self._keepout()
         if keepout is None:
             return None
-        collision = keepout.check(np.radians(np.asarray(q_deg, float)))
-        return None if collision is None else f"puts {collision.reason}"
+        collision = keepout.check(self._as_sent_rad(q_deg))
+        return None if collision is None else f"puts {collision.reason} (at the PWM sent)"
+
+    def _as_sent_rad(self, q_deg: Sequence[float]) -> Any:
+        """The joints (rad) the servos get for ``q_deg``: each angle through its PWM, rounded
+        to whole µs as sent (angles outside the calibration: as they are, never sent)."""
+        cal = self.config.calibration
+        try:
+            pwm = cal.angles_to_pwm_us(q_deg)
+        except CalibrationError:
+            return np.radians(np.asarray(q_deg, float))
+        return np.radians([j.pwm_us_to_angle_deg(pwm[j.output]) for j in cal.joints])
 
     # -- world-frame targets (issue 18) ------------------------------------------------------
 

@@ -1,31 +1,33 @@
 """Solutions that keep clear of the vehicle: :func:`solve_clear`, a hard check and a cost term
 around :func:`~companion.ik.solver.solve`.
 
-**The cost term** (:func:`clearance_penalty`): ``Σ max(0, margin_cm + soft_margin_cm − c)²``
-(cm²) over every (link capsule, volume) pair whose clearance ``c`` is below the hard margin plus
-a soft one (:data:`SOFT_MARGIN_CM`, 3 cm): it grows with the penetration depth inside a volume
-and with the shortfall of clearance outside one. Each answer that meets the tolerances and has
-a penalty is **steered** (:func:`_steer`): a step down the penalty's gradient (central
-differences, one batch of ``2n + 1`` configurations), projected onto the null space of the
-target's Jacobian rows (position rows for a position target, all six otherwise), so that to first
-order the hand stays on the target; then a warm solve from there puts it back on the target
-exactly (within the tolerances). A step is kept only if that answer still meets the
-tolerances and has a lower penalty; otherwise the step is halved. So an answer moves away from
-the volumes along the target's own solution set, as far as the pose allows: a whole-pose target
-on a 6-joint arm has no null space (its answers are isolated) and is left as it is; a position
-target has three joints of freedom to use. The steered answer is then judged by the hard
-checks below like any other (the cost term never lets anything through).
+**The cost term** (:func:`clearance_penalty`): ``Σ max(0, margin_cm + soft_margin_cm − c)²`` (cm²)
+over every (link capsule, volume) pair whose clearance ``c`` is below the hard margin plus a soft
+one (:data:`SOFT_MARGIN_CM`, 3 cm): it grows with the penetration depth inside a volume and with
+the shortfall of clearance outside one. The answer to be returned (clear, meeting the tolerances)
+is **steered** while it has a penalty and the budget lasts (:func:`_steer`): a step down the
+penalty's gradient (central differences, one batch of ``2n + 1`` configurations), projected onto
+the null space of the target's Jacobian rows (position rows for a position target, all six
+otherwise), so that to first order the hand stays on the target; then a warm solve from there puts
+it back on the target exactly (within the tolerances). A step is kept only if that answer still
+meets the tolerances and has a lower penalty; otherwise the step is halved. So an answer moves
+away from the volumes along the target's own solution set, as far as the pose allows: a whole-pose
+target on a 6-joint arm has no null space (its answers are isolated) and is left as it is; a
+position target has three joints of freedom to use. The steered answer is then judged by the hard
+checks below like any other (the cost term never lets anything through); if it fails them, the
+plain answer is returned. Colliding answers are not steered: pushing one out of a volume took the
+budget that other solutions use better (``bench/keepout.py``, ~20 % fewer targets reached clear
+when they were).
 
-**The hard check**: each answer is checked with a
-:class:`~companion.kinematics.collision.KeepOut` and, while the budget lasts, asked again from
-elsewhere: first from ``q_start_deg`` (the warm
-start, normally the previous command), then alternately a cold start and a warm start from a
-random configuration that is itself clear, each with a fresh seed. An answer is taken only if
-the configuration, and (with ``q_start_deg``) the straight joint motion from ``q_start_deg`` to
-it (the path the daemon's joint-speed limit steps along), keep the margin; otherwise the target
-is refused with the reason of the best attempt (which link comes how close to which volume,
-and where along the motion). A ``q_start_deg`` that is itself inside a margin refuses every
-motion: the arm is not moved from there by this filter.
+**The hard check**: each answer is checked with a :class:`~companion.kinematics.collision.KeepOut`
+and, while the budget lasts, the target is solved again from elsewhere: first from ``q_start_deg``
+(the warm start, normally the previous command), then alternately a cold start and a warm start
+from a random configuration that is itself clear, each with a fresh seed. An answer is taken only
+if the configuration, and (with ``q_start_deg``) the straight joint motion from ``q_start_deg`` to
+it (the path the daemon's joint-speed limit steps along), keep the margin; otherwise the target is
+refused with the reason of the best attempt (which link comes how close to which volume, and where
+along the motion). A ``q_start_deg`` that is itself inside a margin refuses every motion: the arm
+is not moved from there by this filter.
 """
 
 from __future__ import annotations
@@ -186,14 +188,16 @@ def _steer(
     arm = keepout.arm
     rows = _task_rows(mode)
     q = result.q_rad
+    computing = clock()
     penalty, direction = _steer_direction(keepout, q, rows, soft_margin_cm)
+    direction_s = clock() - computing  # each kept step computes the next direction
     step_rad = math.radians(STEER_STEP_DEG)
     calls = kept = 0
     while penalty > 0.0 and calls < calls_left and step_rad > 1e-4:
         size = float(np.abs(direction).max())
         if not size > 1e-12:
             break  # no freedom left, or a flat penalty
-        left_s = deadline - clock()
+        left_s = deadline - clock() - 2 * direction_s
         if left_s <= 0.0:
             break
         moved = np.clip(q + direction * (step_rad / size), arm.lower_q, arm.upper_q)
@@ -209,6 +213,44 @@ def _steer(
                 continue
         step_rad /= 2
     return result, calls, kept
+
+
+def _judge(
+    keepout: KeepOut, result: IKResult, q_start_rad: FloatArray | None
+) -> tuple[Collision | None, bool]:
+    """Why ``result`` is refused (None: clear), and whether only its motion is."""
+    why = keepout.check(result.q_rad)
+    if why is None and q_start_rad is not None:
+        return keepout.check_motion(q_start_rad, result.q_rad), True
+    return why, False
+
+
+def _warm_call(
+    solver: Solver,
+    arm: Any,
+    target: Pose | Sequence[float],
+    rng: np.random.Generator,
+    tol_pos_cm: float,
+    tol_ori_deg: float,
+    mode: TargetMode,
+    solve_kwargs: dict[str, Any],
+) -> Callable[[Sequence[float], float], IKResult]:
+    """``(q_start_deg, budget_ms) → IKResult``: the target solved warm, a fresh seed each."""
+
+    def call(start_deg: Sequence[float], budget_ms: float) -> IKResult:
+        return solver(
+            arm,
+            target,
+            budget_ms=budget_ms,
+            seed=int(rng.integers(0, 1 << 63)),
+            q_start_deg=start_deg,
+            tol_pos_cm=tol_pos_cm,
+            tol_ori_deg=tol_ori_deg,
+            mode=mode,
+            **solve_kwargs,
+        )
+
+    return call
 
 
 def solve_clear(
@@ -233,9 +275,9 @@ def solve_clear(
 
     The arguments are :func:`~companion.ik.solver.solve`'s (``solve_kwargs`` passes the rest:
     ``settings``, ``tool_axis``, ``direction``, ``cpu_clock``); ``solver`` is injectable for
-    tests. Every answer that meets the tolerances is first steered away from the volumes (the
-    cost term, ``soft_margin_cm`` beyond the margin; 0: off), within the same budget and
-    attempts. A clear answer that meets the tolerances returns at once (CLEAR); otherwise the
+    tests. The clear answer found is steered away from the volumes (the cost term,
+    ``soft_margin_cm`` beyond the margin; 0: off) with what is left of the budget. A clear
+    answer that meets the tolerances returns at once (CLEAR); otherwise the
     verdict says why not (:class:`ClearVerdict`), with the nearest clear configuration found
     and the reason of the best colliding answer. Same seed, same inputs → same answer, as long
     as the budget does not cut a solve short.
@@ -310,48 +352,25 @@ def solve_clear(
         attempts += 1
         took_s = clock() - calling
         floor_s = took_s if attempts == 1 else min(floor_s, took_s)
-        candidates = [result]
-        if result.converged and soft_margin_cm > 0:
-
-            def again(start_deg: Sequence[float], budget_ms: float) -> IKResult:
-                return solver(
-                    arm,
-                    target,
-                    budget_ms=budget_ms,
-                    seed=int(rng.integers(0, 1 << 63)),
-                    q_start_deg=start_deg,
-                    tol_pos_cm=tol_pos_cm,
-                    tol_ori_deg=tol_ori_deg,
-                    mode=mode,
-                    **solve_kwargs,
-                )
-
-            # Half of what is left at most: a colliding answer that cannot be steered clear
-            # leaves the other half to the next attempts.
-            moved, calls, kept = _steer(
+        checking = clock()
+        why, motion_only = _judge(keepout, result, q_start_rad)
+        check_s = max(check_s, clock() - checking)
+        if why is None and result.converged and soft_margin_cm > 0:
+            # The answer to return: steered away from the volumes with what is left (colliding
+            # answers are not steered: the budget goes to other solutions, which measured
+            # better than pushing one out of a volume).
+            moved, steer_calls, steered = _steer(
                 keepout,
                 result,
-                again,
+                _warm_call(solver, arm, target, rng, tol_pos_cm, tol_ori_deg, mode, solve_kwargs),
                 mode=mode,
                 soft_margin_cm=soft_margin_cm,
-                deadline=clock() + (deadline - clock() - check_s) / 2,
+                deadline=deadline - 2 * check_s,  # its answer is checked again
                 clock=clock,
                 calls_left=STEER_CALLS,
             )
-            steer_calls += calls
-            steered += kept
-            if moved is not result:
-                candidates.insert(0, moved)  # the steered answer first, the plain one if not
-        for result in candidates:
-            checking = clock()
-            why = keepout.check(result.q_rad)
-            motion_only = False
-            if why is None and q_start_rad is not None:
-                why = keepout.check_motion(q_start_rad, result.q_rad)
-                motion_only = True
-            check_s = max(check_s, clock() - checking)
-            if why is None:
-                break
+            if moved is not result and _judge(keepout, moved, q_start_rad)[0] is None:
+                result = moved  # else the plain answer, which is clear
         if why is None:
             if _better(result, best):
                 best = result
