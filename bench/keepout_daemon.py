@@ -9,8 +9,9 @@ The daemon runs the shipped example config (``companion/daemon/examples/armbridg
 default arm, its calibration, the 450 quad's body, propellers and legs, margin 1 cm) against
 ``sim_servo`` (ArduPilot) on loopback, with a faster control rate, a shorter solver budget and
 a faster joint speed than the example (``--rate-hz``, ``--budget-ms``, ``--joint-speed-deg-s``)
-so that many targets pass in the time. Targets go through the control socket, mostly as
-trajectories (one point due every control tick, ``--points`` a trajectory), a few as ``goto``:
+so that many targets pass in the time. Targets go through the control socket: a trajectory
+(one point due every control tick, ``--points`` of them) sweeping the hand through the vehicle,
+then ``--gotos`` single targets of the other kinds, in turn:
 
 * ``through``: hand poses along a joint-space line between two random configurations (the hand
   sweeps through and around the body, legs and propellers);
@@ -18,7 +19,7 @@ trajectories (one point due every control tick, ``--points`` a trajectory), a fe
 * ``edge``: hand poses of configurations just clear of a volume (bisected onto the margin);
 * ``alternate``: two clear poses on either side of the vehicle, alternating every point;
 * ``far``: poses 90–150 cm out, beyond reach;
-* ``goto``: single targets: a NaN pose, an inside pose, a far one.
+* and every tenth round a NaN pose.
 
 A trajectory point refused ends its trajectory (the daemon's rule), so the count of targets
 is what the daemon solved (its ``solved`` counter), not what was sent.
@@ -48,6 +49,7 @@ from bench.report import interpreter, machine, md_table, write_markdown
 from companion.daemon.config import parse_config
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
+from tests.support.timing import wait_until
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "companion" / "daemon" / "examples"
 DEFAULT_MARKDOWN = Path(__file__).resolve().parent / "results" / "keepout_daemon.md"
@@ -105,38 +107,44 @@ class Targets:
 
 
 def drive(stack: Stack, targets: Targets, args: argparse.Namespace) -> dict[str, Any]:
-    """Send trajectories (and a few gotos) until ``args.targets`` were solved or the time is
-    up; returns the counts."""
+    """Until ``args.targets`` were solved or the time is up: a ``through`` trajectory (its
+    end awaited on ``status``), then ``args.gotos`` single targets of the other kinds, each
+    sent once the one before was answered; a NaN pose every tenth round. Returns the counts."""
     client = ControlClient(stack.control_path, timeout_s=30.0)
     period_s = 1.0 / args.rate_hz
-    sent: dict[str, int] = {k: 0 for k in (*KINDS, "goto")}
+    sent: dict[str, int] = {k: 0 for k in (*KINDS, "nan")}
     answers: dict[str, int] = {}
     started = time.monotonic()
     deadline = started + 60.0 * args.max_minutes
     solved0 = stack.status()["counters"]["solved"]
     solved = 0
     rounds = 0
+    singles = [k for k in KINDS if k != "through"]
+
+    def note(what: str, reply: dict[str, Any]) -> None:
+        key = f"{what} {reply.get('outcome', reply.get('error', 'error'))}"
+        answers[key] = answers.get(key, 0) + 1
+
     while solved < args.targets and time.monotonic() < deadline:
-        kind = KINDS[rounds % len(KINDS)]
-        points = targets.points(kind, args.points)
+        points = targets.points("through", args.points)
         payload = [[i * period_s, *p] for i, p in enumerate(points)]
-        reply = client.request({"cmd": "trajectory", "points": payload})
-        answers[reply.get("outcome", "error")] = answers.get(reply.get("outcome", "error"), 0) + 1
-        sent[kind] += len(points)
-        # Pacing of a client, not synchronisation: the next trajectory replaces this one once
-        # its points are due (a refused point ends it earlier).
-        time.sleep(len(points) * period_s)
+        note("trajectory", client.request({"cmd": "trajectory", "points": payload}))
+        sent["through"] += len(points)
+        # The trajectory ends at its last point or its first refused one.
+        wait_until(lambda: stack.status()["trajectory_points_left"] == 0, 10.0, poll_s=0.01)
+        for i in range(args.gotos):
+            kind = singles[(rounds + i) % len(singles)]
+            pose = targets.points(kind, 1)[0]
+            note(kind, client.request({"cmd": "goto", "pose": pose}))
+            sent[kind] += 1
         if rounds % 10 == 0:
-            for pose in ([math.nan] * 6, targets.points("inside", 1)[0], [150.0, 0, 0, 0, 0, 0]):
-                out = client.request({"cmd": "goto", "pose": pose})  # NaN: JSON's NaN literal
-                answers["goto " + out.get("outcome", "error")] = (
-                    answers.get("goto " + out.get("outcome", "error"), 0) + 1
-                )
-                sent["goto"] += 1
+            note("nan", client.request({"cmd": "goto", "pose": [math.nan] * 6}))
+            sent["nan"] += 1
         rounds += 1
-        if rounds % 20 == 0:
+        if rounds % 10 == 0:
             solved = stack.status()["counters"]["solved"] - solved0
-            print(f"{time.monotonic() - started:6.0f} s: {solved} solved", flush=True)
+            if rounds % 100 == 0:
+                print(f"{time.monotonic() - started:6.0f} s: {solved} solved", flush=True)
     status = stack.status()
     client.close()
     return {
@@ -203,6 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--budget-ms", type=float, default=8.0)
     parser.add_argument("--joint-speed-deg-s", type=float, default=180.0)
     parser.add_argument("--points", type=int, default=50)
+    parser.add_argument("--gotos", type=int, default=50)
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--markdown", type=Path, default=DEFAULT_MARKDOWN)
     args = parser.parse_args(argv)
