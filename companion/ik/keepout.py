@@ -3,21 +3,21 @@ around :func:`~companion.ik.solver.solve`.
 
 **The cost term** (:func:`clearance_penalty`): ``Σ max(0, margin_cm + soft_margin_cm − c)²`` (cm²)
 over every (link capsule, volume) pair whose clearance ``c`` is below the hard margin plus a soft
-one (:data:`SOFT_MARGIN_CM`, 3 cm): it grows with the penetration depth inside a volume and with
-the shortfall of clearance outside one. The answer to be returned (clear, meeting the tolerances)
-is **steered** while it has a penalty and the budget lasts (:func:`_steer`): a step down the
-penalty's gradient (central differences, one batch of ``2n + 1`` configurations), projected onto
-the null space of the target's Jacobian rows (position rows for a position target, all six
-otherwise), so that to first order the hand stays on the target; then a warm solve from there puts
-it back on the target exactly (within the tolerances). A step is kept only if that answer still
-meets the tolerances and has a lower penalty; otherwise the step is halved. So an answer moves
-away from the volumes along the target's own solution set, as far as the pose allows: a whole-pose
-target on a 6-joint arm has no null space (its answers are isolated) and is left as it is; a
-position target has three joints of freedom to use. The steered answer is then judged by the hard
-checks below like any other (the cost term never lets anything through); if it fails them, the
-plain answer is returned. Colliding answers are not steered: pushing one out of a volume took the
-budget that other solutions use better (``bench/keepout.py``, ~20 % fewer targets reached clear
-when they were).
+one (:data:`SOFT_MARGIN_CM`, 3 cm), or below the most that pair is ever seen to get if that is
+less: it grows with the penetration depth inside a volume and with the shortfall of clearance
+outside one. The answer to be returned (clear, meeting the tolerances) is **steered** while it has
+a penalty and the budget lasts (:func:`_steer`): a step down the penalty's gradient (central
+differences, one batch of ``2n + 1`` configurations), projected onto the null space of the
+target's Jacobian rows (position rows for a position target, all six otherwise), so that to first
+order the hand stays on the target; then a warm solve from there puts it back on the target
+exactly (within the tolerances). A step is kept only if that answer still meets the tolerances and
+has a lower penalty; otherwise the step is halved. So an answer moves away from the volumes along
+the target's own solution set, as far as the pose allows: a whole-pose target on a 6-joint arm has
+no null space (its answers are isolated) and is left as it is; a position target has three joints
+of freedom to use. The steered answer is then judged by the hard checks below like any other (the
+cost term never lets anything through); if it fails them, the plain answer is returned. Colliding
+answers are not steered: pushing one out of a volume took the budget that other solutions use
+better (``bench/keepout.py``, ~20 % fewer targets reached clear when they were).
 
 **The hard check**: each answer is checked with a :class:`~companion.kinematics.collision.KeepOut`
 and, while the budget lasts, the target is solved again from elsewhere: first from ``q_start_deg``
@@ -134,12 +134,15 @@ def clearance_penalty(
     keepout: KeepOut, q: FloatArray, soft_margin_cm: float = SOFT_MARGIN_CM
 ) -> FloatArray:
     """The cost term for joint vectors ``q`` ``(S, n)`` (joint units): per configuration,
-    ``Σ max(0, margin_cm + soft_margin_cm − clearance)²`` over every (link capsule, volume)
-    pair, in cm² (0: every link keeps the soft margin too)."""
+    ``Σ max(0, min(margin_cm + soft_margin_cm, ceiling) − clearance)²`` over every (link
+    capsule, volume) pair, in cm² (0: every link keeps the soft margin too); ``ceiling`` is the
+    most that pair is ever seen to get (:meth:`KeepOut.clearance_ceiling_cm`): no pair is asked
+    for more than it can have."""
     q = np.asarray(q, float)
     if not keepout.volumes or not len(keepout.radii_cm):
         return np.zeros(q.shape[0])
-    short = np.maximum(keepout.margin_cm + soft_margin_cm - keepout.clearances(q), 0.0)
+    wanted = np.minimum(keepout.margin_cm + soft_margin_cm, keepout.clearance_ceiling_cm())
+    short = np.maximum(wanted - keepout.clearances(q), 0.0)
     return np.asarray((short * short).sum(axis=(1, 2)))
 
 
@@ -188,6 +191,8 @@ def _steer(
     arm = keepout.arm
     rows = _task_rows(mode)
     q = result.q_rad
+    if clearance_penalty(keepout, q[None], soft_margin_cm)[0] == 0.0:
+        return result, 0, 0  # the common case, one configuration's clearances
     computing = clock()
     penalty, direction = _steer_direction(keepout, q, rows, soft_margin_cm)
     direction_s = clock() - computing  # each kept step computes the next direction

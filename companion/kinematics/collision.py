@@ -328,6 +328,7 @@ class KeepOut:
             )
         self._prepare_links()
         self._prepare_volumes()
+        self._ceiling: FloatArray | None = None
 
     # -- preparation ------------------------------------------------------------------------
 
@@ -507,6 +508,19 @@ class KeepOut:
             np.maximum(db[:, :, self._box_of[:, 0]], db[:, :, self._box_of[:, 1]]),
         )
         return dist - self._radii[None, :, None] - ROUNDING_CM
+
+    def clearance_ceiling_cm(self) -> FloatArray:
+        """``(C, V)``: per (link capsule, volume) pair, the largest clearance seen over 256
+        configurations drawn with a fixed seed (computed once; cm). Some pairs can never get
+        far from a volume (a link starting on joint 1's axis under the body keeps that end where
+        it is): a cost term asking them for more could not be steered."""
+        if self._ceiling is None:
+            q = self.arm.random_q_rad(np.random.default_rng(0), 256)
+            if self.volumes and len(self._radii):
+                self._ceiling = np.asarray(self.clearances(q).max(axis=0))
+            else:
+                self._ceiling = np.zeros((len(self._radii), len(self.volumes)))
+        return self._ceiling
 
     def _as_batch(self, q: FloatArray | Sequence[float], name: str) -> FloatArray:
         arr = np.asarray(q, float)

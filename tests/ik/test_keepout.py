@@ -148,3 +148,15 @@ def test_the_cost_term_steers_a_position_answer_away_from_the_volumes():
     before = clearance_penalty(QUAD, plain.refused_answer.q_rad[None] if plain.result is None
                                else plain.result.q_rad[None])[0]  # fmt: skip
     assert clearance_penalty(QUAD, steered.result.q_rad[None])[0] < before
+
+
+def test_the_penalty_grows_into_a_volume_and_asks_no_pair_for_more_than_it_gets():
+    from companion.ik.keepout import clearance_penalty
+
+    hold = ARM.q_from_user([0, 70, -70, 0, 0, 0])  # 3.5 cm under the body: as far as it gets
+    assert QUAD.clearances(hold[None]).min() < QUAD.margin_cm + 3.0
+    assert clearance_penalty(QUAD, hold[None])[0] == 0.0
+    # The upper arm 2.5 cm into the body, a pair that gets 3.5 cm at most: (3.5 + 2.5)².
+    up = ARM.q_from_user([0, 180, 0, 0, 0, 0])
+    assert QUAD.check(up).clearance_cm == pytest.approx(-2.5, abs=1e-6)
+    assert clearance_penalty(QUAD, up[None])[0] >= 36.0 - 1e-6
