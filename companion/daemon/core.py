@@ -579,7 +579,7 @@ class ControlCore:
         if failure is None and result is not None:
             hit = self._keepout_hit(result.q_deg)  # solve_clear's answer, checked once more
             if hit is not None:
-                self.counters["keepout_failures"] += 1
+                self.counters["keepout_refusals"] += 1
                 failure = f"keep-out: the solution {hit}"
         if failure is not None or result is None:
             reply = Reply(Outcome.FAILED, failure or "no solution", result)

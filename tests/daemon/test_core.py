@@ -1021,6 +1021,23 @@ def test_a_motion_that_became_unsafe_stops_before_the_volume():
     assert 5.0 < status["current_deg"][0] < 20.0  # stopped on the way, short of the ball
 
 
+def test_a_clear_verdict_is_checked_again_at_the_pwm_sent(monkeypatch):
+    # Should solve_clear ever call a colliding answer clear, the core refuses it all the same.
+    from companion.daemon import core as core_module
+    from companion.ik.keepout import ClearResult, ClearVerdict
+
+    goal = tuple(p + d for p, d in zip(PARK, (30.0, 0, 0, 0, 0, 0), strict=True))
+    rig = keepout_rig(goal)
+    wrong = ClearResult(
+        ClearVerdict.CLEAR, fake_solve(Pose.from_sequence(goal), None), None, 1, 0.1
+    )
+    monkeypatch.setattr(core_module, "solve_clear", lambda *a, **k: wrong)
+    reply = rig.reply(rig.goto(goal))
+    assert reply.outcome is Outcome.FAILED and "'ball'" in reply.message
+    assert "at the PWM sent" in reply.message
+    assert rig.servo() == {} and rig.core.status()["counters"]["keepout_refusals"] == 1
+
+
 def test_a_colliding_first_solution_is_replaced_by_a_clear_one():
     # The solver's first (warm) answer hits the ball; asked again from elsewhere it offers
     # another, clear one: the target is reached, not refused.
