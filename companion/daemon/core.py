@@ -827,11 +827,14 @@ class ControlCore:
         keepout = self._keepout()
         if keepout is not None:
             # The motion from the step commanded last (what the outputs will hold) to this one,
-            # proven clear of every volume, or not sent.
-            # Both as the servos get them: the PWM rounded to whole µs (a link of 60 cm moves
-            # up to ~0.05 cm with that rounding; seen crossing the margin in bench.keepout_daemon).
+            # proven clear of every volume, or not sent. As the servos get it: each angle
+            # through its PWM rounded to whole µs (a 60 cm link moves up to ~0.05 cm with the
+            # rounding), and each command's outputs changing in the order sent (ArduPilot: one
+            # output a command, so not the straight line; at 180 deg/s and 100 Hz its corners
+            # came 0.09 cm into the margin in bench.keepout_daemon).
             before = self._flights[-1].step_deg if self._flights else tuple(self._position)
-            collision = keepout.check_motion(self._as_sent_rad(before), self._as_sent_rad(step))
+            path = self._output_path(self._as_sent_rad(before), self._as_sent_rad(step), commands)
+            collision = keepout.check_path(path)
             if collision is not None:
                 self.counters["keepout_refusals"] += 1
                 log.error("keep-out: a step refused, holding: %s", collision.reason)
@@ -1390,6 +1393,24 @@ class ControlCore:
             return None
         collision = keepout.check(self._as_sent_rad(q_deg))
         return None if collision is None else f"puts {collision.reason} (at the PWM sent)"
+
+    def _output_path(
+        self, before_rad: Any, step_rad: Any, commands: Sequence[ServoCommand]
+    ) -> list[Any]:
+        """The configurations (rad) the outputs go through from ``before_rad`` to ``step_rad``
+        when ``commands`` land in order: each command's outputs change together."""
+        index = {output: i for i, output in enumerate(self._outputs)}
+        q = np.array(before_rad, float)
+        path = [q.copy()]
+        for command in commands:
+            for output in command.outputs:
+                if output in index:
+                    q[index[output]] = step_rad[index[output]]
+            if not np.array_equal(q, path[-1]):
+                path.append(q.copy())
+        if not np.array_equal(q, step_rad):  # outputs left out as already there, by the ACKs
+            path.append(np.array(step_rad, float))
+        return path
 
     def _as_sent_rad(self, q_deg: Sequence[float]) -> Any:
         """The joints (rad) the servos get for ``q_deg``: each angle through its PWM, rounded
