@@ -1364,6 +1364,7 @@ class ControlCore:
             tol_ori_deg=config.tol_ori_deg,
             mode=TargetMode(mode),
             solver=solver,
+            clock=self.clock,  # the core's: a test's fake clock makes the attempts exact
         )
         if out.verdict is ClearVerdict.CLEAR:
             return out.result, None
