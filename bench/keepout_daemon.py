@@ -225,6 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     with Stack(dialect="ardupilot", daemon=tables) as stack:
         driven = drive(stack, targets, args)
         events = stack.stop()
+        log_text = Path(stack.daemon_log).read_text(errors="replace")
+    # The daemon's internal errors, if any, with the first traceback (its log goes with the
+    # stack's temporary directory).
+    errors = [line for line in log_text.splitlines() if "internal error" in line]
+    first = log_text.find("Traceback")
+    driven["internal error lines"] = len(errors)
+    if first >= 0:
+        print(log_text[max(0, first - 300) : first + 3000], flush=True)
     print(json.dumps(driven, indent=1), flush=True)
     checked = check_log(events, keepout, config)
     print(json.dumps(checked, indent=1), flush=True)
