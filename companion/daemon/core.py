@@ -1332,7 +1332,8 @@ class ControlCore:
         Without keep-out volumes, the injected solver once, warm from ``start``. With them,
         :func:`~companion.ik.keepout.solve_clear` within the same budget: a target reachable
         clear of every volume is reached (another solution is looked for when the first
-        collides, and each is steered away from the volumes where the target leaves freedom);
+        collides; the one taken is steered away from the volumes where the target leaves
+        freedom);
         one that is not is refused naming the link and the volume. The motion is judged from
         the step commanded last (where the outputs go next) **straight** to the solution, the
         path the speed limit steps along: a solution whose straight motion would cross a volume
