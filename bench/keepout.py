@@ -3,6 +3,7 @@ every command the checks let through is re-checked by an independent dense sampl
 
     .venv/bin/python -m bench.keepout [--configurations 100000] [--motions 100000]
                                       [--targets 2000] [--seed 2026] [--markdown FILE]
+                                      [--soft-margin-cm 3 (0: the cost term off)]
 
 The vehicle is the example config's 450 quad (``tests/support/keepout.QUAD_450``) with the
 papers' arm hanging 10 cm under the body origin, margin 1 cm. A *colliding command* is one the
@@ -21,7 +22,10 @@ what is tested there is the motion logic, the speed bound and the halving.
   configurations on either side of a volume;
 * targets: hand positions of refused (colliding) configurations and points in and around the
   volumes, solved by ``solve_clear`` (position mode, 20 ms budget) warm from the park pose; its
-  answer and the motion from park (64 configurations along it) are sampled independently.
+  answer and the motion from park (64 configurations along it) are sampled independently; with
+  the verdicts, the clearance of each clear answer (its least over the (link, volume) pairs the
+  joints change), the time and the thread CPU per target, with the cost term
+  (``--soft-margin-cm``) or without it (0).
 
 It also prints the check times: thread CPU µs per :meth:`KeepOut.check`, per
 :meth:`KeepOut.check_motion` of one 50 Hz tick and per configuration of a batch.
@@ -39,7 +43,7 @@ import numpy as np
 
 from bench.report import interpreter, machine, md_table, write_markdown
 from companion.ik import TargetMode, warm_up
-from companion.ik.keepout import ClearVerdict, solve_clear
+from companion.ik.keepout import SOFT_MARGIN_CM, ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.collision import KeepOut
 from companion.kinematics.vehicle import Mount, invert
@@ -132,7 +136,9 @@ def motions(ko: KeepOut, rng: np.random.Generator, count: int) -> dict:
     }
 
 
-def targets(ko: KeepOut, rng: np.random.Generator, count: int) -> dict:
+def targets(
+    ko: KeepOut, rng: np.random.Generator, count: int, soft_margin_cm: float = SOFT_MARGIN_CM
+) -> dict:
     arm = ko.arm
     to_base = invert(ko.mount.matrix)
     q = arm.random_q_rad(rng, 8 * count)
@@ -150,24 +156,44 @@ def targets(ko: KeepOut, rng: np.random.Generator, count: int) -> dict:
     times = []
     q_park = arm.q_from_user(PARK_DEG)
     s = np.linspace(0.0, 1.0, 64)[:, None]
+    cpu = []
+    clearance = []  # per CLEAR answer: the least clearance of a link that moves it (cm)
+    moving = _moving_pairs(ko)
     for i, goal in enumerate(goals):
+        started = time.thread_time()
         out = solve_clear(
             ko, goal, budget_ms=20.0, seed=i, q_start_deg=PARK_DEG, mode=TargetMode.POSITION,
-            tol_pos_cm=0.05,
+            tol_pos_cm=0.05, soft_margin_cm=soft_margin_cm,
         )  # fmt: skip
+        cpu.append(time.thread_time() - started)
         times.append(out.elapsed_ms)
         verdicts[out.verdict.value] = verdicts.get(out.verdict.value, 0) + 1
         if out.result is not None:
             q1 = out.result.q_rad
             colliding += int(_bad(ko, q_park + s * (q1 - q_park)).any())
+            if out.verdict is ClearVerdict.CLEAR:
+                clearance.append(float(ko.clearances(q1[None])[0][moving].min()))
     t = np.array(times)
+    c = np.array(clearance) if clearance else np.full(1, np.nan)
     return {
         "solved": count,
         **{f"{v.value}": verdicts.get(v.value, 0) for v in ClearVerdict},
         "colliding": colliding,
+        "clearance cm p5": float(np.percentile(c, 5)),
+        "p25": float(np.percentile(c, 25)),
+        "p50": float(np.percentile(c, 50)),
+        f"< {MARGIN_CM + 2:g} cm": int((c < MARGIN_CM + 2).sum()),
         "ms p50": float(np.percentile(t, 50)),
         "ms p99": float(np.percentile(t, 99)),
+        "CPU ms mean": float(np.mean(cpu) * 1e3),
     }
+
+
+def _moving_pairs(ko: KeepOut) -> np.ndarray:
+    """``(C, V)``: the (capsule, volume) pairs whose clearance the joints change (the arm's
+    first links pass the body at a fixed distance, which would hide every other one)."""
+    c = ko.clearances(ko.arm.random_q_rad(np.random.default_rng(0), 2000))
+    return np.asarray(c.max(axis=0) - c.min(axis=0) > 1e-6)
 
 
 def timings(ko: KeepOut, rng: np.random.Generator) -> dict:
@@ -188,6 +214,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--motions", type=int, default=100_000)
     parser.add_argument("--targets", type=int, default=2000)
     parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument(
+        "--soft-margin-cm",
+        type=float,
+        default=SOFT_MARGIN_CM,
+        help="solve_clear's cost term (0: off, the search before it)",
+    )
     parser.add_argument("--markdown", type=Path, default=DEFAULT_MARKDOWN)
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
@@ -202,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
         ("targets", targets, args.targets),
     ):
         if n > 0:
-            result = fn(ko, rng, n)
+            result = targets(ko, rng, n, args.soft_margin_cm) if fn is targets else fn(ko, rng, n)
             rows.append((name, result))
             print(name, result, flush=True)
     times = timings(ko, rng)
@@ -210,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [
         "# Keep-out bench",
         "",
-        f"{machine()}; {interpreter()}; seed {args.seed}; {time.perf_counter() - started:.0f} s.",
+        f"{machine()}; {interpreter()}; seed {args.seed}; soft margin {args.soft_margin_cm:g} "
+        f"cm; {time.perf_counter() - started:.0f} s.",
         "",
     ]
     for name, result in rows:

@@ -289,7 +289,7 @@ class Stack:
         self,
         *,
         dialect: str,
-        daemon: dict[str, dict[str, Any]] | None = None,
+        daemon: dict[str, Any] | None = None,
         sim_args: Sequence[str] = (),
         daemon_root: Path | None = None,
         transport: Sequence[str] = ("--udp", "127.0.0.1:0"),
@@ -311,12 +311,15 @@ class Stack:
             )  # fmt: skip
             self.event_log = self.sim.log_path
             self.gcs_url = self.sim.gcs_url
-            tables: dict[str, dict[str, Any]] = {
+            tables: dict[str, Any] = {
                 "link": {"url": self.sim.url, "dialect": dialect},
                 "control": {"socket": str(tmp / "control.sock")},
             }
             for name, values in (daemon or {}).items():
-                tables.setdefault(name, {}).update(values)
+                if isinstance(values, list):  # an array of tables: [[keepout]], [[joint]]
+                    tables[name] = values
+                else:
+                    tables.setdefault(name, {}).update(values)
             self.daemon = DaemonProcess(
                 tmp / "daemon",
                 tables,

@@ -62,6 +62,8 @@ from companion.daemon.requests import (
     parse_trajectory,
 )
 from companion.daemon.telemetry import VehicleTelemetry
+from companion.ik.keepout import ClearVerdict, solve_clear
+from companion.ik.solver import TargetMode
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
 from companion.kinematics.vehicle import base_to_world, world_to_base
@@ -138,8 +140,9 @@ READBACK_WAIT_S = 2.0
 #: next step after that waits: a deeper pipe would only queue stale steps.
 PIPELINE_DEPTH = 2
 
-#: (pose, q_start_deg, mode, budget_ms or None for the configured one) → ik.IKResult
-Solve = Callable[[Pose, Sequence[float], str, float | None], Any]
+#: (pose, q_start_deg or None for a cold start, mode, budget_ms or None for the configured
+#: one, seed= keyword: None for the configured one) → ik.IKResult
+Solve = Callable[..., Any]
 #: A world-frame target is solved again every control tick in at most this share of the
 #: period (warm, it converges in ~0.1 ms; an unreachable one costs the whole of it).
 WORLD_SOLVE_SHARE = 0.1
@@ -605,7 +608,7 @@ class ControlCore:
                 return False
             pose = in_base
         start = self._goal if self._goal is not None else tuple(self._position)
-        result = self._solve(pose, start, target.mode, None)
+        result, failure = self._solve_target(pose, start, target.mode, None)
         self.counters["solved"] += 1
         timing = {
             "received_s": request.received_s if request is not None else self.clock(),
@@ -614,27 +617,21 @@ class ControlCore:
         self.last_target = {
             "pose": list(pose.as_tuple()),
             "mode": target.mode,
-            "converged": result.converged,
-            "pos_err_cm": result.pos_err_cm,
-            "ori_err_deg": result.ori_err_deg,
-            "solve_ms": result.elapsed_ms,
+            "converged": result is not None and result.converged,
+            "pos_err_cm": None if result is None else result.pos_err_cm,
+            "ori_err_deg": None if result is None else result.ori_err_deg,
+            "solve_ms": None if result is None else result.elapsed_ms,
             "timing": timing,
         }
-        if not result.converged:
-            reply = Reply(
-                Outcome.FAILED,
-                f"unreachable: pos {result.pos_err_cm:.2f}cm ori {result.ori_err_deg:.1f}deg",
-                result,
-            )
-            if request is not None:
-                self._answer(actions, request, reply)
-            else:
-                log.warning("trajectory point refused: %s", reply.message)
-            return False
-        hit = self._keepout_hit(result.q_deg)
-        if hit is not None:
-            self.counters["keepout_refusals"] += 1
-            reply = Reply(Outcome.FAILED, f"keep-out: the solution {hit}", result)
+        if failure is None and result is not None and not result.converged:
+            failure = f"unreachable: pos {result.pos_err_cm:.2f}cm ori {result.ori_err_deg:.1f}deg"
+        if failure is None and result is not None:
+            hit = self._keepout_hit(result.q_deg)  # solve_clear's answer, checked once more
+            if hit is not None:
+                self.counters["keepout_refusals"] += 1
+                failure = f"keep-out: the solution {hit}"
+        if failure is not None or result is None:
+            reply = Reply(Outcome.FAILED, failure or "no solution", result)
             if request is not None:
                 self._answer(actions, request, reply)
             else:
@@ -879,9 +876,14 @@ class ControlCore:
         keepout = self._keepout()
         if keepout is not None:
             # The motion from the step commanded last (what the outputs will hold) to this one,
-            # proven clear of every volume, or not sent.
+            # proven clear of every volume, or not sent. As the servos get it: each angle
+            # through its PWM rounded to whole µs (a 60 cm link moves up to ~0.05 cm with the
+            # rounding), and each command's outputs changing in the order sent (ArduPilot: one
+            # output a command, so not the straight line; at 180 deg/s and 100 Hz its corners
+            # came 0.09 cm into the margin in bench.keepout_daemon).
             before = self._flights[-1].step_deg if self._flights else tuple(self._position)
-            collision = keepout.check_motion(np.radians(before), np.radians(step))
+            path = self._output_path(self._as_sent_rad(before), self._as_sent_rad(step), commands)
+            collision = keepout.check_path(path)
             if collision is not None:
                 self.counters["keepout_refusals"] += 1
                 log.error("keep-out: a step refused, holding: %s", collision.reason)
@@ -1360,13 +1362,105 @@ class ControlCore:
             self._keepout_obj = config.keepout_check() if config.keepout else None
         return self._keepout_obj
 
+    def _solve_target(
+        self, pose: Pose, start: Sequence[float], mode: str, budget_ms: float | None
+    ) -> tuple[Any, str | None]:
+        """Solve a target: ``(result, None)``, or ``(result or None, why it is refused)``.
+
+        Without keep-out volumes, the injected solver once, warm from ``start``. With them,
+        :func:`~companion.ik.keepout.solve_clear` within the same budget: a target reachable
+        clear of every volume is reached (another solution is looked for when the first
+        collides; the one taken is steered away from the volumes where the target leaves
+        freedom);
+        one that is not is refused naming the link and the volume. The motion is judged from
+        the step commanded last (where the outputs go next) **straight** to the solution, the
+        path the speed limit steps along: a solution whose straight motion would cross a volume
+        is not taken (another is looked for), and if every one found would, the target is
+        refused naming where along the motion. The daemon does not plan detours round a volume:
+        a user who wants one sends a waypoint first (a trajectory)."""
+        keepout = self._keepout()
+        if keepout is None:
+            return self._solve(pose, start, mode, budget_ms), None
+        config = self.config
+        commanded = self._flights[-1].step_deg if self._flights else tuple(self._position)
+
+        def solver(arm: Any, target: Pose, **kwargs: Any) -> Any:
+            return self._solve(
+                target,
+                kwargs["q_start_deg"],
+                kwargs["mode"].value,
+                kwargs["budget_ms"],
+                seed=kwargs["seed"],
+            )
+
+        out = solve_clear(
+            keepout,
+            pose,
+            budget_ms=config.budget_ms if budget_ms is None else budget_ms,
+            seed=config.seed,
+            q_start_deg=commanded,
+            tol_pos_cm=config.tol_pos_cm,
+            tol_ori_deg=config.tol_ori_deg,
+            mode=TargetMode(mode),
+            solver=solver,
+            clock=self.clock,  # the core's: a test's fake clock makes the attempts exact
+        )
+        if out.verdict is ClearVerdict.CLEAR:
+            return out.result, None
+        why = None if out.collision is None else out.collision.reason
+        if out.verdict in (ClearVerdict.COLLIDES, ClearVerdict.MOTION_COLLIDES):
+            self.counters["keepout_refusals"] += 1
+            what = (
+                "the motion to every solution found"
+                if out.verdict is ClearVerdict.MOTION_COLLIDES
+                else "every solution found"
+            )
+            return out.refused_answer, f"keep-out: {what} is refused: {why}"
+        nearest = out.result
+        if nearest is None:
+            return None, (
+                "unreachable clear of the keep-out volumes within the budget"
+                + ("" if why is None else f" ({why})")
+            )
+        return nearest, (
+            f"unreachable: pos {nearest.pos_err_cm:.2f}cm ori {nearest.ori_err_deg:.1f}deg"
+        )
+
     def _keepout_hit(self, q_deg: Sequence[float]) -> str | None:
         """Why a configuration is refused (a link within the margin of a volume), or None."""
         keepout = self._keepout()
         if keepout is None:
             return None
-        collision = keepout.check(np.radians(np.asarray(q_deg, float)))
-        return None if collision is None else f"puts {collision.reason}"
+        collision = keepout.check(self._as_sent_rad(q_deg))
+        return None if collision is None else f"puts {collision.reason} (at the PWM sent)"
+
+    def _output_path(
+        self, before_rad: Any, step_rad: Any, commands: Sequence[ServoCommand]
+    ) -> list[Any]:
+        """The configurations (rad) the outputs go through from ``before_rad`` to ``step_rad``
+        when ``commands`` land in order: each command's outputs change together."""
+        index = {output: i for i, output in enumerate(self._outputs)}
+        q = np.array(before_rad, float)
+        path = [q.copy()]
+        for command in commands:
+            for output in command.outputs:
+                if output in index:
+                    q[index[output]] = step_rad[index[output]]
+            if not np.array_equal(q, path[-1]):
+                path.append(q.copy())
+        if not np.array_equal(q, step_rad):  # outputs left out as already there, by the ACKs
+            path.append(np.array(step_rad, float))
+        return path
+
+    def _as_sent_rad(self, q_deg: Sequence[float]) -> Any:
+        """The joints (rad) the servos get for ``q_deg``: each angle through its PWM, rounded
+        to whole µs as sent (angles outside the calibration: as they are, never sent)."""
+        cal = self.config.calibration
+        try:
+            pwm = cal.angles_to_pwm_us(q_deg)
+        except CalibrationError:
+            return np.radians(np.asarray(q_deg, float))
+        return np.radians([j.pwm_us_to_angle_deg(pwm[j.output]) for j in cal.joints])
 
     # -- world-frame targets (issue 18) ------------------------------------------------------
 
@@ -1421,11 +1515,16 @@ class ControlCore:
             return
         start = self._goal if self._goal is not None else tuple(self._position)
         budget_ms = min(self.config.budget_ms, 1000.0 * WORLD_SOLVE_SHARE / self.config.rate_hz)
-        result = self._solve(pose, start, target.mode, budget_ms)
+        result, refusal = self._solve_target(pose, start, target.mode, budget_ms)
         self.counters["solved"] += 1
-        hit = self._keepout_hit(result.q_deg) if result.converged else None
-        if hit is not None:
-            self._world_note = {"reachable": False, "reason": f"keep-out: the solution {hit}"}
+        if refusal is None and result is not None and result.converged:
+            hit = self._keepout_hit(result.q_deg)
+            refusal = None if hit is None else f"keep-out: the solution {hit}"
+        if refusal is not None or result is None:
+            self._world_note = {
+                "reachable": False,
+                "reason": f"{refusal or 'no solution'}; holding the last clear pose",
+            }
             return
         if result.converged:
             self._goal = tuple(float(q) for q in result.q_deg)

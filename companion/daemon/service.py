@@ -461,16 +461,18 @@ class ArmDaemon:
     def _solve(
         self,
         pose: Pose,
-        q_start_deg: Sequence[float],
+        q_start_deg: Sequence[float] | None,
         mode: str = "pose",
         budget_ms: float | None = None,
+        *,
+        seed: int | None = None,
     ) -> ik.IKResult:
         config = self.config
         return ik.solve(
             config.arm,
             pose,
             budget_ms=config.budget_ms if budget_ms is None else budget_ms,
-            seed=config.seed,
+            seed=config.seed if seed is None else seed,
             q_start_deg=q_start_deg,
             tol_pos_cm=config.tol_pos_cm,
             tol_ori_deg=config.tol_ori_deg,

@@ -328,6 +328,7 @@ class KeepOut:
             )
         self._prepare_links()
         self._prepare_volumes()
+        self._ceiling: FloatArray | None = None
 
     # -- preparation ------------------------------------------------------------------------
 
@@ -508,6 +509,19 @@ class KeepOut:
         )
         return dist - self._radii[None, :, None] - ROUNDING_CM
 
+    def clearance_ceiling_cm(self) -> FloatArray:
+        """``(C, V)``: per (link capsule, volume) pair, the largest clearance seen over 256
+        configurations drawn with a fixed seed (computed once; cm). Some pairs can never get
+        far from a volume (a link starting on joint 1's axis under the body keeps that end where
+        it is): a cost term asking them for more could not be steered."""
+        if self._ceiling is None:
+            q = self.arm.random_q_rad(np.random.default_rng(0), 256)
+            if self.volumes and len(self._radii):
+                self._ceiling = np.asarray(self.clearances(q).max(axis=0))
+            else:
+                self._ceiling = np.zeros((len(self._radii), len(self.volumes)))
+        return self._ceiling
+
     def _as_batch(self, q: FloatArray | Sequence[float], name: str) -> FloatArray:
         arr = np.asarray(q, float)
         if arr.shape != (self.arm.dof,) or not math.isfinite(float(arr.sum())):
@@ -615,6 +629,31 @@ class KeepOut:
             lo_c = np.concatenate([lo_c[open_], mid_c])
             hi_c = np.concatenate([mid_c, hi_c[open_]])
         raise AssertionError("unreachable")  # pragma: no cover
+
+    def check_path(self, path_rad: FloatArray | Sequence[Sequence[float]]) -> Collision | None:
+        """:meth:`check_motion` over each leg of the polyline ``path_rad`` ``(K, n)`` (joint
+        units), in one batch when every leg is proven by its two ends (the common case: a
+        control step's outputs changing one after another); else leg by leg. None if every
+        configuration on it keeps the margin, else the first :class:`Collision` (``fraction``
+        along its leg)."""
+        qs = np.asarray(path_rad, float)
+        if qs.ndim != 2 or qs.shape[1] != self.arm.dof or not np.all(np.isfinite(qs)):
+            raise ValueError(f"path_rad must be (K, {self.arm.dof}) finite joint values")
+        if not self.volumes or not len(self._radii) or len(qs) == 0:
+            return None
+        if len(qs) == 1:
+            return self.check(qs[0])
+        clear = self.clearances(qs).min(axis=2)  # (K, C)
+        if clear.min() >= self.margin_cm:
+            speed = np.abs(np.diff(qs, axis=0)) @ self._reach.T  # (K - 1, C)
+            bound = 0.5 * (clear[:-1] + clear[1:] - speed)
+            if bound.min() >= self.margin_cm:
+                return None
+        for q_from, q_to in zip(qs[:-1], qs[1:], strict=True):
+            hit = self.check_motion(q_from, q_to)
+            if hit is not None:
+                return hit
+        return None
 
 
 def check_configuration(

@@ -59,7 +59,7 @@ def test_never_a_colliding_answer_or_motion(seed, warm, attempts):
         QUAD, Pose(40, 0, 10, 0, 0, 0), budget_ms=20, seed=seed, q_start_deg=start,
         max_attempts=attempts, clock=clock, solver=fake,
     )  # fmt: skip
-    assert out.attempts == len(fake.calls) <= attempts
+    assert out.attempts + out.steer_calls == len(fake.calls) and out.attempts <= attempts
     if out.verdict in (ClearVerdict.COLLIDES, ClearVerdict.MOTION_COLLIDES):
         assert out.collision is not None and out.collision.link and out.collision.volume
     assert (out.verdict is ClearVerdict.CLEAR) == (out.result is not None and out.result.converged)
@@ -90,8 +90,9 @@ def test_a_colliding_warm_answer_is_solved_again_from_elsewhere():
         return IKResult(tuple(q_deg), 0, 0, 0, True, 1, 1, 1, 0, 0, StopReason.CONVERGED, tuple(q))
 
     out = solve_clear(
-        QUAD, Pose(0, 0, 0, 0, 0, 0), q_start_deg=PARK_DEG, clock=clock, solver=solver
-    )
+        QUAD, Pose(0, 0, 0, 0, 0, 0), q_start_deg=PARK_DEG, clock=clock, solver=solver,
+        soft_margin_cm=0,
+    )  # fmt: skip
     assert out.verdict is ClearVerdict.CLEAR and out.attempts == 2
     assert out.result.q_deg == (0, 60, 30, 0, 0, 0)
 
@@ -105,7 +106,9 @@ def test_a_target_above_the_body_is_refused_naming_link_and_volume():
         mode=TargetMode.POSITION, tol_pos_cm=0.05, max_attempts=4,
     )  # fmt: skip
     assert out.refused and out.verdict is ClearVerdict.COLLIDES and out.attempts == 4
-    assert (out.collision.link, out.collision.volume) == ("q2", "body") and out.collision.proven
+    # The upper arm, against the body (or, steered off it, a propeller above it).
+    assert out.collision.link == "q2" and out.collision.proven
+    assert out.collision.volume in ("body", "prop_fr", "prop_fl", "prop_rr", "prop_rl")
     # Whatever it offers instead (here: nothing) is clear, and not at the target.
     assert out.result is None or (QUAD.check(out.result.q_rad) is None and not out.result.converged)
 
@@ -129,3 +132,31 @@ def test_bad_arguments_are_named():
         solve_clear(QUAD, Pose(0, 0, 0, 0, 0, 0), q_start_deg=[0, 1])
     with pytest.raises(ValueError, match="max_attempts"):
         solve_clear(QUAD, Pose(0, 0, 0, 0, 0, 0), max_attempts=0)
+
+
+def test_the_cost_term_steers_a_position_answer_away_from_the_volumes():
+    # A hand position the plain solver reaches with a link close to a volume: steered, the
+    # answer still meets the target and keeps more clearance (less penalty).
+    from companion.ik.keepout import clearance_penalty
+
+    target = Pose(44.5, -27.1, 23.5, 0, 0, 0)
+    kwargs = dict(budget_ms=200, seed=13, q_start_deg=PARK_DEG, mode=TargetMode.POSITION,
+                  tol_pos_cm=0.05, max_attempts=1)  # fmt: skip
+    plain = solve_clear(QUAD, target, soft_margin_cm=0, **kwargs)
+    steered = solve_clear(QUAD, target, **kwargs)
+    assert steered.steered >= 1 and steered.result is not None and steered.result.converged
+    before = clearance_penalty(QUAD, plain.refused_answer.q_rad[None] if plain.result is None
+                               else plain.result.q_rad[None])[0]  # fmt: skip
+    assert clearance_penalty(QUAD, steered.result.q_rad[None])[0] < before
+
+
+def test_the_penalty_grows_into_a_volume_and_asks_no_pair_for_more_than_it_gets():
+    from companion.ik.keepout import clearance_penalty
+
+    hold = ARM.q_from_user([0, 70, -70, 0, 0, 0])  # 3.5 cm under the body: as far as it gets
+    assert QUAD.clearances(hold[None]).min() < QUAD.margin_cm + 3.0
+    assert clearance_penalty(QUAD, hold[None])[0] == 0.0
+    # The upper arm 2.5 cm into the body, a pair that gets 3.5 cm at most: (3.5 + 2.5)².
+    up = ARM.q_from_user([0, 180, 0, 0, 0, 0])
+    assert QUAD.check(up).clearance_cm == pytest.approx(-2.5, abs=1e-6)
+    assert clearance_penalty(QUAD, up[None])[0] >= 36.0 - 1e-6

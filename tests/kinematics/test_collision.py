@@ -255,3 +255,33 @@ def test_warm_up_compiles_the_one_specialisation_the_checks_use():
     collision_kernels.warm_up()
     KeepOut(ARM, QUAD, MOUNT).check(PARK)
     assert len(collision_kernels.clearances.signatures) == 1
+
+
+# -- polylines (a control step's outputs changing one after another) ------------------------------
+
+
+def test_check_path_refuses_a_corner_the_straight_motion_misses():
+    # From q to q + (20, 20) deg on q1 and q2: the straight line is clear of a ball put on the
+    # corner (q1 moved, q2 not yet), which the outputs pass when the commands land in order.
+    ko0 = KeepOut(ARM, (), MOUNT)
+    q0 = ARM.q_from_user([0, 60, 0, 0, 0, 0])
+    q1 = ARM.q_from_user([20, 80, 0, 0, 0, 0])
+    corner = ARM.q_from_user([20, 60, 0, 0, 0, 0])
+    hand = ko0.segments(corner[None])[0, -1, 1]  # the hand's end at the corner (body FRD)
+    ko = KeepOut(ARM, (Sphere("ball", tuple(hand), 2.0),), MOUNT, 1.0)
+    assert ko.check(q0) is None and ko.check(q1) is None
+    assert ko.check_motion(q0, q1) is None
+    hit = ko.check_path([q0, corner, q1])
+    assert hit is not None and hit.volume == "ball"
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32))
+def test_check_path_agrees_with_check_motion_leg_by_leg(seed):
+    rng = np.random.default_rng(seed)
+    ko = KeepOut(ARM, QUAD, MOUNT, 1.0)
+    start = ARM.random_q_rad(rng, 1)[0]
+    legs = np.cumsum(rng.uniform(-1, 1, (4, ARM.dof)) * np.radians(6), axis=0) + start
+    path = np.clip(np.vstack([start, legs]), ARM.lower_q, ARM.upper_q)
+    each = [ko.check_motion(a, b) for a, b in zip(path[:-1], path[1:], strict=True)]
+    assert (ko.check_path(path) is None) == all(h is None for h in each)
