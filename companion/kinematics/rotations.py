@@ -5,6 +5,8 @@ Pure numpy, radians, broadcasting over leading axes; no I/O and no clocks.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -13,6 +15,21 @@ FloatArray = NDArray[np.float64]
 
 def rpy_to_matrix(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> FloatArray:
     """Rotation ``R = Rz(yaw) · Ry(pitch) · Rx(roll)``; broadcasts, returns ``(..., 3, 3)``."""
+    angles: tuple[object, ...] = (roll_rad, pitch_rad, yaw_rad)
+    if all(isinstance(a, float) for a in angles):
+        # One rotation (the daemon's world path, every tick): the same products in scalars,
+        # a tenth of the broadcasting path's cost.
+        r_s, p_s, y_s = (float(a) for a in angles)  # type: ignore[arg-type]
+        cr, sr = math.cos(r_s), math.sin(r_s)
+        cp, sp = math.cos(p_s), math.sin(p_s)
+        cy, sy = math.cos(y_s), math.sin(y_s)
+        return np.array(
+            [
+                [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                [-sp, cp * sr, cp * cr],
+            ]
+        )
     r, p, y = np.broadcast_arrays(
         np.asarray(roll_rad, float), np.asarray(pitch_rad, float), np.asarray(yaw_rad, float)
     )
@@ -39,6 +56,15 @@ def matrix_to_rpy(rot: FloatArray) -> FloatArray:
     yaw are not unique; the pair returned still reproduces the matrix.
     """
     rot = np.asarray(rot, float)
+    if rot.shape == (3, 3):
+        # One rotation: the same formulas in scalars.
+        (r00, r01, _), (r10, r11, _), (r20, r21, r22) = rot.tolist()
+        horizontal = math.hypot(r00, r10)
+        pitch_s = math.atan2(-r20, horizontal)
+        if horizontal < 1e-12:
+            sign_s = float(np.sign(-r20))
+            return np.array([math.atan2(sign_s * r01, r11), pitch_s, 0.0])
+        return np.array([math.atan2(r21, r22), pitch_s, math.atan2(r10, r00)])
     pitch = np.arctan2(-rot[..., 2, 0], np.hypot(rot[..., 0, 0], rot[..., 1, 0]))
     roll = np.arctan2(rot[..., 2, 1], rot[..., 2, 2])
     yaw = np.arctan2(rot[..., 1, 0], rot[..., 0, 0])

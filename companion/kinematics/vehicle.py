@@ -43,12 +43,20 @@ def skew(v: ArrayLike) -> FloatArray:
 
 def rotation_about(omega_rad_s: ArrayLike, dt_s: float) -> FloatArray:
     """``exp([ω]× dt)``: the rotation turned at constant rate ``ω`` for ``dt`` (Rodrigues)."""
-    w = np.asarray(omega_rad_s, float) * dt_s
-    angle = float(np.linalg.norm(w))
+    wx, wy, wz = (float(c) * dt_s for c in np.asarray(omega_rad_s, float))
+    angle = math.sqrt(wx * wx + wy * wy + wz * wz)
     if angle < 1e-12:
-        return np.eye(3) + skew(w)
-    k = skew(w / angle)
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+        return np.array([[1.0, -wz, wy], [wz, 1.0, -wx], [-wy, wx, 1.0]])
+    # I + sin·K + (1 − cos)·K², K = [w/|w|]×, written out (K² = k kᵀ − I).
+    x, y, z = wx / angle, wy / angle, wz / angle
+    s, c = math.sin(angle), 1.0 - math.cos(angle)
+    return np.array(
+        [
+            [1.0 + c * (x * x - 1.0), c * x * y - s * z, c * x * z + s * y],
+            [c * x * y + s * z, 1.0 + c * (y * y - 1.0), c * y * z - s * x],
+            [c * x * z - s * y, c * y * z + s * x, 1.0 + c * (z * z - 1.0)],
+        ]
+    )
 
 
 def transform(rotation: FloatArray, translation: ArrayLike) -> FloatArray:

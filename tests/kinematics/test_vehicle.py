@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from companion.kinematics.arm import Pose
+from companion.kinematics.rotations import matrix_to_rpy, rpy_to_matrix
 from companion.kinematics.vehicle import (
     MAX_PREDICT_S,
     Mount,
@@ -103,3 +104,19 @@ def test_default_mount_hangs_the_arm_10_cm_below_the_body_origin():
 def test_bad_mount_names_the_field(kwargs, field):
     with pytest.raises(ValueError, match=field):
         Mount(**kwargs)
+
+
+def test_one_rotation_takes_the_scalar_path_to_the_same_numbers():
+    """rpy_to_matrix / matrix_to_rpy on one rotation (scalars, the world path's every tick)
+    give what the broadcasting path gives for the same rotation, gimbal lock included."""
+    rng = np.random.default_rng(3)
+    rpy = rng.uniform(-np.pi, np.pi, (200, 3))
+    rpy[:20, 1] = np.pi / 2  # gimbal lock
+    rpy[20:40, 1] = -np.pi / 2
+    batch = rpy_to_matrix(rpy[:, 0], rpy[:, 1], rpy[:, 2])
+    back = matrix_to_rpy(batch)
+    for i, (r, p, y) in enumerate(rpy):
+        one = rpy_to_matrix(float(r), float(p), float(y))
+        np.testing.assert_allclose(one, batch[i], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(matrix_to_rpy(batch[i]), back[i], rtol=0, atol=1e-15)
+        np.testing.assert_allclose(rpy_to_matrix(*matrix_to_rpy(one)), one, rtol=0, atol=1e-12)
