@@ -133,6 +133,9 @@ def run_dialect(dialect: str, args: argparse.Namespace) -> dict:
         rec["servos_late_s"] = end - rec["slot_s"]
         rec["answer_late_s"] = rec["answered_s"] - rec["slot_s"]
         rec["missed"] = rec["outcome"] != "accepted" or rec["servos_late_s"] > SLOT_S
+        # From when the target left the client (the system cannot act on it before): the
+        # client's own lateness, which a real ground station's stream has too, left out.
+        rec["missed_from_send"] = rec["outcome"] != "accepted" or end - rec["sent_s"] > SLOT_S
         rec["answer_missed"] = rec["outcome"] != "accepted" or rec["answer_late_s"] > SLOT_S
         rec["machine_stall"] = bool(
             probe.result and probe.result.near(rec["slot_s"], min(end, rec["slot_s"] + 1.0))
@@ -168,7 +171,9 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         "the answer not back at the client within the slot. Issue 8's target: 0 misses, RSS "
         "growth < 5 MB over 10 min. Beside each run an idle process (`bench/stall_probe.py`) "
         "wakes every 2 ms: a miss during one of its late wakes (5 ms or more) is counted as "
-        "during a machine stall (the scheduler's or the hypervisor's, not the daemon's).",
+        "during a machine stall (the scheduler's or the hypervisor's, not the daemon's). "
+        "'From the send': the 20 ms counted from when the target left the client instead of "
+        "its slot's start (the client's own lateness left out).",
         "",
     ]
     rows = []
@@ -176,6 +181,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         recs = r["records"]
         missed = sum(rec["missed"] for rec in recs)
         stalled = sum(rec["missed"] and rec["machine_stall"] for rec in recs)
+        from_send = sum(rec["missed_from_send"] for rec in recs)
         answer_missed = sum(rec["answer_missed"] for rec in recs)
         refused = sum(rec["outcome"] != "accepted" for rec in recs)
         late_sends = sum(rec["sent_s"] - rec["slot_s"] > LATE_SEND_S for rec in recs)
@@ -184,7 +190,8 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         servos = percentiles_ms([rec["servos_late_s"] for rec in recs])
         late = percentiles_ms([rec["answer_late_s"] for rec in recs])
         rows.append([
-            r["dialect"], len(recs), f"{missed} ({refused} refused, {stalled} in a stall)",
+            r["dialect"], len(recs),
+            f"{missed} ({refused} refused, {stalled} in a stall; {from_send} from the send)",
             answer_missed, late_sends,
             f"{servos[0]:.2f} / {servos[1]:.2f} / {servos[2]:.2f}",
             f"{late[0]:.2f} / {late[1]:.2f} / {late[2]:.2f}",
