@@ -4,6 +4,7 @@ without the daemon's compensation (issue 18).
     python -m bench.world_hold [--duration-s 30] [--start-s 10] [--seed 0]
                                [--dialect ardupilot] [--rate-hz 50]
                                [--markdown bench/results/world_hold.md]
+                               [--plot bench/results/world_hold.png]
 
 Two runs on the same seeded hover disturbance (``sim_servo.hover``: drift up to 10 cm, tilt up
 to 5°, periods 1–5 s), each a fresh daemon and simulator on UDP loopback (``bench/loopback.py``)
@@ -20,6 +21,8 @@ over the same window of simulator time ``[start_s, start_s + duration_s]`` in bo
 Also: the daemon's CPU over the window (utime + stime, % of one core), and the floor that the
 servos' 1 µs PWM resolution leaves (the ideal joints for each logged vehicle pose, solved and
 rounded to whole µs through the calibration: the error no controller can go under).
+``--plot`` (with matplotlib, the ``plots`` extra) draws the hand's world error over time in both
+runs; ``docs/world_hold.png`` is one such plot.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.loopback import ControlClient, Stack, cpu_s, load_average
+from bench.loopback import ControlClient, Stack, cpu_s, load_average, plt
 from bench.report import machine, md_table, write_markdown
 from companion import ik
 from companion.kinematics.arm import Arm, Pose
@@ -162,6 +165,24 @@ def quantisation_floor(samples: list, world: Pose, seed: int) -> tuple[np.ndarra
     return np.asarray(pos), np.asarray(ori)
 
 
+def plot(held: dict, followed: dict, floor_pos: np.ndarray, path: Path) -> None:
+    """The hand's position error in the world over simulator time, both runs, and the floor."""
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for r, label in ((held, "held in the arm's frame"), (followed, "held in LOCAL_NED")):
+        t = np.array([s.t_s for s in r["samples"]])
+        ax.plot(t, r["pos_cm"], linewidth=0.9, label=label)
+    ax.axhline(float(np.percentile(floor_pos, 99)), color="grey", linewidth=0.8,
+               linestyle="--", label="1 µs PWM floor (p99)")  # fmt: skip
+    ax.set_xlabel("simulator time (s)")
+    ax.set_ylabel("hand position error in the world (cm)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def stats(values: np.ndarray) -> tuple[float, float, float]:
     return (
         float(np.sqrt(np.mean(values**2))),
@@ -187,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
         "whole pose is out of reach for some of a 10 cm / 5 deg hover)",
     )
     parser.add_argument("--markdown", type=Path)
+    parser.add_argument("--plot", type=Path, help="a PNG of the error over time (matplotlib)")
     args = parser.parse_args(argv)
     load_before = load_average()
     held, followed = run(False, args), run(True, args)
@@ -231,6 +253,12 @@ def main(argv: list[str] | None = None) -> int:
         f"(p99), the orientation error {ratio_ori:.1f}× (RMS). Daemon status at the end: "
         f"{followed['world_status']}.",
     ]
+    if args.plot is not None:
+        if plt is None:
+            print("(no PNG: matplotlib is not installed; it is the optional `plots` extra)")
+        else:
+            plot(held, followed, floor_pos, args.plot)
+            lines += ["", f"![the hand's world error over time]({args.plot.name})"]
     print("\n".join(lines))
     if args.markdown:
         write_markdown(args.markdown, "\n".join(lines) + "\n")
