@@ -213,6 +213,24 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
     for r in results:
         if r["probe"] is not None:
             lines.append(f"- {r['dialect']}: {r['probe'].summary()}.")
+        lines += _unexplained_misses(r)
+    return lines
+
+
+def _unexplained_misses(result: dict, limit: int = 10) -> list[str]:
+    """The misses no stall of the probe overlaps, one line each (the first ``limit``): when in
+    the run, the outcome, and where the time went (client send, servos, answer, solve)."""
+    recs = result["records"]
+    t0 = recs[0]["slot_s"] if recs else 0.0
+    lines = []
+    for rec in [r for r in recs if r["missed"] and not r["machine_stall"]][:limit]:
+        solve = "–" if rec["solve_ms"] is None else f"{rec['solve_ms']:.2f}"
+        lines.append(
+            f"  - {result['dialect']} miss at {rec['slot_s'] - t0:.3f} s, no stall seen: "
+            f"{rec['outcome']}; sent +{(rec['sent_s'] - rec['slot_s']) * 1e3:.2f} ms, "
+            f"servos +{rec['servos_late_s'] * 1e3:.2f} ms, answer "
+            f"+{rec['answer_late_s'] * 1e3:.2f} ms after the slot's start; solve {solve} ms"
+        )
     return lines
 
 
