@@ -110,7 +110,8 @@ def test_mavlink_input_fuzz_sends_no_servo_command_and_keeps_memory_flat(tmp_pat
     header), valid frames of random types, MAVLink 1 frames; half as many COMMAND_LONG /
     COMMAND_INT with random commands and wrong target ids, and USER_1 with a reachable pose
     for another system or component. Every 100 frames a marker (USER_1 to us, NaN) must come
-    back DENIED: the daemon read the batch and answers."""
+    back DENIED (or rate limited, on a machine fast enough to send them above 100 Hz): the
+    daemon read the batch and answers."""
     report = run_mavlink_fuzz(tmp_path, rounds=CI_FUZZ_ROUNDS, seed=SEED)
 
     assert report.message_types_sent == 301
@@ -132,7 +133,11 @@ def test_mavlink_input_fuzz_sends_no_servo_command_and_keeps_memory_flat(tmp_pat
     }
     counters = report.counters
     assert counters["servo_updates"] == 0 and counters["accepted"] == 0
-    assert counters["denied"] == report.markers_answered
+    # Every marker's answer: DENIED (parsed, the NaN refused), or rate limited when the markers
+    # came faster than the per-source bucket refills (100 Hz, burst 20: a quiet, fast machine
+    # reads a batch in well under 10 ms).
+    assert counters["denied"] + counters["rate_limited"] == report.markers_answered
+    assert counters["denied"] >= min(report.markers_answered, 20)  # at least the bucket's burst
     # Every whole USER_1 for someone else was parsed and set aside: nothing was lost.
     assert counters["not_for_us"] == report.user1_not_for_us_sent
     assert report.rss_growth_kb <= RSS_GROWTH_MAX_KB, report.rss_kb
