@@ -7,15 +7,18 @@ limits, accepted only if the pose error drops, and written back into the populat
 stagnation the population is re-drawn (a quarter of it at corners of the joint box) and the
 best found so far is kept aside ("record").
 
-Everything here is compiled by numba's JIT on first use (no explicit signatures: numba infers
-the types from the arrays :class:`companion.ik.solver` passes), with the on-disk cache: the
-first call after an install compiles (about 20 s of CPU; ``python -m companion.ik`` does it
-ahead of time), later processes load the cache. :func:`search` is the entry point the solver
-calls (with :func:`goal_matrix` for the pointing-direction mode); it holds every other kernel,
-compiled into it. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays
-for it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
-home), the kernels still work, compiled at every start, and a warning says how to fix it. The
-kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
+:func:`search` is the entry point the solver calls (with :func:`goal_matrix` for the
+pointing-direction mode); it holds every other kernel, compiled into it. Two ways to compile
+them. Ahead of time: ``python -m companion.ik`` (the board install runs it) builds the two into
+an extension module with explicit signatures (:mod:`companion.ik.aot`, numba's ``pycc``; a few
+seconds of CPU), which the solver then loads without importing numba. Otherwise numba's JIT,
+on first use (no explicit signatures: numba infers the types from the arrays
+:mod:`companion.ik.solver` passes), with the on-disk cache: the first call after an install
+compiles (about 20 s of CPU), later processes load the cache. Either way the daemon calls
+:func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
+writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the JIT kernels still work,
+compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
+out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
 Twins: compiled code cannot call numpy's vectorised helpers, so some kernels re-implement a
 numpy function of :mod:`companion.kinematics`. Each twin and the test that keeps the two equal
@@ -48,6 +51,44 @@ import math
 import numba as nb
 import numpy as np
 
+from companion.ik.layout import (
+    F_CR,
+    F_LM_LAMBDA0,
+    F_LM_PROGRESS,
+    F_LM_WINDOW,
+    F_MOVE_W,
+    F_SCALE,
+    F_SPREAD,
+    F_TOL_ORI,
+    F_TOL_POS,
+    I_HAS_PREV,
+    I_LM_ITERS,
+    I_MODE,
+    I_STALL_GENS,
+    MODE_AXIS,
+    MODE_POSE,
+    MODE_POSITION,
+    O_COST,
+    O_EVALUATIONS,
+    O_GENERATIONS,
+    O_LM_ITERATIONS,
+    O_ORI_DEG,
+    O_POS_CM,
+    O_Q,
+    O_RESTARTS,
+    R_COST,
+    R_ORI_DEG,
+    R_POS_CM,
+    S_EVALUATIONS,
+    S_GENERATIONS,
+    S_LM_ITERATIONS,
+    S_RESTARTS,
+    S_STALE,
+    START_GOAL_SET,
+    START_HAS_PREV,
+    START_NEW,
+)
+
 log = logging.getLogger(__name__)
 
 
@@ -77,26 +118,11 @@ DEG_PER_RAD = 180.0 / math.pi
 RAD_PER_DEG = math.pi / 180.0  # what math.radians multiplies by
 TWO_PI = 2.0 * math.pi
 
-# Layout of the float parameter vector ``fp``.
-F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-F_SPREAD = 8
-N_FPARAMS = 9
-# Layout of the integer parameter vector ``ip``.
-I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
-N_IPARAMS = 4
-# Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
-MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
-# Flags of :func:`search`'s ``start`` (the low two bits are the mode).
-START_HAS_PREV, START_GOAL_SET, START_NEW = 4, 8, 16
-# Layout of the integer state vector ``st`` (counters the Python loop reads).
-S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
-N_STATE = 5
-# Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
-R_COST, R_POS_CM, R_ORI_DEG = range(3)
-# Layout of ``out`` (what :func:`search` returns to Python, 7 + 2n floats): the record, the
-# counters, then the record's joints in joint units (rad, cm) and in user units (deg, cm).
-O_COST, O_POS_CM, O_ORI_DEG, O_GENERATIONS, O_EVALUATIONS, O_LM_ITERATIONS, O_RESTARTS = range(7)
-O_Q = 7
+# The calling convention (index constants) lives in layout.py, which the solver reads without
+# numba. numba freezes these globals into the compiled code, and its cache is keyed to this
+# file and each function's bytecode, not to them: this digest of layout.py makes a change there
+# change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
+LAYOUT_SHA256 = "f08a5f36a7a1dda1992bf653ed90110b20da3f4833f0fd546723d90914b96a37"
 
 _U64 = nb.types.uint64
 
