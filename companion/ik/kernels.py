@@ -59,6 +59,7 @@ from companion.ik.layout import (
     F_MOVE_W,
     F_SCALE,
     F_SPREAD,
+    F_STALL_GAIN,
     F_TOL_ORI,
     F_TOL_POS,
     I_HAS_PREV,
@@ -122,7 +123,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "f08a5f36a7a1dda1992bf653ed90110b20da3f4833f0fd546723d90914b96a37"
+LAYOUT_SHA256 = "4d1acc85ba26429e8d859e60e12683345fe6eaf04fabe48e8d8df957665bb493"
 
 _U64 = nb.types.uint64
 
@@ -697,35 +698,52 @@ def generation(
     pos = np.empty(3)
     res = np.empty(6)
     for _ in range(gens):
-        best_before = _min(cost)
-        for i in range(n_pop):
-            r1 = _randint(rng, n_pop - 1)
-            r1 += r1 >= i
-            r2 = r1
-            while r2 == r1 or r2 == i:
-                r2 = _randint(rng, n_pop)
-            r3 = r1
-            while r3 == r1 or r3 == r2 or r3 == i:
-                r3 = _randint(rng, n_pop)
-            j_rand = _randint(rng, n)
-            for j in range(n):
-                if j == j_rand or _rand(rng) <= cr:
-                    v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
-                    trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
-                else:
-                    trial[j] = pop[i, j]
-            trial_cost[i] = candidate_cost(
-                trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
-            )
-            for j in range(n):
-                trials[i, j] = trial[j]
-        for i in range(n_pop):
-            if trial_cost[i] <= cost[i]:
-                if trial_cost[i] < cost[i]:
-                    stuck[i] = False
-                cost[i] = trial_cost[i]
+        if st[S_STALE] >= ip[I_STALL_GENS]:
+            # Restart, instead of a DE step: the record keeps the best so far; the whole
+            # population is drawn anew and LM starts from its best below. intp(0), not the
+            # literal 0: numba would compile a second specialisation.
+            _draw_population(pop, lo, hi, rng, np.intp(0))
+            # A quarter of a restart's individuals are corners of the joint box: a target
+            # reached only with joints at their limits is where LM from inside the box
+            # stalls (each step is clamped), and a corner starts LM right there.
+            for i in range(n_pop // 4):
                 for j in range(n):
-                    pop[i, j] = trials[i, j]
+                    pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
+            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
+            stuck[:] = False
+            st[S_STALE] = 0
+            st[S_RESTARTS] += 1
+            best_before = _min(cost)
+        else:
+            best_before = _min(cost)
+            for i in range(n_pop):
+                r1 = _randint(rng, n_pop - 1)
+                r1 += r1 >= i
+                r2 = r1
+                while r2 == r1 or r2 == i:
+                    r2 = _randint(rng, n_pop)
+                r3 = r1
+                while r3 == r1 or r3 == r2 or r3 == i:
+                    r3 = _randint(rng, n_pop)
+                j_rand = _randint(rng, n)
+                for j in range(n):
+                    if j == j_rand or _rand(rng) <= cr:
+                        v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
+                        trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
+                    else:
+                        trial[j] = pop[i, j]
+                trial_cost[i] = candidate_cost(
+                    trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
+                )
+                for j in range(n):
+                    trials[i, j] = trial[j]
+            for i in range(n_pop):
+                if trial_cost[i] <= cost[i]:
+                    if trial_cost[i] < cost[i]:
+                        stuck[i] = False
+                    cost[i] = trial_cost[i]
+                    for j in range(n):
+                        pop[i, j] = trials[i, j]
         st[S_GENERATIONS] += 1
         st[S_EVALUATIONS] += n_pop
         done = _refine_best(
@@ -733,25 +751,11 @@ def generation(
         )
         if done:
             return True
-        if _min(cost) < best_before * (1.0 - 1e-9):
+        # Progress is the best cost cut below F_STALL_GAIN of what it was this generation.
+        if _min(cost) < best_before * fp[F_STALL_GAIN]:
             st[S_STALE] = 0
         else:
             st[S_STALE] += 1
-            if st[S_STALE] >= ip[I_STALL_GENS]:
-                # Restart: the record keeps the best so far; the whole population is drawn anew.
-                # intp(0), not the literal 0: numba would compile a second specialisation.
-                _draw_population(pop, lo, hi, rng, np.intp(0))
-                # A quarter of a restart's individuals are corners of the joint box: a target
-                # reached only with joints at their limits is where LM from inside the box
-                # stalls (each step is clamped), and a corner starts LM right there.
-                for i in range(n_pop // 4):
-                    for j in range(n):
-                        pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
-                _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
-                st[S_EVALUATIONS] += n_pop
-                stuck[:] = False
-                st[S_STALE] = 0
-                st[S_RESTARTS] += 1
     return False
 
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 # Layout of the float parameter vector ``fp``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-F_SPREAD = 8
-N_FPARAMS = 9
+F_SPREAD, F_STALL_GAIN = 8, 9
+N_FPARAMS = 10
 # Layout of the integer parameter vector ``ip``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
 N_IPARAMS = 4

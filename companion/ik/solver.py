@@ -81,7 +81,7 @@ class StopReason(Enum):
 class SolverSettings:
     """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
 
-    pop_size: int = 12
+    pop_size: int = 8
     """DE population (NP)."""
     F: float = 0.7
     """DE scale factor."""
@@ -96,8 +96,13 @@ class SolverSettings:
     ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
     lm_progress: float = 0.3
     """See ``lm_window``."""
-    stall_generations: int = 3
-    """Generations without improvement before the population is drawn anew."""
+    stall_generations: int = 2
+    """Generations without progress (see ``stall_gain``) before the population is drawn anew
+    (the restart takes the next generation's DE step's place, and LM starts from its best)."""
+    stall_gain: float = 0.5
+    """A generation makes progress when it brings the best cost below ``stall_gain`` times
+    what it was (at least halves it): creeping progress, DE around a local minimum, counts
+    as none."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
     warm_spread_deg: float = 5.0
@@ -115,6 +120,7 @@ class SolverSettings:
             ("lm_window", self.lm_window >= 0, ">= 0"),
             ("lm_progress", 0.0 < self.lm_progress <= 1.0, "in (0, 1]"),
             ("stall_generations", self.stall_generations >= 1, ">= 1"),
+            ("stall_gain", 0.0 <= self.stall_gain <= 1.0, "in [0, 1]"),
             ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
             ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
             ("max_generations", self.max_generations >= 0, ">= 0"),
@@ -466,6 +472,7 @@ class _Workspace:
         self.fp[layout.F_LM_LAMBDA0] = settings.lm_lambda0
         self.fp[layout.F_LM_WINDOW] = settings.lm_window
         self.fp[layout.F_LM_PROGRESS] = settings.lm_progress
+        self.fp[layout.F_STALL_GAIN] = settings.stall_gain
         self.ip = np.zeros(layout.N_IPARAMS, dtype=np.int64)
         self.ip[layout.I_LM_ITERS] = settings.lm_iterations
         self.ip[layout.I_STALL_GENS] = settings.stall_generations

@@ -38,6 +38,7 @@ def test_the_module_name_follows_the_sources(tmp_path, monkeypatch):
 
 def test_only_the_module_of_the_current_sources_is_loaded(tmp_path, monkeypatch):
     monkeypatch.setattr(aot, "directories", lambda: [tmp_path])
+    monkeypatch.delitem(sys.modules, aot.module_name(), raising=False)  # loaded by a solve
     suffix = aot.file_name()[len(aot.module_name()) :]
     (tmp_path / (aot.MODULE_PREFIX + "0" * 24 + suffix)).write_bytes(b"stale")
     assert aot.find() is None and aot.load() is None
