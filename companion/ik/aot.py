@@ -10,8 +10,9 @@ functions, compiled by the same numba and LLVM, give the same results bit for bi
 (``tests/ik/test_aot.py``).
 
 The build needs a C compiler and Python's headers (``pycc`` compiles a small C helper and links
-the module; on Debian ``sudo apt-get install gcc python3-dev``) and numba's ``pycc``, pending
-deprecation since numba 0.57 (it warns; still present in 0.68). Where any of it is missing,
+the module; on Debian ``sudo apt-get install gcc python3-dev``), setuptools in the venv, and
+numba's ``pycc``, pending deprecation since numba 0.57 (it warns; still present in 0.68, the
+only version this was tried with). Where any of it is missing,
 :func:`build` raises :class:`AotUnavailable` with the reason and the solver uses numba's JIT
 and its cache, as before. The code is compiled for the architecture's generic CPU (no
 host-specific instructions: as fast here, and a card moved to another board of the same
@@ -155,8 +156,10 @@ def build(directory: Path | None = None) -> Path:
             # numba.pycc is pending deprecation (numba 0.57+): it warns at import.
             warnings.simplefilter("ignore")
             from numba.pycc import CC
-    except ImportError as exc:
-        raise AotUnavailable(f"numba.pycc is not available ({exc})") from exc
+    except ImportError as exc:  # pycc needs setuptools, which venvs of Python 3.12+ lack
+        raise AotUnavailable(
+            f"numba.pycc is not available ({exc}; it needs setuptools: pip install setuptools)"
+        ) from exc
     from companion.ik import kernels
 
     name = module_name()
