@@ -110,7 +110,10 @@ def directories() -> list[Path]:
         found.append(Path(numba_dir))
     found.append(_HERE / "__pycache__")
     xdg = os.environ.get("XDG_CACHE_HOME")
-    found.append((Path(xdg) if xdg else Path.home() / ".cache") / "armbridge")
+    try:
+        found.append((Path(xdg) if xdg else Path.home() / ".cache") / "armbridge")
+    except RuntimeError:  # no home directory (a service user may have none)
+        pass
     return found
 
 
@@ -119,8 +122,11 @@ def find() -> Path | None:
     name = file_name()
     for directory in directories():
         path = directory / name
-        if path.is_file():
-            return path
+        try:
+            if path.is_file():
+                return path
+        except OSError:  # a directory this user may not read (ProtectHome=, another user's)
+            continue
     return None
 
 
