@@ -681,8 +681,11 @@ def generation(
     """``gens`` memetic generations (fewer once the tolerances are met; returns True then).
 
     One generation: DE rand/1/bin with greedy selection, then LM on the best unstuck
-    individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
-    generations. Several per call keep the cost of Python and of numba's dispatch (~2 µs for
+    individual. After ``ip[I_STALL_GENS]`` generations in a row that did not bring the best
+    cost below ``fp[F_STALL_GAIN]`` times what it was, the next generation is a restart
+    instead of a DE step (the population drawn anew, a quarter at corners of the box), and LM
+    then starts from the fresh population's best: an LM run from a fresh start converges far
+    more often than one from a population that has gathered around a local minimum. Several per call keep the cost of Python and of numba's dispatch (~2 µs for
     these arguments) off every generation. (The loop is here, not around a helper: every
     level of compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
     """
