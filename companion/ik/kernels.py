@@ -685,9 +685,10 @@ def generation(
     cost below ``fp[F_STALL_GAIN]`` times what it was, the next generation is a restart
     instead of a DE step (the population drawn anew, a quarter at corners of the box), and LM
     then starts from the fresh population's best: an LM run from a fresh start converges far
-    more often than one from a population that has gathered around a local minimum. Several per call keep the cost of Python and of numba's dispatch (~2 µs for
-    these arguments) off every generation. (The loop is here, not around a helper: every
-    level of compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
+    more often than one from a population that has gathered around a local minimum.
+    Several generations per call keep the cost of Python and of the call (~1 µs for these
+    arguments) off every generation. (The loop is here, not around a helper: every level of
+    compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
     """
     n_pop, n = pop.shape
     f_scale = fp[F_SCALE]
