@@ -25,7 +25,9 @@ Targets: FK of joints drawn uniformly within the limits. Then:
   ``--hog-poses`` of the main run: success, and how the deadline ends the failures;
 * ours warm along 100 Hz paths of the default arm (``--laps``), and the budget overrun on
   unreachable targets (``--only-extras`` runs just these and the cold start);
-* the first call in a fresh interpreter with the numba cache warm and empty.
+* the first call in a fresh interpreter: with the ahead-of-time module (built by ``python -m
+  companion.ik``; without it the row says "numba JIT"), and on numba's JIT with its cache warm
+  and empty (``ARMBRIDGE_IK_JIT=1``); and the install step itself into an empty cache.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import argparse
 import gc
 import math
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -304,34 +307,68 @@ def overrun_row(arm: Arm, budget_ms: float, count: int, seed: int) -> dict:
     }
 
 
-def first_call(cache_dir: str | None, without_scipy: bool = False) -> dict:
+def first_call(cache_dir: str | None, without_scipy: bool = False, jit: bool = False) -> dict:
     """Import, ``ik.warm_up()`` and the first solve in a fresh interpreter; ``cache_dir`` forces
     numba's cache there (an empty one: the first run ever). ``without_scipy``: as installed on
     a board, where scipy (a bench extra) is absent; numba imports it when it is there, on its
-    first call (~0.3 s more), to find a BLAS."""
+    first call (~0.3 s more), to find a BLAS. ``jit``: ignore the ahead-of-time module
+    (``ARMBRIDGE_IK_JIT=1``); otherwise it is used where ``python -m companion.ik`` built it."""
     code = (
         ("import sys; sys.modules['scipy'] = None\n" if without_scipy else "")
-        + "import time; t0 = time.perf_counter()\n"
+        + "import sys, time; t0 = time.perf_counter()\n"
         "from companion.kinematics import Arm\n"
         "from companion import ik\n"
         "t1 = time.perf_counter(); warm_s = ik.warm_up()\n"
         "arm = Arm.default(); target = arm.fk([10, 80, 20, 10, 20, 30])\n"
         "t2 = time.perf_counter(); r = ik.solve(arm, target, seed=0)\n"
         "t3 = time.perf_counter()\n"
-        "print(t1 - t0, warm_s, t3 - t2, t3 - t0, time.process_time())\n"
+        "print(t1 - t0, warm_s, t3 - t2, t3 - t0, time.process_time(), 'numba' in sys.modules,"
+        " ik.kernels_origin() != 'numba JIT')\n"
     )
     env = dict(os.environ)
     if cache_dir is not None:
         env["NUMBA_CACHE_DIR"] = cache_dir
+    env.pop("ARMBRIDGE_IK_JIT", None)
+    if jit:
+        env["ARMBRIDGE_IK_JIT"] = "1"
     out = subprocess.run(
         [sys.executable, "-c", code], env=env, check=True, capture_output=True, text=True
     ).stdout.split()
     return {
+        "kernels": "ahead of time" if out[6] == "True" else "numba JIT",
+        "numba imported": out[5] == "True",
         "import s": float(out[0]),
         "warm_up() s": float(out[1]),
         "first solve ms": float(out[2]) * 1e3,
         "start to solved s": float(out[3]),
         "process CPU s": float(out[4]),
+    }
+
+
+def install_compile(cache_dir: str) -> dict:
+    """The install step, ``python -P -m companion.ik``, into an empty ``NUMBA_CACHE_DIR``: the
+    ahead-of-time module (where a C compiler is found) and the keep-out kernel's JIT cache.
+    CPU is the child's and its compiler's (``RUSAGE_CHILDREN``)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    env.pop("ARMBRIDGE_IK_JIT", None)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    started = time.perf_counter()
+    out = subprocess.run(
+        [sys.executable, "-P", "-m", "companion.ik"],
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=tempfile.gettempdir(),
+    )
+    wall_s = time.perf_counter() - started
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+    return {
+        "step": "python -P -m companion.ik, empty cache",
+        "ahead-of-time module built": "compiled ahead of time" in out.stdout,
+        "wall s": wall_s,
+        "CPU s": cpu_s,
     }
 
 
@@ -404,13 +441,19 @@ def main() -> None:
         lines += ["Budget overrun on unreachable targets, default arm (wall − budget):", ""]
         lines += table(over) + [""]
     if not args.no_cold_start:
-        with tempfile.TemporaryDirectory() as empty:
+        with tempfile.TemporaryDirectory() as empty, tempfile.TemporaryDirectory() as install:
             start = [
-                dict(cache="numba cache warm", **first_call(None)),
-                dict(cache="numba cache warm, no scipy (a board)", **first_call(None, True)),
-                dict(cache="empty numba cache (first run ever)", **first_call(empty)),
+                dict(cache="ahead-of-time module (python -m companion.ik)", **first_call(None)),
+                dict(cache="numba cache warm", **first_call(None, jit=True)),
+                dict(
+                    cache="numba cache warm, no scipy (a board without the module)",
+                    **first_call(None, True, jit=True),
+                ),
+                dict(cache="empty numba cache (first run ever)", **first_call(empty, jit=True)),
             ]
-        lines += ["First call after import (fresh interpreter):", ""] + table(start)
+            compiled = [install_compile(install)]
+        lines += ["First call after import (fresh interpreter):", ""] + table(start) + [""]
+        lines += ["The install step (kernels compiled ahead of time):", ""] + table(compiled)
     text = "\n".join(lines)
     print(text)
     if args.markdown:

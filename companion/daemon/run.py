@@ -140,7 +140,7 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         f"EXTEND_TIMEOUT_USEC={int(KERNEL_LOAD_ALLOWANCE_S * 1e6)}",
         "STATUS=loading the IK kernels (the first start compiles them)",
     )
-    log.info("IK kernels ready in %.2f s", ik.warm_up())
+    log.info("IK kernels ready in %.2f s (%s)", ik.warm_up(), ik.kernels_origin())
     if config.keepout:
         from companion.kinematics import collision_kernels
 

@@ -1,8 +1,9 @@
 """The daemon's inverse kinematics: deadline-bounded, warm-startable, compiled.
 
 :func:`solve` returns an :class:`IKResult` (degrees, centimetres, milliseconds) whatever
-happens; :func:`warm_up` compiles or loads the kernels ahead of the first time-critical solve.
-Importing this package imports numba (a fraction of a second) but compiles nothing.
+happens; :func:`warm_up` loads (or compiles) the kernels ahead of the first time-critical solve.
+Importing this package compiles nothing and does not import numba (:func:`warm_up` does, unless
+the ahead-of-time module is there: :mod:`companion.ik.aot`).
 """
 
 from companion.ik.solver import (
@@ -12,6 +13,7 @@ from companion.ik.solver import (
     StopReason,
     TargetMode,
     kernel_arrays,
+    kernels_origin,
     solve,
     warm_up,
 )
@@ -23,6 +25,7 @@ __all__ = [
     "StopReason",
     "TargetMode",
     "kernel_arrays",
+    "kernels_origin",
     "solve",
     "warm_up",
 ]

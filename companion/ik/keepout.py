@@ -43,7 +43,7 @@ import numpy as np
 
 from companion.ik import solver as _solver_module
 from companion.ik.solver import IKResult, TargetMode, solve, warm_up
-from companion.kinematics import Pose, collision_kernels
+from companion.kinematics import Pose
 from companion.kinematics.collision import Collision, KeepOut
 from companion.kinematics.jacobian import geometric_jacobian
 from companion.kinematics.rotations import FloatArray
@@ -289,7 +289,12 @@ def solve_clear(
     """
     if solver is solve and not _solver_module._warmed_up:
         warm_up()  # as solve() does: the budget is never for numba's compiler
-    collision_kernels.warm_up()  # nor for loading the keep-out kernel (once per process)
+    # Nor for loading the keep-out kernel (once per process). Imported here: it imports numba,
+    # which a process that never checks keep-out (or whose IK kernels were compiled ahead of
+    # time) does not need.
+    from companion.kinematics import collision_kernels
+
+    collision_kernels.warm_up()
     started = clock()
     if not (isinstance(budget_ms, int | float) and math.isfinite(budget_ms) and budget_ms > 0):
         raise ValueError(f"budget_ms={budget_ms!r} must be a finite number > 0")

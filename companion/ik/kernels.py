@@ -7,15 +7,18 @@ limits, accepted only if the pose error drops, and written back into the populat
 stagnation the population is re-drawn (a quarter of it at corners of the joint box) and the
 best found so far is kept aside ("record").
 
-Everything here is compiled by numba's JIT on first use (no explicit signatures: numba infers
-the types from the arrays :class:`companion.ik.solver` passes), with the on-disk cache: the
-first call after an install compiles (about 20 s of CPU; ``python -m companion.ik`` does it
-ahead of time), later processes load the cache. :func:`search` is the entry point the solver
-calls (with :func:`goal_matrix` for the pointing-direction mode); it holds every other kernel,
-compiled into it. The daemon calls :func:`companion.ik.warm_up` before READY, so no target pays
-for it. Where no cache location is writable (no ``NUMBA_CACHE_DIR``, a read-only install and
-home), the kernels still work, compiled at every start, and a warning says how to fix it. The
-kernels are pure: arrays in and out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
+:func:`search` is the entry point the solver calls (with :func:`goal_matrix` for the
+pointing-direction mode); it holds every other kernel, compiled into it. Two ways to compile
+them. Ahead of time: ``python -m companion.ik`` (the board install runs it) builds the two into
+an extension module with explicit signatures (:mod:`companion.ik.aot`, numba's ``pycc``; a few
+seconds of CPU), which the solver then loads without importing numba. Otherwise numba's JIT,
+on first use (no explicit signatures: numba infers the types from the arrays
+:mod:`companion.ik.solver` passes), with the on-disk cache: the first call after an install
+compiles (about 20 s of CPU), later processes load the cache. Either way the daemon calls
+:func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
+writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the JIT kernels still work,
+compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
+out, no clocks. :mod:`companion.ik.solver` owns the deadline loop.
 
 Twins: compiled code cannot call numpy's vectorised helpers, so some kernels re-implement a
 numpy function of :mod:`companion.kinematics`. Each twin and the test that keeps the two equal
@@ -48,6 +51,45 @@ import math
 import numba as nb
 import numpy as np
 
+from companion.ik.layout import (
+    F_CR,
+    F_LM_LAMBDA0,
+    F_LM_PROGRESS,
+    F_LM_WINDOW,
+    F_MOVE_W,
+    F_SCALE,
+    F_SPREAD,
+    F_STALL_GAIN,
+    F_TOL_ORI,
+    F_TOL_POS,
+    I_HAS_PREV,
+    I_LM_ITERS,
+    I_MODE,
+    I_STALL_GENS,
+    MODE_AXIS,
+    MODE_POSE,
+    MODE_POSITION,
+    O_COST,
+    O_EVALUATIONS,
+    O_GENERATIONS,
+    O_LM_ITERATIONS,
+    O_ORI_DEG,
+    O_POS_CM,
+    O_Q,
+    O_RESTARTS,
+    R_COST,
+    R_ORI_DEG,
+    R_POS_CM,
+    S_EVALUATIONS,
+    S_GENERATIONS,
+    S_LM_ITERATIONS,
+    S_RESTARTS,
+    S_STALE,
+    START_GOAL_SET,
+    START_HAS_PREV,
+    START_NEW,
+)
+
 log = logging.getLogger(__name__)
 
 
@@ -77,26 +119,11 @@ DEG_PER_RAD = 180.0 / math.pi
 RAD_PER_DEG = math.pi / 180.0  # what math.radians multiplies by
 TWO_PI = 2.0 * math.pi
 
-# Layout of the float parameter vector ``fp``.
-F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-F_SPREAD = 8
-N_FPARAMS = 9
-# Layout of the integer parameter vector ``ip``.
-I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
-N_IPARAMS = 4
-# Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
-MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
-# Flags of :func:`search`'s ``start`` (the low two bits are the mode).
-START_HAS_PREV, START_GOAL_SET, START_NEW = 4, 8, 16
-# Layout of the integer state vector ``st`` (counters the Python loop reads).
-S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
-N_STATE = 5
-# Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
-R_COST, R_POS_CM, R_ORI_DEG = range(3)
-# Layout of ``out`` (what :func:`search` returns to Python, 7 + 2n floats): the record, the
-# counters, then the record's joints in joint units (rad, cm) and in user units (deg, cm).
-O_COST, O_POS_CM, O_ORI_DEG, O_GENERATIONS, O_EVALUATIONS, O_LM_ITERATIONS, O_RESTARTS = range(7)
-O_Q = 7
+# The calling convention (index constants) lives in layout.py, which the solver reads without
+# numba. numba freezes these globals into the compiled code, and its cache is keyed to this
+# file and each function's bytecode, not to them: this digest of layout.py makes a change there
+# change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
+LAYOUT_SHA256 = "4d1acc85ba26429e8d859e60e12683345fe6eaf04fabe48e8d8df957665bb493"
 
 _U64 = nb.types.uint64
 
@@ -654,10 +681,14 @@ def generation(
     """``gens`` memetic generations (fewer once the tolerances are met; returns True then).
 
     One generation: DE rand/1/bin with greedy selection, then LM on the best unstuck
-    individual; a restart when the best has not improved for ``ip[I_STALL_GENS]``
-    generations. Several per call keep the cost of Python and of numba's dispatch (~2 µs for
-    these arguments) off every generation. (The loop is here, not around a helper: every
-    level of compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
+    individual. After ``ip[I_STALL_GENS]`` generations in a row that did not bring the best
+    cost below ``fp[F_STALL_GAIN]`` times what it was, the next generation is a restart
+    instead of a DE step (the population drawn anew, a quarter at corners of the box), and LM
+    then starts from the fresh population's best: an LM run from a fresh start converges far
+    more often than one from a population that has gathered around a local minimum.
+    Several generations per call keep the cost of Python and of the call (~1 µs for these
+    arguments) off every generation. (The loop is here, not around a helper: every level of
+    compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
     """
     n_pop, n = pop.shape
     f_scale = fp[F_SCALE]
@@ -671,35 +702,52 @@ def generation(
     pos = np.empty(3)
     res = np.empty(6)
     for _ in range(gens):
-        best_before = _min(cost)
-        for i in range(n_pop):
-            r1 = _randint(rng, n_pop - 1)
-            r1 += r1 >= i
-            r2 = r1
-            while r2 == r1 or r2 == i:
-                r2 = _randint(rng, n_pop)
-            r3 = r1
-            while r3 == r1 or r3 == r2 or r3 == i:
-                r3 = _randint(rng, n_pop)
-            j_rand = _randint(rng, n)
-            for j in range(n):
-                if j == j_rand or _rand(rng) <= cr:
-                    v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
-                    trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
-                else:
-                    trial[j] = pop[i, j]
-            trial_cost[i] = candidate_cost(
-                trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
-            )
-            for j in range(n):
-                trials[i, j] = trial[j]
-        for i in range(n_pop):
-            if trial_cost[i] <= cost[i]:
-                if trial_cost[i] < cost[i]:
-                    stuck[i] = False
-                cost[i] = trial_cost[i]
+        if st[S_STALE] >= ip[I_STALL_GENS]:
+            # Restart, instead of a DE step: the record keeps the best so far; the whole
+            # population is drawn anew and LM starts from its best below. intp(0), not the
+            # literal 0: numba would compile a second specialisation.
+            _draw_population(pop, lo, hi, rng, np.intp(0))
+            # A quarter of a restart's individuals are corners of the joint box: a target
+            # reached only with joints at their limits is where LM from inside the box
+            # stalls (each step is clamped), and a corner starts LM right there.
+            for i in range(n_pop // 4):
                 for j in range(n):
-                    pop[i, j] = trials[i, j]
+                    pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
+            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
+            stuck[:] = False
+            st[S_STALE] = 0
+            st[S_RESTARTS] += 1
+            best_before = _min(cost)
+        else:
+            best_before = _min(cost)
+            for i in range(n_pop):
+                r1 = _randint(rng, n_pop - 1)
+                r1 += r1 >= i
+                r2 = r1
+                while r2 == r1 or r2 == i:
+                    r2 = _randint(rng, n_pop)
+                r3 = r1
+                while r3 == r1 or r3 == r2 or r3 == i:
+                    r3 = _randint(rng, n_pop)
+                j_rand = _randint(rng, n)
+                for j in range(n):
+                    if j == j_rand or _rand(rng) <= cr:
+                        v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
+                        trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
+                    else:
+                        trial[j] = pop[i, j]
+                trial_cost[i] = candidate_cost(
+                    trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
+                )
+                for j in range(n):
+                    trials[i, j] = trial[j]
+            for i in range(n_pop):
+                if trial_cost[i] <= cost[i]:
+                    if trial_cost[i] < cost[i]:
+                        stuck[i] = False
+                    cost[i] = trial_cost[i]
+                    for j in range(n):
+                        pop[i, j] = trials[i, j]
         st[S_GENERATIONS] += 1
         st[S_EVALUATIONS] += n_pop
         done = _refine_best(
@@ -707,25 +755,11 @@ def generation(
         )
         if done:
             return True
-        if _min(cost) < best_before * (1.0 - 1e-9):
+        # Progress is the best cost cut below F_STALL_GAIN of what it was this generation.
+        if _min(cost) < best_before * fp[F_STALL_GAIN]:
             st[S_STALE] = 0
         else:
             st[S_STALE] += 1
-            if st[S_STALE] >= ip[I_STALL_GENS]:
-                # Restart: the record keeps the best so far; the whole population is drawn anew.
-                # intp(0), not the literal 0: numba would compile a second specialisation.
-                _draw_population(pop, lo, hi, rng, np.intp(0))
-                # A quarter of a restart's individuals are corners of the joint box: a target
-                # reached only with joints at their limits is where LM from inside the box
-                # stalls (each step is clamped), and a corner starts LM right there.
-                for i in range(n_pop // 4):
-                    for j in range(n):
-                        pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
-                _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
-                st[S_EVALUATIONS] += n_pop
-                stuck[:] = False
-                st[S_STALE] = 0
-                st[S_RESTARTS] += 1
     return False
 
 

@@ -31,19 +31,20 @@ Warm start: ``q_start_deg`` (normally the previous command) seeds a third of the
 around it, and a minimal-movement term (``settings.movement_weight``) keeps consecutive
 solutions on the same elbow/wrist branch.
 
-Importing this module does no work. The kernels are compiled lazily by numba's JIT (there are
-no explicit signatures: numba infers them from the first call) and cached on disk: the first
-:func:`warm_up` in a fresh cache compiles them (about 20 s of CPU on the 2-core development
-machine), later ones load the cache (about 0.5 s on a quiet machine, most of it numba setting
-up LLVM on the first call; importing numba itself takes another 0.3–0.5 s).
-``python -m companion.ik`` does that compile ahead of time: the README's board install runs it
-into the service's ``NUMBA_CACHE_DIR``. The daemon calls :func:`warm_up` before it reports
-READY; a first :func:`solve` without it calls it before its clock starts. So no budget ever
-pays for compilation.
+Importing this module does no work and does not import numba. :func:`warm_up` loads the
+kernels: the ahead-of-time module (:mod:`companion.ik.aot`: a plain extension module, no numba
+at run time) where ``python -m companion.ik`` has built an up-to-date one (the README's board
+install does, with a C compiler); otherwise numba's JIT, which compiles them on the first call
+(no explicit signatures: it infers them from the arrays; about 20 s of CPU on the 2-core
+development machine) and caches them on disk, so later processes load them (numba's import and
+first call, 0.5–0.8 s). The daemon calls :func:`warm_up` before it reports READY; a first
+:func:`solve` without it calls it before its clock starts. So no budget ever pays for loading
+or compiling.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import threading
@@ -54,8 +55,10 @@ from enum import Enum
 
 import numpy as np
 
-from companion.ik import kernels
+from companion.ik import aot, layout
 from companion.kinematics import Arm, FloatArray, Pose
+
+log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
 """A monotonic clock in seconds (``time.perf_counter`` by default; tests pass a fake one)."""
@@ -78,7 +81,7 @@ class StopReason(Enum):
 class SolverSettings:
     """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
 
-    pop_size: int = 12
+    pop_size: int = 8
     """DE population (NP)."""
     F: float = 0.7
     """DE scale factor."""
@@ -93,8 +96,13 @@ class SolverSettings:
     ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
     lm_progress: float = 0.3
     """See ``lm_window``."""
-    stall_generations: int = 3
-    """Generations without improvement before the population is drawn anew."""
+    stall_generations: int = 2
+    """Generations without progress (see ``stall_gain``) before the population is drawn anew
+    (the restart takes the next generation's DE step's place, and LM starts from its best)."""
+    stall_gain: float = 0.5
+    """A generation makes progress when it brings the best cost below ``stall_gain`` times
+    what it was (at least halves it): creeping progress, DE around a local minimum, counts
+    as none."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
     warm_spread_deg: float = 5.0
@@ -112,6 +120,7 @@ class SolverSettings:
             ("lm_window", self.lm_window >= 0, ">= 0"),
             ("lm_progress", 0.0 < self.lm_progress <= 1.0, "in (0, 1]"),
             ("stall_generations", self.stall_generations >= 1, ">= 1"),
+            ("stall_gain", 0.0 <= self.stall_gain <= 1.0, "in [0, 1]"),
             ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
             ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
             ("max_generations", self.max_generations >= 0, ">= 0"),
@@ -308,16 +317,16 @@ def solve(
     ws = _workspace(arm, settings)
     # Tolerances are written only when they change: each numpy item set costs ~0.1 µs.
     if tol_pos_cm is not ws.tol_pos_cm or tol_ori_deg is not ws.tol_ori_deg:
-        ws.fp[kernels.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
-        ws.fp[kernels.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
+        ws.fp[layout.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
+        ws.fp[layout.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
         ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
     if mode is TargetMode.POSE:
-        start = kernels.START_NEW | kernels.MODE_POSE
+        start = layout.START_NEW | layout.MODE_POSE
     elif mode is TargetMode.POSITION:
-        start = kernels.START_NEW | kernels.MODE_POSITION
+        start = layout.START_NEW | layout.MODE_POSITION
     elif mode is TargetMode.POSITION_AXIS:
-        start = kernels.START_NEW | kernels.MODE_AXIS | kernels.START_GOAL_SET
+        start = layout.START_NEW | layout.MODE_AXIS | layout.START_GOAL_SET
         _axis_goal(pose, tool_axis, direction, ws.goal)
     else:
         raise ValueError(f"mode={mode!r} must be one of {', '.join(m.name for m in TargetMode)}")
@@ -327,12 +336,12 @@ def solve(
         if q_start.shape != (n,) or not np.all(np.isfinite(q_start)):
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
         np.clip(q_start * ws.to_joint, ws.lower, ws.upper, out=ws.q_start)
-        start |= kernels.START_HAS_PREV
+        start |= layout.START_HAS_PREV
     ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
     st = ws.st
     max_gens = settings.max_generations
-    search = kernels.search
+    search = _search
     x_cm, y_cm, z_cm = pose.x_cm, pose.y_cm, pose.z_cm
     roll_deg, pitch_deg, yaw_deg = pose.roll_deg, pose.pitch_deg, pose.yaw_deg
 
@@ -374,7 +383,7 @@ def solve(
         if done:
             reason = StopReason.CONVERGED
             break
-        left = max_gens - int(st[kernels.S_GENERATIONS])
+        left = max_gens - int(st[layout.S_GENERATIONS])
         if left <= 0:
             reason = StopReason.ITERATION_LIMIT
             break
@@ -402,18 +411,18 @@ def solve(
     # (~2 µs); filling the instance's dict is the same object for a third of that.
     result = _new_result(IKResult)
     fields = result.__dict__
-    fields["q_deg"] = tuple(out[kernels.O_Q + n :])
-    fields["pos_err_cm"] = out[kernels.O_POS_CM]
-    fields["ori_err_deg"] = out[kernels.O_ORI_DEG]
-    fields["cost"] = out[kernels.O_COST]
+    fields["q_deg"] = tuple(out[layout.O_Q + n :])
+    fields["pos_err_cm"] = out[layout.O_POS_CM]
+    fields["ori_err_deg"] = out[layout.O_ORI_DEG]
+    fields["cost"] = out[layout.O_COST]
     fields["converged"] = reason is StopReason.CONVERGED
     fields["elapsed_ms"] = (clock() - started) * 1e3
-    fields["generations"] = int(out[kernels.O_GENERATIONS])
-    fields["evaluations"] = int(out[kernels.O_EVALUATIONS])
-    fields["lm_iterations"] = int(out[kernels.O_LM_ITERATIONS])
-    fields["restarts"] = int(out[kernels.O_RESTARTS])
+    fields["generations"] = int(out[layout.O_GENERATIONS])
+    fields["evaluations"] = int(out[layout.O_EVALUATIONS])
+    fields["lm_iterations"] = int(out[layout.O_LM_ITERATIONS])
+    fields["restarts"] = int(out[layout.O_RESTARTS])
     fields["stop_reason"] = reason
-    fields["q"] = tuple(out[kernels.O_Q : kernels.O_Q + n])
+    fields["q"] = tuple(out[layout.O_Q : layout.O_Q + n])
     return result
 
 
@@ -425,7 +434,7 @@ def _axis_goal(
 ) -> None:
     """POSITION_AXIS's goal: the target position, the hand axis (hand frame) as column 0 and
     the direction it must point along (base frame) as column 2 (see ``kernels.residual``)."""
-    kernels.goal_matrix(
+    _goal_matrix(
         pose.x_cm,
         pose.y_cm,
         pose.z_cm,
@@ -455,24 +464,25 @@ class _Workspace:
         self.lower, self.upper = k.lower, k.upper
         self.to_joint, self.to_user = k.to_joint, k.to_user
         self.n = n
-        self.fp = np.zeros(kernels.N_FPARAMS)
-        self.fp[kernels.F_SPREAD] = math.radians(settings.warm_spread_deg)
-        self.fp[kernels.F_SCALE] = settings.F
-        self.fp[kernels.F_CR] = settings.Cr
-        self.fp[kernels.F_MOVE_W] = settings.movement_weight
-        self.fp[kernels.F_LM_LAMBDA0] = settings.lm_lambda0
-        self.fp[kernels.F_LM_WINDOW] = settings.lm_window
-        self.fp[kernels.F_LM_PROGRESS] = settings.lm_progress
-        self.ip = np.zeros(kernels.N_IPARAMS, dtype=np.int64)
-        self.ip[kernels.I_LM_ITERS] = settings.lm_iterations
-        self.ip[kernels.I_STALL_GENS] = settings.stall_generations
-        self.st = np.zeros(kernels.N_STATE, dtype=np.int64)
+        self.fp = np.zeros(layout.N_FPARAMS)
+        self.fp[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
+        self.fp[layout.F_SCALE] = settings.F
+        self.fp[layout.F_CR] = settings.Cr
+        self.fp[layout.F_MOVE_W] = settings.movement_weight
+        self.fp[layout.F_LM_LAMBDA0] = settings.lm_lambda0
+        self.fp[layout.F_LM_WINDOW] = settings.lm_window
+        self.fp[layout.F_LM_PROGRESS] = settings.lm_progress
+        self.fp[layout.F_STALL_GAIN] = settings.stall_gain
+        self.ip = np.zeros(layout.N_IPARAMS, dtype=np.int64)
+        self.ip[layout.I_LM_ITERS] = settings.lm_iterations
+        self.ip[layout.I_STALL_GENS] = settings.stall_generations
+        self.st = np.zeros(layout.N_STATE, dtype=np.int64)
         self.rng = np.zeros(1, dtype=np.uint64)
         self.goal = np.eye(4)
         self.q_start = np.zeros(n)
         self.record = np.full(3, np.inf)
         self.record_q = np.zeros(n)
-        self.out = np.zeros(kernels.O_Q + 2 * n)
+        self.out = np.zeros(layout.O_Q + 2 * n)
         # The deadline's estimate of a generation's wall time, carried from call to call, and
         # the clock it was measured on (see solve()).
         self.clock: Clock | None = None
@@ -496,6 +506,20 @@ class _Workspace:
             self.record_q,
             self.out,
         )
+        _check_search_arrays(self.args)
+
+
+def _check_search_arrays(args: tuple[np.ndarray, ...]) -> None:
+    """The arrays as ``layout.SEARCH_ARRAYS`` says (dtype, dimensions, C order, writable): the
+    ahead-of-time module's wrapper does not check them, and would read the wrong memory."""
+    for array, (name, dtype, ndim) in zip(args, layout.SEARCH_ARRAYS, strict=True):
+        if not (
+            array.dtype == np.dtype(dtype)
+            and array.ndim == ndim
+            and array.flags.c_contiguous
+            and array.flags.writeable
+        ):
+            raise TypeError(f"kernels.search's {name} must be C-contiguous {dtype}, {ndim}-d")
 
 
 _local = threading.local()
@@ -510,16 +534,21 @@ def _workspace(arm: Arm, settings: SolverSettings) -> _Workspace:
 
 
 def warm_up() -> float:
-    """Compile (or load from the numba cache) every kernel :func:`solve` uses; returns seconds.
+    """Load the kernels :func:`solve` uses and run each path once; returns seconds.
 
-    Call it once before the first time-critical solve (the daemon does, before READY). The
-    target is the papers' G, which cannot converge, so the compiled entry points
-    (``kernels.init_population`` and ``kernels.generation``, which hold every other kernel, and
-    ``kernels.goal_matrix``) all run, cold and warm; so does the pointing-direction mode's path.
+    The kernels are the ahead-of-time module (:mod:`companion.ik.aot`, built by ``python -m
+    companion.ik``) where an up-to-date one exists, otherwise numba's JIT compiles them (or
+    loads them from its cache): then the compiled entry points (``kernels.search``, which holds
+    every other kernel, and ``kernels.goal_matrix``) are compiled here, not in a solve. Setting
+    ``ARMBRIDGE_IK_JIT=1`` in the environment skips the ahead-of-time module. Call it once
+    before the first time-critical solve (the daemon does, before READY). The target is the
+    papers' G, which cannot converge, so the search runs cold and warm, and so does the
+    pointing-direction mode's path.
     """
     global _warmed_up
-    _warmed_up = True
     t = time.perf_counter()
+    _load_kernels()
+    _warmed_up = True
     arm = Arm.default()
     unreachable = Pose(-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
     few = SolverSettings(max_generations=2)
@@ -527,3 +556,38 @@ def warm_up() -> float:
     solve(arm, unreachable, budget_ms=1e4, seed=0, q_start_deg=[0, 90, 0, 0, 0, 0], settings=few)
     solve(arm, unreachable, budget_ms=1e4, seed=0, settings=few, mode=TargetMode.POSITION_AXIS)
     return time.perf_counter() - t
+
+
+def kernels_origin() -> str:
+    """Where the kernels :func:`solve` runs come from: the ahead-of-time module's path, or
+    ``"numba JIT"`` (empty before :func:`warm_up`)."""
+    return _origin
+
+
+# The compiled entry points solve() calls, set by _load_kernels() (warm_up() calls it first).
+_search: Callable[..., bool] = None  # type: ignore[assignment]
+_goal_matrix: Callable[..., None] = None  # type: ignore[assignment]
+_origin = ""
+_load_lock = threading.Lock()
+
+
+def _load_kernels() -> None:
+    global _search, _goal_matrix, _origin
+    with _load_lock:
+        if _origin:
+            return
+        module = None if os.environ.get("ARMBRIDGE_IK_JIT") == "1" else aot.load()
+        if module is not None:
+            origin = str(module.__file__)
+        else:
+            from companion.ik import kernels  # imports numba (~0.5 s)
+
+            if os.environ.get("ARMBRIDGE_IK_JIT") != "1":
+                log.info(
+                    "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
+                    "kernels run on numba's JIT",
+                    aot.file_name(),
+                )
+            module, origin = kernels, "numba JIT"
+        _search, _goal_matrix = module.search, module.goal_matrix
+        _origin = origin

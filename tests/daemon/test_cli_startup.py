@@ -66,9 +66,10 @@ def test_check_config_does_not_load_the_solver(tmp_path):
 
 
 def test_the_probe_would_see_the_solver():
-    """The check above can fail: ``solve`` does load it."""
+    """The check above can fail: ``solve`` does load it (and numba, unless the kernels'
+    ahead-of-time module is built: companion.ik.aot)."""
     loaded, rc = run_cli("solve", "30", "10", "20", "0", "45", "0", "--budget-ms", "50")
-    assert "numba" in loaded and "companion.ik" in loaded
+    assert "companion.ik" in loaded
 
 
 def test_the_daemon_package_lists_its_api_and_loads_it_lazily():

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from companion.ik import kernel_arrays, kernels
+from companion.ik import kernel_arrays, kernels, layout
 from companion.kinematics import rotation_angle, rpy_to_matrix
 from companion.kinematics.arm import Arm
 
@@ -117,7 +117,7 @@ def test_pose_residual_is_position_and_rotation_vector():
 
 def _lm_inputs(arm, seed):
     k = kernel_arrays(arm)
-    fp = np.zeros(kernels.N_FPARAMS)
+    fp = np.zeros(layout.N_FPARAMS)
     fp[kernels.F_TOL_POS] = 1e-9
     fp[kernels.F_TOL_ORI] = 1e-9
     fp[kernels.F_LM_LAMBDA0] = 1e-3
@@ -143,7 +143,7 @@ def test_lm_converges_to_a_solution_with_joints_at_their_limits(seed):
     # start inside the box: LM holds the joints a step pushes out and still converges.
     arm = Arm.from_package_file("panda.toml")
     k = kernel_arrays(arm)
-    fp = np.zeros(kernels.N_FPARAMS)
+    fp = np.zeros(layout.N_FPARAMS)
     fp[kernels.F_TOL_POS] = 1e-9
     fp[kernels.F_TOL_ORI] = 1e-9
     fp[kernels.F_LM_LAMBDA0] = 0.1

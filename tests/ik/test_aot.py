@@ -1,0 +1,139 @@
+"""companion.ik.aot: the kernels compiled ahead of time solve exactly as the JIT's, load without
+numba, and a module built from other sources is never loaded."""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.ik import aot, kernels, layout, solve, solver, warm_up
+from companion.kinematics.arm import Arm, Pose
+
+
+def test_kernels_record_the_digest_of_their_calling_convention():
+    # numba's cache does not see layout.py's constants change: kernels.py must change with it.
+    digest = hashlib.sha256(Path(layout.__file__).read_bytes()).hexdigest()
+    assert kernels.LAYOUT_SHA256 == digest, "update LAYOUT_SHA256 in companion/ik/kernels.py"
+
+
+def test_the_module_name_follows_the_sources(tmp_path, monkeypatch):
+    for name in ("kernels.py", "layout.py", "aot.py"):
+        shutil.copy(Path(aot.__file__).parent / name, tmp_path / name)
+    monkeypatch.setattr(aot, "_HERE", tmp_path)
+    before = aot.module_name()
+    assert before == aot.MODULE_PREFIX + aot.source_digest()
+    assert before.isidentifier()  # it is also the module's init symbol
+    with (tmp_path / "kernels.py").open("a") as f:
+        f.write("\n")
+    assert aot.module_name() != before
+
+
+def test_only_the_module_of_the_current_sources_is_loaded(tmp_path, monkeypatch):
+    monkeypatch.setattr(aot, "directories", lambda: [tmp_path])
+    monkeypatch.delitem(sys.modules, aot.module_name(), raising=False)  # loaded by a solve
+    suffix = aot.file_name()[len(aot.module_name()) :]
+    (tmp_path / (aot.MODULE_PREFIX + "0" * 24 + suffix)).write_bytes(b"stale")
+    assert aot.find() is None and aot.load() is None
+    # The right name, but not a loadable module (a truncated copy): the JIT is used instead.
+    (tmp_path / aot.file_name()).write_bytes(b"not an ELF file")
+    assert aot.find() == tmp_path / aot.file_name()
+    assert aot.load() is None
+
+
+def test_directories_start_with_numbas_cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    found = aot.directories()
+    assert found[0] == tmp_path
+    assert found[-1] == tmp_path / "xdg" / "armbridge"
+
+
+def test_the_solver_refuses_arrays_the_compiled_wrapper_would_misread():
+    good = tuple(
+        np.zeros((2,) * ndim, dtype=np.dtype(dtype)) for _, dtype, ndim in layout.SEARCH_ARRAYS
+    )
+    solver._check_search_arrays(good)
+    for k, (name, _, ndim) in enumerate(layout.SEARCH_ARRAYS):
+        wrong = list(good)
+        wrong[k] = np.zeros((2,) * ndim, dtype=np.float32)
+        with pytest.raises(TypeError, match=name):
+            solver._check_search_arrays(tuple(wrong))
+    transposed = list(good)
+    transposed[0] = np.zeros((3, 2)).T  # float64 2-d, but not C order
+    with pytest.raises(TypeError, match="pop"):
+        solver._check_search_arrays(tuple(transposed))
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory) -> Path:
+    """The module built into a directory of its own (a few seconds: numba compiles, the C
+    compiler links; the JIT kernels it calls come from numba's cache when it is warm)."""
+    if shutil.which(os.environ.get("CC", "cc")) is None:
+        pytest.skip("no C compiler: the ahead-of-time module cannot be built here")
+    try:
+        return aot.build(tmp_path_factory.mktemp("aot"))
+    except aot.AotUnavailable as exc:
+        pytest.skip(str(exc))
+
+
+@pytest.mark.slow
+def test_the_ahead_of_time_module_solves_bit_for_bit_like_the_jit(built, monkeypatch):
+    spec = importlib.util.spec_from_file_location(built.name.split(".", 1)[0], built)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    warm_up()
+    rng = np.random.default_rng(11)
+    for arm in (Arm.default(), Arm.from_package_file("stanford.toml")):  # a prismatic joint
+        targets = [Pose.from_matrix(t) for t in arm.fk_batch(arm.random_q_rad(rng, 25))]
+        runs = []
+        for search, goal_matrix in (
+            (kernels.search, kernels.goal_matrix),
+            (module.search, module.goal_matrix),
+        ):
+            monkeypatch.setattr(solver, "_search", search)
+            monkeypatch.setattr(solver, "_goal_matrix", goal_matrix)
+            runs.append(
+                [
+                    solve(arm, t, seed=i, budget_ms=1e3, **kw)
+                    for i, t in enumerate(targets)
+                    for kw in ({}, {"mode": solver.TargetMode.POSITION_AXIS})
+                ]
+            )
+        jit, ahead = runs
+        assert all(r.converged for r in jit)
+        for a, b in zip(jit, ahead, strict=True):
+            assert (a.q, a.pos_err_cm, a.ori_err_deg, a.generations, a.lm_iterations) == (
+                b.q,
+                b.pos_err_cm,
+                b.ori_err_deg,
+                b.generations,
+                b.lm_iterations,
+            )
+
+
+@pytest.mark.slow
+def test_with_the_module_built_the_solver_does_not_import_numba(built):
+    code = (
+        "import sys\n"
+        "from companion import ik\n"
+        "ik.warm_up()\n"
+        "arm = ik.solver.Arm.default()\n"
+        "r = ik.solve(arm, arm.fk([10, 80, 20, 10, 20, 30]), seed=0)\n"
+        "print('numba' in sys.modules, ik.kernels_origin(), r.converged)\n"
+    )
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(built.parent))
+    env.pop("ARMBRIDGE_IK_JIT", None)
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", str(built), "True"]
