@@ -117,16 +117,35 @@ def directories() -> list[Path]:
     return found
 
 
+def untrusted(path: Path) -> str | None:
+    """Why ``path`` must not be imported (None: it may). Importing it runs its machine code
+    in this process, so another local user must not have been able to write it or swap it:
+    the file and its directory owned by this user or root, and writable by no one else."""
+    me = os.geteuid()
+    for item in (path, path.parent):
+        st = item.stat()
+        if st.st_uid not in (me, 0):
+            return f"{item} is owned by uid {st.st_uid}"
+        if st.st_mode & 0o022:
+            return f"{item} is writable by its group or others (mode {st.st_mode & 0o777:o})"
+    return None
+
+
 def find() -> Path | None:
-    """The up-to-date module's file, or None."""
+    """The up-to-date module's file, or None. A file another user could have written is
+    skipped, with a warning (:func:`untrusted`)."""
     name = file_name()
     for directory in directories():
         path = directory / name
         try:
-            if path.is_file():
-                return path
+            if not path.is_file():
+                continue
+            reason = untrusted(path)
         except OSError:  # a directory this user may not read (ProtectHome=, another user's)
             continue
+        if reason is None:
+            return path
+        log.warning("not loading the ahead-of-time IK kernels: %s", reason)
     return None
 
 

@@ -48,6 +48,21 @@ def test_only_the_module_of_the_current_sources_is_loaded(tmp_path, monkeypatch)
     assert aot.load() is None
 
 
+def test_a_module_another_user_could_have_written_is_not_loaded(tmp_path, monkeypatch):
+    monkeypatch.setattr(aot, "directories", lambda: [tmp_path])
+    path = tmp_path / aot.file_name()
+    path.write_bytes(b"not an ELF file")
+    tmp_path.chmod(0o700)
+    path.chmod(0o644)
+    assert aot.find() == path
+    path.chmod(0o666)  # writable by anyone: its code could be anyone's
+    assert aot.find() is None and "writable by its group or others" in aot.untrusted(path)
+    path.chmod(0o644)
+    tmp_path.chmod(0o777)  # anyone could swap the file
+    assert aot.find() is None and str(tmp_path) in aot.untrusted(path)
+    tmp_path.chmod(0o700)
+
+
 def test_directories_start_with_numbas_cache_dir(tmp_path, monkeypatch):
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
