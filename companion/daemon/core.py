@@ -123,8 +123,10 @@ SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
 #: one, the release moves a joint by at most a step whatever it stored, and the middle of the
 #: band, where the rewind (``_rewind``) and a re-send after a loss or a reboot send the outputs,
 #: is within half a step of anything they may hold. A SYS_STATUS stream that falls silent stops
-#: the arm within the band. On a slow serial line (SYS_STATUS every 0.25 s) the band is the steps
-#: of one SYS_STATUS interval, not to slow the arm: there a release may move a joint by more.
+#: the arm within the band. Above 40 Hz control, this slows the arm at full speed (to one step a
+#: SYS_STATUS: 48 deg/s of 60 at 50 Hz). On a slow serial line (SYS_STATUS every 0.25 s) the
+#: band is the steps of one SYS_STATUS interval, not to slow the arm: a release there may move a
+#: joint by more than a step.
 SAFETY_STEPS_AHEAD = 1
 #: ArduPilot: nothing moves until a SYS_STATUS said where the safety switch is (at start, after
 #: a loss or a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then
@@ -376,9 +378,10 @@ class ControlCore:
         #: band of poses the outputs may hold from before it (the re-send among them).
         self._loss_band: tuple[list[float], list[float]] | None = None
         step_deg = config.joint_speed_deg_s / config.rate_hz
-        self._band_deg = step_deg * max(
-            SAFETY_STEPS_AHEAD, math.ceil(self._sys_status_interval_s * config.rate_hz - 1e-9)
-        )
+        steps = SAFETY_STEPS_AHEAD
+        if self._sys_status_interval_s > SYS_STATUS_INTERVAL_S:  # a slow serial line
+            steps = max(steps, math.ceil(self._sys_status_interval_s * config.rate_hz - 1e-9))
+        self._band_deg = step_deg * steps
         #: A motion step waited for a SYS_STATUS (the band): it goes out when one comes.
         self._band_held = False
         self._rewind_to: tuple[float, ...] | None = None
