@@ -1210,7 +1210,7 @@ class ControlCore:
         if not unknown:
             self._unconfirmed = None
             self._unanswered = 0
-            if self._acked_pwm.keys() >= set(self._outputs):
+            if all(o in self._acked_pwm or o in self._refused for o in self._outputs):
                 self._loss_band = None  # they hold what was acknowledged
             self.counters["servo_updates"] += 1  # acknowledged in full
             if inflight.attempt == 0:
