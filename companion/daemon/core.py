@@ -133,6 +133,13 @@ SAFETY_STEPS_AHEAD = 1
 #: is stored and goes out in one step at its release); with none this long after asking, the
 #: arm moves without knowing (and says so once).
 SYS_STATUS_WAIT_S = 2.0
+#: ArduPilot: a SYS_STATUS stream silent for this many intervals says nothing of the switch
+#: any more: status shows the outputs as not known to be live (a reboot: they are not).
+SYS_STATUS_STALE_INTERVALS = 4
+#: ... and silent this long (at least SYS_STATUS_STALE_INTERVALS), every stream is asked for
+#: again (a rebooted ArduPilot forgot them; one asked while it reboots is lost), so a reboot is
+#: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
+SYS_STATUS_SILENT_S = 0.5
 #: A readback this long after an output's ACK shows what the output does with that command
 #: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
 READBACK_SETTLE_S = 0.15
@@ -1467,6 +1474,21 @@ class ControlCore:
             }
         return dict(self._not_live)
 
+    def _unknown_outputs(self) -> dict[int, str]:
+        """ArduPilot, for status: the arm's outputs are not known to be live while its
+        SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a reboot, a
+        loss) or has not said where the switch is since a loss or a reboot."""
+        if not self._is_ardupilot or not self._sys_status_ever:
+            return {}
+        if self._sys_status_s is None or self._safety_on is None:
+            why = "safety switch unknown (no SYS_STATUS since the link came back or a reboot)"
+        else:
+            silent_s = self.clock() - self._sys_status_s
+            if silent_s <= SYS_STATUS_STALE_INTERVALS * self._sys_status_interval_s:
+                return {}
+            why = f"safety switch unknown (no SYS_STATUS for {silent_s * 1e3:.0f} ms)"
+        return dict.fromkeys(self._outputs, why)
+
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
         previous, previous_s = self._boot_ms, self._boot_seen_s
         now = self.clock()
@@ -1496,14 +1518,17 @@ class ControlCore:
 
     def _watch_sys_status(self, actions: list[Action], now: float) -> None:
         """ArduPilot: a SYS_STATUS stream that fell silent holds the arm (``SAFETY_STEPS_AHEAD``;
-        after a loss or a reboot, until one says where the switch is); every SYS_STATUS_WAIT_S
+        after a loss or a reboot, until one says where the switch is); every SYS_STATUS_SILENT_S
         of silence, every stream is asked for again (a request lost in a reboot)."""
         if not self._is_ardupilot or not self._sys_status_ever:
             return
         heard = -math.inf if self._sys_status_s is None else self._sys_status_s
-        if now - max(heard, self._sys_status_asked_s) < SYS_STATUS_WAIT_S:
+        silent_s = max(
+            SYS_STATUS_SILENT_S, SYS_STATUS_STALE_INTERVALS * self._sys_status_interval_s
+        )
+        if now - max(heard, self._sys_status_asked_s) < silent_s:
             return
-        log.warning("no SYS_STATUS for %.1f s: holding, asking for every stream again", now - heard)
+        log.info("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
         self._ask_system_time(actions)
 
     def _watch_system_time(self, actions: list[Action], now: float) -> None:
@@ -1784,7 +1809,7 @@ class ControlCore:
 
     def status(self) -> dict[str, Any]:
         """A JSON-ready snapshot (build it on the driving thread)."""
-        dead = self._dead_outputs()
+        dead = {**self._unknown_outputs(), **self._dead_outputs()}
         outputs = {}
         for output in self._outputs:
             if output in self._refused:

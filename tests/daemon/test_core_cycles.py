@@ -14,7 +14,14 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
-from companion.daemon.core import SAFETY_STEPS_AHEAD, Answer, ControlCore, ReadParam, SendCommand
+from companion.daemon.core import (
+    SAFETY_STEPS_AHEAD,
+    SYS_STATUS_SILENT_S,
+    Answer,
+    ControlCore,
+    ReadParam,
+    SendCommand,
+)
 from companion.daemon.requests import Outcome, Request
 from tests.support.timing import FakeClock
 
@@ -363,8 +370,9 @@ def test_ardupilot_a_switch_seen_on_after_a_reboot_rewinds_to_no_pose_from_befor
 def test_ardupilot_a_silent_sys_status_stream_stops_the_arm_within_a_step():
     """Cause 3: a SYS_STATUS that said "off" long ago is not trusted: with the stream silent,
     the arm moves at most SAFETY_STEPS_AHEAD steps (one) from where it was when the last one
-    came, and asks for the stream again after SYS_STATUS_WAIT_S; it goes on once SYS_STATUS is
-    back."""
+    came, status says the outputs are not known to be live after SYS_STATUS_STALE_INTERVALS,
+    and every stream is asked for again after SYS_STATUS_SILENT_S; the arm goes on once
+    SYS_STATUS is back."""
     ap = ArduPilotOutputs()
     ap.run(0.3)
     start = ap.core.status()["current_deg"]
@@ -372,13 +380,17 @@ def test_ardupilot_a_silent_sys_status_stream_stops_the_arm_within_a_step():
     ap.run(0.2)
     interval_s = ap.streams.pop(SYS_STATUS)  # the stream stops
     at_last_status = ap.core.status()["current_deg"][0]
-    ap.run(1.0)
+    ap.run(SYS_STATUS_SILENT_S - 0.05)
     step_deg = ap.config.joint_speed_deg_s / ap.config.rate_hz
     moved_deg = abs(ap.core.status()["current_deg"][0] - at_last_status)
     assert moved_deg <= SAFETY_STEPS_AHEAD * step_deg + 1e-6
-    ap.run(1.5)  # 2 s without one: asked for again (the model streams it again)
+    status = ap.core.status()
+    assert status["outputs_live"] is False
+    assert "no SYS_STATUS for" in status["not_live"]["9"]
+    ap.run(0.1)  # silent SYS_STATUS_SILENT_S: asked for again (the model streams it again)
     assert ap.streams.get(SYS_STATUS) == interval_s
     ap.run(0.5)
+    assert ap.core.status()["outputs_live"] is True
     assert abs(ap.core.status()["current_deg"][0] - at_last_status) > 5 * step_deg
     assert ap.fast_changes() == []
 
