@@ -111,14 +111,35 @@ SLOW_LINK_BAUD = 230_400
 #: ArduPilot's SYS_STATUS (its safety switch: MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled means
 #: the switch is off) is asked for at this interval (on a serial line below SLOW_LINK_BAUD, the
 #: slower one): the switch is seen that late, and the steps sent meanwhile are stored without
-#: pulses, so what the arm may have moved then is undone while it is on (see ``_rewind``).
-SYS_STATUS_INTERVAL_S = 0.1
+#: pulses, so what the arm may have moved then is undone while it is on (see ``_rewind``). Twice
+#: a control tick (20 Hz) on a fast link, so that SAFETY_STEPS_AHEAD seldom holds a step back.
+SYS_STATUS_INTERVAL_S = 0.025
 SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
+#: ArduPilot: since the last SYS_STATUS that said the switch is off, the switch may have gone on
+#: (and even off again, unseen) at any moment, holding each output at the pose acknowledged then
+#: or at any step sent since (or on its way then), and storing every later one for its release.
+#: Those poses are kept within a band this many control ticks' steps (``joint_speed_deg_s /
+#: rate_hz``) wide per joint (a step that would widen it waits for the next SYS_STATUS): with
+#: one, the release moves a joint by at most a step whatever it stored, and the middle of the
+#: band, where the rewind (``_rewind``) and a re-send after a loss or a reboot send the outputs,
+#: is within half a step of anything they may hold. A SYS_STATUS stream that falls silent stops
+#: the arm within the band. Above 40 Hz control, this slows the arm at full speed (to one step a
+#: SYS_STATUS: 48 deg/s of 60 at 50 Hz). On a slow serial line (SYS_STATUS every 0.25 s) the
+#: band is the steps of one SYS_STATUS interval, not to slow the arm: a release there may move a
+#: joint by more than a step.
+SAFETY_STEPS_AHEAD = 1
 #: ArduPilot: nothing moves until a SYS_STATUS said where the safety switch is (at start, after
 #: a loss or a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then
 #: is stored and goes out in one step at its release); with none this long after asking, the
 #: arm moves without knowing (and says so once).
 SYS_STATUS_WAIT_S = 2.0
+#: ArduPilot: a SYS_STATUS stream silent for this many intervals says nothing of the switch
+#: any more: status shows the outputs as not known to be live (a reboot: they are not).
+SYS_STATUS_STALE_INTERVALS = 4
+#: ... and silent this long (at least SYS_STATUS_STALE_INTERVALS), every stream is asked for
+#: again (a rebooted ArduPilot forgot them; one asked while it reboots is lost), so a reboot is
+#: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
+SYS_STATUS_SILENT_S = 0.5
 #: A readback this long after an output's ACK shows what the output does with that command
 #: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
 READBACK_SETTLE_S = 0.15
@@ -196,6 +217,19 @@ def stream_requests(
     return streams
 
 
+def _band_of(poses: Sequence[Sequence[float]]) -> tuple[list[float], list[float]]:
+    """Per joint, the lowest and the highest angle of ``poses``."""
+    return (
+        [min(p[i] for p in poses) for i in range(len(poses[0]))],
+        [max(p[i] for p in poses) for i in range(len(poses[0]))],
+    )
+
+
+def _middle(band: tuple[list[float], list[float]]) -> tuple[float, ...]:
+    """Per joint, the middle of a band (within half its width of every angle in it)."""
+    return tuple((lo + hi) / 2 for lo, hi in zip(*band, strict=True))
+
+
 #: Before any update's round trip was measured, the link's one-way latency is taken as this.
 WORLD_DEFAULT_ONE_WAY_S = 0.005
 
@@ -258,6 +292,8 @@ class _InFlight:
     attempt: int = 0  # sends of the command being confirmed one at a time (0: the batch)
     accepted: dict[int, int] = field(default_factory=dict)
     refused: dict[int, str] = field(default_factory=dict)
+    #: The steps of updates ahead of it that ended unanswered (the outputs may hold them).
+    folded: list[tuple[float, ...]] = field(default_factory=list)
 
 
 class ControlCore:
@@ -338,11 +374,29 @@ class ControlCore:
         #: not read yet; then no output is assumed to be in it).
         self._safety_on: bool | None = None
         self._safety_mask: int | None = None
-        #: ArduPilot: the pose commanded when a SYS_STATUS last said the switch was off, and
-        #: the pose to send the dead outputs back to once it was seen on (see ``_rewind``).
-        self._safety_off_pose: tuple[float, ...] | None = None
+        #: ArduPilot: per joint, the lowest and highest angle the outputs may hold since the
+        #: last SYS_STATUS that said the switch was off (see ``SAFETY_STEPS_AHEAD``; None: no
+        #: such SYS_STATUS since the start, a loss or a reboot), and the band's allowed width;
+        #: the pose to send the dead outputs back to once the switch was seen on (``_rewind``).
+        #: A loss or a reboot forgets them (a rebooted ArduPilot comes back with its switch at
+        #: BRD_SAFETY_DEFLT).
+        self._band: tuple[list[float], list[float]] | None = None
+        #: ArduPilot, after a loss or a reboot until every output is acknowledged again: the
+        #: band of poses the outputs may hold from before it (the re-send among them).
+        self._loss_band: tuple[list[float], list[float]] | None = None
+        step_deg = config.joint_speed_deg_s / config.rate_hz
+        steps = SAFETY_STEPS_AHEAD
+        if self._sys_status_interval_s > SYS_STATUS_INTERVAL_S:  # a slow serial line
+            steps = max(steps, math.ceil(self._sys_status_interval_s * config.rate_hz - 1e-9))
+        self._band_deg = step_deg * steps
+        #: A motion step waited for a SYS_STATUS (the band): it goes out when one comes.
+        self._band_held = False
         self._rewind_to: tuple[float, ...] | None = None
         self._sys_status_asked_s = clock()
+        self._sys_status_s: float | None = None  # when the last SYS_STATUS came (None: none)
+        #: A SYS_STATUS came from this autopilot once: it streams them, so the arm never moves
+        #: without one (a stream lost in a reboot is asked for again instead).
+        self._sys_status_ever = False
         self._sys_status_warned = False
         #: PX4: armed, from its HEARTBEAT (None: no HEARTBEAT yet). Shown, not relied on:
         #: prearmed outputs are live while disarmed.
@@ -464,18 +518,7 @@ class ControlCore:
             self._on_readback(msg)
         elif kind == "SYS_STATUS":
             enabled = msg.onboard_control_sensors_enabled
-            safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
-            if safety_on != self._safety_on and self._is_ardupilot:
-                log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
-                if safety_on and self._safety_off_pose is not None:
-                    self._rewind_to = self._safety_off_pose
-                elif not safety_on:
-                    self._rewind_to = None
-            self._safety_on = safety_on
-            if not safety_on:
-                self._safety_off_pose = (
-                    self._flights[-1].step_deg if self._flights else tuple(self._position)
-                )
+            self._on_sys_status(actions, not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
         elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
             self._telemetry.on_frame(msg, self.clock() if received_s is None else received_s)
         elif kind == "PARAM_VALUE" and _param_name(msg.param_id) == "BRD_SAFETY_MASK":
@@ -502,6 +545,7 @@ class ControlCore:
             return actions
         self._poll_update(actions)
         self._watch_system_time(actions, now)
+        self._watch_sys_status(actions, now)
         if due:
             if self._trajectory:
                 self._due_trajectory_point(actions)
@@ -761,6 +805,8 @@ class ControlCore:
             if not max_step_deg > 0:
                 return
             step = limit_step(self._position, goal, max_step_deg)
+            if not self._may_step_to(step):
+                return  # no SYS_STATUS said the switch is off since the steps before
         self._send_step(actions, step, now)
 
     def _pipeline(self, actions: list[Action]) -> None:
@@ -800,9 +846,107 @@ class ControlCore:
         if not max_step_deg > 0:
             return
         step = limit_step(last.step_deg, goal, max_step_deg)
+        if not self._may_step_to(step):
+            return
         ahead = {o for f in self._flights for o in f.sent_outputs}
         base = {o: pwm for o, pwm in self._acked_pwm.items() if o not in ahead}
         self._send_step(actions, step, now, base_pwm=base)
+
+    def _on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
+        """ArduPilot's safety switch, as a SYS_STATUS says (see ``SAFETY_STEPS_AHEAD``)."""
+        self._sys_status_s = self.clock()
+        self._sys_status_ever = True
+        if not self._is_ardupilot:
+            self._safety_on = safety_on
+            return
+        if safety_on != self._safety_on:
+            log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+            if safety_on and self._band is not None:
+                self._rewind_to = self._band_middle()
+            elif not safety_on:
+                self._rewind_to = None
+        self._safety_on = safety_on
+        if safety_on:
+            return
+        # Off now: the outputs hold what was acknowledged, or a step still on its way (or one
+        # whose update ended unanswered: it is sent again before anything else).
+        poses = [f.step_deg for f in self._flights]
+        if self._unconfirmed is not None:
+            poses.append(self._unconfirmed)
+        if self._loss_band is not None:  # what they held before is unknown: that band
+            poses += [tuple(self._loss_band[0]), tuple(self._loss_band[1])]
+        else:
+            poses.append(tuple(self._position))
+        self._band = _band_of(poses)
+        if self._band_held and self._link_up:
+            self._band_held = False
+            self._maybe_send(actions, immediate=False)  # the step held back for this
+
+    def _band_middle(self) -> tuple[float, ...]:
+        assert self._band is not None
+        return _middle(self._band)
+
+    def _may_step_to(self, step: tuple[float, ...]) -> bool:
+        """ArduPilot: a motion step to ``step`` keeps the poses the outputs may hold since the
+        last SYS_STATUS that said the switch is off within ``SAFETY_STEPS_AHEAD`` (always true
+        when none came since the start, a loss or a reboot: see ``_safety_known``)."""
+        if not self._is_ardupilot or self._band is None:
+            return True
+        low, high = self._band
+        width = self._band_deg + 1e-9
+        ok = all(
+            max(hi, a) - min(lo, a) <= width for lo, hi, a in zip(low, high, step, strict=True)
+        )
+        self._band_held = not ok
+        return ok
+
+    def _stepped_to(self, step: tuple[float, ...]) -> None:
+        """A step to ``step`` went out: the outputs may hold it (ArduPilot's band)."""
+        if self._band is None:
+            return
+        low, high = self._band
+        for i, a in enumerate(step):
+            low[i], high[i] = min(low[i], a), max(high[i], a)
+
+    def _forget_safety(self) -> None:
+        """ArduPilot, a loss or a (possible) reboot: the switch is unknown until a SYS_STATUS
+        says (it boots at BRD_SAFETY_DEFLT), and no pose from before is rewound to."""
+        self._safety_on = None
+        self._sys_status_s = None
+        self._band = self._rewind_to = None
+
+    def _resend_pose(self, flights: Sequence[_InFlight]) -> tuple[float, ...]:
+        """ArduPilot, after a loss or a reboot: the pose to send every output to again, within
+        one step of anything they may hold. The switch seen on: the pose they were sent back to
+        (nothing moved since). Else the middle of the band of poses they may hold since the
+        last SYS_STATUS that said off (``SAFETY_STEPS_AHEAD``: the switch may have gone on
+        since), or with none, the oldest step that was on its way (they hold it, the
+        acknowledged pose, or the step behind it)."""
+        if self._safety_on is True and self._rewind_to is not None:
+            return self._rewind_to  # seen on, not sent back yet
+        if self._safety_on is not True and self._band is not None:
+            return self._band_middle()
+        if self._loss_band is not None:  # lost again before the re-send was acknowledged
+            return _middle(self._loss_band)
+        return flights[0].step_deg if flights else tuple(self._position)
+
+    def _forget_outputs(self, flights: Sequence[_InFlight]) -> tuple[float, ...] | None:
+        """ArduPilot, a loss or a (possible) reboot: what the outputs may hold is kept as
+        ``_loss_band``, the switch forgotten; the pose to send them to again (None: nothing
+        was ever sent)."""
+        if not (flights or self._last_step_s > -math.inf):
+            self._forget_safety()
+            return None
+        resend = self._resend_pose(flights)
+        if self._band is not None:
+            poses = [tuple(self._band[0]), tuple(self._band[1])]
+        elif self._loss_band is not None:
+            poses = [tuple(self._loss_band[0]), tuple(self._loss_band[1])]
+        else:
+            poses = [tuple(self._position)] + [f.step_deg for f in flights]
+        self._loss_band = _band_of([*poses, resend])
+        self._forget_safety()
+        return resend
 
     def _rewind(self, actions: list[Action], dead: dict[int, str], now: float) -> None:
         """ArduPilot, the safety switch seen on: it went on at some moment since the SYS_STATUS
@@ -825,8 +969,8 @@ class ControlCore:
         loss or reboot (or none came for SYS_STATUS_WAIT_S, which is said once)."""
         if self._safety_on is not None:
             return True
-        if now - self._sys_status_asked_s < SYS_STATUS_WAIT_S:
-            return False
+        if self._sys_status_ever or now - self._sys_status_asked_s < SYS_STATUS_WAIT_S:
+            return False  # (an autopilot that sent one sends them: asked again meanwhile)
         if not self._sys_status_warned:
             self._sys_status_warned = True
             log.warning(
@@ -905,6 +1049,7 @@ class ControlCore:
         sent = frozenset(o for c in commands for o in c.outputs)
         self._flights.append(_InFlight(step, pwm, sent, tracker, now, waiting, timeout_s))
         self._last_step_s = now
+        self._stepped_to(step)
         self._emit(actions, commands, 0)
 
     def _send_direct(
@@ -963,6 +1108,7 @@ class ControlCore:
         for output in inflight.sent_outputs:
             self._acked_pwm.pop(output, None)
         self._flights[0].waiting[:0] = inflight.waiting
+        self._flights[0].folded[:0] = [*inflight.folded, inflight.step_deg]
         self.counters["servo_errors"] += 1
 
     def _poll_last(
@@ -978,6 +1124,8 @@ class ControlCore:
             # Each command is sent at most 1 + command_retries times: once in the batch, then
             # alone until its ACK comes.
             retry = [c for c in commands if unknown.intersection(c.outputs)]
+            if inflight.folded and inflight.attempt < self.config.link.command_retries:
+                retry = self._retry_between(inflight, unknown) or retry
             if inflight.attempt < self.config.link.command_retries:
                 inflight.pending = retry + inflight.pending
                 inflight.attempt += 1
@@ -1000,6 +1148,27 @@ class ControlCore:
             self._emit(actions, [command], inflight.attempt)
             return
         self._resolve_update(actions, inflight, now)
+
+    def _retry_between(self, inflight: _InFlight, unknown: set[int]) -> list[ServoCommand]:
+        """An update with the steps of updates ahead of it folded into it left ``unknown``
+        outputs: they hold the acknowledged pose, one of those steps or this one (two steps
+        apart at most). They are confirmed at the middle of those poses, within one step of
+        each, rather than at this step; the flight's step becomes that (the outputs it
+        confirmed keep theirs)."""
+        poses = [tuple(self._position), *inflight.folded, inflight.step_deg]
+        middle = _middle(_band_of(poses))
+        step = tuple(
+            middle[i] if output in unknown else inflight.step_deg[i]
+            for i, output in enumerate(self._outputs)
+        )
+        try:
+            pwm = self.config.calibration.angles_to_pwm_us(step)
+            commands = self._dialect.plan(pwm, None)
+        except CalibrationError:  # within the hull of steps already checked: unreachable
+            return []
+        inflight.step_deg, inflight.pwm_by_output, inflight.folded = step, pwm, []
+        self._stepped_to(step)
+        return [c for c in commands if unknown.intersection(c.outputs)]
 
     def _resolve_update(
         self, actions: list[Action], inflight: _InFlight, now: float, *, unknown: str = ""
@@ -1048,6 +1217,8 @@ class ControlCore:
         if not unknown:
             self._unconfirmed = None
             self._unanswered = 0
+            if all(o in self._acked_pwm or o in self._refused for o in self._outputs):
+                self._loss_band = None  # they hold what was acknowledged
             self.counters["servo_updates"] += 1  # acknowledged in full
             if inflight.attempt == 0:
                 self._round_trips.append(now - inflight.sent_s)
@@ -1062,8 +1233,15 @@ class ControlCore:
                 self._answer(actions, w.request, reply)
             self._maybe_send(actions, immediate=True)
             return
-        # Some outputs may or may not have moved: that step is re-sent before moving on.
-        self._unconfirmed = inflight.step_deg
+        # Some outputs may or may not have moved: they hold the acknowledged pose, this step
+        # or one folded into it (each a step from the one before). A pose within one step of
+        # every one of them is sent before moving on: this step, or with steps folded into it,
+        # the middle of them all.
+        if inflight.folded:
+            poses = [tuple(self._position), *inflight.folded, inflight.step_deg]
+            self._unconfirmed = _middle(_band_of(poses))
+        else:
+            self._unconfirmed = inflight.step_deg
         self.counters["servo_errors"] += 1
         self._unanswered += 1
         message = f"servo update unanswered: {unknown}"
@@ -1127,7 +1305,7 @@ class ControlCore:
         self._mismatches.clear()
         self._confirmed.clear()
         self._telemetry.reset()
-        self._safety_on = None  # ArduPilot: until a SYS_STATUS says (it boots with it on)
+        resend = self._forget_outputs(flights)  # ArduPilot: the switch unknown (boots on)
         self._readback_since_s = self.clock()
         if not self._is_ardupilot:
             # PX4 applies what it stores in one step once its outputs are live: re-sending the
@@ -1136,11 +1314,10 @@ class ControlCore:
             # from there at the speed limit.
             self._unconfirmed = None
             return
-        if flights or self._last_step_s > -math.inf:
-            # The outputs hold what they were last told: the acknowledged pose, or a step that
-            # was on its way (up to PIPELINE_DEPTH of them, each a step from the one before).
-            # The oldest of those is within one step of every one of them.
-            self._unconfirmed = flights[0].step_deg if flights else tuple(self._position)
+        if resend is not None:
+            # The outputs hold what they were last told (see _resend_pose): sent again within
+            # one step of it.
+            self._unconfirmed = resend
             self._resend_now = True
 
     def _ask_system_time(self, actions: list[Action]) -> None:
@@ -1297,6 +1474,21 @@ class ControlCore:
             }
         return dict(self._not_live)
 
+    def _unknown_outputs(self) -> dict[int, str]:
+        """ArduPilot, for status: the arm's outputs are not known to be live while its
+        SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a reboot, a
+        loss) or has not said where the switch is since a loss or a reboot."""
+        if not self._is_ardupilot or not self._sys_status_ever:
+            return {}
+        if self._sys_status_s is None or self._safety_on is None:
+            why = "safety switch unknown (no SYS_STATUS since the link came back or a reboot)"
+        else:
+            silent_s = self.clock() - self._sys_status_s
+            if silent_s <= SYS_STATUS_STALE_INTERVALS * self._sys_status_interval_s:
+                return {}
+            why = f"safety switch unknown (no SYS_STATUS for {silent_s * 1e3:.0f} ms)"
+        return dict.fromkeys(self._outputs, why)
+
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
         previous, previous_s = self._boot_ms, self._boot_seen_s
         now = self.clock()
@@ -1324,6 +1516,21 @@ class ControlCore:
             self._lose_outputs(actions, "autopilot rebooted")
             self._ask_system_time(actions)
 
+    def _watch_sys_status(self, actions: list[Action], now: float) -> None:
+        """ArduPilot: a SYS_STATUS stream that fell silent holds the arm (``SAFETY_STEPS_AHEAD``;
+        after a loss or a reboot, until one says where the switch is); every SYS_STATUS_SILENT_S
+        of silence, every stream is asked for again (a request lost in a reboot)."""
+        if not self._is_ardupilot or not self._sys_status_ever:
+            return
+        heard = -math.inf if self._sys_status_s is None else self._sys_status_s
+        silent_s = max(
+            SYS_STATUS_SILENT_S, SYS_STATUS_STALE_INTERVALS * self._sys_status_interval_s
+        )
+        if now - max(heard, self._sys_status_asked_s) < silent_s:
+            return
+        log.info("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
+        self._ask_system_time(actions)
+
     def _watch_system_time(self, actions: list[Action], now: float) -> None:
         heard = self._system_time_s
         if now - self._system_time_asked_s < SYSTEM_TIME_SILENT_S:
@@ -1340,7 +1547,7 @@ class ControlCore:
         # at their boot values), then the motion goes on.
         log.info("SYSTEM_TIME stopped: asking again and re-sending every output")
         self._system_time_s = None
-        self._safety_on = None  # it may have rebooted, with the switch on
+        resend = self._forget_outputs(self._flights)  # it may have rebooted, switch on
         self._acked_pwm.clear()
         self._ack_history.clear()
         self._confirmed.clear()
@@ -1348,7 +1555,7 @@ class ControlCore:
             # PX4 (see _lose_outputs): never re-send a stale pose; the readback says where.
             self._readback_since_s = now
         elif not self._flights and self._last_step_s > -math.inf:
-            self._unconfirmed = tuple(self._position)
+            self._unconfirmed = resend
             self._resend_now = True
         self._ask_system_time(actions)
 
@@ -1602,7 +1809,7 @@ class ControlCore:
 
     def status(self) -> dict[str, Any]:
         """A JSON-ready snapshot (build it on the driving thread)."""
-        dead = self._dead_outputs()
+        dead = {**self._unknown_outputs(), **self._dead_outputs()}
         outputs = {}
         for output in self._outputs:
             if output in self._refused:

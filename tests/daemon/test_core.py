@@ -25,6 +25,7 @@ from companion.daemon.core import (
     ControlCore,
     ReadParam,
     SendCommand,
+    stream_intervals_s,
 )
 from companion.daemon.requests import Outcome, Request
 from companion.kinematics.arm import Pose
@@ -51,7 +52,12 @@ def fake_solve(pose, q_start_deg, mode="pose", budget_ms=None, *, seed=None):
 
 
 class Rig:
-    """A core, the autopilot's codec, and what came out."""
+    """A core, the autopilot's codec, and what came out.
+
+    ArduPilot: once the test says where the safety switch is (:meth:`sys_status`), the rig
+    streams SYS_STATUS saying so at the interval the core asked for, as ArduPilot does, until
+    the link goes down or the core asks for the stream again (a reboot or a silence: the test
+    says when the autopilot answers)."""
 
     def __init__(
         self, dialect: str = "ardupilot", sections: dict | None = None, **link: object
@@ -74,6 +80,10 @@ class Rig:
         self.requests: list[Request] = []
         self.codecs: dict[tuple[int, int], mavlink.MAVLink] = {}
         self.decoder = mavlink.MAVLink(None)
+        #: The safety switch the rig's SYS_STATUS stream says (None: not streaming).
+        self.safety_stream: bool | None = None
+        self._status_due_s = math.inf
+        self.status_interval_s = stream_intervals_s(ardupilot=True, url=config.link.url)[1]
 
     # -- driving ----------------------------------------------------------------------------
 
@@ -87,6 +97,11 @@ class Rig:
                 self.reads.append(action)
             else:
                 new.append(action)
+                if (
+                    action.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+                    and action.params[0] == mavlink.MAVLINK_MSG_ID_SYS_STATUS
+                ):
+                    self.safety_stream = None  # asked again: the test says when it answers
         self.sent += new
         return new
 
@@ -115,15 +130,23 @@ class Rig:
         values = [int(pwm_by_output.get(n, 0)) for n in range(1, 17)]
         return self.frame(lambda c: c.servo_output_raw_encode(0, 0, *values), src)
 
-    def sys_status(self, safety_on, src=(1, 1)):
+    def sys_status(self, safety_on, src=(1, 1), *, stream=True):
+        """A SYS_STATUS; from the autopilot (``stream``), it goes on streaming that."""
         outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
         enabled = 0 if safety_on else outputs
+        if stream and src == (1, 1):
+            self.safety_stream = safety_on
+            self._status_due_s = self.clock() + self.status_interval_s
         return self.frame(
             lambda c: c.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
             src,
         )
 
     def tick(self, link_up=True):
+        if not link_up:
+            self.safety_stream = None
+        elif self.safety_stream is not None and self.clock() >= self._status_due_s:
+            self.sys_status(self.safety_stream)
         return self.take(self.core.tick(link_up))
 
     def advance(self, seconds, link_up=True):
@@ -376,11 +399,13 @@ def test_a_target_goes_out_behind_the_update_in_flight_and_acks_are_counted_in_o
 def test_an_unanswered_update_with_one_behind_it_is_decided_by_the_one_behind(rig):
     rig.goto(PARK)
     rig.ack_all(rig.sent)
+    parked = rig.core.status()["last_pwm_us"]
     rig.sent.clear()
     rig.clock.advance(0.02)
     first = rig.goto(near(PARK))
     rig.clock.advance(0.01)
     second = rig.goto(tuple(p + 20.0 for p in PARK))
+    ahead = rig.servo(rig.sent[:6])
     behind = [c for c in rig.sent if c.command == SERVO][6:]
     for _ in range(3):
         rig.ack()  # three of the first update's six: the rest lost, and all of the second's
@@ -391,15 +416,22 @@ def test_an_unanswered_update_with_one_behind_it_is_decided_by_the_one_behind(ri
     assert status["last_pwm_us"] is None  # unknown, not "acknowledged at park"
     assert rig.servo() == {}  # no retry of the first: the second re-sent its outputs
     rig.advance(0.01)  # the second's deadline: its commands confirmed one at a time
+    confirmed = {}
     for expected in behind:
         [alone] = [c for c in rig.sent if c.command == SERVO]
-        assert alone.params == expected.params
+        output, pwm = int(alone.params[0]), int(alone.params[1])
+        assert output == int(expected.params[0])
+        # Each output holds park, the first step or the second: it is confirmed at their
+        # middle (within one step of each), not at the second step (two from park).
+        held = [parked[output], ahead[output], int(expected.params[1])]
+        assert pwm == pytest.approx((min(held) + max(held)) / 2, abs=1)
+        confirmed[output] = pwm
         rig.sent.clear()
         rig.ack()
     # Both targets are answered by the outcome of the update that carried their outputs.
     assert rig.reply(first).outcome is Outcome.ACCEPTED
     assert rig.reply(second).outcome is Outcome.ACCEPTED
-    assert rig.core.status()["last_pwm_us"] == rig.servo(behind)
+    assert rig.core.status()["last_pwm_us"] == confirmed
 
 
 # -- requests ----------------------------------------------------------------------------------
@@ -571,6 +603,7 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     request = rig.goto(tuple(p + 30.0 for p in PARK))
     rig.ack_all(rig.sent)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
+    acked = rig.core.status()["last_pwm_us"]
     rig.sent.clear()
     rig.advance(1.0 / RATE_HZ)  # the next step is in flight when the link goes
     in_flight = rig.servo()
@@ -586,9 +619,15 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
     rig.sys_status(safety_on=False)
     rig.advance(1.0 / RATE_HZ)
-    # Back: every output at the step that was on its way first (the outputs hold it or the
-    # acknowledged pose, one step apart), then on towards the goal.
-    assert rig.servo() == in_flight
+    # Back: every output within half a step of both poses it may hold (the acknowledged one
+    # and the step on its way), then on towards the goal.
+    resent = rig.servo()
+    assert sorted(resent) == sorted(in_flight)
+    for output, pwm in resent.items():
+        held = [acked[output], in_flight[output]]
+        assert min(held) <= pwm <= max(held)
+        for before in held:
+            assert abs(rig.angle(output, pwm) - rig.angle(output, before)) <= STEP_DEG / 2 + 0.1
 
 
 def test_shutdown_answers_everything_and_parks_every_output_directly(rig):

@@ -2,8 +2,8 @@
 
 It decodes everything the link sends (so frames are checked independently of the code under
 test), answers COMMAND_LONG with COMMAND_ACK according to a small script, and sends HEARTBEAT /
-STATUSTEXT / SERVO_OUTPUT_RAW only when the test asks, and one SYS_STATUS (the safety switch
-off) when asked for that stream.
+STATUSTEXT / SERVO_OUTPUT_RAW only when the test asks, and SYS_STATUS (the safety switch off)
+at the interval asked, as ArduPilot streams it, once asked for that stream.
 """
 
 from __future__ import annotations
@@ -146,9 +146,11 @@ class ScriptedPeer:
         # ArduPilot queues STATUSTEXT for its main loop, so it goes out after the ACK.
         self.statustext_after_ack = True
         self.statustext_delay_s = 0.02
-        #: Asked for SYS_STATUS (as the daemon's core does of ArduPilot), send one saying the
+        #: Asked for SYS_STATUS (as the daemon's core does of ArduPilot), stream it saying the
         #: safety switch is off (None: send none, as an autopilot that never says).
         self.safety_on: bool | None = False
+        self._sys_status_interval_s: float | None = None
+        self._sys_status_due_s = 0.0
         self.ack_result = mavlink.MAV_RESULT_ACCEPTED
         self.on_command: Callable | None = None
         self._cond = threading.Condition()
@@ -178,8 +180,16 @@ class ScriptedPeer:
     # --- receiving ---
     def _run(self) -> None:
         while not self._stop.is_set():
+            timeout_s = 0.05
+            interval_s = self._sys_status_interval_s
+            if interval_s is not None:
+                now = time.monotonic()
+                if now >= self._sys_status_due_s:
+                    self._sys_status_due_s = max(self._sys_status_due_s + interval_s, now)
+                    self._send_sys_status()
+                timeout_s = min(timeout_s, max(0.0, self._sys_status_due_s - now))
             try:
-                data = self.endpoint.read(0.05)
+                data = self.endpoint.read(timeout_s)
             except (OSError, ValueError):
                 return
             if not data:
@@ -219,16 +229,27 @@ class ScriptedPeer:
             and int(cmd.param1) == mavlink.MAVLINK_MSG_ID_SYS_STATUS
             and self.safety_on is not None
         ):
-            outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
-            enabled = 0 if self.safety_on else outputs
-            self.send(
-                self.mav.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-            )
+            self._send_sys_status()
+            if cmd.param2 > 0:
+                self._sys_status_interval_s = cmd.param2 / 1e6
+                self._sys_status_due_s = time.monotonic() + self._sys_status_interval_s
         if text is not None and self.statustext_after_ack:
             # One main-loop pass later, as ArduPilot's queued STATUSTEXT goes out.
             timer = threading.Timer(self.statustext_delay_s, self.send_statustext, (text,))
             timer.daemon = True
             timer.start()
+
+    def _send_sys_status(self) -> None:
+        if self.safety_on is None:
+            return
+        outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+        enabled = 0 if self.safety_on else outputs
+        try:
+            self.send(
+                self.mav.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+            )
+        except OSError:
+            pass  # no peer (yet), or the link closed: the next one may go
 
     def messages(self, msg_type: str) -> list:
         with self._cond:
