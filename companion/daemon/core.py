@@ -447,9 +447,10 @@ class ControlCore:
                 # Counted in order: the oldest update still short of ACKs takes it (the
                 # autopilot answers one link's commands in the order they came); once all
                 # are complete, the newest counts it as one too many.
+                at_s = self.clock() if received_s is None else received_s
                 for flight in self._flights:
                     if not flight.tracker.complete or flight is self._flights[-1]:
-                        flight.tracker.on_ack(msg.command, msg.result, self.clock())
+                        flight.tracker.on_ack(msg.command, msg.result, at_s)
                         break
                 self._poll_update(actions)
         elif kind == "STATUSTEXT":
@@ -526,6 +527,18 @@ class ControlCore:
             if not flight.tracker.complete:
                 return max(1, flight.tracker.acks_missing)
         return 1
+
+    def ack_wake_wanted(self) -> bool:
+        """Whether the ACK that completes an update (:meth:`acks_to_progress`) must be taken
+        at once: nothing is in flight (an ACK then is one too many), a request waits on an
+        update in flight (its answer) or to go out behind it, or an update is being confirmed
+        one command at a time. Otherwise it changes nothing before the next tick, which takes
+        it first (an update's time is its last ACK's reception, not when it is taken), and the
+        driver need not wake for it: following a world target or a trajectory, one wake a
+        tick fewer."""
+        if self._waiting or not self._flights:
+            return True
+        return any(f.waiting or f.pending or f.attempt for f in self._flights)
 
     def shutdown(self, *, park: bool) -> list[Action]:
         """Stop: answer everything waiting, and send the park pose directly if asked."""
@@ -1050,7 +1063,8 @@ class ControlCore:
             self._unanswered = 0
             self.counters["servo_updates"] += 1  # acknowledged in full
             if inflight.attempt == 0:
-                self._round_trips.append(now - inflight.sent_s)
+                done_s = inflight.tracker.complete_s
+                self._round_trips.append((now if done_s is None else done_s) - inflight.sent_s)
             self._record_first_out(timing)
             dead = self._dead_outputs()
             for w in inflight.waiting:

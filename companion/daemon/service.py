@@ -71,6 +71,8 @@ log = logging.getLogger("armbridge")
 STATUS_WAIT_S = 0.25
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
+#: ``_acks_wake_at`` when no ACCEPTED ACK needs to wake the control thread.
+NO_WAKE = float("inf")
 #: The frame types the core reads.
 CORE_FRAMES = (
     "HEARTBEAT",
@@ -134,7 +136,7 @@ class ArmDaemon:
         # ArduPilot answers an update's six DO_SET_SERVO with six frames.
         self._acks_queued = 0
         self._acks_fed = 0
-        self._acks_wake_at = 1
+        self._acks_wake_at: float = 1
         # The status snapshot is built on the control thread when some thread asked for one
         # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
         # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
@@ -514,9 +516,14 @@ class ArmDaemon:
 
     def _arm_ack_wake(self) -> None:
         """The ACK count at which the reader wakes us (any other ACK, and every other frame
-        the core reads but the telemetry, wakes us at once); wakes us now if it is queued."""
+        the core reads but the telemetry, wakes us at once); wakes us now if it is queued.
+        When the core does not need the completing ACK before its next tick
+        (:meth:`ControlCore.ack_wake_wanted`), no ACCEPTED ACK wakes us: that tick takes them."""
+        core = self._core
         with self._frames_lock:
-            self._acks_wake_at = self._acks_fed + self._core.acks_to_progress()
+            self._acks_wake_at = (
+                self._acks_fed + core.acks_to_progress() if core.ack_wake_wanted() else NO_WAKE
+            )
             due = self._acks_queued >= self._acks_wake_at
         if due:
             self._wake.set()
@@ -595,6 +602,8 @@ class ArmDaemon:
         core = self._core
         park = bool(self._closing) and self.config.park_deg is not None
         self._carry_out(core.shutdown(park=park))
+        with self._frames_lock:  # the ACK that completes the park wakes us (it is waited for)
+            self._acks_wake_at = self._acks_fed + core.acks_to_progress()
         deadline = self.clock() + (self.park_wait_s if park else 0.0)
         while not core.idle and self.clock() < deadline:
             self._wake.wait(min(0.01, max(0.0, deadline - self.clock())))

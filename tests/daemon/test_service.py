@@ -21,7 +21,8 @@ from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from sim_servo.query import query
-from tests.daemon.test_core import PARK, Rig, near
+from tests.daemon.test_core import PARK, RATE_HZ, Rig, near
+from tests.daemon.test_core_world import telemetry, world_goto, world_rig
 from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
 from tests.support.sim_process import assert_within_quantisation
 from tests.support.timing import wait_until
@@ -492,6 +493,40 @@ def test_the_control_thread_is_woken_by_the_ack_that_completes_an_update_not_by_
     for _ in range(5):
         daemon._on_frame(_ack_frame())
     daemon._arm_ack_wake()
+    assert daemon._wake.is_set()
+
+
+def test_an_update_nobody_waits_on_is_taken_on_the_next_tick_not_woken_for():
+    """Following a world target (a step a tick, no request waiting on it), the ACKs of an
+    update wait for the next tick; a target waiting on one makes its completing ACK wake."""
+    rig = world_rig()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    telemetry(rig)
+    first = world_goto(rig, PARK)
+    rig.ack_all(rig.sent)
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    rig.clock.advance(1.0 / RATE_HZ)
+    telemetry(rig, north_cm=3.0)
+    step = rig.servo(rig.tick())
+    assert step  # the hold's next step, in flight
+    daemon._arm_ack_wake()
+    for _ in step:
+        daemon._on_frame(_ack_frame())
+    assert not daemon._wake.is_set()
+    acked = rig.core.status()["last_pwm_us"]
+    assert any(acked[o] != pwm for o, pwm in step.items())  # not taken yet
+    daemon._feed_frames()  # the next tick's first work
+    acked = rig.core.status()["last_pwm_us"]
+    assert all(acked[o] == pwm for o, pwm in step.items())
+    # A base-frame target waits on its first update: the ACK that completes it wakes.
+    rig.clock.advance(1.0 / RATE_HZ)
+    request = daemon.new_request("goto", near(PARK))
+    step = rig.servo(rig.take(rig.core.request(request)))
+    daemon._arm_ack_wake()
+    assert step
+    for _ in step:
+        daemon._on_frame(_ack_frame())
     assert daemon._wake.is_set()
 
 
