@@ -555,6 +555,18 @@ class ControlCore:
     def link_up(self) -> bool:
         return self._link_up
 
+    def brief(self) -> tuple[bool, int, int, int]:
+        """A few figures of :meth:`status`, cheap enough to take every step: whether the
+        autopilot answered us on a link that is up, and the targets accepted, failed and
+        denied."""
+        counters = self.counters
+        return (
+            self._link_up and self._heard_us,
+            counters["accepted"],
+            counters["failed"],
+            counters["denied"],
+        )
+
     def finish(self) -> list[Action]:
         """The daemon exits now: whatever still waits on an update is answered."""
         actions: list[Action] = []

@@ -157,6 +157,9 @@ class ArmDaemon:
             collections.OrderedDict()
         )
         self._status: dict[str, Any] = self._core.status()
+        # What the service's main loop reports to systemd twice a second (brief()), published
+        # by the control thread after each step: that loop then never wakes it for a snapshot.
+        self._brief = self._core.brief()
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
         self._thread: threading.Thread | None = None
@@ -355,6 +358,22 @@ class ArmDaemon:
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 
+    def brief(self) -> dict[str, Any]:
+        """A few figures of :meth:`status` as of the control thread's last step (at most a
+        control period old), without asking it for a snapshot: ``link`` (its state),
+        ``autopilot_heard_us``, and the targets ``accepted`` and ``refused`` (failed or
+        denied, also those denied before the core)."""
+        heard_us, accepted, failed, denied = self._brief
+        with self._counts_lock:
+            denied += self._counts["denied"]
+        link = self.link
+        return {
+            "link": link.state.value if link is not None else "closed",
+            "autopilot_heard_us": heard_us,
+            "accepted": accepted,
+            "refused": failed + denied,
+        }
+
     def _refresh_status(self) -> None:
         thread = self._thread
         if thread is None or self._closing is not None or not thread.is_alive():
@@ -505,6 +524,7 @@ class ArmDaemon:
         for request in requests:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
+        self._brief = core.brief()
         # The snapshot other threads asked for (status()), once for all of them.
         with self._status_cond:
             asked = self._status_asked

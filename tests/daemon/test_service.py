@@ -530,6 +530,27 @@ def test_an_update_nobody_waits_on_is_taken_on_the_next_tick_not_woken_for():
     assert daemon._wake.is_set()
 
 
+def test_brief_gives_status_figures_as_of_the_last_step_without_a_snapshot():
+    rig = Rig()
+    rig.up()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    accepted = daemon.new_request("goto", near(PARK))
+    rig.take(rig.core.request(accepted))
+    rig.ack_all(rig.sent)
+    assert accepted.future.result(0).outcome is Outcome.ACCEPTED
+    denied = daemon.submit_request(daemon.new_request("goto", {"pose": [math.nan] * 6}))
+    assert denied.result(0).outcome is Outcome.DENIED  # refused before the core
+    assert daemon.brief()["accepted"] == 0  # the control thread has not stepped since
+    daemon._step()
+    assert daemon.brief() == {
+        "link": "closed",  # no link opened in this test
+        "autopilot_heard_us": rig.core.status()["autopilot_heard_us"],
+        "accepted": 1,
+        "refused": 1,
+    }
+
+
 def test_status_is_built_for_whoever_asks_and_only_then():
     daemon = ArmDaemon(parse_config({"link": {"url": URL}}))
     builds, steps = [], []
