@@ -87,6 +87,14 @@ CORE_FRAMES = (
 #: companion's link unasked (100 and 30 Hz): they do not wake the control thread, which
 #: takes them on its next pass (at least every control period).
 TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
+#: The streams the core asks for at fixed intervals (SERVO_OUTPUT_RAW every 40 or 100 ms,
+#: SYS_STATUS 100 ms, SYSTEM_TIME 250 ms): what they tell matters from the next tick on (the
+#: control thread feeds the frames before each tick), so one wakes the control thread only
+#: when its next pass is more than ``STREAM_WAKE_S`` away. At 50 Hz: ~25 wakes a second fewer.
+STREAM_FRAMES = ("SERVO_OUTPUT_RAW", "SYS_STATUS", "SYSTEM_TIME")
+STREAM_WAKE_S = 0.025
+#: The control thread waits at most this long between passes.
+MAX_WAIT_S = 0.05
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
 #: Per source, at most this many motion targets a second (burst ``SOURCE_BURST``): a ground
@@ -137,6 +145,9 @@ class ArmDaemon:
         self._acks_queued = 0
         self._acks_fed = 0
         self._acks_wake_at: float = 1
+        # When the control thread's next pass is due at the latest (it waits until then);
+        # a stream frame wakes it only if that is far (STREAM_WAKE_S).
+        self._next_pass_s = -float("inf")
         # The status snapshot is built on the control thread when some thread asked for one
         # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
         # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
@@ -424,15 +435,18 @@ class ArmDaemon:
     def _on_frame(self, msg: Any) -> None:
         kind = msg.get_type()
         counted = kind == "COMMAND_ACK" and msg.result == mavlink.MAV_RESULT_ACCEPTED
+        now = self.clock()
         with self._frames_lock:
             if len(self._frames) >= FRAME_QUEUE_MAX:
                 self._acks_fed += self._frames.popleft()[2]
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
-            self._frames.append((self.clock(), msg, counted))
+            self._frames.append((now, msg, counted))
             if counted:
                 self._acks_queued += 1
                 wake = self._acks_queued >= self._acks_wake_at
+            elif kind in STREAM_FRAMES:
+                wake = self._next_pass_s - now > STREAM_WAKE_S
             else:
                 wake = kind not in TELEMETRY_FRAMES
         if wake:
@@ -503,8 +517,10 @@ class ArmDaemon:
     def _run(self) -> None:
         core = self._core
         while self._closing is None:
-            timeout = min(max(0.0, core.next_wake_s() - self.clock()), 0.05)
-            self._wake.wait(timeout)
+            now = self.clock()
+            next_pass_s = min(core.next_wake_s(), now + MAX_WAIT_S)
+            self._next_pass_s = next_pass_s
+            self._wake.wait(max(0.0, next_pass_s - now))
             self._wake.clear()
             if self._closing is None:
                 self._guarded("control loop", None, self._step)
@@ -536,7 +552,8 @@ class ArmDaemon:
 
     def _arm_ack_wake(self) -> None:
         """The ACK count at which the reader wakes us (any other ACK, and every other frame
-        the core reads but the telemetry, wakes us at once); wakes us now if it is queued.
+        the core reads but the telemetry and, with our next pass near, the streams, wakes us
+        at once); wakes us now if it is queued.
         When the core does not need the completing ACK before its next tick
         (:meth:`ControlCore.ack_wake_wanted`), no ACCEPTED ACK wakes us: that tick takes them."""
         core = self._core

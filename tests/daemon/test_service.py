@@ -530,6 +530,33 @@ def test_an_update_nobody_waits_on_is_taken_on_the_next_tick_not_woken_for():
     assert daemon._wake.is_set()
 
 
+def test_a_streamed_frame_wakes_the_control_thread_only_if_its_next_pass_is_far():
+    rig = Rig()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    codec = mavlink.MAVLink(None, 1, 1)
+    outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    frames = [
+        codec.sys_status_encode(outputs, 0, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        codec.system_time_encode(0, 1000),
+        codec.servo_output_raw_encode(0, 0, *[1500] * 16),
+    ]
+    for frame in frames:
+        msg = mavlink.MAVLink(None).parse_buffer(frame.pack(codec))[0]
+        daemon._next_pass_s = rig.clock() + 0.02  # the next tick is near: it takes the frame
+        daemon._on_frame(msg)
+        assert not daemon._wake.is_set()
+        daemon._next_pass_s = rig.clock() + 0.04
+        daemon._on_frame(msg)
+        assert daemon._wake.is_set()
+        daemon._wake.clear()
+    # A HEARTBEAT wakes it at once, however near its next pass.
+    heartbeat = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, 3, 0, 0, 3).pack(codec)
+    daemon._next_pass_s = rig.clock() + 0.001
+    daemon._on_frame(mavlink.MAVLink(None).parse_buffer(heartbeat)[0])
+    assert daemon._wake.is_set()
+    assert len(daemon._frames) == 2 * len(frames) + 1  # all queued for the core
+
+
 def test_brief_gives_status_figures_as_of_the_last_step_without_a_snapshot():
     rig = Rig()
     rig.up()
