@@ -66,7 +66,7 @@ from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.ik.solver import TargetMode
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
-from companion.kinematics.vehicle import base_to_world, world_to_base
+from companion.kinematics.vehicle import base_to_world, matrix_to_base
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
 from firmware_interface.link import is_autopilot_heartbeat
@@ -375,6 +375,7 @@ class ControlCore:
         #: The target held in the world (None: none), and what following it last found.
         self._world: Target | None = None
         self._world_note: dict[str, Any] = {}
+        self._world_matrix: tuple[Target, Any] | None = None  # the target's 4×4, once
         #: Recent updates' round trips (s), for the link's one-way latency.
         self._round_trips: collections.deque[float] = collections.deque(maxlen=32)
         self._mount_cache: tuple[Any, Any] | None = None
@@ -1521,7 +1522,9 @@ class ControlCore:
         trips = sorted(self._round_trips)
         one_way_s = trips[len(trips) // 2] / 2.0 if trips else WORLD_DEFAULT_ONE_WAY_S
         apply_s = now + one_way_s + world.lead_ms / 1000.0
-        return world_to_base(target.pose, state.predict(apply_s), self._mount_matrix())
+        if self._world_matrix is None or self._world_matrix[0] is not target:
+            self._world_matrix = (target, target.pose.as_matrix())  # held for many ticks
+        return matrix_to_base(self._world_matrix[1], state.predict(apply_s), self._mount_matrix())
 
     def _mount_matrix(self) -> Any:
         """``T_body_base`` of the config's mount, built once per mount (40 µs a tick)."""
