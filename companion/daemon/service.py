@@ -10,9 +10,11 @@ there): it owns the threads, the link and the clock.
   (HEARTBEAT, COMMAND_ACK, STATUSTEXT, SYSTEM_TIME) into a bounded queue;
 * the control socket's threads hand their requests to the intake too;
 * the **control thread** is the only one that touches the core. It wakes when something
-  arrives or when the core asks (its next tick, an ACK deadline), feeds the core the frames,
-  the link state and the requests, and carries out what the core returns: commands to the
-  autopilot, answers to requests. It never blocks on the autopilot.
+  arrives that cannot wait for its next pass (a request, a frame that may change what is sent
+  or answered now; not the telemetry, the ACKs of an update nobody waits on, nor, with its
+  next pass near, the streams) or when the core asks (its next tick, an ACK deadline), feeds
+  the core the frames, the link state and the requests, and carries out what the core
+  returns: commands to the autopilot, answers to requests. It never blocks on the autopilot.
 
 MAVLink target input (document for ground stations): COMMAND_LONG ``MAV_CMD_USER_1`` (31010) to
 our system / component id, params 1–6 = x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg (param
