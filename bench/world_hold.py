@@ -2,7 +2,7 @@
 without the daemon's compensation (issue 18).
 
     python -m bench.world_hold [--duration-s 30] [--start-s 10] [--seed 0]
-                               [--dialect ardupilot] [--rate-hz 50]
+                               [--dialect ardupilot|px4] [--rate-hz 50] [--telemetry-hz 50]
                                [--markdown bench/results/world_hold.md]
                                [--plot bench/results/world_hold.png]
 
@@ -67,7 +67,11 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
         daemon={
             "control": {"rate_hz": args.rate_hz},
             "arm": {"joint_speed_deg_s": args.joint_speed_deg_s},
-            "world": {"enabled": True, "lead_ms": args.lead_ms},
+            "world": {
+                "enabled": True,
+                "lead_ms": args.lead_ms,
+                "telemetry_hz": args.telemetry_hz,
+            },
         },
         sim_args=("--hover-seed", str(args.seed), "--vehicle-log-hz", "50"),
     ) as stack:
@@ -201,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--joint-speed-deg-s", type=float, default=60.0, help="the default 60")
     parser.add_argument("--lead-ms", type=float, default=20.0, help="world.lead_ms (default 20)")
     parser.add_argument(
+        "--telemetry-hz", type=float, default=50.0, help="world.telemetry_hz (default 50)"
+    )
+    parser.add_argument(
         "--mode",
         default="position",
         choices=("pose", "position", "position_axis"),
@@ -231,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
         f"`{' '.join(['python -m bench.world_hold', *sys.argv[1:]])}` on {machine()}; load "
         f"before {load_before}, after {load_average()}. Dialect {args.dialect}, control "
         f"{args.rate_hz:g} Hz, joint speed {args.joint_speed_deg_s:g} °/s, world.lead_ms "
-        f"{args.lead_ms:g}, mode {args.mode}, hover seed {args.seed}, simulator time "
+        f"{args.lead_ms:g}, world.telemetry_hz {args.telemetry_hz:g}, mode {args.mode}, hover "
+        f"seed {args.seed}, simulator time "
         f"[{args.start_s:g}, {args.start_s + args.duration_s:g}] s.",
         "",
         *md_table(

@@ -128,6 +128,11 @@ class UpdateTracker:
         """Every command has its ACK (its verdict may still wait out the grace period)."""
         return self._complete_s is not None
 
+    @property
+    def complete_s(self) -> float | None:
+        """When the ACK that completed the count came (None until it did)."""
+        return self._complete_s
+
     def on_statustext(self, text: str) -> None:
         match = _CHANNEL_IN_USE.search(text)
         if match is not None:

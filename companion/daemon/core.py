@@ -66,7 +66,7 @@ from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.ik.solver import TargetMode
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
-from companion.kinematics.vehicle import base_to_world, world_to_base
+from companion.kinematics.vehicle import base_to_world, matrix_to_base
 from firmware_interface import CalibrationError, make_servo_dialect
 from firmware_interface.commands import command_name
 from firmware_interface.link import is_autopilot_heartbeat
@@ -429,6 +429,7 @@ class ControlCore:
         #: The target held in the world (None: none), and what following it last found.
         self._world: Target | None = None
         self._world_note: dict[str, Any] = {}
+        self._world_matrix: tuple[Target, Any] | None = None  # the target's 4×4, once
         #: Recent updates' round trips (s), for the link's one-way latency.
         self._round_trips: collections.deque[float] = collections.deque(maxlen=32)
         self._mount_cache: tuple[Any, Any] | None = None
@@ -501,9 +502,10 @@ class ControlCore:
                 # Counted in order: the oldest update still short of ACKs takes it (the
                 # autopilot answers one link's commands in the order they came); once all
                 # are complete, the newest counts it as one too many.
+                at_s = self.clock() if received_s is None else received_s
                 for flight in self._flights:
                     if not flight.tracker.complete or flight is self._flights[-1]:
-                        flight.tracker.on_ack(msg.command, msg.result, self.clock())
+                        flight.tracker.on_ack(msg.command, msg.result, at_s)
                         break
                 self._poll_update(actions)
         elif kind == "STATUSTEXT":
@@ -571,6 +573,18 @@ class ControlCore:
                 return max(1, flight.tracker.acks_missing)
         return 1
 
+    def ack_wake_wanted(self) -> bool:
+        """Whether the ACK that completes an update (:meth:`acks_to_progress`) must be taken
+        at once: nothing is in flight (an ACK then is one too many), a request waits on an
+        update in flight (its answer) or to go out behind it, or an update is being confirmed
+        one command at a time. Otherwise it changes nothing before the next tick, which takes
+        it first (an update's time is its last ACK's reception, not when it is taken), and the
+        driver need not wake for it: following a world target or a trajectory, one wake a
+        tick fewer."""
+        if self._waiting or not self._flights:
+            return True
+        return any(f.waiting or f.pending or f.attempt for f in self._flights)
+
     def shutdown(self, *, park: bool) -> list[Action]:
         """Stop: answer everything waiting, and send the park pose directly if asked."""
         actions: list[Action] = []
@@ -585,6 +599,18 @@ class ControlCore:
     @property
     def link_up(self) -> bool:
         return self._link_up
+
+    def brief(self) -> tuple[bool, int, int, int]:
+        """A few figures of :meth:`status`, cheap enough to take every step: whether the
+        autopilot answered us on a link that is up, and the targets accepted, failed and
+        denied."""
+        counters = self.counters
+        return (
+            self._link_up and self._heard_us,
+            counters["accepted"],
+            counters["failed"],
+            counters["denied"],
+        )
 
     def finish(self) -> list[Action]:
         """The daemon exits now: whatever still waits on an update is answered."""
@@ -1221,7 +1247,8 @@ class ControlCore:
                 self._loss_band = None  # they hold what was acknowledged
             self.counters["servo_updates"] += 1  # acknowledged in full
             if inflight.attempt == 0:
-                self._round_trips.append(now - inflight.sent_s)
+                done_s = inflight.tracker.complete_s
+                self._round_trips.append((now if done_s is None else done_s) - inflight.sent_s)
             self._record_first_out(timing)
             dead = self._dead_outputs()
             for w in inflight.waiting:
@@ -1702,7 +1729,9 @@ class ControlCore:
         trips = sorted(self._round_trips)
         one_way_s = trips[len(trips) // 2] / 2.0 if trips else WORLD_DEFAULT_ONE_WAY_S
         apply_s = now + one_way_s + world.lead_ms / 1000.0
-        return world_to_base(target.pose, state.predict(apply_s), self._mount_matrix())
+        if self._world_matrix is None or self._world_matrix[0] is not target:
+            self._world_matrix = (target, target.pose.as_matrix())  # held for many ticks
+        return matrix_to_base(self._world_matrix[1], state.predict(apply_s), self._mount_matrix())
 
     def _mount_matrix(self) -> Any:
         """``T_body_base`` of the config's mount, built once per mount (40 µs a tick)."""

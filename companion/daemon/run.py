@@ -201,7 +201,8 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         waiting = HeartbeatWait(config.link.url, time.monotonic())
         ping_s = notifier.watchdog_period_s / 2 if notifier.watchdog_period_s else 1.0
         while not stop.is_set():
-            s = daemon.status()
+            # Not status(): a snapshot built on the control thread twice a second for this.
+            s = daemon.brief()
             # Up for targets once the autopilot has answered us, so knows our route (issue 20).
             waiting.update(s["link"] == "up" and s["autopilot_heard_us"], time.monotonic())
             if reload.is_set():
@@ -214,8 +215,7 @@ def _run(config: DaemonConfig, config_path: str) -> int:
             if daemon.healthy and (server is None or server.alive):
                 notifier.watchdog()
             notifier.status(
-                f"link {s['link']}; {s['counters']['accepted']} targets accepted, "
-                f"{s['counters']['failed'] + s['counters']['denied']} refused"
+                f"link {s['link']}; {s['accepted']} targets accepted, {s['refused']} refused"
                 if waiting.heard
                 else f"waiting for the autopilot heartbeat on {config.link.url}"
             )

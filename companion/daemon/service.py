@@ -10,9 +10,11 @@ there): it owns the threads, the link and the clock.
   (HEARTBEAT, COMMAND_ACK, STATUSTEXT, SYSTEM_TIME) into a bounded queue;
 * the control socket's threads hand their requests to the intake too;
 * the **control thread** is the only one that touches the core. It wakes when something
-  arrives or when the core asks (its next tick, an ACK deadline), feeds the core the frames,
-  the link state and the requests, and carries out what the core returns: commands to the
-  autopilot, answers to requests. It never blocks on the autopilot.
+  arrives that cannot wait for its next pass (a request, a frame that may change what is sent
+  or answered now; not the telemetry, the ACKs of an update nobody waits on, nor, with its
+  next pass near, the streams) or when the core asks (its next tick, an ACK deadline), feeds
+  the core the frames, the link state and the requests, and carries out what the core
+  returns: commands to the autopilot, answers to requests. It never blocks on the autopilot.
 
 MAVLink target input (document for ground stations): COMMAND_LONG ``MAV_CMD_USER_1`` (31010) to
 our system / component id, params 1–6 = x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg (param
@@ -71,6 +73,8 @@ log = logging.getLogger("armbridge")
 STATUS_WAIT_S = 0.25
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
+#: ``_acks_wake_at`` when no ACCEPTED ACK needs to wake the control thread.
+NO_WAKE = float("inf")
 #: The frame types the core reads.
 CORE_FRAMES = (
     "HEARTBEAT",
@@ -85,6 +89,14 @@ CORE_FRAMES = (
 #: companion's link unasked (100 and 30 Hz): they do not wake the control thread, which
 #: takes them on its next pass (at least every control period).
 TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
+#: The streams the core asks for at fixed intervals (SERVO_OUTPUT_RAW every 40 or 100 ms,
+#: SYS_STATUS 100 ms, SYSTEM_TIME 250 ms): what they tell matters from the next tick on (the
+#: control thread feeds the frames before each tick), so one wakes the control thread only
+#: when its next pass is more than ``STREAM_WAKE_S`` away. At 50 Hz: ~25 wakes a second fewer.
+STREAM_FRAMES = ("SERVO_OUTPUT_RAW", "SYS_STATUS", "SYSTEM_TIME")
+STREAM_WAKE_S = 0.025
+#: The control thread waits at most this long between passes.
+MAX_WAIT_S = 0.05
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
 STATUSTEXT_RATE_HZ = 2.0
 #: Per source, at most this many motion targets a second (burst ``SOURCE_BURST``): a ground
@@ -134,7 +146,10 @@ class ArmDaemon:
         # ArduPilot answers an update's six DO_SET_SERVO with six frames.
         self._acks_queued = 0
         self._acks_fed = 0
-        self._acks_wake_at = 1
+        self._acks_wake_at: float = 1
+        # When the control thread's next pass is due at the latest (it waits until then);
+        # a stream frame wakes it only if that is far (STREAM_WAKE_S).
+        self._next_pass_s = -float("inf")
         # The status snapshot is built on the control thread when some thread asked for one
         # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
         # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
@@ -155,6 +170,9 @@ class ArmDaemon:
             collections.OrderedDict()
         )
         self._status: dict[str, Any] = self._core.status()
+        # What the service's main loop reports to systemd twice a second (brief()), published
+        # by the control thread after each step: that loop then never wakes it for a snapshot.
+        self._brief = self._core.brief()
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
         self._thread: threading.Thread | None = None
@@ -353,6 +371,22 @@ class ArmDaemon:
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 
+    def brief(self) -> dict[str, Any]:
+        """A few figures of :meth:`status` as of the control thread's last step (at most a
+        control period old), without asking it for a snapshot: ``link`` (its state),
+        ``autopilot_heard_us``, and the targets ``accepted`` and ``refused`` (failed or
+        denied, also those denied before the core)."""
+        heard_us, accepted, failed, denied = self._brief
+        with self._counts_lock:
+            denied += self._counts["denied"]
+        link = self.link
+        return {
+            "link": link.state.value if link is not None else "closed",
+            "autopilot_heard_us": heard_us,
+            "accepted": accepted,
+            "refused": failed + denied,
+        }
+
     def _refresh_status(self) -> None:
         thread = self._thread
         if thread is None or self._closing is not None or not thread.is_alive():
@@ -403,15 +437,18 @@ class ArmDaemon:
     def _on_frame(self, msg: Any) -> None:
         kind = msg.get_type()
         counted = kind == "COMMAND_ACK" and msg.result == mavlink.MAV_RESULT_ACCEPTED
+        now = self.clock()
         with self._frames_lock:
             if len(self._frames) >= FRAME_QUEUE_MAX:
                 self._acks_fed += self._frames.popleft()[2]
                 with self._counts_lock:
                     self._counts["frames_dropped"] += 1
-            self._frames.append((self.clock(), msg, counted))
+            self._frames.append((now, msg, counted))
             if counted:
                 self._acks_queued += 1
                 wake = self._acks_queued >= self._acks_wake_at
+            elif kind in STREAM_FRAMES:
+                wake = self._next_pass_s - now > STREAM_WAKE_S
             else:
                 wake = kind not in TELEMETRY_FRAMES
         if wake:
@@ -482,8 +519,10 @@ class ArmDaemon:
     def _run(self) -> None:
         core = self._core
         while self._closing is None:
-            timeout = min(max(0.0, core.next_wake_s() - self.clock()), 0.05)
-            self._wake.wait(timeout)
+            now = self.clock()
+            next_pass_s = min(core.next_wake_s(), now + MAX_WAIT_S)
+            self._next_pass_s = next_pass_s
+            self._wake.wait(max(0.0, next_pass_s - now))
             self._wake.clear()
             if self._closing is None:
                 self._guarded("control loop", None, self._step)
@@ -503,6 +542,7 @@ class ArmDaemon:
         for request in requests:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
+        self._brief = core.brief()
         # The snapshot other threads asked for (status()), once for all of them.
         with self._status_cond:
             asked = self._status_asked
@@ -514,9 +554,15 @@ class ArmDaemon:
 
     def _arm_ack_wake(self) -> None:
         """The ACK count at which the reader wakes us (any other ACK, and every other frame
-        the core reads but the telemetry, wakes us at once); wakes us now if it is queued."""
+        the core reads but the telemetry and, with our next pass near, the streams, wakes us
+        at once); wakes us now if it is queued.
+        When the core does not need the completing ACK before its next tick
+        (:meth:`ControlCore.ack_wake_wanted`), no ACCEPTED ACK wakes us: that tick takes them."""
+        core = self._core
         with self._frames_lock:
-            self._acks_wake_at = self._acks_fed + self._core.acks_to_progress()
+            self._acks_wake_at = (
+                self._acks_fed + core.acks_to_progress() if core.ack_wake_wanted() else NO_WAKE
+            )
             due = self._acks_queued >= self._acks_wake_at
         if due:
             self._wake.set()
@@ -595,6 +641,8 @@ class ArmDaemon:
         core = self._core
         park = bool(self._closing) and self.config.park_deg is not None
         self._carry_out(core.shutdown(park=park))
+        with self._frames_lock:  # the ACK that completes the park wakes us (it is waited for)
+            self._acks_wake_at = self._acks_fed + core.acks_to_progress()
         deadline = self.clock() + (self.park_wait_s if park else 0.0)
         while not core.idle and self.clock() < deadline:
             self._wake.wait(min(0.01, max(0.0, deadline - self.clock())))

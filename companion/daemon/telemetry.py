@@ -36,6 +36,7 @@ class VehicleTelemetry:
         self._last_boot_ms: int | None = None
         self._attitude: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
         self._position: tuple[float, tuple[float, ...], tuple[float, ...]] | None = None
+        self._state: VehicleState | None = None  # built from the two samples, once
         self.dropped = 0
 
     def reset(self) -> None:
@@ -43,6 +44,7 @@ class VehicleTelemetry:
         self._last_boot_ms = None
         self._attitude = None
         self._position = None
+        self._state = None
 
     def on_frame(self, msg: Any, received_s: float) -> bool:
         """Take an ATTITUDE or LOCAL_POSITION_NED received at ``received_s`` (daemon clock);
@@ -72,6 +74,7 @@ class VehicleTelemetry:
             self._attitude = sample
         else:
             self._position = sample
+        self._state = None
         return True
 
     def _held_s(self, boot_ms: int, received_s: float) -> float:
@@ -89,8 +92,10 @@ class VehicleTelemetry:
 
     def state(self) -> VehicleState | None:
         """The vehicle's last known state, or None until both streams have been heard."""
-        if self._attitude is None or self._position is None:
-            return None
-        att_t, rpy, rates = self._attitude
-        pos_t, position, velocity = self._position
-        return VehicleState(pos_t, position, velocity, att_t, rpy, rates)  # type: ignore[arg-type]
+        if self._state is None:
+            if self._attitude is None or self._position is None:
+                return None
+            att_t, rpy, rates = self._attitude
+            pos_t, position, velocity = self._position
+            self._state = VehicleState(pos_t, position, velocity, att_t, rpy, rates)  # type: ignore[arg-type]
+        return self._state

@@ -121,8 +121,16 @@ def mount_transform(xyz_cm: ArrayLike, rpy_deg: ArrayLike) -> FloatArray:
 def world_to_base(target_world: Pose, t_world_body: FloatArray, t_body_base: FloatArray) -> Pose:
     """A hand pose given in the world (NED, cm) as the arm's base frame sees it with the
     vehicle at ``t_world_body``."""
+    return matrix_to_base(target_world.as_matrix(), t_world_body, t_body_base)
+
+
+def matrix_to_base(
+    t_world_target: FloatArray, t_world_body: FloatArray, t_body_base: FloatArray
+) -> Pose:
+    """:func:`world_to_base` of a target given as its 4×4 matrix (one held for many ticks is
+    built once)."""
     t_world_base = t_world_body @ t_body_base
-    return Pose.from_matrix(invert(t_world_base) @ target_world.as_matrix())
+    return Pose.from_matrix(invert(t_world_base) @ t_world_target)
 
 
 def base_to_world(hand_base: Pose, t_world_body: FloatArray, t_body_base: FloatArray) -> Pose:

@@ -75,6 +75,29 @@ def test_a_world_target_follows_the_vehicle_and_leads_its_motion():
     assert goal[1:] == pytest.approx(list(PARK[1:]), abs=1e-6)
 
 
+def test_the_link_time_is_measured_to_the_acks_reception_not_to_when_they_are_taken():
+    # Following a world target, the driver may leave the ACKs queued until the next tick: the
+    # round trip (half of it leads the motion) ends when the last ACK came, not 10 ms later.
+    rig = world_rig()
+    telemetry(rig)
+    request = world_goto(rig, PARK)
+    sent_s = rig.clock()
+    rig.clock.advance(0.02)
+    codec = rig.codecs.setdefault((1, 1), mavlink.MAVLink(None, 1, 1))
+    for c in list(rig.sent):
+        if c.command == SERVO:
+            ack = codec.command_ack_encode(SERVO, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 1, 191)
+            rig.take(rig.core.frame(rig.decoder.parse_buffer(ack.pack(codec))[0], sent_s + 0.01))
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    rig.clock.advance(1.0 / RATE_HZ)
+    telemetry(rig, north_cm=4.0, vn_cm_s=50.0)
+    rig.tick()
+    lead_s = 0.005 + LEAD_MS / 1000
+    assert rig.core.status()["goal_deg"][0] == pytest.approx(
+        PARK[0] - 4.0 - 50.0 * lead_s, abs=0.05
+    )
+
+
 def test_stale_telemetry_holds_and_says_why():
     rig = world_rig(max_age_ms=100.0)
     telemetry(rig)

@@ -21,7 +21,8 @@ from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from sim_servo.query import query
-from tests.daemon.test_core import PARK, Rig, near
+from tests.daemon.test_core import PARK, RATE_HZ, Rig, near
+from tests.daemon.test_core_world import telemetry, world_goto, world_rig
 from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
 from tests.support.sim_process import assert_within_quantisation
 from tests.support.timing import wait_until
@@ -493,6 +494,88 @@ def test_the_control_thread_is_woken_by_the_ack_that_completes_an_update_not_by_
         daemon._on_frame(_ack_frame())
     daemon._arm_ack_wake()
     assert daemon._wake.is_set()
+
+
+def test_an_update_nobody_waits_on_is_taken_on_the_next_tick_not_woken_for():
+    """Following a world target (a step a tick, no request waiting on it), the ACKs of an
+    update wait for the next tick; a target waiting on one makes its completing ACK wake."""
+    rig = world_rig()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    telemetry(rig)
+    first = world_goto(rig, PARK)
+    rig.ack_all(rig.sent)
+    assert rig.reply(first).outcome is Outcome.ACCEPTED
+    rig.clock.advance(1.0 / RATE_HZ)
+    telemetry(rig, north_cm=3.0)
+    step = rig.servo(rig.tick())
+    assert step  # the hold's next step, in flight
+    daemon._arm_ack_wake()
+    for _ in step:
+        daemon._on_frame(_ack_frame())
+    assert not daemon._wake.is_set()
+    acked = rig.core.status()["last_pwm_us"]
+    assert any(acked[o] != pwm for o, pwm in step.items())  # not taken yet
+    daemon._feed_frames()  # the next tick's first work
+    acked = rig.core.status()["last_pwm_us"]
+    assert all(acked[o] == pwm for o, pwm in step.items())
+    # A base-frame target waits on its first update: the ACK that completes it wakes.
+    rig.clock.advance(1.0 / RATE_HZ)
+    request = daemon.new_request("goto", near(PARK))
+    step = rig.servo(rig.take(rig.core.request(request)))
+    daemon._arm_ack_wake()
+    assert step
+    for _ in step:
+        daemon._on_frame(_ack_frame())
+    assert daemon._wake.is_set()
+
+
+def test_a_streamed_frame_wakes_the_control_thread_only_if_its_next_pass_is_far():
+    rig = Rig()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    codec = mavlink.MAVLink(None, 1, 1)
+    outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+    frames = [
+        codec.sys_status_encode(outputs, 0, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+        codec.system_time_encode(0, 1000),
+        codec.servo_output_raw_encode(0, 0, *[1500] * 16),
+    ]
+    for frame in frames:
+        msg = mavlink.MAVLink(None).parse_buffer(frame.pack(codec))[0]
+        daemon._next_pass_s = rig.clock() + 0.02  # the next tick is near: it takes the frame
+        daemon._on_frame(msg)
+        assert not daemon._wake.is_set()
+        daemon._next_pass_s = rig.clock() + 0.04
+        daemon._on_frame(msg)
+        assert daemon._wake.is_set()
+        daemon._wake.clear()
+    # A HEARTBEAT wakes it at once, however near its next pass.
+    heartbeat = codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, 3, 0, 0, 3).pack(codec)
+    daemon._next_pass_s = rig.clock() + 0.001
+    daemon._on_frame(mavlink.MAVLink(None).parse_buffer(heartbeat)[0])
+    assert daemon._wake.is_set()
+    assert len(daemon._frames) == 2 * len(frames) + 1  # all queued for the core
+
+
+def test_brief_gives_status_figures_as_of_the_last_step_without_a_snapshot():
+    rig = Rig()
+    rig.up()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    accepted = daemon.new_request("goto", near(PARK))
+    rig.take(rig.core.request(accepted))
+    rig.ack_all(rig.sent)
+    assert accepted.future.result(0).outcome is Outcome.ACCEPTED
+    denied = daemon.submit_request(daemon.new_request("goto", {"pose": [math.nan] * 6}))
+    assert denied.result(0).outcome is Outcome.DENIED  # refused before the core
+    assert daemon.brief()["accepted"] == 0  # the control thread has not stepped since
+    daemon._step()
+    assert daemon.brief() == {
+        "link": "closed",  # no link opened in this test
+        "autopilot_heard_us": rig.core.status()["autopilot_heard_us"],
+        "accepted": 1,
+        "refused": 1,
+    }
 
 
 def test_status_is_built_for_whoever_asks_and_only_then():

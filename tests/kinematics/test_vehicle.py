@@ -10,6 +10,7 @@ from companion.kinematics.vehicle import (
     Mount,
     VehicleState,
     base_to_world,
+    matrix_to_base,
     mount_transform,
     world_to_base,
 )
@@ -42,6 +43,9 @@ def test_world_to_base_undoes_base_to_world():
             base_to_world(hand, vehicle.predict(1.0), mount), vehicle.predict(1.0), mount
         )
         assert back.as_matrix() == pytest.approx(hand.as_matrix(), abs=1e-9)
+        world = base_to_world(hand, vehicle.predict(1.0), mount)
+        from_matrix = matrix_to_base(world.as_matrix(), vehicle.predict(1.0), mount)
+        assert from_matrix.as_matrix() == pytest.approx(hand.as_matrix(), abs=1e-9)
 
 
 def test_prediction_moves_at_constant_velocity_and_turns_about_the_body_axes():
