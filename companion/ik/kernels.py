@@ -162,7 +162,7 @@ def _into_range(v, lo, hi, wraps):
     return min(max(v, lo), hi)
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
@@ -250,7 +250,7 @@ def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
     goal[3, 3] = 1.0
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def residual(rot, pos, goal, mode, res):
     """The residual of ``mode`` into ``res`` (6,): ``(p_goal − p [cm], a rotation vector
     [deg])``; returns ``(position error cm, the mode's angle error deg)``.
@@ -338,7 +338,7 @@ def pose_residual(rot, pos, goal, res):
     return residual(rot, pos, goal, MODE_POSE, res)
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def _movement(q, q_prev):
     m = 0.0
     for j in range(q.shape[0]):
@@ -346,7 +346,7 @@ def _movement(q, q_prev):
     return m
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
     # No axes wanted. ``mode < 0`` (always False) rather than the literal: numba compiles a
@@ -359,7 +359,7 @@ def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     return cost
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def _cholesky_solve(a, b, n):
     """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``.
 
@@ -392,7 +392,7 @@ def _cholesky_solve(a, b, n):
     return True
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr):
     """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
     ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
@@ -462,18 +462,42 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     seconds of the first compile.
     """
     n = q.shape[0]
-    rot = np.empty((3, 3))
-    pos = np.empty(3)
-    axes = np.empty((n, 3))
-    points = np.empty((n, 3))
-    res = np.empty(6)
-    jac = np.empty((n, 6))
-    jtj = np.empty((n, n))
-    jtr = np.empty(n)
-    a = np.empty((n, n))
-    g = np.empty(n)
-    hold = np.empty(n, dtype=np.bool_)
-    q_try = q.copy()
+    return _lm_steps(
+        q,
+        lo,
+        hi,
+        frames,
+        jp,
+        goal,
+        mode,
+        fp,
+        iters,
+        out,
+        np.empty((3, 3)),
+        np.empty(3),
+        np.empty((n, 3)),
+        np.empty((n, 3)),
+        np.empty(6),
+        np.empty((n, 6)),
+        np.empty((n, n)),
+        np.empty(n),
+        np.empty((n, n)),
+        np.empty(n),
+        np.empty(n, dtype=np.bool_),
+        q.copy(),
+    )
+
+
+# No NRT (numba's reference counting) in the leaf kernels that allocate nothing: every array
+# passed to or aliased in a compiled function is otherwise an atomic increment and decrement,
+# which took an eighth of a solve's time (perf, UR5).
+@nb.njit(cache=CACHE, _nrt=False)
+def _lm_steps(
+    q, lo, hi, frames, jp, goal, mode, fp, iters, out,
+    rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try,
+):  # fmt: skip
+    """:func:`lm_refine`'s loop, on the scratch arrays it allocates (``q_try`` a copy of ``q``)."""
+    n = q.shape[0]
     tol_pos = fp[F_TOL_POS]
     tol_ori = fp[F_TOL_ORI]
     lam = fp[F_LM_LAMBDA0]
@@ -579,7 +603,7 @@ def _draw_population(pop, lo, hi, rng, first):
             pop[i, j] = lo[j] + _rand(rng) * (hi[j] - lo[j])
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, _nrt=False)
 def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q):
     # A configuration within both tolerances always wins: a lower cm² + deg² sum is no use if
     # one of the two errors is outside its tolerance.
