@@ -360,35 +360,39 @@ def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
 
 
 @nb.njit(cache=CACHE, _nrt=False)
-def _cholesky_solve(a, b, n):
+def _ldl_solve(a, b, n):
     """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``.
 
-    ``a``'s lower triangle becomes the Cholesky factor, with the inverse of each diagonal
-    element stored on the diagonal (multiplications instead of divisions).
+    ``a = L·D·Lᵀ`` (L unit lower triangular): no square roots, one division per column, where
+    a Cholesky factor waits on a square root and a division in every column (the factorisation
+    is on LM's critical path). Only ``a``'s lower triangle is read; afterwards the strict lower
+    triangle holds L, the diagonal 1/D and the strict upper triangle ``L[i, k]·D[k]`` (at
+    ``a[k, i]``, the unscaled value each later column needs).
     """
     for j in range(n):
         s = a[j, j]
         for k in range(j):
-            s -= a[j, k] * a[j, k]
+            s -= a[j, k] * a[k, j]
         if not s > 0.0:
             return False
-        inv = 1.0 / math.sqrt(s)
+        inv = 1.0 / s
         a[j, j] = inv
         for i in range(j + 1, n):
-            s = a[i, j]
+            w = a[i, j]
             for k in range(j):
-                s -= a[i, k] * a[j, k]
-            a[i, j] = s * inv
+                w -= a[i, k] * a[k, j]
+            a[j, i] = w
+            a[i, j] = w * inv
     for i in range(n):
         s = b[i]
         for k in range(i):
             s -= a[i, k] * b[k]
-        b[i] = s * a[i, i]
+        b[i] = s
     for i in range(n - 1, -1, -1):
-        s = b[i]
+        s = b[i] * a[i, i]
         for k in range(i + 1, n):
             s -= a[k, i] * b[k]
-        b[i] = s * a[i, i]
+        b[i] = s
     return True
 
 
@@ -543,7 +547,7 @@ def _lm_steps(
             for c in range(n):
                 a[r, c] = jtj[r, c]
             a[r, r] += lam * jtj[r, r] + 1e-9
-        if not _cholesky_solve(a, g, n):
+        if not _ldl_solve(a, g, n):
             lam *= 10.0
             evaluate = False
             continue
@@ -565,7 +569,7 @@ def _lm_steps(
                 for c in range(n):
                     a[r, c] = 0.0 if hold[r] or hold[c] else jtj[r, c]
                 a[r, r] = 1.0 if hold[r] else a[r, r] + lam * jtj[r, r] + 1e-9
-            if not _cholesky_solve(a, g, n):
+            if not _ldl_solve(a, g, n):
                 lam *= 10.0
                 evaluate = False
                 continue
