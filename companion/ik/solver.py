@@ -56,6 +56,25 @@ from enum import Enum
 import numpy as np
 
 from companion.ik import aot, layout
+from companion.ik.layout import (
+    F_TOL_ORI,
+    F_TOL_POS,
+    MODE_AXIS,
+    MODE_POSE,
+    MODE_POSITION,
+    O_COST,
+    O_EVALUATIONS,
+    O_GENERATIONS,
+    O_LM_ITERATIONS,
+    O_ORI_DEG,
+    O_POS_CM,
+    O_Q,
+    O_RESTARTS,
+    S_GENERATIONS,
+    START_GOAL_SET,
+    START_HAS_PREV,
+    START_NEW,
+)
 from companion.kinematics import Arm, FloatArray, Pose
 
 log = logging.getLogger(__name__)
@@ -323,16 +342,16 @@ def solve(
         ws = _workspace(arm, settings)
     # Tolerances are written only when they change: each numpy item set costs ~0.1 µs.
     if tol_pos_cm is not ws.tol_pos_cm or tol_ori_deg is not ws.tol_ori_deg:
-        ws.fp[layout.F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
-        ws.fp[layout.F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
+        ws.fp[F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
+        ws.fp[F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
         ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
     if mode is TargetMode.POSE:
-        start = layout.START_NEW | layout.MODE_POSE
+        start = START_NEW | MODE_POSE
     elif mode is TargetMode.POSITION:
-        start = layout.START_NEW | layout.MODE_POSITION
+        start = START_NEW | MODE_POSITION
     elif mode is TargetMode.POSITION_AXIS:
-        start = layout.START_NEW | layout.MODE_AXIS | layout.START_GOAL_SET
+        start = START_NEW | MODE_AXIS | START_GOAL_SET
         _axis_goal(pose, tool_axis, direction, ws.goal)
     else:
         raise ValueError(f"mode={mode!r} must be one of {', '.join(m.name for m in TargetMode)}")
@@ -342,7 +361,7 @@ def solve(
         if q_start.shape != (n,) or not np.all(np.isfinite(q_start)):
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
         np.clip(q_start * ws.to_joint, ws.lower, ws.upper, out=ws.q_start)
-        start |= layout.START_HAS_PREV
+        start |= START_HAS_PREV
     ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
     st = ws.st
@@ -393,7 +412,7 @@ def solve(
         if done:
             reason = StopReason.CONVERGED
             break
-        left = max_gens - int(st[layout.S_GENERATIONS])
+        left = max_gens - int(st[S_GENERATIONS])
         if left <= 0:
             reason = StopReason.ITERATION_LIMIT
             break
@@ -421,18 +440,18 @@ def solve(
     # (~2 µs); filling the instance's dict is the same object for a third of that.
     result = _new_result(IKResult)
     fields = result.__dict__
-    fields["q_deg"] = tuple(out[layout.O_Q + n :])
-    fields["pos_err_cm"] = out[layout.O_POS_CM]
-    fields["ori_err_deg"] = out[layout.O_ORI_DEG]
-    fields["cost"] = out[layout.O_COST]
+    fields["q_deg"] = tuple(out[O_Q + n :])
+    fields["pos_err_cm"] = out[O_POS_CM]
+    fields["ori_err_deg"] = out[O_ORI_DEG]
+    fields["cost"] = out[O_COST]
     fields["converged"] = reason is StopReason.CONVERGED
     fields["elapsed_ms"] = (clock() - started) * 1e3
-    fields["generations"] = int(out[layout.O_GENERATIONS])
-    fields["evaluations"] = int(out[layout.O_EVALUATIONS])
-    fields["lm_iterations"] = int(out[layout.O_LM_ITERATIONS])
-    fields["restarts"] = int(out[layout.O_RESTARTS])
+    fields["generations"] = int(out[O_GENERATIONS])
+    fields["evaluations"] = int(out[O_EVALUATIONS])
+    fields["lm_iterations"] = int(out[O_LM_ITERATIONS])
+    fields["restarts"] = int(out[O_RESTARTS])
     fields["stop_reason"] = reason
-    fields["q"] = tuple(out[layout.O_Q : layout.O_Q + n])
+    fields["q"] = tuple(out[O_Q : O_Q + n])
     return result
 
 
