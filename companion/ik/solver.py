@@ -493,7 +493,21 @@ class _Workspace:
         self.lower, self.upper = k.lower, k.upper
         self.to_joint, self.to_user = k.to_joint, k.to_user
         self.n = n
-        self.fp = np.zeros(layout.N_FPARAMS)
+        # The kernels' arrays are views of two buffers (see layout.SEARCH_ARRAYS).
+        o = layout.float_layout(n, size)
+        self.fbuf = np.zeros(o[-1])
+        views = [self.fbuf[o[m] : o[m + 1]] for m in range(len(o) - 1)]
+        _pop, _cost, frames, jp, goal, self.q_start, self.fp, record, self.record_q, self.out = (
+            views
+        )
+        i = layout.int_layout(size)
+        self.ibuf = np.zeros(i[-1], dtype=np.int64)
+        self.ip, self.st, _stuck = (self.ibuf[i[m] : i[m + 1]] for m in range(len(i) - 1))
+        frames.reshape(k.frames.shape)[...] = k.frames
+        jp.reshape(k.jp.shape)[...] = k.jp
+        self.goal = goal.reshape(4, 4)
+        self.goal[...] = np.eye(4)
+        record[...] = np.inf
         self.fp[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
         self.fp[layout.F_SCALE] = settings.F
         self.fp[layout.F_CR] = settings.Cr
@@ -502,16 +516,11 @@ class _Workspace:
         self.fp[layout.F_LM_WINDOW] = settings.lm_window
         self.fp[layout.F_LM_PROGRESS] = settings.lm_progress
         self.fp[layout.F_STALL_GAIN] = settings.stall_gain
-        self.ip = np.zeros(layout.N_IPARAMS, dtype=np.int64)
         self.ip[layout.I_LM_ITERS] = settings.lm_iterations
         self.ip[layout.I_STALL_GENS] = settings.stall_generations
-        self.st = np.zeros(layout.N_STATE, dtype=np.int64)
+        self.ip[layout.I_DOF] = n
+        self.ip[layout.I_POP] = size
         self.rng = np.zeros(1, dtype=np.uint64)
-        self.goal = np.eye(4)
-        self.q_start = np.zeros(n)
-        self.record = np.full(3, np.inf)
-        self.record_q = np.zeros(n)
-        self.out = np.zeros(layout.O_Q + 2 * n)
         # The deadline's estimate of a generation's wall time, carried from call to call, and
         # the clock it was measured on (see solve()).
         self.clock: Clock | None = None
@@ -519,22 +528,7 @@ class _Workspace:
         self.tol_ori_deg: object = None
         self.estimate_s = 0.0
         self.calibration_s = 0.0
-        self.args = (
-            np.empty((size, n)),
-            np.empty(size),
-            np.zeros(size, dtype=np.bool_),
-            k.frames,
-            k.jp,
-            self.goal,
-            self.q_start,
-            self.fp,
-            self.ip,
-            self.rng,
-            self.st,
-            self.record,
-            self.record_q,
-            self.out,
-        )
+        self.args = (self.fbuf, self.ibuf, self.rng)
         _check_search_arrays(self.args)
 
 
