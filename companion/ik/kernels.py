@@ -128,7 +128,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "384f66bb33d15059fe09f7b2f85da1dd8c1fe4441ea7b60c61bacd092d0c6c9c"
+LAYOUT_SHA256 = "f1e15f4f6131b2794c48e9be55118a1457235008714e3eb2db76b51339a6295d"
 
 _U64 = nb.types.uint64
 
@@ -496,7 +496,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
         np.empty(n),
         np.empty((n, n)),
         np.empty(n),
-        np.empty(n, dtype=np.bool_),
+        np.empty(n),
         q.copy(),
     )
 
@@ -569,15 +569,15 @@ def _lm_steps(
                 (q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0)
             ):
                 held += 1
-                hold[j] = True
+                hold[j] = 1.0
             else:
-                hold[j] = False
+                hold[j] = 0.0
         if 0 < held < n:
             for r in range(n):
-                g[r] = 0.0 if hold[r] else jtr[r]
+                g[r] = 0.0 if hold[r] > 0.5 else jtr[r]
                 for c in range(n):
-                    a[r, c] = 0.0 if hold[r] or hold[c] else jtj[r, c]
-                a[r, r] = 1.0 if hold[r] else a[r, r] + lam * jtj[r, r] + 1e-9
+                    a[r, c] = 0.0 if hold[r] > 0.5 or hold[c] > 0.5 else jtj[r, c]
+                a[r, r] = 1.0 if hold[r] > 0.5 else a[r, r] + lam * jtj[r, r] + 1e-9
             if not _ldl_solve(a, g, n):
                 lam *= 10.0
                 evaluate = False
@@ -629,19 +629,60 @@ def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
 
 
 @nb.njit(cache=CACHE)
-def _refine_best(pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q):
-    """LM on the best individual not marked stuck; returns True once the tolerances are met."""
+def _lm_scratch(buf, n):
+    """LM's scratch arrays, views of ``buf`` (its size: ``layout.float_layout``): made once
+    per :func:`search` call, where an allocation per LM run cost a few percent of a solve."""
+    o = 0
+    rot = buf[o : o + 9].reshape((3, 3))
+    o += 9
+    pos = buf[o : o + 3]
+    o += 3
+    axes = buf[o : o + 3 * n].reshape((n, 3))
+    o += 3 * n
+    points = buf[o : o + 3 * n].reshape((n, 3))
+    o += 3 * n
+    res = buf[o : o + 6]
+    o += 6
+    jac = buf[o : o + 6 * n].reshape((n, 6))
+    o += 6 * n
+    jtj = buf[o : o + n * n].reshape((n, n))
+    o += n * n
+    jtr = buf[o : o + n]
+    o += n
+    a = buf[o : o + n * n].reshape((n, n))
+    o += n * n
+    g = buf[o : o + n]
+    o += n
+    hold = buf[o : o + n]
+    o += n
+    q_try = buf[o : o + n]
+    o += n
+    q = buf[o : o + n]
+    o += n
+    out = buf[o : o + 3]
+    return (rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out)
+
+
+@nb.njit(cache=CACHE, _nrt=False)
+def _refine_best(
+    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
+):  # fmt: skip
+    """LM on the best individual not marked stuck; returns True once the tolerances are met.
+    ``lm``: :func:`_lm_scratch`."""
     best = -1
     for i in range(pop.shape[0]):
         if not stuck[i] and (best < 0 or cost[i] < cost[best]):
             best = i
     if best < 0:
         return False
-    q = pop[best].copy()
-    out = np.empty(3)
-    st[S_LM_ITERATIONS] += lm_refine(
-        q, lo, hi, frames, jp, goal, ip[I_MODE], fp, ip[I_LM_ITERS], out
-    )
+    q, q_try, out = lm[12], lm[11], lm[13]
+    for j in range(q.shape[0]):
+        q[j] = pop[best, j]
+        q_try[j] = q[j]
+    st[S_LM_ITERATIONS] += _lm_steps(
+        q, lo, hi, frames, jp, goal, ip[I_MODE], fp, ip[I_LM_ITERS], out,
+        lm[0], lm[1], lm[2], lm[3], lm[4], lm[5], lm[6], lm[7], lm[8], lm[9], lm[10], q_try,
+    )  # fmt: skip
     st[S_EVALUATIONS] += 1
     pose_cost, pos_err, ori_err = out[0], out[1], out[2]
     new_cost = pose_cost
@@ -678,6 +719,7 @@ def init_population(
     record_q,
     q_start,
     spread_rad,
+    lm,
 ):
     """Fill the population (around ``q_start`` when ``ip[I_HAS_PREV]``), evaluate, refine the best.
 
@@ -707,13 +749,13 @@ def init_population(
     stuck[:] = 0
     record[R_COST] = np.inf
     return _refine_best(
-        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
+        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
     )
 
 
 @nb.njit(cache=CACHE)
 def generation(
-    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q, gens
+    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q, lm, gens
 ):
     """``gens`` memetic generations (fewer once the tolerances are met; returns True then).
 
@@ -788,7 +830,7 @@ def generation(
         st[S_GENERATIONS] += 1
         st[S_EVALUATIONS] += n_pop
         done = _refine_best(
-            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q
+            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
         )
         if done:
             return True
@@ -852,8 +894,8 @@ def search(
     i_ip, i_st, i_stuck, i_end = _int_layout(n_pop)
     st = ibuf[i_st:i_stuck]
     stuck = ibuf[i_stuck:i_end]
-    o_pop, o_cost, o_frames, o_jp, o_goal, o_q, o_fp, o_rec, o_rec_q, o_out, o_end = _float_layout(
-        n, n_pop
+    o_pop, o_cost, o_frames, o_jp, o_goal, o_q, o_fp, o_rec, o_rec_q, o_out, o_lm, o_end = (
+        _float_layout(n, n_pop)
     )
     pop = fbuf[o_pop:o_cost].reshape((n_pop, n))
     cost = fbuf[o_cost:o_frames]
@@ -864,7 +906,8 @@ def search(
     fp = fbuf[o_fp:o_rec]
     record = fbuf[o_rec:o_rec_q]
     record_q = fbuf[o_rec_q:o_out]
-    out = fbuf[o_out:o_end]
+    out = fbuf[o_out:o_lm]
+    lm = _lm_scratch(fbuf[o_lm:o_end], n)
     lo = jp[4]
     hi = jp[5]
     done = False
@@ -899,6 +942,7 @@ def search(
             record_q,
             q_start,
             fp[F_SPREAD],
+            lm,
         )
     if not done and gens > 0:
         done = generation(
@@ -917,6 +961,7 @@ def search(
             st,
             record,
             record_q,
+            lm,
             gens,
         )
     _report(st, record, record_q, jp, out)

@@ -497,9 +497,19 @@ class _Workspace:
         o = layout.float_layout(n, size)
         self.fbuf = np.zeros(o[-1])
         views = [self.fbuf[o[m] : o[m + 1]] for m in range(len(o) - 1)]
-        _pop, _cost, frames, jp, goal, self.q_start, self.fp, record, self.record_q, self.out = (
-            views
-        )
+        (
+            _pop,
+            _cost,
+            frames,
+            jp,
+            goal,
+            self.q_start,
+            self.fp,
+            record,
+            self.record_q,
+            self.out,
+            _lm,
+        ) = views
         i = layout.int_layout(size)
         self.ibuf = np.zeros(i[-1], dtype=np.int64)
         self.ip, self.st, _stuck = (self.ibuf[i[m] : i[m + 1]] for m in range(len(i) - 1))
