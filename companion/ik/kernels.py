@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 
 import numba as nb
 import numpy as np
@@ -132,6 +133,12 @@ LAYOUT_SHA256 = "f1e15f4f6131b2794c48e9be55118a1457235008714e3eb2db76b51339a6295
 
 _U64 = nb.types.uint64
 
+# numba's option for a function compiled without NRT, its reference counting: for the kernels
+# that allocate nothing, every array passed to or aliased in them is otherwise an atomic
+# increment and decrement, an eighth of a solve's time (perf, UR5). A dict: numba's type stubs
+# do not list this (underscored, but supported) option.
+NO_NRT: dict[str, Any] = {"_nrt": False}
+
 # The buffers' layouts (plain-Python arithmetic in layout.py), compiled for search().
 _float_layout = nb.njit(cache=CACHE)(float_layout)
 _int_layout = nb.njit(cache=CACHE)(int_layout)
@@ -171,7 +178,7 @@ def _into_range(v, lo, hi, wraps):
     return min(max(v, lo), hi)
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
@@ -259,7 +266,7 @@ def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
     goal[3, 3] = 1.0
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def residual(rot, pos, goal, mode, res):
     """The residual of ``mode`` into ``res`` (6,): ``(p_goal − p [cm], a rotation vector
     [deg])``; returns ``(position error cm, the mode's angle error deg)``.
@@ -347,7 +354,7 @@ def pose_residual(rot, pos, goal, res):
     return residual(rot, pos, goal, MODE_POSE, res)
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _movement(q, q_prev):
     m = 0.0
     for j in range(q.shape[0]):
@@ -355,7 +362,7 @@ def _movement(q, q_prev):
     return m
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
     # No axes wanted. ``mode < 0`` (always False) rather than the literal: numba compiles a
@@ -368,7 +375,7 @@ def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
     return cost
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _ldl_solve(a, b, n):
     """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``.
 
@@ -405,7 +412,7 @@ def _ldl_solve(a, b, n):
     return True
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr):
     """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
     ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
@@ -501,10 +508,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     )
 
 
-# No NRT (numba's reference counting) in the leaf kernels that allocate nothing: every array
-# passed to or aliased in a compiled function is otherwise an atomic increment and decrement,
-# which took an eighth of a solve's time (perf, UR5).
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _lm_steps(
     q, lo, hi, frames, jp, goal, mode, fp, iters, out,
     rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try,
@@ -616,7 +620,7 @@ def _draw_population(pop, lo, hi, rng, first):
             pop[i, j] = lo[j] + _rand(rng) * (hi[j] - lo[j])
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q):
     # A configuration within both tolerances always wins: a lower cm² + deg² sum is no use if
     # one of the two errors is outside its tolerance.
@@ -663,7 +667,7 @@ def _lm_scratch(buf, n):
     return (rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out)
 
 
-@nb.njit(cache=CACHE, _nrt=False)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _refine_best(
     pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
 ):  # fmt: skip
