@@ -129,7 +129,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "f1e15f4f6131b2794c48e9be55118a1457235008714e3eb2db76b51339a6295d"
+LAYOUT_SHA256 = "2dee681039a2ed1c59262fcb80377e56012fc1213d331be42ac67de1cce07908"
 
 _U64 = nb.types.uint64
 
@@ -595,16 +595,14 @@ def _lm_steps(
     return steps
 
 
-@nb.njit(cache=CACHE)
-def _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w):
-    rot = np.empty((3, 3))
-    pos = np.empty(3)
-    res = np.empty(6)
+@nb.njit(cache=CACHE, **NO_NRT)
+def _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w, lm):
+    rot, pos, res = lm[0], lm[1], lm[4]
     for i in range(pop.shape[0]):
         cost[i] = candidate_cost(pop[i], frames, jp, goal, mode, q_prev, move_w, rot, pos, res)
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _min(values):
     # A loop, not ``values.min()``: numba's generic reduction costs ~3 s of the first compile.
     smallest = np.inf
@@ -613,7 +611,7 @@ def _min(values):
     return smallest
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _draw_population(pop, lo, hi, rng, first):
     for i in range(first, pop.shape[0]):
         for j in range(pop.shape[1]):
@@ -633,9 +631,10 @@ def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
 
 
 @nb.njit(cache=CACHE)
-def _lm_scratch(buf, n):
-    """LM's scratch arrays, views of ``buf`` (its size: ``layout.float_layout``): made once
-    per :func:`search` call, where an allocation per LM run cost a few percent of a solve."""
+def _scratch(buf, n, n_pop):
+    """The kernels' scratch arrays, views of ``buf`` (its size: ``layout.float_layout``): LM's,
+    then DE's trials and their costs. Made once per :func:`search` call: an allocation per LM
+    run cost a few percent of a solve, and with none the kernels run without NRT."""
     o = 0
     rot = buf[o : o + 9].reshape((3, 3))
     o += 9
@@ -664,7 +663,28 @@ def _lm_scratch(buf, n):
     q = buf[o : o + n]
     o += n
     out = buf[o : o + 3]
-    return (rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out)
+    o += 3
+    trials = buf[o : o + n_pop * n].reshape((n_pop, n))
+    o += n_pop * n
+    trial_cost = buf[o : o + n_pop]
+    return (
+        rot,
+        pos,
+        axes,
+        points,
+        res,
+        jac,
+        jtj,
+        jtr,
+        a,
+        g,
+        hold,
+        q_try,
+        q,
+        out,
+        trials,
+        trial_cost,
+    )
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
@@ -672,7 +692,7 @@ def _refine_best(
     pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
 ):  # fmt: skip
     """LM on the best individual not marked stuck; returns True once the tolerances are met.
-    ``lm``: :func:`_lm_scratch`."""
+    ``lm``: :func:`_scratch`."""
     best = -1
     for i in range(pop.shape[0]):
         if not stuck[i] and (best < 0 or cost[i] < cost[best]):
@@ -704,7 +724,7 @@ def _refine_best(
     return within_tol
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def init_population(
     pop,
     cost,
@@ -748,7 +768,9 @@ def init_population(
                 pop[i, j] = min(max(q_start[j] + noise, lo[j]), hi[j])
         first = n_local
     _draw_population(pop, lo, hi, rng, first)
-    _evaluate_all(pop, cost, frames, jp, goal, ip[I_MODE], q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV])
+    _evaluate_all(
+        pop, cost, frames, jp, goal, ip[I_MODE], q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV], lm
+    )
     st[S_EVALUATIONS] += n_pop
     stuck[:] = 0
     record[R_COST] = np.inf
@@ -757,7 +779,7 @@ def init_population(
     )
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def generation(
     pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q, lm, gens
 ):
@@ -778,12 +800,8 @@ def generation(
     cr = fp[F_CR]
     move_w = fp[F_MOVE_W] * ip[I_HAS_PREV]
     mode = ip[I_MODE]
-    trial = np.empty(n)
-    trials = np.empty((n_pop, n))
-    trial_cost = np.empty(n_pop)
-    rot = np.empty((3, 3))
-    pos = np.empty(3)
-    res = np.empty(6)
+    # Scratch (:func:`_scratch`): LM's, free while DE runs, and DE's own trials.
+    rot, pos, res, trial, trials, trial_cost = lm[0], lm[1], lm[4], lm[11], lm[14], lm[15]
     for _ in range(gens):
         if st[S_STALE] >= ip[I_STALL_GENS]:
             # Restart, instead of a DE step: the record keeps the best so far; the whole
@@ -796,7 +814,7 @@ def generation(
             for i in range(n_pop // 4):
                 for j in range(n):
                     pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
-            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w)
+            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w, lm)
             stuck[:] = 0
             st[S_STALE] = 0
             st[S_RESTARTS] += 1
@@ -846,7 +864,7 @@ def generation(
     return False
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _report(st, record, record_q, jp, out):
     out[O_COST] = record[R_COST]
     out[O_POS_CM] = record[R_POS_CM]
@@ -911,7 +929,7 @@ def search(
     record = fbuf[o_rec:o_rec_q]
     record_q = fbuf[o_rec_q:o_out]
     out = fbuf[o_out:o_lm]
-    lm = _lm_scratch(fbuf[o_lm:o_end], n)
+    lm = _scratch(fbuf[o_lm:o_end], n, n_pop)
     lo = jp[4]
     hi = jp[5]
     done = False

@@ -50,7 +50,7 @@ def float_layout(n: int, n_pop: int) -> tuple[int, ...]:
     """Where each float64 array starts in ``fbuf``, for ``n`` joints and a population of
     ``n_pop``: pop ``(n_pop, n)``, cost ``(n_pop,)``, frames ``(n + 1, 4, 4)``, jp ``(6, n)``,
     goal ``(4, 4)``, q_start ``(n,)``, fp ``(N_FPARAMS,)``, record ``(3,)``, record_q ``(n,)``,
-    out ``(O_Q + 2n,)``, LM's scratch (see ``kernels._lm_scratch``), then the buffer's
+    out ``(O_Q + 2n,)``, the kernels' scratch (``kernels._scratch``), then the buffer's
     length. Plain arithmetic: the kernels compile this very function."""
     pop = 0
     cost = pop + n_pop * n
@@ -63,8 +63,10 @@ def float_layout(n: int, n_pop: int) -> tuple[int, ...]:
     record_q = record + 3
     out = record_q + n
     lm = out + O_Q + 2 * n
-    # rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out: kernels._lm_scratch
+    # rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out, then DE's trials
+    # and their costs: kernels._scratch
     end = lm + 9 + 3 + 3 * n + 3 * n + 6 + 6 * n + n * n + n + n * n + n + n + n + n + 3
+    end += n_pop * n + n_pop
     return pop, cost, frames, jp, goal, q_start, fp, record, record_q, out, lm, end
 
 
