@@ -630,7 +630,7 @@ def _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
             record_q[j] = q[j]
 
 
-@nb.njit(cache=CACHE)
+@nb.njit(cache=CACHE, **NO_NRT)
 def _scratch(buf, n, n_pop):
     """The kernels' scratch arrays, views of ``buf`` (its size: ``layout.float_layout``): LM's,
     then DE's trials and their costs. Made once per :func:`search` call: an allocation per LM
@@ -910,6 +910,14 @@ def search(
     argument costs the compiled wrapper ~0.05 µs at every call (a call that returns at once:
     1.13 µs with the 14 arrays of before, 0.56 µs with these 3).
     """
+    # The body is a function of its own, compiled without NRT like every kernel it calls
+    # (the ahead-of-time module compiles this entry point with numba's default options).
+    return _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
+
+
+@nb.njit(cache=CACHE, **NO_NRT)
+def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens):
+    """:func:`search`'s body: the views of the buffers, then the search."""
     ip = ibuf[:N_IPARAMS]
     n = ip[I_DOF]
     n_pop = ip[I_POP]
