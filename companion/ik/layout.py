@@ -14,8 +14,8 @@ F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_P
 F_SPREAD, F_STALL_GAIN = 8, 9
 N_FPARAMS = 10
 # Layout of the integer parameter vector ``ip``.
-I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE = range(4)
-N_IPARAMS = 4
+I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE, I_DOF, I_POP = range(6)
+N_IPARAMS = 6
 # Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
 MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
 # Flags of ``kernels.search``'s ``start`` (the low two bits are the mode).
@@ -31,23 +31,51 @@ O_COST, O_POS_CM, O_ORI_DEG, O_GENERATIONS, O_EVALUATIONS, O_LM_ITERATIONS, O_RE
 O_Q = 7
 
 # ``kernels.search``'s array arguments, in order: (name, numpy dtype, ndim), each C-contiguous.
-# The ahead-of-time module is compiled for exactly these and its wrapper does not check them
-# (a wrong dtype is read as raw memory), so the solver checks its arrays once, when it makes them.
+# Three buffers, not an argument per array: the compiled wrapper unboxes every array argument at
+# every call (a reference-counted wrapper allocated and freed each), ~0.05 µs apiece.
+# ``kernels.search`` cuts them into the arrays the kernels use; :mod:`companion.ik.solver` holds
+# numpy views of the same memory. The ahead-of-time module is compiled for exactly these and its
+# wrapper does not check them (a wrong dtype is read as raw memory), so the solver checks its
+# arrays once, when it makes them.
 SEARCH_ARRAYS = (
-    ("pop", "float64", 2),
-    ("cost", "float64", 1),
-    ("stuck", "bool", 1),
-    ("frames", "float64", 3),
-    ("jp", "float64", 2),
-    ("goal", "float64", 2),
-    ("q_start", "float64", 1),
-    ("fp", "float64", 1),
-    ("ip", "int64", 1),
+    ("fbuf", "float64", 1),
+    ("ibuf", "int64", 1),
     ("rng", "uint64", 1),
-    ("st", "int64", 1),
-    ("record", "float64", 1),
-    ("record_q", "float64", 1),
-    ("out", "float64", 1),
 )
 # Then the scalars: start (int64), x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg (float64),
 # gens (int64); it returns a bool.
+
+
+def float_layout(n: int, n_pop: int) -> tuple[int, ...]:
+    """Where each float64 array starts in ``fbuf``, for ``n`` joints and a population of
+    ``n_pop``: pop ``(n_pop, n)``, cost ``(n_pop,)``, frames ``(n + 1, 4, 4)``, jp ``(6, n)``,
+    goal ``(4, 4)``, q_start ``(n,)``, fp ``(N_FPARAMS,)``, record ``(3,)``, record_q ``(n,)``,
+    out ``(O_Q + 2n,)``, the kernels' scratch (``kernels._scratch``), then the buffer's
+    length. Plain arithmetic: the kernels compile this very function."""
+    pop = 0
+    cost = pop + n_pop * n
+    frames = cost + n_pop
+    jp = frames + (n + 1) * 16
+    goal = jp + 6 * n
+    q_start = goal + 16
+    fp = q_start + n
+    record = fp + N_FPARAMS
+    record_q = record + 3
+    out = record_q + n
+    lm = out + O_Q + 2 * n
+    # rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out, then DE's trials
+    # and their costs: kernels._scratch
+    end = lm + 9 + 3 + 3 * n + 3 * n + 6 + 6 * n + n * n + n + n * n + n + n + n + n + 3
+    end += n_pop * n + n_pop
+    return pop, cost, frames, jp, goal, q_start, fp, record, record_q, out, lm, end
+
+
+def int_layout(n_pop: int) -> tuple[int, ...]:
+    """Where each int64 array starts in ``ibuf``: ip ``(N_IPARAMS,)`` (``ip[I_DOF]`` and
+    ``ip[I_POP]`` give the sizes), st ``(N_STATE,)``, stuck ``(n_pop,)`` (0 or 1), then the
+    length."""
+    ip = 0
+    st = ip + N_IPARAMS
+    stuck = st + N_STATE
+    end = stuck + n_pop
+    return ip, st, stuck, end

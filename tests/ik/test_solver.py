@@ -39,7 +39,7 @@ def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, i
     count = [0]
 
     def search(*args):
-        fresh = args[14] & layout.START_NEW  # start
+        fresh = args[len(layout.SEARCH_ARRAYS)] & layout.START_NEW  # start
         done = real_search(*args)
         if fresh:
             clock.advance(init_s)
