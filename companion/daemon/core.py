@@ -93,6 +93,11 @@ REBOOT_LAG_MS = 750
 #: costs at least its gap (0.36 s measured), but one soon after the previous boot may lag by
 #: little more, under REBOOT_LAG_MS (seen: up 0.22 s, rebooted, 0.58 s behind).
 REBOOT_LAG_AFTER_SILENCE_MS = 250
+#: A SYSTEM_TIME this long after the one before counts as after a silence (above), whether or
+#: not the silence was noticed first: a stream asked for again early (a silent SYS_STATUS, see
+#: SYS_STATUS_SILENT_S) comes back before SYSTEM_TIME_SILENT_S. Twice the interval asked:
+#: shorter than any reboot's gap plus the time to ask the stream again.
+SYSTEM_TIME_GAP_S = 2 * SYSTEM_TIME_INTERVAL_S
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
@@ -1519,7 +1524,9 @@ class ControlCore:
     def _on_system_time(self, actions: list[Action], boot_ms: int) -> None:
         previous, previous_s = self._boot_ms, self._boot_seen_s
         now = self.clock()
-        after_silence = self._system_time_s is None and previous is not None
+        after_silence = previous is not None and (
+            self._system_time_s is None or now - previous_s > SYSTEM_TIME_GAP_S
+        )
         self._boot_ms, self._boot_seen_s = boot_ms, now
         self._system_time_s = now
         # Backwards, or far behind where the time since the last one says it should be: a
