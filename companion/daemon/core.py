@@ -128,11 +128,18 @@ SYS_STATUS_SLOW_LINK_INTERVAL_S = 0.25
 #: one, the release moves a joint by at most a step whatever it stored, and the middle of the
 #: band, where the rewind (``_rewind``) and a re-send after a loss or a reboot send the outputs,
 #: is within half a step of anything they may hold. A SYS_STATUS stream that falls silent stops
-#: the arm within the band. Above 40 Hz control, this slows the arm at full speed (to one step a
-#: SYS_STATUS: 48 deg/s of 60 at 50 Hz). On a slow serial line (SYS_STATUS every 0.25 s) the
+#: the arm within the band (never narrower than SAFETY_BAND_MIN_S of motion, below). On a slow
+#: serial line (SYS_STATUS every 0.25 s) the
 #: band is the steps of one SYS_STATUS interval, not to slow the arm: a release there may move a
 #: joint by more than a step.
 SAFETY_STEPS_AHEAD = 1
+#: ... and at least this long of motion at ``joint_speed_deg_s`` (one step at the default 20 Hz
+#: control): two SYS_STATUS intervals, so that the band, which holds a step on its way when a
+#: SYS_STATUS comes, never slows the arm. Above 20 Hz control a release may then move a joint
+#: by this much motion (3 degrees at 60 deg/s), more than one of its shorter steps: held whole
+#: to one step at 50 Hz, the arm fell behind a hovering vehicle (world error p99 1.9-4.7 cm
+#: against 0.3-0.6, ``bench.world_hold``).
+SAFETY_BAND_MIN_S = 0.05
 #: ArduPilot: nothing moves until a SYS_STATUS said where the safety switch is (at start, after
 #: a loss or a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then
 #: is stored and goes out in one step at its release); with none this long after asking, the
@@ -393,7 +400,7 @@ class ControlCore:
         steps = SAFETY_STEPS_AHEAD
         if self._sys_status_interval_s > SYS_STATUS_INTERVAL_S:  # a slow serial line
             steps = max(steps, math.ceil(self._sys_status_interval_s * config.rate_hz - 1e-9))
-        self._band_deg = step_deg * steps
+        self._band_deg = max(step_deg * steps, config.joint_speed_deg_s * SAFETY_BAND_MIN_S)
         #: A motion step waited for a SYS_STATUS (the band): it goes out when one comes.
         self._band_held = False
         self._rewind_to: tuple[float, ...] | None = None

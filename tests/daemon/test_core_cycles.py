@@ -39,9 +39,12 @@ def solve_to_itself(pose, q_start_deg, mode="pose", budget_ms=None):
 class Autopilot:
     """A core linked to an autopilot whose frames are real pymavlink frames."""
 
-    def __init__(self, dialect: str) -> None:
+    def __init__(self, dialect: str, rate_hz: float | None = None) -> None:
         self.clock = FakeClock()
-        config = parse_config({"link": {"url": "udpout:127.0.0.1:14550", "dialect": dialect}})
+        tables: dict[str, Any] = {"link": {"url": "udpout:127.0.0.1:14550", "dialect": dialect}}
+        if rate_hz is not None:
+            tables["control"] = {"rate_hz": rate_hz}
+        config = parse_config(tables)
         self.config = config
         self.core = ControlCore(config, solve=solve_to_itself, clock=self.clock)
         self.codec = mavlink.MAVLink(None, 1, 1)
@@ -188,8 +191,14 @@ class ArduPilotOutputs(Autopilot):
     never sent). ``changes`` collects every physical change of a pulse: (t_s, output, from_us,
     to_us), from the last pulse before a gap."""
 
-    def __init__(self, *, safety_default_on: bool = False, ack_delay_s: float = 0.003) -> None:
-        super().__init__("ardupilot")
+    def __init__(
+        self,
+        *,
+        safety_default_on: bool = False,
+        ack_delay_s: float = 0.003,
+        rate_hz: float | None = None,
+    ) -> None:
+        super().__init__("ardupilot", rate_hz)
         self.ack_delay_s = ack_delay_s
         self.safety_default_on = safety_default_on
         self.safety_on = False
@@ -392,6 +401,23 @@ def test_ardupilot_a_silent_sys_status_stream_stops_the_arm_within_a_step():
     ap.run(0.5)
     assert ap.core.status()["outputs_live"] is True
     assert abs(ap.core.status()["current_deg"][0] - at_last_status) > 5 * step_deg
+    assert ap.fast_changes() == []
+
+
+@pytest.mark.parametrize("ack_delay_s", [0.003, 0.012])
+def test_ardupilot_at_50_hz_the_safety_band_does_not_slow_the_arm(ack_delay_s):
+    """At 50 Hz control SYS_STATUS (40 Hz) comes less often than the ticks, and one may come
+    while a step is on its way: a band one 50 Hz step wide held the arm to 48 of 60 deg/s (and
+    a followed world target fell behind). SAFETY_BAND_MIN_S keeps it at full speed."""
+    ap = ArduPilotOutputs(rate_hz=50.0, ack_delay_s=ack_delay_s)
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 90.0, *start[1:]])
+    ap.run(0.1)
+    at_deg = ap.core.status()["current_deg"][0]
+    ap.run(1.0)
+    speed_deg_s = abs(ap.core.status()["current_deg"][0] - at_deg) / 1.0
+    assert speed_deg_s >= 0.95 * ap.config.joint_speed_deg_s
     assert ap.fast_changes() == []
 
 
