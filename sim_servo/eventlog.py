@@ -77,9 +77,11 @@ class EventLog:
 
 
 def read_events(path: str | Path) -> list[dict[str, Any]]:
-    """All events in a log file (for tests and tools)."""
+    """All events in a log file (for tests and tools). A log still being written may end in
+    part of a line (a pass's events go out in one write, which the file's buffer may split):
+    only whole lines are read."""
     with open(path, encoding="utf-8") as handle:
-        return [json.loads(line) for line in handle if line.strip()]
+        return [json.loads(line) for line in handle if line.endswith("\n") and line.strip()]
 
 
 def physical_pwm_timeline(events: list[dict[str, Any]]) -> dict[int, list[tuple[float, int]]]:
