@@ -1204,6 +1204,15 @@ class ControlCore:
             commands = self._dialect.plan(pwm, None)
         except CalibrationError:  # within the hull of steps already checked: unreachable
             return []
+        keepout = self._keepout()
+        if keepout is not None:
+            # The middle was never a commanded step: the motion to it from every pose the
+            # outputs may hold is proven clear, or the step's own commands are tried again.
+            target = self._as_sent_rad(step)
+            for held in poses:
+                path = self._output_path(self._as_sent_rad(held), target, commands)
+                if keepout.check_path(path) is not None:
+                    return []
         inflight.step_deg, inflight.pwm_by_output, inflight.folded = step, pwm, []
         self._stepped_to(step)
         return [c for c in commands if unknown.intersection(c.outputs)]
