@@ -1187,13 +1187,18 @@ class ControlCore:
             return
         self._resolve_update(actions, inflight, now)
 
+    def _folded_poses(self, inflight: _InFlight) -> list[tuple[float, ...]]:
+        """What outputs left unknown by ``inflight`` may hold: the acknowledged pose, a step
+        folded into it, or its own step (each a step from the one before)."""
+        return [tuple(self._position), *inflight.folded, inflight.step_deg]
+
     def _retry_between(self, inflight: _InFlight, unknown: set[int]) -> list[ServoCommand]:
         """An update with the steps of updates ahead of it folded into it left ``unknown``
         outputs: they hold the acknowledged pose, one of those steps or this one (two steps
         apart at most). They are confirmed at the middle of those poses, within one step of
         each, rather than at this step; the flight's step becomes that (the outputs it
         confirmed keep theirs)."""
-        poses = [tuple(self._position), *inflight.folded, inflight.step_deg]
+        poses = self._folded_poses(inflight)
         middle = _middle(_band_of(poses))
         step = tuple(
             middle[i] if output in unknown else inflight.step_deg[i]
@@ -1286,8 +1291,7 @@ class ControlCore:
         # every one of them is sent before moving on: this step, or with steps folded into it,
         # the middle of them all.
         if inflight.folded:
-            poses = [tuple(self._position), *inflight.folded, inflight.step_deg]
-            self._unconfirmed = _middle(_band_of(poses))
+            self._unconfirmed = _middle(_band_of(self._folded_poses(inflight)))
         else:
             self._unconfirmed = inflight.step_deg
         self.counters["servo_errors"] += 1

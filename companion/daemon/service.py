@@ -90,9 +90,9 @@ CORE_FRAMES = (
 #: takes them on its next pass (at least every control period).
 TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
 #: The streams the core asks for at fixed intervals (SERVO_OUTPUT_RAW every 40 or 100 ms,
-#: SYS_STATUS 100 ms, SYSTEM_TIME 250 ms): what they tell matters from the next tick on (the
-#: control thread feeds the frames before each tick), so one wakes the control thread only
-#: when its next pass is more than ``STREAM_WAKE_S`` away. At 50 Hz: ~25 wakes a second fewer.
+#: ArduPilot's SYS_STATUS 25 ms, SYSTEM_TIME 250 ms): what they tell matters from the next
+#: tick on (the control thread feeds the frames before each tick), so one wakes the control
+#: thread only when its next pass is more than ``STREAM_WAKE_S`` away.
 STREAM_FRAMES = ("SERVO_OUTPUT_RAW", "SYS_STATUS", "SYSTEM_TIME")
 STREAM_WAKE_S = 0.025
 #: The control thread waits at most this long between passes.
