@@ -106,8 +106,10 @@ READBACK_INTERVAL_S = 0.1
 #: PX4 on a link with room for it: a readback this often sees outputs go dead (disarm, kill)
 #: sooner, so the hold at the disarmed PWM is stored before a quick re-arm would apply the
 #: pose stored before (bench.output_cycles: every fast PX4 step came from a re-arm inside the
-#: window in which the disarm was not seen yet).
-READBACK_FAST_INTERVAL_S = 0.04
+#: window in which the disarm was not seen yet), and sees them come alive within 20 ms (the
+#: marker, ``MARKER_OFFSET_US``). 50 Hz, ArduPilot's cap for this stream: 49-byte frames,
+#: 2.5 kB/s on the link, ~0.2 % of a core in the daemon.
+READBACK_FAST_INTERVAL_S = 0.02
 #: ArduPilot on a serial line below SLOW_LINK_BAUD: the readback only feeds status there (its
 #: safety switch comes from SYS_STATUS), and at 10 Hz its 49-byte frames (4.3 ms each at
 #: 115 200 baud) would delay an update's ACK behind them one time in twenty.
@@ -157,9 +159,15 @@ SYS_STATUS_SILENT_S = 0.5
 READBACK_SETTLE_S = 0.15
 #: This many such readbacks in a row not showing the acknowledged PWM: the output is not live.
 READBACK_MISMATCHES = 2
-#: PX4: while outputs are not live, one speed-limited step towards the goal at this interval
-#: shows whether they came alive (they store what we send and show it once live; the storage
-#: cannot be told from the readback while it equals the disarmed PWM).
+#: PX4: an output found not live (showing its disarmed PWM) is told to hold a PWM this far
+#: from it, towards the middle of its range: the "marker". It moves the joint by that much
+#: when the output comes alive (arm, prearm), which the next readback then shows: live again
+#: is seen within one readback, where a readback of the disarmed PWM itself could not tell
+#: storage from output. The same at the start and after a reboot or a loss, with the arm
+#: still: the PWM the output shows, plus the offset, tells whether it is live.
+MARKER_OFFSET_US = 2
+#: PX4: where no marker fits (a range too narrow for it), one speed-limited step towards the
+#: goal at this interval shows whether the outputs came alive instead.
 PROBE_INTERVAL_S = 1.0
 #: PX4, outputs not yet known to be live: the next step waits for the readback's verdict on
 #: the one before (shown: live; not shown READBACK_MISMATCHES times: not live), at most this
@@ -167,6 +175,12 @@ PROBE_INTERVAL_S = 1.0
 VERDICT_TIMEOUT_S = 2.0
 #: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
 READBACK_TOLERANCE_US = 1
+assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from the disarmed PWM
+#: PX4, for status: a readback stream silent this many intervals says nothing of the outputs
+#: any more (a reboot: they are at the disarmed PWM); silent READBACK_SILENT_S (at least this
+#: many intervals), every stream is asked for again (a rebooted PX4 forgot them).
+READBACK_STALE_INTERVALS = 3
+READBACK_SILENT_S = 0.5
 #: PX4: with no readback this long after the link came up, move without it (and say so).
 READBACK_WAIT_S = 2.0
 #: Updates on their way at once: one, and the next step behind it (see ``_pipeline``). The
@@ -306,6 +320,7 @@ class _InFlight:
     refused: dict[int, str] = field(default_factory=dict)
     #: The steps of updates ahead of it that ended unanswered (the outputs may hold them).
     folded: list[tuple[float, ...]] = field(default_factory=list)
+    seq: int = 0  # updates sent before it since the start
 
 
 class ControlCore:
@@ -378,6 +393,15 @@ class ControlCore:
         #: the PWM they showed then (the disarmed PWM): a readback of that PWM proves nothing.
         self._not_live: dict[int, str] = {}
         self._dead_pwm: dict[int, int] = {}
+        #: ... how many updates had been sent when each was found not live (those sent before
+        #: it store no pose of its: its hold goes out behind them), and the PWM it is told to
+        #: hold meanwhile (its marker, ``MARKER_OFFSET_US`` from the disarmed PWM; or, with no
+        #: room for one, the PWM nearest it: then probes, ``PROBE_INTERVAL_S``), and whether
+        #: that is a marker.
+        self._dead_seq: dict[int, int] = {}
+        self._updates_sent = 0
+        self._held_pwm: dict[int, int] = {}
+        self._marked: set[int] = set()
         #: PX4: outputs whose latest settled readback showed what they acknowledged (live).
         self._confirmed: set[int] = set()
         #: PX4: store the pose the outputs show now (an output was found not live).
@@ -530,6 +554,8 @@ class ControlCore:
             self._on_system_time(actions, int(msg.time_boot_ms))
         elif kind == "SERVO_OUTPUT_RAW":
             self._on_readback(msg)
+            if self._hold_now:
+                self._maybe_send(actions, immediate=True)
         elif kind == "SYS_STATUS":
             enabled = msg.onboard_control_sensors_enabled
             self._on_sys_status(actions, not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
@@ -560,6 +586,7 @@ class ControlCore:
         self._poll_update(actions)
         self._watch_system_time(actions, now)
         self._watch_sys_status(actions, now)
+        self._watch_readback(actions, now)
         if due:
             if self._trajectory:
                 self._due_trajectory_point(actions)
@@ -794,6 +821,16 @@ class ControlCore:
         an update takes 13–21 ms of a 20 ms slot)."""
         if not self._link_up:
             return
+        if self._hold_now and not self._is_ardupilot:
+            # PX4 outputs found not live: their markers stored now, behind whatever is on its
+            # way (PX4 takes the frames in order), before a re-arm would bring out the pose
+            # stored before.
+            self._hold_now = False
+            self._unconfirmed = None
+            self._send_step(
+                actions, tuple(self._position), self.clock(), everything=True, hold=True
+            )
+            return
         if immediate and not self._waiting:
             return
         if self._flights:
@@ -812,18 +849,23 @@ class ControlCore:
                 # The safety switch: whatever is sent is applied at once when it goes off.
                 return
         else:
-            if self._hold_now:
-                self._hold_now = False
-                self._unconfirmed = None
-                self._send_step(actions, tuple(self._position), now, everything=True)
-                return
             if not self._confirmed.issuperset(self._outputs):
                 # Outputs not known to be live: one speed-limited step at a time, the next only
-                # once the readback showed it (or, found not live, once a PROBE_INTERVAL_S):
-                # if they come alive meanwhile, they jump by at most that one step.
+                # once the readback showed it (found not live: once it shows its marker, or
+                # with no marker, once a PROBE_INTERVAL_S): if they come alive meanwhile, they
+                # jump by at most that one step.
                 if self._not_live:
-                    if now - self._last_step_s < PROBE_INTERVAL_S:
+                    if self._marked.issuperset(self._not_live) or (
+                        now - self._last_step_s < PROBE_INTERVAL_S
+                    ):
                         return
+                elif self._unmarked_unknown():
+                    # The start, a loss or a reboot: the markers say whether the outputs are
+                    # live, moving each joint by MARKER_OFFSET_US; the motion waits for that.
+                    # (A motion step could leave an output at the disarmed PWM it shows, and
+                    # a readback of that would prove nothing.)
+                    self._send_step(actions, self._marker_pose(), now)
+                    return
                 elif (
                     any(o in self._acked_pwm for o in self._outputs if o not in self._confirmed)
                     and now - self._last_step_s < VERDICT_TIMEOUT_S
@@ -846,6 +888,25 @@ class ControlCore:
             if not self._may_step_to(step):
                 return  # no SYS_STATUS said the switch is off since the steps before
         self._send_step(actions, step, now)
+
+    def _unmarked_unknown(self) -> bool:
+        """PX4: an output with nothing acknowledged since the start, a loss or a reboot, and
+        none on its way (its liveness unknown: a marker would tell)."""
+        ahead = {o for f in self._flights for o in f.sent_outputs}
+        return any(
+            o not in self._acked_pwm and o not in ahead and o in self._readback
+            for o in self._outputs
+        )
+
+    def _marker_pose(self) -> tuple[float, ...]:
+        """The pose with each output that has nothing acknowledged at its marker (from the PWM
+        the readback shows), the others where they are."""
+        pose = list(self._position)
+        for i, output in enumerate(self._outputs):
+            shown = self._readback.get(output)
+            if output not in self._acked_pwm and shown is not None:
+                pose[i] = self._marker_deg(output, shown)[0]
+        return tuple(pose)
 
     def _pipeline(self, actions: list[Action]) -> None:
         """Send the next step behind the update in flight, without waiting for its ACKs.
@@ -1043,9 +1104,13 @@ class ControlCore:
         everything: bool = False,
         timeout_s: float | None = None,
         base_pwm: dict[int, int] | None = None,
+        hold: bool = False,
     ) -> None:
         """Send the update to ``step``; outputs whose PWM ``base_pwm`` (default: the
-        acknowledged PWMs) already holds are left out, unless ``everything``."""
+        acknowledged PWMs) already holds are left out, unless ``everything``. ``hold``: PX4's
+        outputs found not live told to hold where they are (their markers): no keep-out path
+        from the step commanded last (PX4 put them at the disarmed PWM; the marker is within
+        MARKER_OFFSET_US of it), and not a step of the motion (no band, no step time)."""
         if base_pwm is None:
             base_pwm = self._acked_pwm
         try:
@@ -1055,7 +1120,7 @@ class ControlCore:
             log.error("calibration refused a step, holding: %s", exc)
             self._fail_motion(actions, f"calibration refused a step: {exc}")
             return
-        keepout = self._keepout()
+        keepout = None if hold else self._keepout()
         if keepout is not None:
             # The motion from the step commanded last (what the outputs will hold) to this one,
             # proven clear of every volume, or not sent. As the servos get it: each angle
@@ -1085,7 +1150,10 @@ class ControlCore:
             timeout_s = self.config.link.command_timeout_s
         tracker = UpdateTracker(commands, sent_s=now, timeout_s=timeout_s)
         sent = frozenset(o for c in commands for o in c.outputs)
-        self._flights.append(_InFlight(step, pwm, sent, tracker, now, waiting, timeout_s))
+        self._flights.append(
+            _InFlight(step, pwm, sent, tracker, now, waiting, timeout_s, seq=self._updates_sent)
+        )
+        self._updates_sent += 1
         self._last_step_s = now
         self._stepped_to(step)
         self._emit(actions, commands, 0)
@@ -1229,7 +1297,14 @@ class ControlCore:
         assert self._flights and self._flights[0] is inflight
         self._flights.popleft()
         joint_of = {o: i for i, o in enumerate(self._outputs)}
+        # PX4 outputs found not live since this update went out hold their markers, stored
+        # behind it: what it stored there is no pose of theirs (nor of the joints').
+        overtaken = {
+            o for o, seq in self._dead_seq.items() if inflight.seq < seq and o in self._not_live
+        }
         for output, pwm in inflight.accepted.items():
+            if output in overtaken:
+                continue
             self._acked_pwm[output] = pwm
             self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
             self._mismatches[output] = 0
@@ -1356,6 +1431,7 @@ class ControlCore:
         self._ack_history.clear()
         self._mismatches.clear()
         self._confirmed.clear()
+        self._forget_liveness()
         self._telemetry.reset()
         resend = self._forget_outputs(flights)  # ArduPilot: the switch unknown (boots on)
         self._readback_since_s = self.clock()
@@ -1441,35 +1517,34 @@ class ControlCore:
                     # output puts it, not at the assumed start pose.
                     self._position[joint_of[output]] = self._angle_shown(output, shown)
                 continue
-            expected = self._expected_pwms(output, now)
+            shown_ok, settled = self._expected_pwms(output, now)
             # PX4 applies a command on its output cycle and answers it on its commander's: a
             # readback in between shows a step on its way, not acknowledged yet. It is ours,
             # so the output is live.
             on_its_way = {
                 f.pwm_by_output[output] for f in self._flights if output in f.pwm_by_output
             }
-            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in shown_ok | on_its_way):
                 self._mismatches[output] = 0
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
                     continue  # the hold at the disarmed PWM: shown either way, proves nothing
                 self._confirmed.add(output)
                 self._dead_pwm.pop(output, None)
+                self._dead_seq.pop(output, None)
+                self._held_pwm.pop(output, None)
                 if self._not_live.pop(output, None) is not None:
                     log.info("output %d live again (shows %d us)", output, shown)
                 continue
-            if not expected:
+            if not settled:
                 continue  # acknowledged too lately to be shown yet
             # A live output that stops showing what it acknowledged long ago was disarmed,
             # killed or rebooted: no second look (PX4 would apply our stored pose at once on
             # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).
             needed = 1 if output in self._confirmed else READBACK_MISMATCHES
             self._confirmed.discard(output)
-            joint = self.config.calibration.for_output(output)
-            if output in self._not_live and acked == joint.angle_to_pwm_us(
-                self._angle_shown(output, shown)
-            ):
-                continue  # held as near the disarmed PWM as the calibration allows
+            if output in self._not_live and acked == self._held_pwm.get(output):
+                continue  # told to hold its marker (or the PWM nearest the disarmed one)
             self._mismatches[output] = self._mismatches.get(output, 0) + 1
             if self._mismatches[output] < needed:
                 continue
@@ -1481,28 +1556,72 @@ class ControlCore:
                 log.warning("%s: holding the arm where it is", reason)
                 self._not_live[output] = reason
             self._dead_pwm[output] = shown
-            # The joint is where the output puts it: that is stored at once (PX4 would apply
-            # what we stored in one step when the outputs come alive), and the motion goes on
-            # from there.
-            self._position[joint_of[output]] = self._angle_shown(output, shown)
+            self._dead_seq[output] = self._updates_sent
+            # The joint is where the output puts it. Its marker is stored at once (PX4 would
+            # apply what we stored in one step when the outputs come alive): it moves the
+            # joint by MARKER_OFFSET_US then, and the readback shows it.
+            held_deg, marked = self._marker_deg(output, shown)
+            self._position[joint_of[output]] = held_deg
+            self._held_pwm[output] = self.config.calibration.for_output(output).angle_to_pwm_us(
+                held_deg
+            )
+            if marked:
+                self._marked.add(output)
+            else:
+                self._marked.discard(output)
             self._acked_pwm.pop(output, None)
             self._ack_history.pop(output, None)
             self._mismatches[output] = 0
             self._hold_now = True
 
-    def _expected_pwms(self, output: int, now: float) -> set[int]:
-        """The PWMs a readback at ``now`` may show for ``output``: the last one acknowledged
-        at least READBACK_SETTLE_S ago and any acknowledged since (the readback lags by up to
-        that). Empty while the only ones are too recent to be shown yet."""
+    def _forget_liveness(self) -> None:
+        """PX4, a loss or a (possible) reboot: what was stored is gone (a rebooted PX4 holds
+        nothing), so whether each output is live is unknown again until its marker, sent
+        anew, shows or does not (status: not known live)."""
+        self._not_live.clear()
+        self._dead_pwm.clear()
+        self._dead_seq.clear()
+        self._held_pwm.clear()
+        self._marked.clear()
+        self._hold_now = False
+
+    def _marker_deg(self, output: int, shown_us: int) -> tuple[float, bool]:
+        """The angle an output showing ``shown_us`` (not live, or not known to be) is told to
+        hold, and whether it is a marker (``MARKER_OFFSET_US`` from it, towards the middle of
+        the range: the readback tells it from ``shown_us``) or, with no room for one, the
+        angle nearest ``shown_us`` (a disarmed PWM outside the servo's range: the nearest end
+        of the range, itself told apart unless within READBACK_TOLERANCE_US)."""
+        joint = self.config.calibration.for_output(output)
+        limits = self.config.arm.joints[self._outputs.index(output)]
+        low_deg = max(joint.angle_min_deg, math.degrees(limits.min_rad))
+        high_deg = min(joint.angle_max_deg, math.degrees(limits.max_rad))
+        middle_us = (joint.pwm_min_us + joint.pwm_max_us) / 2
+        towards = 1 if shown_us <= middle_us else -1
+        nearest = self._angle_shown(output, shown_us)
+        candidates = [shown_us + towards * MARKER_OFFSET_US, shown_us - towards * MARKER_OFFSET_US]
+        candidates.append(joint.angle_to_pwm_us(nearest))
+        for pwm in candidates:
+            if abs(pwm - shown_us) <= READBACK_TOLERANCE_US:
+                continue
+            if not joint.pwm_min_us <= pwm <= joint.pwm_max_us:
+                continue
+            angle = joint.pwm_us_to_angle_deg(pwm)
+            if low_deg <= angle <= high_deg and joint.angle_to_pwm_us(angle) == pwm:
+                return angle, True
+        return nearest, False
+
+    def _expected_pwms(self, output: int, now: float) -> tuple[set[int], bool]:
+        """The PWMs a readback at ``now`` may show for ``output`` if it is live: the last one
+        acknowledged at least READBACK_SETTLE_S ago and any acknowledged since (the readback
+        lags by up to that); and whether that older one exists (settled: a readback showing
+        none of them then says the output is not live; before, it may just lag)."""
         history = self._ack_history.get(output)
         if not history:
-            return set()
+            return set(), False
         cutoff = now - READBACK_SETTLE_S + 1e-9
         recent = {pwm for t, pwm in history if t >= cutoff}
         older = [pwm for t, pwm in history if t < cutoff]
-        if not older:
-            return set()
-        return recent | {older[-1]}
+        return recent | set(older[-1:]), bool(older)
 
     def _angle_shown(self, output: int, pwm_us: int) -> float:
         """The joint angle an output's PWM means, within the calibration and the arm's limits
@@ -1527,10 +1646,21 @@ class ControlCore:
         return dict(self._not_live)
 
     def _unknown_outputs(self) -> dict[int, str]:
-        """ArduPilot, for status: the arm's outputs are not known to be live while its
-        SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a reboot, a
-        loss) or has not said where the switch is since a loss or a reboot."""
-        if not self._is_ardupilot or not self._sys_status_ever:
+        """For status, the arm's outputs not known to be live. ArduPilot: while its SYS_STATUS
+        stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a reboot, a loss) or has
+        not said where the switch is since a loss or a reboot. PX4: while the readback is
+        silent for READBACK_STALE_INTERVALS, and each output until a readback showed what it
+        stored since the start, a loss or a reboot (its marker, or a step)."""
+        if not self._is_ardupilot:
+            if self._readback_s == -math.inf:
+                return dict.fromkeys(self._outputs, "not known live (no SERVO_OUTPUT_RAW yet)")
+            silent_s = self.clock() - self._readback_s
+            if silent_s > READBACK_STALE_INTERVALS * self._readback_interval_s:
+                why = f"not known live (no SERVO_OUTPUT_RAW for {silent_s * 1e3:.0f} ms)"
+                return dict.fromkeys(self._outputs, why)
+            why = "not known live yet (no readback has shown what it stores since the start)"
+            return {o: why for o in self._outputs if o not in self._confirmed}
+        if not self._sys_status_ever:
             return {}
         if self._sys_status_s is None or self._safety_on is None:
             why = "safety switch unknown (no SYS_STATUS since the link came back or a reboot)"
@@ -1585,6 +1715,20 @@ class ControlCore:
         log.info("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
         self._ask_system_time(actions)
 
+    def _watch_readback(self, actions: list[Action], now: float) -> None:
+        """PX4: a readback stream (once seen) silent for READBACK_SILENT_S: every stream is
+        asked for again (a rebooted PX4 forgot them), so the reboot is seen from the
+        SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S."""
+        if self._is_ardupilot or self._readback_s == -math.inf:
+            return
+        silent_s = max(READBACK_SILENT_S, READBACK_STALE_INTERVALS * self._readback_interval_s)
+        if now - max(self._readback_s, self._system_time_asked_s) < silent_s:
+            return
+        log.info(
+            "no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", now - self._readback_s
+        )
+        self._ask_system_time(actions)
+
     def _watch_system_time(self, actions: list[Action], now: float) -> None:
         heard = self._system_time_s
         if now - self._system_time_asked_s < SYSTEM_TIME_SILENT_S:
@@ -1605,6 +1749,7 @@ class ControlCore:
         self._acked_pwm.clear()
         self._ack_history.clear()
         self._confirmed.clear()
+        self._forget_liveness()
         if not self._is_ardupilot:
             # PX4 (see _lose_outputs): never re-send a stale pose; the readback says where.
             self._readback_since_s = now

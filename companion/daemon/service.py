@@ -95,6 +95,10 @@ TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
 #: thread only when its next pass is more than ``STREAM_WAKE_S`` away.
 STREAM_FRAMES = ("SERVO_OUTPUT_RAW", "SYS_STATUS", "SYSTEM_TIME")
 STREAM_WAKE_S = 0.025
+#: PX4's readback is how the core sees outputs die (disarm, kill): one whose PWMs differ from
+#: the one before wakes the control thread at once, so the hold is stored before a quick
+#: re-arm would bring out the pose stored before (the same PWMs again wake nothing).
+READBACK_FIELDS = tuple(f"servo{n}_raw" for n in range(1, 17))
 #: The control thread waits at most this long between passes.
 MAX_WAIT_S = 0.05
 #: STATUSTEXTs explaining refused MAVLink targets: at most this many a second (burst 5).
@@ -150,6 +154,8 @@ class ArmDaemon:
         # When the control thread's next pass is due at the latest (it waits until then);
         # a stream frame wakes it only if that is far (STREAM_WAKE_S).
         self._next_pass_s = -float("inf")
+        self._readback_wakes = config.link.dialect == "px4"
+        self._last_readback: tuple[int, ...] = ()
         # The status snapshot is built on the control thread when some thread asked for one
         # (generations: asked, built): nobody asking, it costs nothing (it was a quarter of
         # the control thread's CPU at 50 Hz with world targets on, rebuilt every 20 ms).
@@ -449,6 +455,10 @@ class ArmDaemon:
                 wake = self._acks_queued >= self._acks_wake_at
             elif kind in STREAM_FRAMES:
                 wake = self._next_pass_s - now > STREAM_WAKE_S
+                if kind == "SERVO_OUTPUT_RAW" and self._readback_wakes:
+                    shown = tuple(getattr(msg, f, 0) for f in READBACK_FIELDS)
+                    wake = wake or shown != self._last_readback
+                    self._last_readback = shown
             else:
                 wake = kind not in TELEMETRY_FRAMES
         if wake:

@@ -19,6 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
 from companion.daemon.core import (
+    MARKER_OFFSET_US,
     PIPELINE_DEPTH,
     UPDATE_ATTEMPTS,
     Answer,
@@ -533,7 +534,7 @@ def test_system_time_readback_and_safety_are_asked_for_once_pinned(rig):
         ("/dev/ttyAMA0,115200", "ardupilot-lua", 1.0),  # status only: spare the slow line
         ("/dev/ttyAMA0,921600", "ardupilot", 0.1),
         ("/dev/ttyAMA0,57600", "px4", 0.1),  # PX4's liveness comes from it
-        ("udpin:0.0.0.0:14550", "px4", 0.04),  # room for it: a disarm seen sooner
+        ("udpin:0.0.0.0:14550", "px4", 0.02),  # room for it: a disarm seen sooner
     ],
 )
 def test_the_readback_is_asked_for_less_often_where_it_only_feeds_status_on_a_slow_line(
@@ -974,6 +975,119 @@ def test_px4_after_a_reboot_the_stale_pose_is_not_sent_again():
     px4.set_live(True)
     rig.tick()
     assert not [c for c in rig.sent if c.command == ACTUATOR]
+
+
+def max_physical_step_us(px4: Px4Outputs) -> float:
+    """The largest physical move over one step's PWM (≤ 1: within the speed limit)."""
+    worst = 0.0
+    for output, before, after in px4.physical_moves:
+        joint = px4.rig.calibration.for_output(output)
+        step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+        worst = max(worst, abs(after - before) / (step_us + 1))
+    return worst
+
+
+def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_readback():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    px4.set_live(False)  # disarm: every output at 1500
+    px4.readback()  # the first readback tells (they were confirmed live)
+    assert rig.core.status()["outputs_live"] is False
+    # The markers go out at once (not at the next tick), 2 us from the disarmed PWM.
+    sent = [c for c in rig.sent if c.command == ACTUATOR]
+    assert len(sent) == 1
+    px4.handle()
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+    # Dead, nothing more is sent (no probing steps): the goal waits.
+    updates = rig.core.counters["servo_updates"]
+    run(rig, px4, 3.0)
+    assert rig.core.counters["servo_updates"] == updates
+    assert rig.core.status()["outputs_live"] is False
+    # Armed: the next readback shows the markers; live again, and the motion goes on.
+    px4.set_live(True)
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is True
+    run(rig, px4, 2.0)
+    assert rig.core.counters["servo_updates"] > updates
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_hold():
+    # Found dead while a step was on its way: that step's ACK came after, and its pose was
+    # taken as the joints' (the hold stored it: at a re-arm the outputs went from the
+    # disarmed PWM to it, bench.output_cycles' "arm then arm" fast command steps).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))  # 7 steps
+    run(rig, px4, 0.2)
+    rig.advance(1.0 / RATE_HZ)  # the next step goes out...
+    on_its_way = px4.apply()
+    assert on_its_way
+    px4.set_live(False)
+    px4.readback()  # ...the outputs are found dead before its ACK
+    for _ in on_its_way:
+        rig.ack(command=ACTUATOR)
+    rig.advance(1.0 / RATE_HZ)
+    px4.handle()  # the hold
+    px4.set_live(True)  # re-armed before the readback saw the hold
+    run(rig, px4, 2.0)
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_at_the_start_with_the_arm_still_the_markers_say_whether_it_is_live():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    status = rig.core.status()
+    assert status["outputs_live"] is False and "no SERVO_OUTPUT_RAW yet" in str(status["not_live"])
+    px4.readback()  # disarmed, nothing stored: 1500 everywhere
+    assert "not known live yet" in str(rig.core.status()["not_live"])
+    run(rig, px4, 0.5)  # markers stored, not shown: not live
+    assert px4.stored[rig.calibration.outputs[0]] == 1500 + MARKER_OFFSET_US
+    status = rig.core.status()
+    assert status["outputs_live"] is False and "shows 1500 us" in str(status["not_live"])
+    px4.set_live(True)
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is True
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again():
+    # A rebooted PX4 holds nothing: waiting for the markers stored before it to show would
+    # wait for ever (status "not live" through every later arm, bench.output_cycles).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.readback()
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is False  # held at the markers
+    rig.system_time(600_000)
+    rig.advance(0.3)
+    rig.system_time(150)  # rebooted: nothing stored, disarmed
+    px4.stored = dict.fromkeys(px4.stored)
+    px4.set_live(False)
+    assert "not known live" in str(rig.core.status()["not_live"])
+    run(rig, px4, 0.5)
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+    px4.set_live(True)
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is True
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_a_silent_readback_says_nothing_of_the_outputs_and_the_streams_are_asked_again():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    rig.sent.clear()
+    for _ in range(5):
+        rig.advance(0.02)  # no readback: a reboot, a link gone quiet
+    assert "no SERVO_OUTPUT_RAW for" in str(rig.core.status()["not_live"])
+    for _ in range(25):
+        rig.advance(0.02)
+    assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
 
 
 def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(rig):
