@@ -66,11 +66,16 @@ import numpy as np
 from bench.loopback import Stack, cpu_s, load_average, percentiles_ms, run_and_report
 from bench.report import machine, md_table
 from companion.daemon.config import load_config
+from companion.daemon.service import SOURCE_RATE_HZ
 from companion.kinematics.arm import Arm, Pose
 from tests.support.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 REPLY_TIMEOUT_S = 10.0
+#: Rounds start at most this often: the daemon rate-limits motion targets per source
+#: (``SOURCE_RATE_HZ``, burst ``SOURCE_BURST``); faster, most gotos would be refused as rate
+#: limited before they could race anything (766 of 1 000 rounds were, unpaced).
+ROUND_MIN_S = 1.0 / (0.9 * SOURCE_RATE_HZ)
 IDLE_TIMEOUT_S = 10.0
 WALK_DEG = 15.0
 PWM_SLACK_US = 1
@@ -206,7 +211,7 @@ def judge(
             r["reached"] = all(abs(end.get(o, -1) - pwm) <= PWM_SLACK_US for o, pwm in goal.items())
             for output, old, new in r["changes"]:
                 start = r["pwm_at_start"].get(output)
-                if start is None:  # the output's first command ever: no start to be between
+                if not start:  # the output's first pulses ever (0: none): no start to be between
                     continue
                 lo, hi = sorted((start, goal[output]))
                 if not lo - PWM_SLACK_US <= new <= hi + PWM_SLACK_US:
@@ -267,9 +272,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         gc.disable()
         wall0 = time.monotonic()
         try:
+            next_round_s = time.monotonic()
             for k, pose in enumerate(poses):
                 if not wait_until(lambda: not stack.status()["moving"], IDLE_TIMEOUT_S):
                     idle_timeouts += 1
+                while (now := time.monotonic()) < next_round_s:
+                    time.sleep(next_round_s - now)  # pacing, not synchronisation
+                next_round_s = now + ROUND_MIN_S
                 rounds.append(race(goto_conn, stop_conn, pose, goto_first=k % 2 == 0))
             wait_until(lambda: not stack.status()["moving"], IDLE_TIMEOUT_S)
             time.sleep(0.5)  # a stray late command would still be logged
