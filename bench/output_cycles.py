@@ -422,6 +422,18 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             + "; goto answers "
             + ", ".join(f"{k} {v}" for k, v in sorted(r.outcomes.items())),
         ]
+        by_event: dict[str, list[float]] = {}
+        for a in r.agreements:
+            if a.latency_s is not None and a.truth_changed:
+                by_event.setdefault(a.event, []).append(a.latency_s)
+        if by_event:
+            lines.append(
+                "agreement where the truth changed, by event (count, p50 / max ms): "
+                + "; ".join(
+                    f"{k} {len(v)}, {_ms(v, 50):.0f} / {max(v) * 1e3:.0f}"
+                    for k, v in sorted(by_event.items())
+                )
+            )
         slow_by_event = Counter(
             a.event for a in r.agreements if (a.latency_s or a.dwell_s) > bound_s(r.flavour)
         )

@@ -180,6 +180,9 @@ assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from t
 #: any more (a reboot: they are at the disarmed PWM); silent READBACK_SILENT_S (at least this
 #: many intervals), every stream is asked for again (a rebooted PX4 forgot them).
 READBACK_STALE_INTERVALS = 3
+#: A frame from the autopilot after this many intervals of the fastest stream asked for with
+#: nothing from it: every stream is asked for again at once (see ``_after_silence``).
+AUTOPILOT_GAP_INTERVALS = 4
 READBACK_SILENT_S = 0.5
 #: PX4: with no readback this long after the link came up, move without it (and say so).
 READBACK_WAIT_S = 2.0
@@ -372,6 +375,7 @@ class ControlCore:
         self._boot_seen_s = 0.0  # when _boot_ms came
         self._system_time_s: float | None = None  # when the last SYSTEM_TIME came
         self._system_time_asked_s = -math.inf
+        self._autopilot_heard_s: float | None = None  # the last frame from the pinned one
         # -- the outputs' truth (issue 20) --
         #: The last SERVO_OUTPUT_RAW: output → PWM shown, and when it came.
         self._readback: dict[int, int] = {}
@@ -528,10 +532,12 @@ class ControlCore:
                 return actions
             if source == self._pinned:
                 self._armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                self._after_silence(actions)
             return actions
         if source != self._pinned:
             self.counters["foreign_frames"] += 1
             return actions
+        self._after_silence(actions)
         if kind == "COMMAND_ACK":
             if msg.target_component in (0, self.config.link.component_id):
                 self._heard_us = True  # it answered us: it knows our route
@@ -1713,6 +1719,27 @@ class ControlCore:
         if now - max(heard, self._sys_status_asked_s) < silent_s:
             return
         log.info("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
+        self._ask_system_time(actions)
+
+    def _after_silence(self, actions: list[Action]) -> None:
+        """A frame from the pinned autopilot after it was silent for AUTOPILOT_GAP_INTERVALS
+        of the fastest stream we asked for: it may have rebooted (and forgotten our streams),
+        so they are asked for again at once. The SYSTEM_TIME that comes back says whether it
+        did, and SYS_STATUS where its safety switch is, without waiting for a silence rule."""
+        now = self.clock()
+        heard, self._autopilot_heard_s = self._autopilot_heard_s, now
+        fastest_s = min(self._readback_interval_s, SYSTEM_TIME_INTERVAL_S)
+        if self._is_ardupilot:
+            fastest_s = min(fastest_s, self._sys_status_interval_s)
+        gap_s = AUTOPILOT_GAP_INTERVALS * fastest_s
+        if not self._link_up or heard is None or now - heard <= gap_s:
+            return
+        # Silent long enough for SYSTEM_TIME's own rule: that first (no output taken for
+        # granted), as the next tick would have done.
+        self._watch_system_time(actions, now)
+        if now - self._system_time_asked_s < gap_s:
+            return  # just asked
+        log.info("the autopilot speaks again after %.2f s: asking for every stream", now - heard)
         self._ask_system_time(actions)
 
     def _watch_readback(self, actions: list[Action], now: float) -> None:

@@ -583,8 +583,10 @@ def test_system_time_going_quiet_resends_every_output_at_once_even_with_the_arm_
     rig.ack_all(rig.take(rig.core.request(Request("goto", near(PARK)))))
     acked = rig.core.status()["last_pwm_us"]
     assert not rig.core.status()["moving"]
+    rig.sys_status(safety_on=False)  # the switch off with the update acknowledged
     rig.sent.clear()
-    rig.advance(1.5)  # no SYSTEM_TIME: the autopilot may have rebooted and forgotten it
+    rig.safety_stream = None  # silent: it may have rebooted and forgotten every stream
+    rig.advance(1.5)  # no SYSTEM_TIME
     assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
     assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
     rig.sys_status(safety_on=False)
@@ -598,6 +600,23 @@ def test_system_time_going_quiet_resends_every_output_at_once_even_with_the_arm_
     moved[0] += 1.0
     rig.goto(moved)
     assert sorted(rig.servo()) == [9, 10, 11, 12, 13, 14]
+
+
+def test_the_first_frame_after_a_silence_asks_for_every_stream_at_once(rig):
+    # A rebooted autopilot forgot our streams; its first HEARTBEAT back brings them back
+    # without waiting for a silence rule (status said "not known live" meanwhile).
+    rig.system_time(600_000)
+    rig.safety_stream = None
+    rig.clock.advance(0.3)  # silent (no tick either)
+    rig.sent.clear()
+    rig.heartbeat()
+    asked = {
+        int(c.params[0]) for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    }
+    assert {mavlink.MAVLINK_MSG_ID_SYSTEM_TIME, mavlink.MAVLINK_MSG_ID_SYS_STATUS} <= asked
+    rig.sent.clear()
+    rig.heartbeat()  # not again for the next frame
+    assert not [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
 
 
 def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_back(rig):
