@@ -100,7 +100,7 @@ class StopReason(Enum):
 class SolverSettings:
     """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
 
-    pop_size: int = 8
+    pop_size: int = 4
     """DE population (NP)."""
     F: float = 0.7
     """DE scale factor."""
@@ -115,17 +115,21 @@ class SolverSettings:
     ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
     lm_progress: float = 0.3
     """See ``lm_window``."""
-    stall_generations: int = 2
+    stall_generations: int = 1
     """Generations without progress (see ``stall_gain``) before the population is drawn anew
     (the restart takes the next generation's DE step's place, and LM starts from its best)."""
-    stall_gain: float = 0.5
+    stall_gain: float = 0.0
     """A generation makes progress when it brings the best cost below ``stall_gain`` times
-    what it was (at least halves it): creeping progress, DE around a local minimum, counts
-    as none."""
+    what it was (0.5: at least halves it). 0, the default, counts no generation as progress:
+    with ``stall_generations`` 1 every generation after the first is a restart, i.e. the
+    search is LM from the best of ``pop_size`` fresh draws again and again (issue 16: on the
+    poses with few solutions within the limits this needed half the work of DE steps between
+    restarts at p99, NP 8, 2 generations, gain 0.5 before)."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
     warm_spread_deg: float = 5.0
-    """Warm start: half-width of the uniform noise around ``q_start`` for a third of the pop."""
+    """Warm start: half-width of the uniform noise around ``q_start`` for a third of the pop
+    after ``q_start`` itself (with NP 4: none, only ``q_start``)."""
     max_generations: int = 1_000_000
     """Generation limit (the budget normally ends the search first)."""
 
