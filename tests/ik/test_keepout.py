@@ -136,12 +136,15 @@ def test_bad_arguments_are_named():
 
 def test_the_cost_term_steers_a_position_answer_away_from_the_volumes():
     # A hand position the plain solver reaches with a link close to a volume: steered, the
-    # answer still meets the target and keeps more clearance (less penalty).
+    # answer still meets the target and keeps more clearance (less penalty). Up to 4 attempts:
+    # with one, whether its answer is clear (and so steered) depends on the seed (26 and 28 of
+    # seeds 0-39 with the solver settings before and after issue 16's p99 change; 38 of 40
+    # either way with 4).
     from companion.ik.keepout import clearance_penalty
 
     target = Pose(44.5, -27.1, 23.5, 0, 0, 0)
-    kwargs = dict(budget_ms=200, seed=13, q_start_deg=PARK_DEG, mode=TargetMode.POSITION,
-                  tol_pos_cm=0.05, max_attempts=1)  # fmt: skip
+    kwargs = dict(budget_ms=200, seed=12, q_start_deg=PARK_DEG, mode=TargetMode.POSITION,
+                  tol_pos_cm=0.05, max_attempts=4)  # fmt: skip
     plain = solve_clear(QUAD, target, soft_margin_cm=0, **kwargs)
     steered = solve_clear(QUAD, target, **kwargs)
     assert steered.steered >= 1 and steered.result is not None and steered.result.converged

@@ -168,6 +168,38 @@ def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
+STANFORD = Arm.from_package_file("stanford.toml")  # q1, q2, q4, q6: ±170°, free in LM
+
+
+def _stanford_lm(q_goal_deg, q_start_deg):
+    k, fp, _, _ = _lm_inputs(STANFORD, 0)
+    goal = STANFORD.fk_matrix(STANFORD.q_from_user(q_goal_deg))
+    q = STANFORD.q_from_user(q_start_deg)
+    out = np.empty(3)
+    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 30, out)
+    assert np.all(q >= k.lower) and np.all(q <= k.upper)
+    # The errors handed back are those of the configuration handed back.
+    t = STANFORD.fk_matrix(q)
+    assert out[1] == pytest.approx(np.linalg.norm(t[:3, 3] - goal[:3, 3]), abs=1e-9)
+    assert out[2] == pytest.approx(math.degrees(rotation_angle(goal[:3, :3], t[:3, :3])), abs=1e-6)
+    return q, out
+
+
+def test_lm_turns_a_free_joint_through_its_forbidden_arc():
+    # q1 from 165° to -165°: 30° through the 20° arc beyond ±170° (a clamped LM stalls at 170°).
+    q, out = _stanford_lm([-165, 20, 60, 30, 40, 50], [165, 25, 55, 35, 35, 45])
+    assert out[1] < 1e-9 and out[2] < 1e-9
+    assert math.degrees(q[0]) == pytest.approx(-165.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("q1_deg", [172.0, 180.0])
+def test_a_free_joint_that_ends_outside_its_range_comes_back_within_the_limits(q1_deg):
+    # The target's q1 is beyond the limit (2° and 10°): LM hands back a configuration within
+    # the limits, with its own errors (checked in _stanford_lm), not the one it converged to.
+    q, out = _stanford_lm([q1_deg, 20, 60, 30, 40, 50], [165, 25, 55, 35, 35, 45])
+    assert out[0] > 0.0
+
+
 def test_lm_with_zero_iterations_leaves_q_alone():
     k, fp, q_true, goal = _lm_inputs(PAPER, 7)
     q = q_true * 0.5
