@@ -559,7 +559,7 @@ class ControlCore:
         elif kind == "SYSTEM_TIME":
             self._on_system_time(actions, int(msg.time_boot_ms))
         elif kind == "SERVO_OUTPUT_RAW":
-            self._on_readback(msg)
+            self._on_readback(msg, self.clock() if received_s is None else received_s)
             if self._hold_now:
                 self._maybe_send(actions, immediate=True)
         elif kind == "SYS_STATUS":
@@ -1496,7 +1496,7 @@ class ControlCore:
 
     # -- the outputs' truth (issue 20) -------------------------------------------------------
 
-    def _on_readback(self, msg: Any) -> None:
+    def _on_readback(self, msg: Any, received_s: float) -> None:
         """A SERVO_OUTPUT_RAW: what each output does. PX4 shows the PWM it outputs (the
         disarmed PWM until armed or prearmed), so a PX4 output that does not show what it
         acknowledged, READBACK_MISMATCHES times in a row once settled, is not live: the joint
@@ -1508,7 +1508,9 @@ class ControlCore:
             for n in range(1, 17)
             if (v := getattr(msg, f"servo{n}_raw", 0)) and msg.port == 0
         }
-        self._readback_s = now
+        # When it arrived (the control thread may take it later): the readback's silence
+        # (status, READBACK_STALE_INTERVALS) is the link's, not this thread's.
+        self._readback_s = received_s
         if self._is_ardupilot:
             return
         joint_of = {o: i for i, o in enumerate(self._outputs)}
