@@ -1006,6 +1006,14 @@ def max_physical_step_us(px4: Px4Outputs) -> float:
     return worst
 
 
+def assert_seen_live_at_the_next_readback(rig: Rig, px4: Px4Outputs) -> None:
+    """Armed with the markers stored: the first readback says live, and nothing jumped."""
+    px4.set_live(True)
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is True
+    assert max_physical_step_us(px4) <= 1.0
+
+
 def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_readback():
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
@@ -1068,10 +1076,7 @@ def test_px4_at_the_start_with_the_arm_still_the_markers_say_whether_it_is_live(
     assert px4.stored[rig.calibration.outputs[0]] == 1500 + MARKER_OFFSET_US
     status = rig.core.status()
     assert status["outputs_live"] is False and "shows 1500 us" in str(status["not_live"])
-    px4.set_live(True)
-    px4.readback()
-    assert rig.core.status()["outputs_live"] is True
-    assert max_physical_step_us(px4) <= 1.0
+    assert_seen_live_at_the_next_readback(rig, px4)
 
 
 def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again():
@@ -1089,10 +1094,7 @@ def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again()
     assert "not known live" in str(rig.core.status()["not_live"])
     run(rig, px4, 0.5)
     assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
-    px4.set_live(True)
-    px4.readback()
-    assert rig.core.status()["outputs_live"] is True
-    assert max_physical_step_us(px4) <= 1.0
+    assert_seen_live_at_the_next_readback(rig, px4)
 
 
 def test_px4_a_silent_readback_says_nothing_of_the_outputs_and_the_streams_are_asked_again():
