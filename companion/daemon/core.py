@@ -180,10 +180,11 @@ assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from t
 #: any more (a reboot: they are at the disarmed PWM); silent READBACK_SILENT_S (at least this
 #: many intervals), every stream is asked for again (a rebooted PX4 forgot them).
 READBACK_STALE_INTERVALS = 3
-#: A frame from the autopilot after this many intervals of the fastest stream asked for with
-#: nothing from it: every stream is asked for again at once (see ``_after_silence``).
-AUTOPILOT_GAP_INTERVALS = 4
 READBACK_SILENT_S = 0.5
+#: A frame from the autopilot after this many intervals of the fastest stream asked for with
+#: nothing from it, where its frames came that often before: every stream is asked for again
+#: at once (see ``_after_silence``).
+AUTOPILOT_GAP_INTERVALS = 4
 #: PX4: with no readback this long after the link came up, move without it (and say so).
 READBACK_WAIT_S = 2.0
 #: Updates on their way at once: one, and the next step behind it (see ``_pipeline``). The
@@ -376,6 +377,7 @@ class ControlCore:
         self._system_time_s: float | None = None  # when the last SYSTEM_TIME came
         self._system_time_asked_s = -math.inf
         self._autopilot_heard_s: float | None = None  # the last frame from the pinned one
+        self._autopilot_streaming = False  # its frames came within AUTOPILOT_GAP_INTERVALS
         # -- the outputs' truth (issue 20) --
         #: The last SERVO_OUTPUT_RAW: output → PWM shown, and when it came.
         self._readback: dict[int, int] = {}
@@ -1666,7 +1668,10 @@ class ControlCore:
             if silent_s > READBACK_STALE_INTERVALS * self._readback_interval_s:
                 why = f"not known live (no SERVO_OUTPUT_RAW for {silent_s * 1e3:.0f} ms)"
                 return dict.fromkeys(self._outputs, why)
-            why = "not known live yet (no readback has shown what it stores since the start)"
+            why = (
+                "not known live yet (no readback has shown what it stores since the start, "
+                "a loss or a reboot)"
+            )
             return {o: why for o in self._outputs if o not in self._confirmed}
         if not self._sys_status_ever:
             return {}
@@ -1720,7 +1725,9 @@ class ControlCore:
         )
         if now - max(heard, self._sys_status_asked_s) < silent_s:
             return
-        log.info("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
+        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
+        say = log.info if now - heard < 2 * silent_s else log.debug
+        say("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
         self._ask_system_time(actions)
 
     def _after_silence(self, actions: list[Action]) -> None:
@@ -1734,7 +1741,15 @@ class ControlCore:
         if self._is_ardupilot:
             fastest_s = min(fastest_s, self._sys_status_interval_s)
         gap_s = AUTOPILOT_GAP_INTERVALS * fastest_s
-        if not self._link_up or heard is None or now - heard <= gap_s:
+        if heard is None:
+            return
+        if now - heard <= gap_s:
+            self._autopilot_streaming = True
+            return
+        # Only after its streams flowed: an autopilot that only beats (streams not asked yet,
+        # or not supported) is not asked again at every HEARTBEAT.
+        was_streaming, self._autopilot_streaming = self._autopilot_streaming, False
+        if not (self._link_up and was_streaming):
             return
         # Silent long enough for SYSTEM_TIME's own rule: that first (no output taken for
         # granted), as the next tick would have done.
@@ -1753,9 +1768,10 @@ class ControlCore:
         silent_s = max(READBACK_SILENT_S, READBACK_STALE_INTERVALS * self._readback_interval_s)
         if now - max(self._readback_s, self._system_time_asked_s) < silent_s:
             return
-        log.info(
-            "no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", now - self._readback_s
-        )
+        silent_for_s = now - self._readback_s
+        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
+        say = log.info if silent_for_s < 2 * silent_s else log.debug
+        say("no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", silent_for_s)
         self._ask_system_time(actions)
 
     def _watch_system_time(self, actions: list[Action], now: float) -> None:

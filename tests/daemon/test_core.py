@@ -619,6 +619,17 @@ def test_the_first_frame_after_a_silence_asks_for_every_stream_at_once(rig):
     assert not [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
 
 
+def test_an_autopilot_that_only_beats_is_not_asked_for_its_streams_at_every_heartbeat():
+    rig = Rig()
+    rig.heartbeat()
+    rig.tick()
+    rig.sent.clear()
+    for _ in range(3):  # 1 Hz HEARTBEATs, nothing else (streams not supported)
+        rig.clock.advance(1.0)
+        rig.heartbeat()
+    assert not [c for c in rig.sent if c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+
+
 def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_back(rig):
     request = rig.goto(tuple(p + 30.0 for p in PARK))
     rig.ack_all(rig.sent)
