@@ -872,7 +872,9 @@ class ControlCore:
                     # live, moving each joint by MARKER_OFFSET_US; the motion waits for that.
                     # (A motion step could leave an output at the disarmed PWM it shows, and
                     # a readback of that would prove nothing.)
-                    self._send_step(actions, self._marker_pose(), now)
+                    # (hold: 2 us from what the outputs show, no keep-out path to check; a
+                    # disarmed PWM inside a volume would refuse it at every tick.)
+                    self._send_step(actions, self._marker_pose(), now, hold=True)
                     return
                 elif (
                     any(o in self._acked_pwm for o in self._outputs if o not in self._confirmed)
@@ -1116,9 +1118,9 @@ class ControlCore:
     ) -> None:
         """Send the update to ``step``; outputs whose PWM ``base_pwm`` (default: the
         acknowledged PWMs) already holds are left out, unless ``everything``. ``hold``: PX4's
-        outputs found not live told to hold where they are (their markers): no keep-out path
-        from the step commanded last (PX4 put them at the disarmed PWM; the marker is within
-        MARKER_OFFSET_US of it), and not a step of the motion (no band, no step time)."""
+        outputs told to hold their markers (found not live, or not known to be): no keep-out
+        path from the step commanded last (the outputs are where the readback shows them, and
+        the marker is within MARKER_OFFSET_US of it)."""
         if base_pwm is None:
             base_pwm = self._acked_pwm
         try:

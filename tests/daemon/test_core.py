@@ -1108,6 +1108,30 @@ def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again()
     assert_seen_live_at_the_next_readback(rig, px4)
 
 
+def test_px4_markers_go_out_even_where_the_disarmed_pose_lies_in_a_keepout_volume():
+    # The outputs are where the readback shows them whatever the volumes; a marker moves them
+    # 2 us. Checked as a motion, it was refused at every tick (and the outputs never known).
+    from companion.kinematics.vehicle import Mount
+
+    disarmed_us = 1100  # far from park: the config refuses a park in a volume
+
+    calibration = Rig().calibration
+    q_dis = [
+        calibration.for_output(o).pwm_us_to_angle_deg(disarmed_us) for o in calibration.outputs
+    ]
+    centre = Mount().to_body(Rig().config.arm.fk(q_dis).position_cm)
+    sphere = {"name": "ball", "type": "sphere", "center_cm": list(centre), "radius_cm": 4.0}
+    rig = Rig(dialect="px4", sections={"keepout": [sphere]})
+    rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    rig.tick()
+    px4 = Px4Outputs(rig, disarmed_us)
+    px4.readback()
+    run(rig, px4, 0.5)
+    assert rig.core.status()["counters"]["keepout_refusals"] == 0
+    assert px4.stored[rig.calibration.outputs[0]] == disarmed_us + MARKER_OFFSET_US
+    assert_seen_live_at_the_next_readback(rig, px4)
+
+
 def test_px4_a_silent_readback_says_nothing_of_the_outputs_and_the_streams_are_asked_again():
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
