@@ -177,9 +177,11 @@ VERDICT_TIMEOUT_S = 2.0
 READBACK_TOLERANCE_US = 1
 assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from the disarmed PWM
 #: PX4, for status: a readback stream silent this many intervals says nothing of the outputs
-#: any more (a reboot: they are at the disarmed PWM); silent READBACK_SILENT_S (at least this
-#: many intervals), every stream is asked for again (a rebooted PX4 forgot them).
-READBACK_STALE_INTERVALS = 3
+#: any more (a reboot: they are at the disarmed PWM; seen 44 ms after it at 50 Hz, against 66
+#: with 3 intervals, in bench.output_cycles; one lost frame makes a 40 ms gap, not more);
+#: silent READBACK_SILENT_S (at least this many intervals), every stream is asked for again
+#: (a rebooted PX4 forgot them).
+READBACK_STALE_INTERVALS = 2
 READBACK_SILENT_S = 0.5
 #: A frame from the autopilot after this many intervals of the fastest stream asked for with
 #: nothing from it, where its frames came that often before: every stream is asked for again
