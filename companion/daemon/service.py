@@ -89,7 +89,7 @@ CORE_FRAMES = (
 #: companion's link unasked (100 and 30 Hz): they do not wake the control thread, which
 #: takes them on its next pass (at least every control period).
 TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")
-#: The streams the core asks for at fixed intervals (SERVO_OUTPUT_RAW every 40 or 100 ms,
+#: The streams the core asks for at fixed intervals (SERVO_OUTPUT_RAW every 20 or 100 ms,
 #: ArduPilot's SYS_STATUS 25 ms, SYSTEM_TIME 250 ms): what they tell matters from the next
 #: tick on (the control thread feeds the frames before each tick), so one wakes the control
 #: thread only when its next pass is more than ``STREAM_WAKE_S`` away.
