@@ -34,6 +34,11 @@ Rules:
 * **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED (and drop
   their goal); when it is back, re-send every output at the acknowledged pose, then carry on
   towards the goal of a target that was already ACCEPTED.
+* **The outputs tell the truth** (an ACK proves nothing): PX4's readback says whether each
+  output is live; one found dead holds a marker (``MARKER_OFFSET_US`` from its disarmed PWM),
+  so coming alive moves it 2 µs and shows at the next readback; ArduPilot's SYS_STATUS says
+  where its safety switch is, and what the outputs may hold meanwhile stays within a step
+  (``SAFETY_STEPS_AHEAD``). Coming alive never moves a joint faster than the speed limit.
 """
 
 from __future__ import annotations
