@@ -396,6 +396,11 @@ class ControlCore:
         self._readback_interval_s, self._sys_status_interval_s = stream_intervals_s(
             ardupilot=self._is_ardupilot, url=config.link.url
         )
+        #: See ``_after_silence``: AUTOPILOT_GAP_INTERVALS of the fastest stream asked for.
+        fastest_s = min(self._readback_interval_s, SYSTEM_TIME_INTERVAL_S)
+        if self._is_ardupilot:
+            fastest_s = min(fastest_s, self._sys_status_interval_s)
+        self._autopilot_gap_s = AUTOPILOT_GAP_INTERVALS * fastest_s
         #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
         #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
         #: start, a loss or a reboot.
@@ -409,12 +414,10 @@ class ControlCore:
         #: ... how many updates had been sent when each was found not live (those sent before
         #: it store no pose of its: its hold goes out behind them), and the PWM it is told to
         #: hold meanwhile (its marker, ``MARKER_OFFSET_US`` from the disarmed PWM; or, with no
-        #: room for one, the PWM nearest it: then probes, ``PROBE_INTERVAL_S``), and whether
-        #: that is a marker.
+        #: room for one, the PWM nearest it: then probes, ``PROBE_INTERVAL_S``).
         self._dead_seq: dict[int, int] = {}
         self._updates_sent = 0
         self._held_pwm: dict[int, int] = {}
-        self._marked: set[int] = set()
         #: PX4: outputs whose latest settled readback showed what they acknowledged (live).
         self._confirmed: set[int] = set()
         #: PX4: store the pose the outputs show now (an output was found not live).
@@ -870,9 +873,7 @@ class ControlCore:
                 # with no marker, once a PROBE_INTERVAL_S): if they come alive meanwhile, they
                 # jump by at most that one step.
                 if self._not_live:
-                    if self._marked.issuperset(self._not_live) or (
-                        now - self._last_step_s < PROBE_INTERVAL_S
-                    ):
+                    if self._markers_held() or now - self._last_step_s < PROBE_INTERVAL_S:
                         return
                 elif self._unmarked_unknown():
                     # The start, a loss or a reboot: the markers say whether the outputs are
@@ -922,7 +923,7 @@ class ControlCore:
         for i, output in enumerate(self._outputs):
             shown = self._readback.get(output)
             if output not in self._acked_pwm and shown is not None:
-                pose[i] = self._marker_deg(output, shown)[0]
+                pose[i] = self._marker_deg(output, shown)
         return tuple(pose)
 
     def _pipeline(self, actions: list[Action]) -> None:
@@ -1579,15 +1580,11 @@ class ControlCore:
             # The joint is where the output puts it. Its marker is stored at once (PX4 would
             # apply what we stored in one step when the outputs come alive): it moves the
             # joint by MARKER_OFFSET_US then, and the readback shows it.
-            held_deg, marked = self._marker_deg(output, shown)
+            held_deg = self._marker_deg(output, shown)
             self._position[joint_of[output]] = held_deg
             self._held_pwm[output] = self.config.calibration.for_output(output).angle_to_pwm_us(
                 held_deg
             )
-            if marked:
-                self._marked.add(output)
-            else:
-                self._marked.discard(output)
             self._acked_pwm.pop(output, None)
             self._ack_history.pop(output, None)
             self._mismatches[output] = 0
@@ -1601,15 +1598,21 @@ class ControlCore:
         self._dead_pwm.clear()
         self._dead_seq.clear()
         self._held_pwm.clear()
-        self._marked.clear()
         self._hold_now = False
 
-    def _marker_deg(self, output: int, shown_us: int) -> tuple[float, bool]:
+    def _markers_held(self) -> bool:
+        """PX4: every output not live holds a PWM the readback tells from the one it shows
+        (a marker): the next readback shows when they come alive, no probe needed."""
+        return all(
+            abs(self._held_pwm[o] - self._dead_pwm[o]) > READBACK_TOLERANCE_US
+            for o in self._not_live
+        )
+
+    def _marker_deg(self, output: int, shown_us: int) -> float:
         """The angle an output showing ``shown_us`` (not live, or not known to be) is told to
-        hold, and whether it is a marker (``MARKER_OFFSET_US`` from it, towards the middle of
-        the range: the readback tells it from ``shown_us``) or, with no room for one, the
-        angle nearest ``shown_us`` (a disarmed PWM outside the servo's range: the nearest end
-        of the range, itself told apart unless within READBACK_TOLERANCE_US)."""
+        hold: its marker (``MARKER_OFFSET_US`` from it, towards the middle of the range: the
+        readback tells it from ``shown_us``; for a disarmed PWM outside the servo's range, the
+        nearest end of the range) or, with no room for one, the angle nearest ``shown_us``."""
         joint = self.config.calibration.for_output(output)
         limits = self.config.arm.joints[self._outputs.index(output)]
         low_deg = max(joint.angle_min_deg, math.degrees(limits.min_rad))
@@ -1626,8 +1629,8 @@ class ControlCore:
                 continue
             angle = joint.pwm_us_to_angle_deg(pwm)
             if low_deg <= angle <= high_deg and joint.angle_to_pwm_us(angle) == pwm:
-                return angle, True
-        return nearest, False
+                return angle
+        return nearest
 
     def _expected_pwms(self, output: int, now: float) -> tuple[set[int], bool]:
         """The PWMs a readback at ``now`` may show for ``output`` if it is live: the last one
@@ -1746,10 +1749,7 @@ class ControlCore:
         did, and SYS_STATUS where its safety switch is, without waiting for a silence rule."""
         now = self.clock()
         heard, self._autopilot_heard_s = self._autopilot_heard_s, now
-        fastest_s = min(self._readback_interval_s, SYSTEM_TIME_INTERVAL_S)
-        if self._is_ardupilot:
-            fastest_s = min(fastest_s, self._sys_status_interval_s)
-        gap_s = AUTOPILOT_GAP_INTERVALS * fastest_s
+        gap_s = self._autopilot_gap_s
         if heard is None:
             return
         if now - heard <= gap_s:
