@@ -56,6 +56,7 @@ URL_FORMS = (
     "udp:HOST:PORT (alias of udpin)",
     "udpout:HOST:PORT",
     "tcp:HOST:PORT",
+    "MAVSDK's udp://[HOST]:PORT, udpin://, udpout://, tcp://HOST:PORT, serial://DEVICE:BAUD",
 )
 MAX_BAUD = 12_000_000
 _READ_CHUNK = 4096
@@ -149,16 +150,27 @@ def parse_url(url: str) -> TransportSpec:
     if url.startswith("serial://"):
         parts = urlsplit(url)
         device = parts.netloc + parts.path
-        if not device:
-            raise _invalid(url, "no serial device")
         query = parse_qs(parts.query)
         if "baud" not in query:
-            raise _invalid(url, "missing ?baud=N")
+            # MAVSDK's form: serial:///dev/ttyACM0:921600
+            path, colon, baud_text = device.rpartition(":")
+            if not (colon and baud_text.isdigit()):
+                raise _invalid(url, "missing ?baud=N")
+            device, query = path, {"baud": [baud_text]}
+        if not device:
+            raise _invalid(url, "no serial device")
         baud = _parse_baud(url, query["baud"][-1])
         return TransportSpec(kind="serial", address=device, baud=baud)
     scheme, sep, rest = url.partition(":")
     if sep and scheme in _HOST_PORT_SCHEMES:
-        return _parse_host_port(url, _HOST_PORT_SCHEMES[scheme], rest)
+        kind = _HOST_PORT_SCHEMES[scheme]
+        if rest.startswith("//"):
+            # MAVSDK's forms: udp://:14540 and udpin://0.0.0.0:14540 listen (an empty host:
+            # every interface), udpout://HOST:PORT and tcp://HOST:PORT connect.
+            rest = rest[2:]
+            if kind == "udpin" and rest.startswith(":"):
+                rest = "0.0.0.0" + rest
+        return _parse_host_port(url, kind, rest)
     if "," in url and "://" not in url:
         device, _, baud_text = url.rpartition(",")
         if not device:

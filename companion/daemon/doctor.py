@@ -40,8 +40,10 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig, link_budget_of, link_config
 from firmware_interface import LinkConfig, LinkError, MavlinkLink
+from firmware_interface.errors import InvalidUrl
 from firmware_interface.link import MessageQueue
 from firmware_interface.lua_bridge import MAV_CMD_USER_2
+from firmware_interface.transport import parse_url
 
 __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report", "param_names"]
 
@@ -107,6 +109,8 @@ class Findings:
     #: others routed through it.
     signing_rejections: int = 0
     listened_s: float = 0.0
+    #: Why the link could not be opened (None: it was): nothing else was read.
+    open_error: str | None = None
 
 
 def flavour(findings: Findings) -> str | None:
@@ -163,6 +167,9 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     """The verdicts, item by item, from what was found."""
     checks: list[Check] = []
     kind = flavour(findings)
+    if findings.open_error is not None:
+        checks.append(Check("link", Verdict.FAIL, findings.open_error, _open_fix(findings.url)))
+        return checks
     if findings.autopilot is None:
         refused = (
             f" ({findings.signing_rejections} signed frames refused: the same key on both "
@@ -220,6 +227,32 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     checks.append(_signing(config, findings))
     checks.append(_routing(findings))
     return checks
+
+
+def _open_fix(url: str) -> str:
+    """What to do when ``link.url`` could not be opened, by its kind."""
+    try:
+        spec = parse_url(url)
+    except InvalidUrl as exc:  # check-config refuses it first; stay safe
+        return str(exc)
+    if spec.kind == "serial":
+        return (
+            f"is the flight controller plugged in and is {spec.address} its port? "
+            "(ls -l /dev/serial/by-id/; the user needs the dialout group; nothing else may "
+            "hold the port, e.g. ModemManager or a ground station)"
+        )
+    if spec.kind == "tcp":
+        return (
+            f"is the autopilot (or SITL) listening on {spec.address}:{spec.port}? Check the "
+            "host and port in link.url"
+        )
+    if spec.kind == "udpin":
+        return (
+            f"{spec.address}:{spec.port} cannot be listened on: another program holds the port "
+            "(the daemon, MAVProxy, mavlink-router), or the host is not an address of this "
+            "machine (udpin:0.0.0.0:PORT listens on every interface)"
+        )
+    return f"check the host and port in link.url ({url})"
 
 
 def _joint_label(index: int, name: str, output: int) -> str:
@@ -598,7 +631,11 @@ def gather(
     opener = open_link or (lambda url, cfg: MavlinkLink.open(url, cfg, clock=clock))
     findings = Findings(url=s.url, signing_on=s.signing is not None)
     started = clock()
-    link = opener(s.url, link_config(s))
+    try:
+        link = opener(s.url, link_config(s))
+    except LinkError as exc:  # no such device, refused, address in use: a finding, no traceback
+        findings.open_error = str(exc)
+        return findings
     try:
         with link.messages(
             ["HEARTBEAT", "PARAM_VALUE", "COMMAND_ACK", *STREAM_IDS], maxsize=4096

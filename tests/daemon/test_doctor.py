@@ -216,3 +216,39 @@ def test_a_correct_px4_setup_passes_the_vehicle_checks():
         "routing": Verdict.WARN,
     }
     assert "joint 1 (q1) on output 9 disarmed" in {c.item for c in checks}
+
+
+def _closed_tcp_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]  # closed again on exit: a connect is refused
+
+
+@pytest.mark.parametrize("json_out", [False, True])
+@pytest.mark.parametrize(
+    "url, fix",
+    [
+        ("{tmp}/ttyNOPE,57600", "is the flight controller plugged in"),
+        ("tcp:127.0.0.1:{port}", "listening on 127.0.0.1:"),
+    ],
+)
+def test_a_link_that_cannot_be_opened_is_a_finding_with_its_fix(
+    tmp_path, capsys, url, fix, json_out
+):
+    url = url.format(tmp=tmp_path, port=_closed_tcp_port())
+    path = tmp_path / "armbridge.toml"
+    path.write_text(
+        f'[link]\nurl = "{url}"\ndialect = "ardupilot"\n[control]\nsocket = ""\n',
+        encoding="utf-8",
+    )
+    argv = ["doctor", "--config", str(path), "--timeout-s", "1", "--listen-s", "0.1"]
+    assert main([*argv, "--json"] if json_out else argv) == 1
+    out = capsys.readouterr().out
+    if json_out:
+        (check,) = json.loads(out)["checks"]
+        assert check["item"] == "link" and check["verdict"] == "FAIL"
+        assert fix in check["fix"]
+    else:
+        assert "FAIL  link: cannot" in out and fix in out

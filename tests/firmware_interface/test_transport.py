@@ -26,6 +26,13 @@ from firmware_interface.transport import (
         ("udp:127.0.0.1:0", TransportSpec("udpin", "127.0.0.1", port=0)),
         ("udpout:192.168.1.10:14550", TransportSpec("udpout", "192.168.1.10", port=14550)),
         ("tcp:127.0.0.1:5760", TransportSpec("tcp", "127.0.0.1", port=5760)),
+        # MAVSDK's forms
+        ("udp://:14540", TransportSpec("udpin", "0.0.0.0", port=14540)),
+        ("udpin://0.0.0.0:14540", TransportSpec("udpin", "0.0.0.0", port=14540)),
+        ("udpin://:14540", TransportSpec("udpin", "0.0.0.0", port=14540)),
+        ("udpout://10.41.1.1:14540", TransportSpec("udpout", "10.41.1.1", port=14540)),
+        ("tcp://127.0.0.1:5760", TransportSpec("tcp", "127.0.0.1", port=5760)),
+        ("serial:///dev/ttyACM0:921600", TransportSpec("serial", "/dev/ttyACM0", baud=921600)),
     ],
 )
 def test_parse_url_accepts_the_usual_forms(url, spec):
@@ -43,6 +50,10 @@ def test_parse_url_accepts_the_usual_forms(url, spec):
         ("udpout:127.0.0.1:0", r"port=0 outside \[1, 65535\] for udpout"),
         ("tcp:127.0.0.1:70000", r"port=70000 outside"),
         ("tcp:5760", "needs HOST:PORT"),
+        ("tcp://:5760", "needs HOST:PORT"),
+        ("udpout://:14540", "needs HOST:PORT"),
+        ("serial:///dev/ttyACM0:fast", r"missing \?baud=N"),
+        ("serial://:921600", "no serial device"),
         ("", "empty"),
     ],
 )
