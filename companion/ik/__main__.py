@@ -6,7 +6,7 @@ unit uses ``/var/cache/armbridge``; README "Running on a board")::
     sudo NUMBA_CACHE_DIR=/var/cache/armbridge /opt/armbridge/.venv/bin/python -P -m companion.ik
 
 It first builds the IK kernels into an extension module (:mod:`companion.ik.aot`, numba's
-``pycc``; needs a C compiler and Python's headers, e.g. ``apt-get install gcc python3-dev``)
+``pycc``; needs C and C++ compilers and Python's headers, e.g. ``apt-get install gcc g++ python3-dev``)
 in that directory: the daemon then loads them without importing numba. Where that build is not
 possible it says why and compiles them into numba's JIT cache instead, as the keep-out checks'
 kernel always is. ``-P`` keeps the current directory off ``sys.path``: run from a checkout,

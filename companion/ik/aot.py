@@ -10,7 +10,7 @@ functions, compiled by the same numba and LLVM, give the same results bit for bi
 (``tests/ik/test_aot.py``).
 
 The build needs a C compiler and Python's headers (``pycc`` compiles a small C helper and links
-the module; on Debian ``sudo apt-get install gcc python3-dev``), setuptools in the venv, and
+the module; on Debian ``sudo apt-get install gcc g++ python3-dev``), setuptools in the venv, and
 numba's ``pycc``, pending deprecation since numba 0.57 (it warns; still present in 0.68, the
 only version this was tried with). Where any of it is missing,
 :func:`build` raises :class:`AotUnavailable` with the reason and the solver uses numba's JIT
@@ -190,20 +190,22 @@ def build(directory: Path | None = None) -> Path:
     name = module_name()
     directory.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=directory, prefix=".build-") as tmp:
-        cc = CC(name)
-        cc.output_dir = tmp
-        cc.verbose = False
-        cc.export("search", SEARCH_SIGNATURE)(kernels.search.py_func)
-        cc.export("goal_matrix", GOAL_MATRIX_SIGNATURE)(kernels.goal_matrix.py_func)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # setuptools' distutils shims warn
+                # CC() itself probes the toolchain: RuntimeError without a compiler.
+                cc = CC(name)
+                cc.output_dir = tmp
+                cc.verbose = False
+                cc.export("search", SEARCH_SIGNATURE)(kernels.search.py_func)
+                cc.export("goal_matrix", GOAL_MATRIX_SIGNATURE)(kernels.goal_matrix.py_func)
                 cc.compile()
         except Exception as exc:  # the C toolchain's errors have no common base class
+            first_line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             raise AotUnavailable(
-                f"compiling the ahead-of-time IK module failed ({type(exc).__name__}: {exc}); "
-                "it needs a C compiler and Python's headers (Debian: apt-get install gcc "
-                "python3-dev)"
+                f"compiling the ahead-of-time IK module failed ({type(exc).__name__}: "
+                f"{first_line}); it needs C and C++ compilers and Python's headers (Debian: "
+                "apt-get install gcc g++ python3-dev)"
             ) from exc
         built = Path(tmp) / file_name()
         if not built.is_file():

@@ -152,3 +152,11 @@ def test_with_the_module_built_the_solver_does_not_import_numba(built):
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split() == ["False", str(built), "True"]
+
+
+def test_without_a_compiler_the_build_says_why_instead_of_raising(tmp_path, monkeypatch):
+    # distutils takes the compiler from $CC: one that does not exist is a board without gcc.
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    with pytest.raises(aot.AotUnavailable, match=r"gcc g\+\+ python3-dev"):
+        aot.build(tmp_path / "out")
+    assert not list((tmp_path / "out").glob(aot.MODULE_PREFIX + "*"))
