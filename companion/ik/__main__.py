@@ -6,18 +6,18 @@ unit uses ``/var/cache/armbridge``; README "Running on a board")::
     sudo NUMBA_CACHE_DIR=/var/cache/armbridge /opt/armbridge/.venv/bin/python -P -m companion.ik
 
 It first builds the IK kernels into an extension module (:mod:`companion.ik.aot`, numba's
-``pycc``; needs C and C++ compilers and Python's headers, e.g. ``apt-get install gcc g++ python3-dev``)
-in that directory: the daemon then loads them without importing numba. Where that build is not
-possible it says why and compiles them into numba's JIT cache instead, as the keep-out checks'
-kernel always is. ``-P`` keeps the current directory off ``sys.path``: run from a checkout,
-``-m`` would compile the checkout's copy, and numba keys its cache to the source file's
-directory, so the installed daemon would not find it. The files belong to root; at the unit's
-first start systemd moves the directory to ``/var/cache/private/armbridge`` and hands it to the
-dynamic user (``DynamicUser=`` with ``CacheDirectory=``), which needs to write there (numba
-refuses a cache directory it cannot write) and then only reads. Both the module and the cache
-are keyed to the source files' contents (and numba's cache to their directory, numba's version
-and this CPU): re-run it after an upgrade (the daemon would otherwise use, or compile, the JIT
-kernels at its first start, before READY, as it does without it).
+``pycc``; needs C and C++ compilers and Python's headers, e.g. ``apt-get install gcc g++
+python3-dev``) in that directory: the daemon then loads them without importing numba. Where
+that build is not possible it says why and compiles them into numba's JIT cache instead, as the
+keep-out checks' kernel always is. ``-P`` keeps the current directory off ``sys.path``: run
+from a checkout, ``-m`` would compile the checkout's copy, and numba keys its cache to the
+source file's directory, so the installed daemon would not find it. The files belong to root;
+at the unit's first start systemd moves the directory to ``/var/cache/private/armbridge`` and
+hands it to the dynamic user (``DynamicUser=`` with ``CacheDirectory=``), which needs to write
+there (numba refuses a cache directory it cannot write) and then only reads. Both the module
+and the cache are keyed to the source files' contents (and numba's cache to their directory,
+numba's version and this CPU): re-run it after an upgrade (the daemon would otherwise use, or
+compile, the JIT kernels at its first start, before READY, as it does without it).
 
 Exit status 0 when the daemon's next start will load compiled kernels, 1 when it will compile
 them (no writable cache location).
@@ -35,6 +35,7 @@ from companion.ik.solver import kernels_origin, warm_up
 def main() -> int:
     started = time.process_time()
     wall_started = time.perf_counter()
+    print("compiling the IK kernels (once, ~20 s of CPU) ...", flush=True)
     try:
         path = aot.build()
         print(f"IK kernels compiled ahead of time into {path}")

@@ -53,6 +53,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
+from typing import Any
 
 import numpy as np
 
@@ -603,6 +604,22 @@ def kernels_origin() -> str:
     return _origin
 
 
+def jit_cache_ready() -> bool:
+    """Whether numba's cache holds the JIT kernels for the current sources (False: the first
+    solve or :func:`warm_up` compiles them, ~20 s of CPU). Imports numba."""
+    from companion.ik import kernels
+
+    if not kernels.CACHE:
+        return False
+    try:
+        # numba's index of the cached versions, {} when missing or stale (source stamp or
+        # numba version): not a public API, so anything unexpected reads as "not cached".
+        cache: Any = getattr(kernels.search, "_cache", None)
+        return bool(cache._cache_file._load_index())
+    except Exception:
+        return False
+
+
 # The compiled entry points solve() calls, set by _load_kernels() (warm_up() calls it first).
 _search: Callable[..., bool] = None  # type: ignore[assignment]
 _goal_matrix: Callable[..., None] = None  # type: ignore[assignment]
@@ -626,6 +643,11 @@ def _load_kernels() -> None:
                     "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
                     "kernels run on numba's JIT",
                     aot.file_name(),
+                )
+            if not jit_cache_ready():
+                log.warning(
+                    "compiling the IK kernels (once, ~20 s of CPU; `python -P -m companion.ik` "
+                    "does it at install)"
                 )
             module, origin = kernels, "numba JIT"
         _search, _goal_matrix = module.search, module.goal_matrix

@@ -160,3 +160,15 @@ def test_without_a_compiler_the_build_says_why_instead_of_raising(tmp_path, monk
     with pytest.raises(aot.AotUnavailable, match=r"gcc g\+\+ python3-dev"):
         aot.build(tmp_path / "out")
     assert not list((tmp_path / "out").glob(aot.MODULE_PREFIX + "*"))
+
+
+def test_the_first_solve_says_it_compiles_when_numbas_cache_is_empty(tmp_path):
+    # Only whether the cache holds the kernels is asked (numba imported, nothing compiled).
+    probe = "from companion.ik import solver; print(solver.jit_cache_ready())"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "False"
+    warm_up()  # this process's cache (the suite's): compiled or loaded now
+    assert solver.jit_cache_ready() or not kernels.CACHE
