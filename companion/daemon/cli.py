@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import csv
 import functools
-import io
 import json
 import logging
 import math
@@ -31,7 +30,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from companion import __version__
@@ -162,13 +160,22 @@ class _Unreachable(Exception):
     """The daemon's socket could not be reached (exit 3)."""
 
 
+class _BadReply(Exception):
+    """What answered on the socket is not the daemon's protocol (exit 1)."""
+
+
 def _ask(args: argparse.Namespace, obj: dict[str, Any]) -> dict[str, Any]:
     from companion.daemon.client import request
 
     try:
-        return request(args.socket, obj, timeout_s=args.timeout_s)
+        reply = request(args.socket, obj, timeout_s=args.timeout_s)
     except (OSError, ConnectionError) as exc:
         raise _Unreachable(f"cannot reach the daemon at {args.socket}: {exc}") from exc
+    except ValueError as exc:  # not JSON: not our daemon on that socket
+        raise _BadReply(f"{args.socket} answered something that is not JSON: {exc}") from exc
+    if not isinstance(reply, dict) or not isinstance(reply.get("status", {}), dict):
+        raise _BadReply(f"unexpected reply from {args.socket}: {json.dumps(reply)[:200]}")
+    return reply
 
 
 def _client(args: argparse.Namespace, obj: dict[str, Any]) -> int:
@@ -202,7 +209,14 @@ def _cmd_status(args: argparse.Namespace) -> int:
         else:
             if args.watch is not None and sys.stdout.isatty():
                 print("\033[H\033[J", end="")  # clear the screen between frames
-            print(format_status(reply.get("status") or {}), flush=True)
+            try:
+                text = format_status(reply.get("status") or {})
+            except (TypeError, ValueError, KeyError, IndexError, AttributeError) as exc:
+                raise _BadReply(
+                    f"a status reply this version cannot show ({type(exc).__name__}: {exc}); "
+                    "`armbridge status --json` prints it as it came"
+                ) from exc
+            print(text, flush=True)
         if args.watch is None:
             return 0 if reply.get("ok") else 1
         try:
@@ -278,25 +292,43 @@ def format_status(status: dict[str, Any]) -> str:
 def read_trajectory(path: str) -> list[list[float]]:
     """A trajectory file: JSON (a list of ``[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg,
     yaw_deg]`` rows, or ``{"points": [...]}``) or CSV (the same seven columns per row; a header
-    row, blank lines and ``#`` comments are skipped). Times are seconds from receipt,
-    increasing. ``ValueError`` names the row and the column."""
-    text = Path(path).read_text(encoding="utf-8")
-    rows: list[tuple[str, list[Any]]]
-    if text.lstrip().startswith(("[", "{")):
-        data = json.loads(text)
-        if isinstance(data, dict):
-            data = data.get("points")
-        if not isinstance(data, list):
-            raise ValueError(f'{path}: JSON must be a list of rows or {{"points": [...]}}')
-        rows = [(f"point {i}", row) for i, row in enumerate(data)]
-    else:
-        rows = []
-        for number, row in enumerate(csv.reader(io.StringIO(text)), start=1):
-            if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
-                continue
-            if not rows and not _numeric(row[0]):
-                continue  # a header
-            rows.append((f"line {number}", row))
+    row, blank lines and ``#`` comments are skipped). Times are seconds from receipt, strictly
+    increasing. At most :data:`~companion.daemon.requests.MAX_TRAJECTORY_POINTS` points: a CSV
+    is read row by row and refused at the first point past it, whatever the file's size.
+    ``ValueError`` names the row and the column."""
+    from companion.daemon.requests import MAX_TRAJECTORY_POINTS
+
+    too_many = f"{path}: more than {MAX_TRAJECTORY_POINTS} points (the daemon's limit)"
+    with open(path, encoding="utf-8", newline="") as file:
+        head = file.read(64)
+        file.seek(0)
+        rows: list[tuple[str, Any]] = []
+        if head.lstrip().startswith(("[", "{")):
+            # A JSON point takes at most ~200 bytes; anything larger is refused unread.
+            if os.fstat(file.fileno()).st_size > MAX_TRAJECTORY_POINTS * 256:
+                raise ValueError(too_many)
+            try:
+                data = json.load(file)
+            except RecursionError:
+                raise ValueError(f"{path}: JSON nested too deeply") from None
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}: not valid JSON: {exc}") from None
+            if isinstance(data, dict):
+                data = data.get("points")
+            if not isinstance(data, list):
+                raise ValueError(f'{path}: JSON must be a list of rows or {{"points": [...]}}')
+            if len(data) > MAX_TRAJECTORY_POINTS:
+                raise ValueError(too_many)
+            rows = [(f"point {i}", row) for i, row in enumerate(data)]
+        else:
+            for number, row in enumerate(csv.reader(file), start=1):
+                if not row or not "".join(row).strip() or row[0].lstrip().startswith("#"):
+                    continue
+                if not rows and not _numeric(row[0]):
+                    continue  # a header
+                if len(rows) == MAX_TRAJECTORY_POINTS:
+                    raise ValueError(too_many)
+                rows.append((f"line {number}", row))
     points: list[list[float]] = []
     for where, row in rows:
         if not isinstance(row, list) or len(row) != 7:
@@ -305,11 +337,16 @@ def read_trajectory(path: str) -> list[list[float]]:
         for name, value in zip(TRAJECTORY_COLUMNS.split(", "), row, strict=True):
             try:
                 coordinate = float(value)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{path}: {where}: {name} = {value!r} is not a number") from None
             if not math.isfinite(coordinate):
                 raise ValueError(f"{path}: {where}: {name} = {value!r} is not finite")
             point.append(coordinate)
+        if points and not point[0] > points[-1][0]:
+            raise ValueError(
+                f"{path}: {where}: t_s = {point[0]:g} after {points[-1][0]:g}: times must "
+                "increase from row to row"
+            )
         points.append(point)
     if not points:
         raise ValueError(f"{path}: no points")
@@ -393,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
         # Six named positionals rather than nargs=6 with a tuple metavar, which argparse cannot
         # format in --help (ValueError: too many values to unpack).
         for name, unit in zip(POSE_FIELDS, ("cm", "cm", "cm", "deg", "deg", "deg"), strict=True):
-            p.add_argument(name, type=float, help=f"{name.split('_')[0]} of the hand, {unit}")
+            p.add_argument(name, type=_finite, help=f"{name.split('_')[0]} of the hand, {unit}")
 
     def client_args(p: argparse.ArgumentParser) -> None:
         p.add_argument(
@@ -521,6 +558,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid float value: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
 def _positive_seconds(text: str) -> float:
     try:
         value = float(text)
@@ -552,6 +599,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except _Unreachable as exc:
         print(f"armbridge: {exc}", file=sys.stderr)
         return 3
+    except _BadReply as exc:
+        print(f"armbridge: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 

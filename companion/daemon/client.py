@@ -85,5 +85,5 @@ def request(path: str | Path, obj: dict[str, Any], *, timeout_s: float = 10.0) -
     """Send one request to the daemon's control socket at ``path`` and return its reply."""
     reply = json_line_request(path, obj, timeout_s=timeout_s)
     if not isinstance(reply, dict):
-        raise ConnectionError(f"daemon at {path} sent a reply that is not a JSON object")
+        raise ValueError(f"daemon at {path} sent a reply that is not a JSON object")
     return reply

@@ -33,9 +33,14 @@ def test_solve_reachable_and_unreachable(capsys):
     assert "NOT REACHED" in capsys.readouterr().out
 
 
-def test_solve_nan_is_a_clear_error(capsys):
-    assert main(["solve", "1", "2", "nan", "0", "0", "0"]) == 2
-    assert "Pose.z_cm=nan must be finite" in capsys.readouterr().err
+@pytest.mark.parametrize("verb", ["solve", "goto"])
+def test_a_nan_coordinate_is_a_usage_error_before_anything_runs(verb, tmp_path, capsys):
+    # goto checks it before it looks for the daemon: exit 2, not 3 (no socket here).
+    argv = [verb, "1", "2", "nan", "0", "0", "0"]
+    with pytest.raises(SystemExit) as info:
+        main([*argv, "--socket", str(tmp_path / "none.sock")] if verb == "goto" else argv)
+    assert info.value.code == 2
+    assert "argument z_cm: 'nan' is not a finite number" in capsys.readouterr().err
 
 
 def test_check_config(tmp_path, capsys):
@@ -209,6 +214,10 @@ def test_trajectory_files_csv_and_json_and_their_errors(tmp_path):
         ("# nothing\n", "no points"),
         ('{"pts": []}', 'JSON must be a list of rows or {"points": [...]}'),
         ("[[0, 1, 2, 3, 4, 5, null]]", "point 0: yaw_deg = None is not a number"),
+        ("0,60,10,5,0,20,10\n0,61,10,5,0,20,10\n", "line 2: t_s = 0 after 0: times must"),
+        ("1,60,10,5,0,20,10\n0.5,61,10,5,0,20,10\n", "line 2: t_s = 0.5 after 1"),
+        ("[" * 100_000 + "]" * 100_000, "JSON nested too deeply"),
+        ("[[0, 1, 2", "not valid JSON"),
     ):
         (tmp_path / "bad.txt").write_text(text)
         with pytest.raises(ValueError, match=re.escape(says)):
@@ -437,3 +446,57 @@ def test_run_without_its_serial_device_fails_in_one_line(tmp_path):
     assert done.returncode == 1
     assert "cannot open the autopilot link" in done.stderr and "ttyACM9" in done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_trajectory_file_is_limited_by_its_points_not_its_bytes(tmp_path):
+    from companion.daemon.requests import MAX_TRAJECTORY_POINTS
+
+    row = "{t},60.000000000000,10.000000000000,5.000000000000,0,20.000000000000,10\n"
+    path = tmp_path / "long.csv"
+    with path.open("w") as file:  # the limit's points, each well over 60 bytes
+        file.writelines(row.format(t=i) for i in range(MAX_TRAJECTORY_POINTS))
+    assert len(read_trajectory(str(path))) == MAX_TRAJECTORY_POINTS
+    with path.open("a") as file:  # one more, then a huge tail that is never read
+        file.write(row.format(t=MAX_TRAJECTORY_POINTS))
+        file.write("x" * 50_000_000)
+    with pytest.raises(ValueError, match=f"more than {MAX_TRAJECTORY_POINTS} points"):
+        read_trajectory(str(path))
+    big = tmp_path / "big.json"
+    big.write_text("[" + " " * (MAX_TRAJECTORY_POINTS * 256) + "]")
+    with pytest.raises(ValueError, match=f"more than {MAX_TRAJECTORY_POINTS} points"):
+        read_trajectory(str(big))
+
+
+@pytest.mark.parametrize(
+    "reply",
+    [
+        b"not json\n",
+        b"[1, 2]\n",
+        b'{"ok": true, "status": "fine"}\n',
+        b'{"ok": true, "status": {"current_deg": [1, "x"]}}\n',
+    ],  # fmt: skip
+)
+def test_status_against_a_reply_it_cannot_read_says_so(reply, tmp_path, capsys):
+    import socket
+    import threading
+
+    path = str(tmp_path / "odd.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    server.bind(path)
+    server.listen(1)
+
+    def answer() -> None:
+        conn, _ = server.accept()
+        with conn:
+            conn.recv(4096)
+            conn.sendall(reply)
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    try:
+        assert main(["status", "--socket", path, "--timeout-s", "5"]) == 1
+    finally:
+        thread.join(timeout=5)
+        server.close()
+    err = capsys.readouterr().err
+    assert "armbridge:" in err and "Traceback" not in err
