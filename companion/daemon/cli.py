@@ -52,7 +52,12 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     from companion.daemon.demo import _fmt_pose
     from companion.kinematics import Arm, Pose
 
-    arm = Arm.from_toml(args.arm) if args.arm else Arm.default()
+    if args.arm and args.arm.lower().endswith(".urdf"):
+        arm = Arm.from_urdf(args.arm, tip_link=args.tip_link)
+    elif args.tip_link is not None:
+        raise ValueError("--tip-link goes with a URDF --arm file")
+    else:
+        arm = Arm.from_toml(args.arm) if args.arm else Arm.default()
     target = Pose.from_sequence(_pose(args))
     res = ik.solve(
         arm,
@@ -491,7 +496,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)
-    p.add_argument("--arm", help="arm TOML file (default: the papers' arm)")
+    p.add_argument("--arm", help="arm file, TOML or .urdf (default: the papers' arm)")
+    p.add_argument("--tip-link", help="URDF: the link the chain ends at (default: its one tip)")
     p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--budget-ms", type=float, default=20.0, help="default %(default)s")

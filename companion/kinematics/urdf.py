@@ -209,9 +209,18 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
             raise ArmConfigError(source, "tip_link", f"link {tip_link!r} is not defined")
         path: list[ET.Element] = []
         link = tip_link
+        seen = {link}
         while link in by_child:
             path.append(by_child[link])
             link = parent_of[link]
+            if link in seen:  # every link has one parent: a loop never reaches the root
+                raise ArmConfigError(
+                    source,
+                    "tip_link",
+                    f"link {tip_link!r} hangs from a loop of joints through link {link!r}, "
+                    f"not from the root link {roots[0]!r}",
+                )
+            seen.add(link)
         path.reverse()
     else:
         path = []

@@ -33,6 +33,18 @@ def test_solve_reachable_and_unreachable(capsys):
     assert "NOT REACHED" in capsys.readouterr().out
 
 
+def test_solve_takes_a_urdf_arm_and_its_tip_link(capsys):
+    from importlib.resources import files
+
+    urdf = str(files("companion.kinematics") / "arms" / "ur5.urdf")
+    arm = Arm.from_urdf(urdf)
+    hand = arm.fk([10.0, -60.0, 70.0, -20.0, 30.0, 15.0]).as_tuple()
+    assert main(["solve", *map(str, hand), "--arm", urdf, "--budget-ms", "200"]) == 0
+    assert "REACHED" in capsys.readouterr().out
+    assert main(["solve", *map(str, hand), "--tip-link", "tool0"]) == 2
+    assert "--tip-link goes with a URDF --arm file" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("verb", ["solve", "goto"])
 def test_a_nan_coordinate_is_a_usage_error_before_anything_runs(verb, tmp_path, capsys):
     # goto checks it before it looks for the daemon: exit 2, not 3 (no socket here).

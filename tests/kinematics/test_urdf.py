@@ -98,6 +98,18 @@ def test_tip_link_picks_one_branch():
     assert [j.name for j in arm.joints] == ["b"]
 
 
+def test_a_tip_link_on_a_loop_of_joints_is_refused_not_followed_forever():
+    text = _robot(
+        _joint("a", "revolute", "l0", "l1"),
+        _joint("x", "revolute", "l2", "l3"),
+        _joint("y", "revolute", "l3", "l2"),
+    )
+    with pytest.raises(ArmConfigError) as info:
+        parse_urdf(text, source="t.urdf", tip_link="l3")
+    assert info.value.field == "tip_link"
+    assert "loop of joints" in str(info.value) and "root link 'l0'" in str(info.value)
+
+
 def test_not_xml_and_missing_file(tmp_path):
     with pytest.raises(ArmConfigError, match="not valid XML"):
         parse_urdf("<robot")
