@@ -775,6 +775,7 @@ def _listening_socket(
     same directory, given its mode and group, made to listen, and then linked onto ``path``
     (which fails if something appeared there) or, over a stale socket, renamed onto it.
     """
+    _check_directory(os.path.dirname(os.path.abspath(path)))
     stale = _check_path(path)
     temporary = _temporary_name(path)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -800,6 +801,35 @@ def _listening_socket(
         sock.close()
         raise
     return sock, (st.st_dev, st.st_ino)
+
+
+def _check_directory(directory: str) -> None:
+    """Refuse a socket directory that a user other than the daemon's (or root) could write,
+    unless it is sticky: there another user could swap the socket's name for a symlink between
+    ``bind()`` and ``chmod()`` (making a file of root's readable by the group), or put a socket
+    of their own at ``path`` to read the operators' commands."""
+    try:
+        st = os.stat(directory)
+    except OSError as exc:
+        raise ControlSocketError(
+            exc.errno or errno.ENOENT, f"socket directory {directory}: {exc.strerror or exc}"
+        ) from exc
+    me = os.geteuid()
+    sticky = bool(st.st_mode & stat.S_ISVTX)
+    if st.st_uid not in (me, 0):
+        raise ControlSocketError(
+            errno.EPERM,
+            f"socket directory {directory} belongs to uid {st.st_uid}, not to the daemon's user "
+            f"(uid {me}) or root: choose a directory of the daemon's own (control.socket)",
+        )
+    if st.st_mode & 0o022 and not sticky:
+        raise ControlSocketError(
+            errno.EPERM,
+            f"socket directory {directory} is writable by its group or others (mode "
+            f"{stat.S_IMODE(st.st_mode):04o}): another user could replace the socket; make it "
+            f"writable by the daemon's user only (chmod go-w {directory}; systemd's "
+            "RuntimeDirectoryMode=0750)",
+        )
 
 
 def _check_path(path: str) -> bool:
@@ -838,11 +868,13 @@ def _check_path(path: str) -> bool:
 
 
 def _set_mode_and_group(path: str, gid: int, group_name: str) -> None:
+    if not stat.S_ISSOCK(os.lstat(path).st_mode):  # never through a link put in its place
+        raise ControlSocketError(errno.EEXIST, f"{path} is no longer the socket just bound")
     os.chmod(path, 0o660)
     if os.lstat(path).st_gid == gid:
         return
     try:
-        os.chown(path, -1, gid)
+        os.chown(path, -1, gid, follow_symlinks=False)
     except PermissionError as exc:
         raise ControlSocketError(
             exc.errno,

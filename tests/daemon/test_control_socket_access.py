@@ -10,6 +10,7 @@ import errno
 import grp
 import json
 import os
+import re
 import shutil
 import socket
 import stat
@@ -262,3 +263,50 @@ def test_the_permission_hint_names_the_directorys_group_when_the_socket_cannot_b
     group = grp.getgrgid(directory.stat().st_gid).gr_name
     hint = _permission_hint(directory / "control.sock")
     assert f"group {group!r}" in hint and "ask to be added" in hint
+
+
+@pytest.mark.parametrize(
+    ("mode", "owner", "says"),
+    [
+        (0o770, None, "writable by its group or others (mode 0770)"),
+        (0o757, None, "writable by its group or others (mode 0757)"),
+        (0o750, 65534, "belongs to uid 65534"),
+    ],
+)
+def test_a_socket_directory_another_user_could_write_is_refused(
+    tmp_path, daemon, mode, owner, says
+):
+    directory = tmp_path / "run"
+    directory.mkdir()
+    directory.chmod(mode)
+    if owner is not None:
+        if os.geteuid() != 0:
+            pytest.skip("giving a directory to another user needs root")
+        os.chown(directory, owner, -1)
+    with pytest.raises(ControlSocketError, match=re.escape(says)):
+        ControlServer(directory / "c.sock", daemon)
+    assert not (directory / "c.sock").exists()
+
+
+def test_a_sticky_shared_directory_is_accepted(tmp_path, daemon):
+    directory = tmp_path / "shared"
+    directory.mkdir()
+    directory.chmod(0o1777)  # as /tmp: nobody may rename or remove another's entries
+    srv = ControlServer(directory / "c.sock", daemon)
+    try:
+        assert request(srv.path, {"cmd": "status"})["ok"]
+    finally:
+        srv.close()
+
+
+def test_the_mode_is_never_set_through_a_link_swapped_in_for_the_socket(tmp_path):
+    from companion.daemon.control_socket import _set_mode_and_group
+
+    secret = tmp_path / "secret"
+    secret.write_text("root only")
+    secret.chmod(0o600)
+    swapped = tmp_path / ".c.sock.123"
+    swapped.symlink_to(secret)  # where the socket was bound a moment before
+    with pytest.raises(ControlSocketError, match="no longer the socket"):
+        _set_mode_and_group(str(swapped), os.getegid(), "g")
+    assert stat.S_IMODE(secret.stat().st_mode) == 0o600
