@@ -44,6 +44,7 @@ from __future__ import annotations
 import enum
 import hashlib
 import logging
+import os
 import queue
 import threading
 import time
@@ -407,6 +408,8 @@ class MavlinkLink:
         self._started = False
         self.failure: BaseException | None = None
 
+        #: A serial device not there yet, waited for (:meth:`open`'s ``wait_for_device``).
+        self.waiting_for_device: str | None = None
         self._autopilot: AutopilotInfo | None = None
         self._autopilot_event = threading.Event()
         self._last_heartbeat_at: float | None = None
@@ -435,20 +438,37 @@ class MavlinkLink:
 
     @classmethod
     def open(
-        cls, url: str, config: LinkConfig | None = None, *, clock: Clock = time.monotonic
+        cls,
+        url: str,
+        config: LinkConfig | None = None,
+        *,
+        clock: Clock = time.monotonic,
+        wait_for_device: bool = False,
     ) -> MavlinkLink:
         """Open the transport ``url`` names and start the link. The first open must succeed
-        (a wrong URL or missing device is reported at once); later failures are retried."""
+        (a wrong URL or missing device is reported at once; later failures are retried),
+        except, with ``wait_for_device``, a serial device that is not there yet (a flight
+        controller not plugged in, or not enumerated yet at boot): the link then starts
+        without it and opens it once it appears (:attr:`waiting_for_device` says which)."""
         spec = parse_url(url)
         link = cls(lambda: open_transport(spec), config, clock=clock, description=url)
-        link.start()
+        link.start(
+            missing_device=spec.address if wait_for_device and spec.kind == "serial" else None
+        )
         return link
 
-    def start(self) -> None:
-        """Open the transport and start the reader and heartbeat threads."""
+    def start(self, *, missing_device: str | None = None) -> None:
+        """Open the transport and start the reader and heartbeat threads. ``missing_device``:
+        a serial device whose absence is waited for rather than raised."""
         if self._started:
             raise LinkError(f"{self.description}: already started")
-        self._transport = self._transport_factory()
+        try:
+            self._transport = self._transport_factory()
+        except TransportError:
+            if missing_device is None or os.path.exists(missing_device):
+                raise
+            log.warning("%s: waiting for %s to appear", self.description, missing_device)
+            self.waiting_for_device = missing_device
         self._started = True
         self._reader.start()
         self._heartbeat.start()
@@ -884,6 +904,7 @@ class MavlinkLink:
         with self._write_lock:
             self._transport = transport
             self._write_failed = None
+        self.waiting_for_device = None
         self._counts["reconnects"] += 1
         log.warning("%s: transport reopened", self.description)
         return True

@@ -81,6 +81,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
     from companion.daemon.config import link_budget_of, load_config
+    from firmware_interface.transport import parse_url
 
     cfg = load_config(args.config)
     print(
@@ -101,6 +102,13 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     budget = link_budget_of(cfg)
     if not budget.fits:  # a serial link too slow for this dialect at control.rate_hz
         print(f"{args.config}: warning: {budget.message}", file=sys.stderr)
+    spec = parse_url(cfg.link.url)
+    if spec.kind == "serial" and not os.path.exists(spec.address):
+        print(
+            f"{args.config}: warning: link.url: {spec.address} is not there now (the flight "
+            "controller not plugged in?): run serves and waits for it",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -297,8 +305,8 @@ def format_status(status: dict[str, Any]) -> str:
 def read_trajectory(path: str) -> list[list[float]]:
     """A trajectory file: JSON (a list of ``[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg,
     yaw_deg]`` rows, or ``{"points": [...]}``) or CSV (the same seven columns per row; a header
-    row, blank lines and ``#`` comments are skipped). Times are seconds from receipt, strictly
-    increasing. At most :data:`~companion.daemon.requests.MAX_TRAJECTORY_POINTS` points: a CSV
+    row, blank lines and ``#`` comments are skipped). Times are seconds from receipt, never
+    decreasing. At most :data:`~companion.daemon.requests.MAX_TRAJECTORY_POINTS` points: a CSV
     is read row by row and refused at the first point past it, whatever the file's size.
     ``ValueError`` names the row and the column."""
     from companion.daemon.requests import MAX_TRAJECTORY_POINTS
@@ -347,10 +355,10 @@ def read_trajectory(path: str) -> list[list[float]]:
             if not math.isfinite(coordinate):
                 raise ValueError(f"{path}: {where}: {name} = {value!r} is not finite")
             point.append(coordinate)
-        if points and not point[0] > points[-1][0]:
+        if points and point[0] < points[-1][0]:
             raise ValueError(
                 f"{path}: {where}: t_s = {point[0]:g} after {points[-1][0]:g}: times must "
-                "increase from row to row"
+                "not go back from row to row"
             )
         points.append(point)
     if not points:

@@ -13,6 +13,10 @@ Every input thread (the MAVLink reader, the control socket) hands its requests t
   over the limit is answered TEMPORARILY_REJECTED at once. ``stop`` and ``park`` are never
   rate limited (they coalesce instead). At most ``max_sources`` buckets are kept (the least
   recently used one goes);
+* **per-input rate limits**: all the sources of one input (``INPUTS``: MAVLink, the control
+  socket; a source's first element) share a bucket ``LINK_SHARE`` times as large, so that a sender
+  rotating its system ids (unsigned MAVLink ids prove nothing) or opening connection after
+  connection cannot multiply the per-source limit;
 * after :meth:`close`, every request is answered at once, and so is everything still waiting.
 
 Refusals are logged as a summary (:class:`RefusalLog`): the first one at once, then one line per
@@ -36,6 +40,11 @@ log = logging.getLogger("armbridge")
 Clock = Callable[[], float]
 #: How a rate-limited request's answer begins.
 RATE_LIMITED = "rate limited"
+#: An input's bucket (every source of it together) holds this many sources' rate and burst:
+#: two ground stations at their full rate, not a fleet of forged system ids.
+LINK_SHARE = 2.0
+#: The inputs whose sources share a bucket: those anyone on the link or the machine reaches.
+INPUTS = ("mavlink", "socket")
 
 
 class TokenBucket:
@@ -130,6 +139,7 @@ class Intake:
         self._motion: Request | None = None
         self._commands: collections.deque[_Waiting] = collections.deque()
         self._buckets: collections.OrderedDict[Hashable, TokenBucket] = collections.OrderedDict()
+        self._inputs: dict[Hashable, TokenBucket] = {}
         self._closed: Reply | None = None
         self.counters = {"cancelled": 0, "rate_limited": 0}
 
@@ -141,16 +151,11 @@ class Intake:
             if self._closed is not None:
                 answers.append((request, self._closed))
             elif request.kind in MOTION_KINDS:
-                if not self._allow(request.source):
+                refusal = self._allow(request.source)
+                if refusal is not None:
                     self.counters["rate_limited"] += 1
                     answers.append(
-                        (
-                            request,
-                            Reply(
-                                Outcome.TEMPORARILY_REJECTED,
-                                f"{RATE_LIMITED}: at most {self.rate_hz:g} targets/s per source",
-                            ),
-                        )
+                        (request, Reply(Outcome.TEMPORARILY_REJECTED, f"{RATE_LIMITED}: {refusal}"))
                     )
                 else:
                     if self._motion is not None:
@@ -226,7 +231,8 @@ class Intake:
         self._answer([(r, waiting) for r in queued])
         self.wake.set()
 
-    def _allow(self, source: Hashable) -> bool:
+    def _allow(self, source: Hashable) -> str | None:
+        """None if a target from ``source`` may go on, else which limit it is over."""
         now = self.clock()
         bucket = self._buckets.get(source)
         if bucket is None:
@@ -236,7 +242,19 @@ class Intake:
                 self._buckets.popitem(last=False)
         else:
             self._buckets.move_to_end(source)
-        return bucket.take(now)
+        if not bucket.take(now):
+            return f"at most {self.rate_hz:g} targets/s per source"
+        kind = source[0] if isinstance(source, tuple) and source else source
+        if kind not in INPUTS:
+            return None
+        shared = self._inputs.get(kind)
+        if shared is None:
+            shared = self._inputs[kind] = TokenBucket(
+                self.rate_hz * LINK_SHARE, self.burst * LINK_SHARE, now
+            )
+        if not shared.take(now):
+            return f"at most {self.rate_hz * LINK_SHARE:g} targets/s from all {kind} sources"
+        return None
 
     def _answer(self, answers: list[tuple[Request, Reply]]) -> None:
         for request, reply in answers:

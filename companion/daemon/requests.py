@@ -192,9 +192,10 @@ MAX_TRAJECTORY_POINTS = 10_000
 
 def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:
     """``[[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]`` (or ``(t_s, pose)``
-    pairs), times strictly increasing, at most :data:`MAX_TRAJECTORY_POINTS` → the points;
-    ``ValueError`` says what is wrong (a point out of order is refused, never re-sorted: a file
-    written in the wrong order would otherwise run in an order nobody wrote)."""
+    pairs), times never decreasing (points at the same time: the last one wins), at most
+    :data:`MAX_TRAJECTORY_POINTS` → the points; ``ValueError`` says what is wrong (a point out
+    of order is refused, never re-sorted: a file written in the wrong order would otherwise
+    run in an order nobody wrote)."""
     if isinstance(payload, list | tuple) and len(payload) > MAX_TRAJECTORY_POINTS:
         raise ValueError(f"bad trajectory: {len(payload)} points, at most {MAX_TRAJECTORY_POINTS}")
     try:
@@ -204,9 +205,9 @@ def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:
     if not points or not all(math.isfinite(t) and t >= 0 for t, _ in points):
         raise ValueError("bad trajectory: times must be finite and >= 0, at least one")
     for i in range(1, len(points)):
-        if not points[i][0] > points[i - 1][0]:
+        if points[i][0] < points[i - 1][0]:
             raise ValueError(
                 f"bad trajectory: point {i}: t_s = {points[i][0]:g} after "
-                f"{points[i - 1][0]:g}: times must increase"
+                f"{points[i - 1][0]:g}: times must not go back"
             )
     return points

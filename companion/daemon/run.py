@@ -192,7 +192,11 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         # controller is powered or plugged in, and a start that waits for it would time out
         # and restart in a loop. Until the link is up, `status` says so and targets are
         # answered "no autopilot link"; the log and STATUS= say what it waits for.
-        notifier.ready(f"waiting for the autopilot heartbeat on {config.link.url}")
+        device = daemon.link.waiting_for_device if daemon.link is not None else None
+        if device is not None:
+            notifier.ready(f"waiting for {device} (the flight controller's serial port)")
+        else:
+            notifier.ready(f"waiting for the autopilot heartbeat on {config.link.url}")
         log.info(
             "serving%s; waiting for the autopilot heartbeat on %s",
             f" on {config.control_socket}" if config.control_socket else "",
@@ -214,9 +218,12 @@ def _run(config: DaemonConfig, config_path: str) -> int:
             # died would leave operators unable to stop the arm, so systemd restarts us.
             if daemon.healthy and (server is None or server.alive):
                 notifier.watchdog()
+            device = daemon.link.waiting_for_device if daemon.link is not None else None
             notifier.status(
                 f"link {s['link']}; {s['accepted']} targets accepted, {s['refused']} refused"
                 if waiting.heard
+                else f"waiting for {device} (the flight controller's serial port)"
+                if device is not None
                 else f"waiting for the autopilot heartbeat on {config.link.url}"
             )
             stop.wait(min(ping_s, 0.5))

@@ -190,7 +190,9 @@ class ArmDaemon:
 
     def start(self) -> None:
         s = self.config.link
-        self.link = MavlinkLink.open(s.url, link_config(s), clock=self.clock)
+        # A serial flight controller not plugged in yet is waited for, as a silent UDP one is:
+        # the socket serves meanwhile and status says what the link waits for.
+        self.link = MavlinkLink.open(s.url, link_config(s), clock=self.clock, wait_for_device=True)
         self.link.subscribe(self._on_command_long, ["COMMAND_LONG"])
         self.link.subscribe(
             self._on_frame,
@@ -374,6 +376,8 @@ class ArmDaemon:
         # Why the link cannot be used although it may be up (e.g. the signing state cannot be
         # stored), and its counters (signatures refused, foreign datagrams ...).
         status["link_fault"] = link.fault if link is not None else None
+        # The serial device the link waits for (not plugged in yet), or None.
+        status["link_waiting_for"] = link.waiting_for_device if link is not None else None
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 

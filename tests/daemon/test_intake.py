@@ -73,6 +73,26 @@ def test_targets_over_a_sources_rate_are_rejected_and_other_sources_are_not():
     assert not late.answered  # tokens came back
 
 
+def test_rotating_system_ids_cannot_multiply_the_rate_limit():
+    clock = FakeClock()
+    intake = Intake(clock=clock, rate_hz=10.0, burst=5.0)
+    # Each forged id is a new source with a full burst of its own; the input's bucket (twice a
+    # source's: LINK_SHARE) is not.
+    flood = [req(source=("mavlink", 1 + i % 250, 190)) for i in range(200)]
+    for r in flood:
+        intake.submit(r)
+    rejected = [r for r in flood if outcome(r) is Outcome.TEMPORARILY_REJECTED]
+    assert len(rejected) == 190
+    assert "from all mavlink sources" in rejected[-1].future.result().message
+    socket_side = req(source=("socket", 3))
+    intake.submit(socket_side)
+    assert outcome(socket_side) is not Outcome.TEMPORARILY_REJECTED  # another input's bucket
+    clock.advance(1.0)
+    honest = req(source=("mavlink", 255, 190))
+    intake.submit(honest)
+    assert outcome(honest) is not Outcome.TEMPORARILY_REJECTED  # tokens came back
+
+
 def test_memory_stays_flat_under_a_flood_from_many_sources():
     clock = FakeClock()
     intake = Intake(clock=clock, max_sources=64)

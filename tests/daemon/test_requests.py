@@ -38,10 +38,9 @@ def test_a_trajectory_out_of_order_or_too_long_is_refused_not_sorted():
 
     pose = [60, 10, 5, 0, 20, 10]
     assert [t for t, _ in parse_trajectory([(0, pose), (0.5, pose)])] == [0.0, 0.5]
-    with pytest.raises(ValueError, match=r"point 1: t_s = 0.5 after 1: times must increase"):
+    with pytest.raises(ValueError, match=r"point 1: t_s = 0.5 after 1: times must not go back"):
         parse_trajectory([(1, pose), (0.5, pose)])
-    with pytest.raises(ValueError, match="point 1: t_s = 1 after 1"):
-        parse_trajectory([(1, pose), (1, pose)])
+    assert len(parse_trajectory([(1, pose), (1, pose)])) == 2  # at once: the last one wins
     too_long = [(i, pose) for i in range(MAX_TRAJECTORY_POINTS + 1)]
     with pytest.raises(ValueError, match=f"at most {MAX_TRAJECTORY_POINTS}"):
         parse_trajectory(too_long)

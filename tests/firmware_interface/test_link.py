@@ -388,3 +388,24 @@ def test_a_datagram_decodes_as_pymavlinks_byte_parser_decodes_it():
             assert getattr(fast, counter) == getattr(slow, counter), counter
     # The cases above took both paths, and the signed ones were told apart.
     assert [m.get_type() for m in fast.parse_datagram(signed)] == ["BAD_DATA"]  # replayed
+
+
+def test_a_missing_serial_device_is_waited_for_only_when_asked(tmp_path):
+    from firmware_interface.errors import TransportError
+
+    device = tmp_path / "ttyACM0"
+    url = f"{device},115200"
+    with pytest.raises(TransportError, match="cannot open serial port"):
+        MavlinkLink.open(url)  # doctor: said at once
+    link = MavlinkLink.open(url, LinkConfig(reconnect_max_s=0.05), wait_for_device=True)
+    master, slave = os.openpty()
+    try:
+        assert link.waiting_for_device == str(device)
+        assert link.state is LinkState.WAITING and link.transport is None
+        device.symlink_to(os.ttyname(slave))
+        assert wait_until(lambda: link.transport is not None, 10.0)
+        assert link.waiting_for_device is None and link.stats.reconnects == 1
+    finally:
+        link.close()
+        os.close(master)
+        os.close(slave)
