@@ -50,6 +50,7 @@ from types import ModuleType
 import numpy as np
 
 from companion.ik import layout
+from companion.kinematics import numba_cache
 
 log = logging.getLogger(__name__)
 
@@ -120,15 +121,8 @@ def directories() -> list[Path]:
 def untrusted(path: Path) -> str | None:
     """Why ``path`` must not be imported (None: it may). Importing it runs its machine code
     in this process, so another local user must not have been able to write it or swap it:
-    the file and its directory owned by this user or root, and writable by no one else."""
-    me = os.geteuid()
-    for item in (path, path.parent):
-        st = item.stat()
-        if st.st_uid not in (me, 0):
-            return f"{item} is owned by uid {st.st_uid}"
-        if st.st_mode & 0o022:
-            return f"{item} is writable by its group or others (mode {st.st_mode & 0o777:o})"
-    return None
+    the rule of every cache the daemon loads (:mod:`companion.kinematics.numba_cache`)."""
+    return numba_cache.untrusted(path)
 
 
 def find() -> Path | None:

@@ -95,31 +95,17 @@ from companion.ik.layout import (
     float_layout,
     int_layout,
 )
+from companion.kinematics.numba_cache import cache_usable
 
 log = logging.getLogger(__name__)
 
 
-def _caching_available() -> bool:
-    """Whether numba can cache this module's functions: a writable ``NUMBA_CACHE_DIR``, the
-    package's ``__pycache__`` or the user's cache directory. Without one, ``cache=True`` raises
-    ``RuntimeError: cannot cache function`` at decoration, i.e. at import."""
-
-    def probe() -> int:
-        return 0
-
-    try:
-        nb.njit(cache=True)(probe)
-    except RuntimeError:
-        return False
-    return True
+def _probe() -> int:
+    return 0
 
 
-CACHE = _caching_available()
-if not CACHE:
-    log.warning(
-        "no writable numba cache directory: the IK kernels compile at every start (a few "
-        "seconds); set NUMBA_CACHE_DIR to a directory this user can write"
-    )
+#: numba caches this module's kernels on disk (see :mod:`companion.kinematics.numba_cache`).
+CACHE = cache_usable(_probe, "IK kernels")
 
 DEG_PER_RAD = 180.0 / math.pi
 RAD_PER_DEG = math.pi / 180.0  # what math.radians multiplies by

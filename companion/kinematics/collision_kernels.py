@@ -11,34 +11,20 @@ what is computed and why it is exact or conservative.
 
 from __future__ import annotations
 
-import logging
 import math
 
 import numba as nb
 import numpy as np
 
-log = logging.getLogger(__name__)
+from companion.kinematics.numba_cache import cache_usable
 
 
-def _caching_available() -> bool:
-    """Whether numba can cache here (else ``cache=True`` raises at decoration)."""
-
-    def probe() -> int:
-        return 0
-
-    try:
-        nb.njit(cache=True)(probe)
-    except RuntimeError:
-        return False
-    return True
+def _probe() -> int:
+    return 0
 
 
-CACHE = _caching_available()
-if not CACHE:
-    log.warning(
-        "no writable numba cache directory: the keep-out kernels compile at every start; set "
-        "NUMBA_CACHE_DIR to a directory this user can write"
-    )
+#: numba caches this module's kernels on disk (see :mod:`companion.kinematics.numba_cache`).
+CACHE = cache_usable(_probe, "keep-out kernels")
 
 _TINY = 1e-18
 
