@@ -71,10 +71,25 @@ RETRY_S = 1.0
 MAVLINK_MSG_ID_RADIO_STATUS = 109
 
 
+#: Key file permissions refused: anything for others, and writing for the group (reading for
+#: the group is the documented 0640 root:armbridge-key set-up).
+KEY_MODE_REFUSED = 0o027
+
+
 def load_key(path: str | os.PathLike[str]) -> bytes:
-    """Read a 32-byte signing key: either 32 raw bytes or 64 hex digits (whitespace ignored)."""
+    """Read a 32-byte signing key: either 32 raw bytes or 64 hex digits (whitespace ignored).
+    A key file others may read or anyone but its owner may write is refused: whoever reads
+    the key may sign frames that move the arm."""
     try:
-        data = Path(path).read_bytes()
+        with open(path, "rb") as file:
+            mode = os.fstat(file.fileno()).st_mode
+            if mode & KEY_MODE_REFUSED:
+                raise ConfigurationError(
+                    f"signing key file {str(path)!r} has mode {mode & 0o777:04o}: anyone who "
+                    "reads it can sign frames that move the arm; chmod 0600 it (or 0640 for a "
+                    "group of its own)"
+                )
+            data = file.read()
     except OSError as exc:
         raise ConfigurationError(
             f"cannot read signing key file {str(path)!r}: {exc.strerror or exc}"

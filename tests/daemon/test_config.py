@@ -58,6 +58,7 @@ def test_ardupilot_lua_dialect_accepted(tmp_path):
 
 def test_signing_key_is_read_relative_to_the_config(tmp_path):
     (tmp_path / "k.key").write_bytes(bytes(range(32)))
+    (tmp_path / "k.key").chmod(0o600)
     text = EXAMPLE.replace('# signing_key = "signing.key"', 'signing_key = "k.key"')
     cfg = load_config(write(tmp_path, text))
     assert cfg.link.signing is not None and cfg.link.signing.key == bytes(range(32))
@@ -396,6 +397,7 @@ def test_a_credential_key_is_read_from_the_credentials_directory(tmp_path, monke
     creds = tmp_path / "creds"
     creds.mkdir()
     (creds / "signing.key").write_bytes(bytes(range(32)))
+    (creds / "signing.key").chmod(0o600)
     monkeypatch.setenv("CREDENTIALS_DIRECTORY", str(creds))
     cfg = load_config(write(tmp_path, CREDENTIAL_CONFIG))
     assert cfg.link.signing is not None and cfg.link.signing.key == bytes(range(32))

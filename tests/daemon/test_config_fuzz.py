@@ -149,6 +149,7 @@ def test_found_by_the_fuzz_now_names_the_field(tmp_path, content, field, words):
 )
 def test_run_on_a_bad_config_exits_2_and_sends_nothing(tmp_path, edit, field):
     (tmp_path / "good.key").write_bytes(bytes(range(32)))
+    (tmp_path / "good.key").chmod(0o600)
     code, stderr, datagrams = run_rejects_config(tmp_path, edit(EXAMPLE_TEXT))
     assert code == 2, stderr
     assert f": {field}: " in stderr

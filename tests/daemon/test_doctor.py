@@ -98,6 +98,7 @@ def test_no_autopilot_and_a_wrong_dialect_fail_first():
 def test_doctor_against_the_simulator(tmp_path, sims, capsys):
     key = bytes(range(32))
     (tmp_path / "k.key").write_bytes(key)
+    (tmp_path / "k.key").chmod(0o600)
     sim = sims(
         "--udp", "127.0.0.1:0", "--gcs", "127.0.0.1:0", "--signing-key", str(tmp_path / "k.key")
     )

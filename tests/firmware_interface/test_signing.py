@@ -22,14 +22,26 @@ NOW_UNIX_S = 1_790_000_000.0  # late 2026
 def test_load_key_raw_and_hex(tmp_path):
     raw = tmp_path / "raw.key"
     raw.write_bytes(KEY)
+    raw.chmod(0o600)
     hexed = tmp_path / "hex.key"
     hexed.write_text(KEY.hex() + "\n")
+    hexed.chmod(0o640)  # a group of its own may read it
     assert load_key(raw) == KEY and load_key(hexed) == KEY
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o666, 0o604, 0o660, 0o620])
+def test_a_key_file_others_may_read_or_the_group_may_write_is_refused(tmp_path, mode):
+    key = tmp_path / "signing.key"
+    key.write_bytes(KEY)
+    key.chmod(mode)
+    with pytest.raises(ConfigurationError, match=f"has mode {mode:04o}.*chmod 0600"):
+        load_key(key)
 
 
 def test_load_key_refuses_wrong_sizes_and_missing_files(tmp_path):
     short = tmp_path / "short.key"
     short.write_bytes(b"x" * 31)
+    short.chmod(0o600)
     with pytest.raises(ConfigurationError, match="holds 31 bytes; expected 32 raw bytes or 64 hex"):
         load_key(short)
     with pytest.raises(ConfigurationError, match="cannot read signing key file") as info:

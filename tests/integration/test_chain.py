@@ -188,6 +188,7 @@ def test_signing_signed_accepted_unsigned_and_forged_refused(chain, tmp_path):
     target unsigned or signed with another key goes nowhere (the autopilot drops it)."""
     key_file = tmp_path / "signing.key"
     key_file.write_bytes(KEY)
+    key_file.chmod(0o600)
     c = chain(
         sim_args=["--signing-key", str(key_file)],
         link_extra={"signing_key": str(key_file), "signing_state": str(tmp_path / "state")},

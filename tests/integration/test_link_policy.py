@@ -90,6 +90,7 @@ def test_a_signing_state_that_cannot_be_stored_holds_the_arm_and_says_why(tmp_pa
     peer = ScriptedPeer(endpoint, signing_key=KEY)
     key_file = tmp_path / "signing.key"
     key_file.write_bytes(KEY)
+    key_file.chmod(0o600)
     full = {"disk": False}
 
     def writer(path, reserved_until):

@@ -24,6 +24,7 @@ KEY = bytes(range(32))
 def test_a_daemon_started_two_minutes_after_the_autopilot_reconnects(sims, tmp_path):
     key_file = tmp_path / "signing.key"
     key_file.write_bytes(KEY)
+    key_file.chmod(0o600)
     sim = sims("--udp", "127.0.0.1:0", "--signing-key", str(key_file))
     signing = SigningConfig(
         KEY, state_path=tmp_path / "signing.state", wall_clock=lambda: time.time() + 120.0

@@ -957,6 +957,7 @@ def _base_config_once() -> dict[str, Any]:
 
 def _support_files(directory: Path) -> None:
     (directory / "good.key").write_bytes(bytes(range(32)))
+    (directory / "good.key").chmod(0o600)
     (directory / "short.key").write_bytes(bytes(31))
     (directory / "notakey.key").write_text("z" * 64)
     (directory / "broken-arm.toml").write_text("[[joint\n")
