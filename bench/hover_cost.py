@@ -25,7 +25,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import machine, md_table, write_markdown
-from tests.support.sim_process import SimProcess
+from devkit.sim_process import SimProcess
 
 STILL = ("--no-hover", "--vehicle-log-hz", "0")
 PX4_QUIET = ("--attitude-rate-hz", "0", "--local-position-rate-hz", "0")

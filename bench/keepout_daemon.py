@@ -49,7 +49,7 @@ from bench.report import interpreter, machine, md_table, write_markdown
 from companion.daemon.config import parse_config
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "companion" / "daemon" / "examples"
 DEFAULT_MARKDOWN = Path(__file__).resolve().parent / "results" / "keepout_daemon.md"

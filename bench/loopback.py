@@ -33,9 +33,9 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import write_markdown
-from tests.support.daemon_process import DaemonProcess
-from tests.support.sim_process import SimProcess
-from tests.support.timing import wait_until
+from devkit.daemon_process import DaemonProcess
+from devkit.sim_process import SimProcess
+from devkit.timing import wait_until
 
 MAV_CMD_USER_2 = 31011  # the Lua bridge's command
 SERVO_COMMANDS = {
@@ -275,8 +275,8 @@ def ram_dir() -> str | None:
 
 class Stack:
     """The simulator and the daemon as subprocesses on UDP loopback (a context manager), by the
-    tests' harnesses (:class:`~tests.support.sim_process.SimProcess`,
-    :class:`~tests.support.daemon_process.DaemonProcess`).
+    tests' harnesses (:class:`~devkit.sim_process.SimProcess`,
+    :class:`~devkit.daemon_process.DaemonProcess`).
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
     ``sim_servo`` flags; ``daemon_root`` runs the daemon from another checkout (an older

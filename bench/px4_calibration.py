@@ -37,7 +37,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.mavpeer import SocketPeer
 from bench.report import machine, md_table, write_markdown
-from tests.support.sim_process import SimProcess
+from devkit.sim_process import SimProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 5.0

@@ -68,7 +68,7 @@ from bench.report import machine, md_table
 from companion.daemon.config import load_config
 from companion.daemon.service import SOURCE_RATE_HZ
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 REPLY_TIMEOUT_S = 10.0

@@ -52,7 +52,7 @@ from bench.loopback import Stack, load_average, udp_ports, udp_sockets
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.config import load_config
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 PARK_DEG = [0.0, 90.0, 0.0, 0.0, 0.0, 0.0]

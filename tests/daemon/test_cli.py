@@ -19,9 +19,9 @@ from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request
 from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
 from companion.kinematics.arm import Arm, Pose
-from tests.support.config import write_config
-from tests.support.daemon_process import run_daemon
-from tests.support.timing import wait_until
+from devkit.config import write_config
+from devkit.daemon_process import run_daemon
+from devkit.timing import wait_until
 
 WAIT_S = 15.0
 

@@ -14,7 +14,7 @@ from companion.daemon.config import parse_config
 from companion.daemon.control_socket import ControlServer, request
 from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 
 @pytest.fixture

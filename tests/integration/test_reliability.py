@@ -1,6 +1,6 @@
 """Reliability campaign, inputs side (issue 8), at CI size: adversarial targets through the
 daemon's target path and fuzz on its MAVLink input. The machinery is
-``tests/support/campaign.py``; ``python -m bench.reliability`` runs the same campaign longer;
+``devkit/campaign.py``; ``python -m bench.reliability`` runs the same campaign longer;
 the config fuzz is ``tests/daemon/test_config_fuzz.py``.
 
 Everything is real: the daemon's control thread, UDP sockets, the simulator and the daemon as
@@ -21,7 +21,7 @@ from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from companion.kinematics.arm import Arm
-from tests.support.campaign import (
+from devkit.campaign import (
     ALLOWED_OUTCOMES,
     TARGET_MIX,
     make_targets,

@@ -17,12 +17,12 @@ import pytest
 import serial
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.sim_process import SimProcess
+from devkit.timing import wait_until
 from sim_servo.__main__ import build_parser, config_data, main
 from sim_servo.config import config_from_mapping
 from sim_servo.eventlog import world_timeline
 from sim_servo.hover import HoverDisturbance
-from tests.support.sim_process import SimProcess
-from tests.support.timing import wait_until
 
 WAIT_S = 10.0
 ROOT = Path(__file__).resolve().parents[2]

@@ -49,11 +49,11 @@ from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from companion.kinematics.arm import Arm, Pose
+from devkit.config import toml_document
+from devkit.daemon_process import NOT_SERVING, DaemonProcess, run_daemon
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.sim_process import SimProcess
 from firmware_interface import ArmCalibration
-from tests.support.config import toml_document
-from tests.support.daemon_process import NOT_SERVING, DaemonProcess, run_daemon
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.sim_process import SimProcess
 
 WAIT_S = 10.0
 OUR_COMPONENT = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191, the daemon's default
