@@ -60,7 +60,7 @@ from bench.loopback import (
 from bench.report import machine, md_table
 from companion.daemon.client import request
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 RSS_EVERY_S = 0.05

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import collections
 import os
-import socket
 import sys
 import tempfile
 import time
@@ -25,7 +24,8 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import machine, md_table, write_markdown
-from tests.support.sim_process import SimProcess
+from devkit.mavlink_peer import MavPeer
+from devkit.sim_process import SimProcess
 
 STILL = ("--no-hover", "--vehicle-log-hz", "0")
 PX4_QUIET = ("--attitude-rate-hz", "0", "--local-position-rate-hz", "0")
@@ -57,55 +57,27 @@ def run_case(args: tuple[str, ...], requests: dict[int, int], seconds: float) ->
         tempfile.TemporaryDirectory() as tmp,
         SimProcess(Path(tmp), "--udp", "127.0.0.1:0", *args) as sim,
     ):
-        _, host, port = sim.url.split(":")
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", 0))
-        mav = mavlink.MAVLink(None, 1, 191)
-        dec = mavlink.MAVLink(None)
-        dec.robust_parsing = True
-
-        def send(msg: Any) -> None:
-            sock.sendto(msg.pack(mav), (host, int(port)))
-            mav.seq = (mav.seq + 1) % 256
+        peer = MavPeer.connect(sim.url, system_id=1, component_id=191)
 
         def heartbeat() -> None:
-            send(mav.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0))
+            peer.send_heartbeat(8, mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
 
         heartbeat()
         for msg_id, interval_us in requests.items():
-            send(
-                mav.command_long_encode(
-                    1,
-                    1,
-                    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
-                    0,
-                    msg_id,
-                    interval_us,
-                    0,
-                    0,
-                    0,
-                    0,
-                    0,
-                )
-            )
+            peer.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)
         time.sleep(0.5)  # a bench, not a test: let the streams start before the window
-        counts: collections.Counter[str] = collections.Counter()
         start_cpu, start_s = cpu_s(sim.proc.pid), time.monotonic()
+        first = len(peer.received)
         next_beat_s = start_s + 1.0
-        sock.settimeout(0.05)
         while (now := time.monotonic()) < start_s + seconds:
             if now >= next_beat_s:
                 heartbeat()
                 next_beat_s += 1.0
-            try:
-                data = sock.recv(65536)
-            except TimeoutError:
-                continue
-            for msg in dec.parse_buffer(data) or []:
-                counts[msg.get_type()] += 1
+            time.sleep(max(0.0, min(next_beat_s, start_s + seconds) - time.monotonic()))
         used_s, elapsed_s = cpu_s(sim.proc.pid) - start_cpu, time.monotonic() - start_s
+        counts = collections.Counter(m.get_type() for m in peer.received[first:])
         vehicle_events = len(sim.events("vehicle"))
-        sock.close()
+        peer.close()
     return {
         "cpu_pct": 100.0 * used_s / elapsed_s,
         "attitude_hz": counts["ATTITUDE"] / elapsed_s,

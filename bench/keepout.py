@@ -5,12 +5,12 @@ every command the checks let through is re-checked by an independent dense sampl
                                       [--targets 2000] [--seed 2026] [--markdown FILE]
                                       [--soft-margin-cm 3 (0: the cost term off)]
 
-The vehicle is the example config's 450 quad (``tests/support/keepout.QUAD_450``) with the
+The vehicle is the example config's 450 quad (``devkit.keepout.QUAD_450``) with the
 papers' arm hanging 10 cm under the body origin, margin 1 cm. A *colliding command* is one the
 checks accept although a dense sampling finds a capsule closer than the margin. The target is 0.
 Configurations (and the answers to targets) are sampled independently of the checked code:
 points every ≤ 0.31 cm along each capsule's axis, exact point-to-volume distances written apart
-(``tests/support/keepout.py``). Motions are sampled at 200 configurations along the motion with
+(``devkit/keepout.py``). Motions are sampled at 200 configurations along the motion with
 the exact clearances (the compiled ones, which the configuration run and the tests validate):
 what is tested there is the motion logic, the speed bound and the halving.
 
@@ -47,7 +47,7 @@ from companion.ik.keepout import SOFT_MARGIN_CM, ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.collision import KeepOut
 from companion.kinematics.vehicle import Mount, invert
-from tests.support.keepout import QUAD_450, sampled_clearance
+from devkit.keepout import QUAD_450, sampled_clearance
 
 MARGIN_CM = 1.0
 PARK_DEG = (0.0, 90.0, 0.0, 0.0, 0.0, 0.0)

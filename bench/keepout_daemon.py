@@ -44,12 +44,13 @@ from typing import Any
 
 import numpy as np
 
-from bench.loopback import ControlClient, Stack
+from bench.loopback import Stack
 from bench.report import interpreter, machine, md_table, write_markdown
 from companion.daemon.config import parse_config
 from companion.kinematics.arm import Pose
 from companion.kinematics.collision import KeepOut
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.timing import wait_until
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "companion" / "daemon" / "examples"
 DEFAULT_MARKDOWN = Path(__file__).resolve().parent / "results" / "keepout_daemon.md"
@@ -110,7 +111,7 @@ def drive(stack: Stack, targets: Targets, args: argparse.Namespace) -> dict[str,
     """Until ``args.targets`` were solved or the time is up: a ``through`` trajectory (its
     end awaited on ``status``), then ``args.gotos`` single targets of the other kinds, each
     sent once the one before was answered; a NaN pose every tenth round. Returns the counts."""
-    client = ControlClient(stack.control_path, timeout_s=30.0)
+    client = ControlConnection(stack.control_path, timeout_s=30.0)
     period_s = 1.0 / args.rate_hz
     sent: dict[str, int] = {k: 0 for k in (*KINDS, "nan")}
     answers: dict[str, int] = {}

@@ -18,11 +18,9 @@ Used by the benches that run the real stack (``latency``, ``sustained``, ``flood
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import select
-import socket
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -33,9 +31,10 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import write_markdown
-from tests.support.daemon_process import DaemonProcess
-from tests.support.sim_process import SimProcess
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.daemon_process import DaemonProcess
+from devkit.sim_process import SimProcess
+from devkit.timing import wait_until
 
 MAV_CMD_USER_2 = 31011  # the Lua bridge's command
 SERVO_COMMANDS = {
@@ -54,29 +53,6 @@ except ImportError:  # pragma: no cover - depends on the environment
     plt = None
 
 
-class ControlClient:
-    """One persistent connection to the daemon's control socket (JSON lines)."""
-
-    def __init__(self, path: str, timeout_s: float = 10.0) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(timeout_s)
-        self.sock.connect(path)
-        self._buffer = b""
-
-    def request(self, obj: dict[str, Any]) -> dict[str, Any]:
-        self.sock.sendall((json.dumps(obj) + "\n").encode())
-        while b"\n" not in self._buffer:
-            chunk = self.sock.recv(65536)
-            if not chunk:
-                raise ConnectionError("the daemon closed the control socket")
-            self._buffer += chunk
-        line, self._buffer = self._buffer.split(b"\n", 1)
-        return json.loads(line)
-
-    def close(self) -> None:
-        self.sock.close()
-
-
 class ControlSocketInput:
     """Targets as ``goto`` requests on the control socket; the reply is the client's ACK.
 
@@ -89,36 +65,25 @@ class ControlSocketInput:
     name = "control socket"
 
     def __init__(self, stack: Stack, connections: int = 1) -> None:
-        self.clients = [ControlClient(stack.control_path) for _ in range(connections)]
+        self.clients = [ControlConnection(stack.control_path) for _ in range(connections)]
         self.client = self.clients[0]
-        self._buffers = {id(c): b"" for c in self.clients}
         self._next = 0
 
     def send(self, pose: Sequence[float]) -> float:
         """Send one target; the monotonic time it left."""
-        line = (json.dumps({"cmd": "goto", "pose": list(pose)}) + "\n").encode()
         client = self.clients[self._next]
         self._next = (self._next + 1) % len(self.clients)
-        sent_s = time.monotonic()
-        client.sock.sendall(line)
-        return sent_s
+        return client.send({"cmd": "goto", "pose": list(pose)})
 
     def poll(self, timeout_s: float) -> list[dict[str, Any]]:
         """The answers that arrive within ``timeout_s`` (at least one read): ``answered_s``,
         ``outcome``, and the daemon's ``timing`` and ``solve_ms``."""
-        socks = {c.sock: c for c in self.clients}
-        ready, _, _ = select.select(list(socks), [], [], max(timeout_s, 0.0))
+        ready, _, _ = select.select(self.clients, [], [], max(timeout_s, 0.0))
         answers = []
-        for sock in ready:
-            chunk = sock.recv(65536)
-            if not chunk:
-                raise ConnectionError("the daemon closed the control socket")
+        for client in ready:
+            client.receive()
             answered_s = time.monotonic()
-            key = id(socks[sock])
-            self._buffers[key] += chunk
-            while b"\n" in self._buffers[key]:
-                line, self._buffers[key] = self._buffers[key].split(b"\n", 1)
-                reply = json.loads(line)
+            while (reply := client.buffered_reply()) is not None:
                 answers.append({
                     "answered_s": answered_s,
                     "outcome": reply.get("outcome", "error"),
@@ -275,8 +240,8 @@ def ram_dir() -> str | None:
 
 class Stack:
     """The simulator and the daemon as subprocesses on UDP loopback (a context manager), by the
-    tests' harnesses (:class:`~tests.support.sim_process.SimProcess`,
-    :class:`~tests.support.daemon_process.DaemonProcess`).
+    tests' harnesses (:class:`~devkit.sim_process.SimProcess`,
+    :class:`~devkit.daemon_process.DaemonProcess`).
 
     ``daemon`` overrides the daemon config (TOML tables as dicts); ``sim_args`` are extra
     ``sim_servo`` flags; ``daemon_root`` runs the daemon from another checkout (an older
@@ -302,7 +267,7 @@ class Stack:
             sim_args = ("--lua-script", *sim_args)
         self.sim: SimProcess | None = None
         self.daemon: DaemonProcess | None = None
-        self._status_client: ControlClient | None = None
+        self._status_client: ControlConnection | None = None
         try:
             self.sim = SimProcess(
                 tmp / "sim",
@@ -329,7 +294,7 @@ class Stack:
             self.control_path = str(self.daemon.control_path)
             self.config_path = self.daemon.config_path
             self.daemon_log = self.daemon.log_path
-            self._status_client = ControlClient(self.control_path)
+            self._status_client = ControlConnection(self.control_path)
             if not wait_until(lambda: self.status()["link"] == "up", WAIT_S):
                 raise TimeoutError(f"no autopilot link within {WAIT_S} s")
         except BaseException:

@@ -22,7 +22,7 @@ import numpy as np
 from bench.loopback import ControlSocketInput, Stack, answer_one
 from bench.serial_links import GAP_MS, random_targets
 from companion.kinematics.arm import Arm
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 MAV_CMD_USER_2 = 31011
 PARTS = (

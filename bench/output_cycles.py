@@ -24,8 +24,8 @@ boot, the arm's outputs in ``BRD_SAFETY_MASK`` at start). Each cycle, seeded:
   ``status`` and the simulator's ``state`` are polled every 20 ms.
 
 **Joint steps faster than the limit** come from the simulator's event log alone (what each servo
-physically received: :func:`tests.support.joint_steps.output_changes`), through the daemon's
-calibration (PWM → angle), by :func:`tests.support.joint_steps.joint_steps`: a physical change of
+physically received: :func:`devkit.joint_steps.output_changes`), through the daemon's
+calibration (PWM → angle), by :func:`devkit.joint_steps.joint_steps`: a physical change of
 more than ``joint_speed_deg_s / rate_hz`` (one control tick's step, 3° by default) plus one PWM
 quantum, whatever the time since the output's previous change (a jump after a hold is a jump);
 pulses stopping (0) are no step, and the next pulse is compared with the last one before. They
@@ -68,10 +68,10 @@ from bench.loopback import ControlSocketInput, Stack, load_average
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.core import READBACK_FAST_INTERVAL_S, READBACK_INTERVAL_S
 from companion.kinematics.arm import Arm, Pose
+from devkit.joint_steps import JointStep, joint_steps, output_changes
 from firmware_interface.calibration import JointCalibration, default_calibration
 from sim_servo.config import PX4_DISARMED_PWM_US
 from sim_servo.gcs import GroundStation
-from tests.support.joint_steps import JointStep, joint_steps, output_changes
 
 ROOT = Path(__file__).resolve().parent.parent
 #: The daemon's readback period per flavour on a fast link (SERVO_OUTPUT_RAW: PX4's outputs'

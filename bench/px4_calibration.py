@@ -24,7 +24,6 @@ the commander's and the main loops' cycles. Arguments after ``--`` go to the sim
 from __future__ import annotations
 
 import argparse
-import socket
 import sys
 import tempfile
 import time
@@ -35,9 +34,9 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from bench.mavpeer import SocketPeer
 from bench.report import machine, md_table, write_markdown
-from tests.support.sim_process import SimProcess
+from devkit.mavlink_peer import MavPeer
+from devkit.sim_process import SimProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 5.0
@@ -47,25 +46,11 @@ REAL_ACK_MS = (5.8, 10.8, 13.0)
 REAL_CHAIN_MEDIAN_MS = "17.9–18.4"
 
 
-class UdpPeer(SocketPeer):
-    """A pymavlink codec on a UDP socket talking to one address."""
-
-    def __init__(self, url: str, system: int, component: int) -> None:
-        _, host, port = url.split(":")
-        self.address = (host, int(port))
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", 0))
-        super().__init__(sock, system, component)
-
-    def _write(self, frame: bytes) -> None:
-        self.sock.sendto(frame, self.address)
-
-
 def is_ack(command: int) -> Callable[[Any], bool]:
     return lambda m: m.get_type() == "COMMAND_ACK" and m.command == command
 
 
-def actuator_round_trip(companion: UdpPeer, trial: int) -> float:
+def actuator_round_trip(companion: MavPeer, trial: int) -> float:
     value = (trial % 200) / 100.0 - 1.0
     t0 = time.monotonic()
     companion.send(
@@ -73,15 +58,15 @@ def actuator_round_trip(companion: UdpPeer, trial: int) -> float:
             1, 1, mavlink.MAV_CMD_DO_SET_ACTUATOR, 0, value, value, value, value, value, value, 0
         )
     )
-    ack = companion.wait_for(is_ack(mavlink.MAV_CMD_DO_SET_ACTUATOR))
+    ack = companion.next_message(is_ack(mavlink.MAV_CMD_DO_SET_ACTUATOR))
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED
     return time.monotonic() - t0
 
 
-def routed_round_trip(gcs: UdpPeer, companion: UdpPeer) -> float:
+def routed_round_trip(gcs: MavPeer, companion: MavPeer) -> float:
     t0 = time.monotonic()
     gcs.send(gcs.mav.command_long_encode(1, 191, mavlink.MAV_CMD_USER_1, 0, 0, 0, 0, 0, 0, 0, 0))
-    command = companion.wait_for(
+    command = companion.next_message(
         lambda m: m.get_type() == "COMMAND_LONG" and m.command == mavlink.MAV_CMD_USER_1
     )
     companion.send(
@@ -89,7 +74,7 @@ def routed_round_trip(gcs: UdpPeer, companion: UdpPeer) -> float:
             command.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 255, 190
         )
     )
-    gcs.wait_for(is_ack(mavlink.MAV_CMD_USER_1))
+    gcs.next_message(is_ack(mavlink.MAV_CMD_USER_1))
     return time.monotonic() - t0
 
 
@@ -113,8 +98,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="px4-calibration-") as tmp:
         command = ["--udp", "127.0.0.1:0", "--flavour", "px4", "--gcs", "127.0.0.1:0"]
         with SimProcess(Path(tmp), *command, "--slew-s-per-60deg", "0", *sim_args) as sim:
-            companion = UdpPeer(sim.url, 1, 191)
-            gcs = UdpPeer(sim.gcs_url, 255, 190)
+            companion = MavPeer.connect(sim.url, system_id=1, component_id=191)
+            gcs = MavPeer.connect(sim.gcs_url, system_id=255, component_id=190)
             try:
                 companion.send(
                     companion.mav.heartbeat_encode(
@@ -122,7 +107,7 @@ def main() -> int:
                     )
                 )
                 gcs.send(gcs.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, 8, 0, 0, 0))
-                companion.wait_for(lambda m: m.get_type() == "HEARTBEAT")
+                companion.next_message(lambda m: m.get_type() == "HEARTBEAT")
                 acks, chains = [], []
                 for trial in range(args.trials):
                     time.sleep(rng.uniform(0.0, 0.020))

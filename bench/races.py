@@ -51,10 +51,8 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import math
 import select
-import socket
 import sys
 import time
 from collections import Counter
@@ -68,7 +66,8 @@ from bench.report import machine, md_table
 from companion.daemon.config import load_config
 from companion.daemon.service import SOURCE_RATE_HZ
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 REPLY_TIMEOUT_S = 10.0
@@ -79,43 +78,6 @@ ROUND_MIN_S = 1.0 / (0.9 * SOURCE_RATE_HZ)
 IDLE_TIMEOUT_S = 10.0
 WALK_DEG = 15.0
 PWM_SLACK_US = 1
-
-
-class Connection:
-    """A JSON-lines connection to the control socket, read without blocking."""
-
-    def __init__(self, path: str) -> None:
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self.sock.settimeout(REPLY_TIMEOUT_S)
-        self.sock.connect(path)
-        self.sock.setblocking(False)
-        self._buffer = b""
-
-    def write(self, obj: dict[str, Any]) -> float:
-        line = (json.dumps(obj) + "\n").encode()
-        sent_s = time.monotonic()
-        self.sock.setblocking(True)
-        self.sock.sendall(line)
-        self.sock.setblocking(False)
-        return sent_s
-
-    def read_line(self) -> dict[str, Any] | None:
-        """A complete reply if one is buffered or readable now."""
-        try:
-            chunk = self.sock.recv(65536)
-        except BlockingIOError:
-            chunk = None
-        if chunk == b"":
-            raise ConnectionError("the daemon closed the control socket")
-        if chunk:
-            self._buffer += chunk
-        if b"\n" not in self._buffer:
-            return None
-        line, self._buffer = self._buffer.split(b"\n", 1)
-        return json.loads(line)
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 def walk(arm: Arm, start_deg: np.ndarray, count: int, seed: int) -> list[Pose]:
@@ -130,7 +92,9 @@ def walk(arm: Arm, start_deg: np.ndarray, count: int, seed: int) -> list[Pose]:
     return poses
 
 
-def race(goto: Connection, stop: Connection, pose: Pose, goto_first: bool) -> dict[str, Any]:
+def race(
+    goto: ControlConnection, stop: ControlConnection, pose: Pose, goto_first: bool
+) -> dict[str, Any]:
     """One round's two writes and their answers."""
     rec: dict[str, Any] = {"goto_first": goto_first}
     writes = [
@@ -140,14 +104,14 @@ def race(goto: Connection, stop: Connection, pose: Pose, goto_first: bool) -> di
     if not goto_first:
         writes.reverse()
     for name, conn, obj in writes:
-        rec[f"{name}_sent_s"] = conn.write(obj)
+        rec[f"{name}_sent_s"] = conn.send(obj)
     pending = {"goto": goto, "stop": stop}
     deadline = time.monotonic() + REPLY_TIMEOUT_S
     while pending and (left := deadline - time.monotonic()) > 0:
         ready, _, _ = select.select([c.sock for c in pending.values()], [], [], left)
         now = time.monotonic()
         for name, conn in list(pending.items()):
-            if conn.sock in ready and (reply := conn.read_line()) is not None:
+            if conn.sock in ready and (reply := conn.try_reply()) is not None:
                 rec[f"{name}_reply"] = reply
                 rec[f"{name}_answered_s"] = now
                 del pending[name]
@@ -263,7 +227,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         initial = {int(o): v["pwm_us"] for o, v in stack.sim.state()["outputs"].items()}
         current = np.array(stack.status()["current_deg"])
         poses = walk(arm, current, args.races, args.seed)
-        goto_conn, stop_conn = Connection(stack.control_path), Connection(stack.control_path)
+        goto_conn, stop_conn = (
+            ControlConnection(stack.control_path, timeout_s=REPLY_TIMEOUT_S) for _ in range(2)
+        )
         rounds: list[dict[str, Any]] = []
         idle_timeouts = 0
         cpu0 = (cpu_s(stack.daemon_pid), cpu_s(stack.sim_pid))

@@ -1,11 +1,11 @@
 """Reliability campaign, inputs side (issue 8): adversarial targets, MAVLink input fuzz, config
 fuzz, at full size, written up as a Markdown report.
 
-The machinery is ``tests/support/campaign.py`` (tests never import ``bench``); the CI-sized
+The machinery is ``devkit/campaign.py`` (tests never import ``bench``); the CI-sized
 tests (``tests/integration/test_reliability.py``, ``tests/daemon/test_config_fuzz.py``) run the
 same functions smaller. See that module for what each part does and checks.
 
-Usage, from the repository root (it imports ``tests.support``)::
+Usage, from the repository root (it imports ``devkit``)::
 
     python -m bench.reliability [--targets 300000] [--fuzz-rounds 20] [--seed 8]
                                 [--markdown bench/results/reliability.md]
@@ -24,7 +24,7 @@ from pathlib import Path
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import write_markdown
-from tests.support.campaign import (
+from devkit.campaign import (
     TARGET_MIX,
     ConfigReport,
     FuzzReport,

@@ -54,13 +54,13 @@ from bench.report import machine, md_table, write_markdown
 from bench.sustained import figure_eight
 from companion.daemon.core import stream_intervals_s, stream_requests
 from companion.kinematics.arm import Arm, Pose
+from devkit.timing import wait_until
 from firmware_interface.calibration import ArmCalibration, default_calibration
 from firmware_interface.link_budget import update_cost
 from firmware_interface.servo import make_servo_dialect
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import LinkTimingConfig, SimConfig
 from sim_servo.serial_line import ARDUPILOT_MAVLINK_TX_BUFFER_BYTES, SerialLine
-from tests.support.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 SLOT_S = 0.02  # 50 Hz

@@ -35,11 +35,9 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
 import select
 import signal
-import socket
 import sys
 import time
 from pathlib import Path
@@ -52,7 +50,8 @@ from bench.loopback import Stack, load_average, udp_ports, udp_sockets
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.config import load_config
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.timing import wait_until
 
 ROOT = Path(__file__).resolve().parent.parent
 PARK_DEG = [0.0, 90.0, 0.0, 0.0, 0.0, 0.0]
@@ -125,9 +124,8 @@ def trial(scenario: str, k: int, args: argparse.Namespace) -> dict[str, Any]:
             else:
                 arm = Arm.default()
                 pose = Pose.from_matrix(arm.fk_batch(arm.random_q_rad(rng, 1))[0]).as_tuple()
-                goto_conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-                goto_conn.connect(stack.control_path)
-                goto_conn.sendall((json.dumps({"cmd": "goto", "pose": list(pose)}) + "\n").encode())
+                goto_conn = ControlConnection(stack.control_path)
+                goto_conn.send({"cmd": "goto", "pose": list(pose)})
                 rec["delay_s"] = float(rng.uniform(0.1, 2.0))
                 time.sleep(rec["delay_s"])
             before = sim_pwm(stack, outputs)
@@ -141,10 +139,9 @@ def trial(scenario: str, k: int, args: argparse.Namespace) -> dict[str, Any]:
             rec["park_commands"] = servo_commands_since(stack, sigterm_s)
             rec["sim_drops"] = sum(udp_sockets(stack.sim_pid).values()) - drops0
             if goto_conn is not None:
-                goto_conn.settimeout(1.0)
+                goto_conn.sock.settimeout(1.0)
                 try:
-                    reply = goto_conn.recv(65536).split(b"\n", 1)[0]
-                    rec["goto"] = json.loads(reply).get("outcome") if reply else "no answer (EOF)"
+                    rec["goto"] = goto_conn.reply().get("outcome")
                 except (OSError, ValueError) as exc:
                     rec["goto"] = f"no answer ({exc!r})"
         finally:

@@ -23,7 +23,6 @@ the autopilot's 400 Hz main loop. Arguments after ``--`` go to the simulator (e.
 from __future__ import annotations
 
 import argparse
-import socket
 import sys
 import tempfile
 import time
@@ -34,9 +33,9 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from bench.mavpeer import SocketPeer
 from bench.report import machine, md_table, write_markdown
-from tests.support.sim_process import SimProcess
+from devkit.mavlink_peer import MavPeer
+from devkit.sim_process import SimProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 5.0
@@ -52,38 +51,18 @@ REAL = {
 REAL_STREAM_HZ = 50.0
 
 
-class TcpClient(SocketPeer):
-    """A pymavlink codec over one TCP connection: the companion computer (1/191)."""
-
-    def __init__(self, url: str) -> None:
-        _, host, port = url.split(":")
-        sock = socket.create_connection((host, int(port)), timeout=WAIT_S)
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        super().__init__(sock, *COMPANION)
-
-    def _write(self, frame: bytes) -> None:
-        self.sock.sendall(frame)
-
-    def command(self, command: int, *params: float) -> None:
-        values = list(params) + [0.0] * (7 - len(params))
-        self.send(self.mav.command_long_encode(1, 1, command, 0, *values))
-
-    def ack(self, command: int) -> Any:
-        return self.wait_for(lambda m: m.get_type() == "COMMAND_ACK" and m.command == command)
-
-
-def set_servo(client: TcpClient, pwm_us: int) -> None:
+def set_servo(client: MavPeer, pwm_us: int) -> None:
     client.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, pwm_us)
 
 
-def single(client: TcpClient, trial: int) -> tuple[float, bool]:
+def single(client: MavPeer, trial: int) -> tuple[float, bool]:
     t0 = time.monotonic()
     set_servo(client, 1400 + trial % 200)
     ack = client.ack(mavlink.MAV_CMD_DO_SET_SERVO)
     return time.monotonic() - t0, ack.result == mavlink.MAV_RESULT_ACCEPTED
 
 
-def sequential(client: TcpClient, trial: int) -> tuple[float, bool]:
+def sequential(client: MavPeer, trial: int) -> tuple[float, bool]:
     ok = True
     t0 = time.monotonic()
     for k in range(6):
@@ -92,7 +71,7 @@ def sequential(client: TcpClient, trial: int) -> tuple[float, bool]:
     return time.monotonic() - t0, ok
 
 
-def burst(client: TcpClient, trial: int) -> tuple[float, bool]:
+def burst(client: MavPeer, trial: int) -> tuple[float, bool]:
     t0 = time.monotonic()
     for k in range(6):
         set_servo(client, 1400 + k + trial % 100)
@@ -100,14 +79,14 @@ def burst(client: TcpClient, trial: int) -> tuple[float, bool]:
     return time.monotonic() - t0, results == [mavlink.MAV_RESULT_ACCEPTED] * 6
 
 
-FIGURES: dict[str, tuple[str, Callable[[TcpClient, int], tuple[float, bool]]]] = {
+FIGURES: dict[str, tuple[str, Callable[[MavPeer, int], tuple[float, bool]]]] = {
     "single": ("1 DO_SET_SERVO round trip", single),
     "sequential": ("6 sequential, each waiting for its ACK (total)", sequential),
     "burst": ("6 back-to-back, then 6 ACKs (total)", burst),
 }
 
 
-def measure(client: TcpClient, trials: int, rng: np.random.Generator) -> dict[str, dict[str, Any]]:
+def measure(client: MavPeer, trials: int, rng: np.random.Generator) -> dict[str, dict[str, Any]]:
     results = {}
     for name, (_, run) in FIGURES.items():
         times_ms, accepted = [], 0
@@ -121,18 +100,18 @@ def measure(client: TcpClient, trials: int, rng: np.random.Generator) -> dict[st
     return results
 
 
-def stream_rate(client: TcpClient, window_s: float) -> tuple[float, int, int]:
+def stream_rate(client: MavPeer, window_s: float) -> tuple[float, int, int]:
     """(received Hz, interval_us GET_MESSAGE_INTERVAL reports, SET result) for a 400 Hz ask."""
     client.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW, 2500)
     result = client.ack(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL).result
     client.command(mavlink.MAV_CMD_GET_MESSAGE_INTERVAL, SERVO_OUTPUT_RAW)
-    reported = client.wait_for(lambda m: m.get_type() == "MESSAGE_INTERVAL").interval_us
-    client.wait_for(lambda m: m.get_type() == "SERVO_OUTPUT_RAW")  # the stream has started
+    reported = client.next_message(lambda m: m.get_type() == "MESSAGE_INTERVAL").interval_us
+    client.next_message(lambda m: m.get_type() == "SERVO_OUTPUT_RAW")  # the stream has started
     stamps = []
     end_s = time.monotonic() + window_s
     while (left := end_s - time.monotonic()) > 0:
         try:
-            msg = client.wait_for(lambda m: m.get_type() == "SERVO_OUTPUT_RAW", left)
+            msg = client.next_message(lambda m: m.get_type() == "SERVO_OUTPUT_RAW", left)
         except TimeoutError:
             break
         stamps.append(msg.time_usec)
@@ -200,9 +179,9 @@ def main() -> int:
         with SimProcess(
             Path(tmp), "--tcp", "127.0.0.1:0", "--slew-s-per-60deg", "0", *sim_args
         ) as sim:
-            client = TcpClient(sim.url)
+            client = MavPeer.connect(sim.url, system_id=COMPANION[0], component_id=COMPANION[1])
             try:
-                client.wait_for(lambda m: m.get_type() == "HEARTBEAT")
+                client.next_message(lambda m: m.get_type() == "HEARTBEAT")
                 results = measure(client, args.trials, rng)
                 stream = stream_rate(client, args.stream_s)
             finally:

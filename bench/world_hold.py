@@ -35,12 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.loopback import ControlClient, Stack, cpu_s, load_average, plt
+from bench.loopback import Stack, cpu_s, load_average, plt
 from bench.report import machine, md_table, write_markdown
 from companion import ik
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.rotations import rotation_angle, rpy_to_matrix
 from companion.kinematics.vehicle import Mount, base_to_world, transform, world_to_base
+from devkit.control_client import ControlConnection
 from firmware_interface.calibration import default_calibration
 from sim_servo.eventlog import world_timeline
 from sim_servo.world import WorldPose, pose_error
@@ -75,7 +76,7 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
         },
         sim_args=("--hover-seed", str(args.seed), "--vehicle-log-hz", "50"),
     ) as stack:
-        client = ControlClient(stack.control_path)
+        client = ControlConnection(stack.control_path)
         try:
             # The streams are asked for on link-up; the first frames follow.
             deadline = time.monotonic() + 10.0
@@ -106,7 +107,7 @@ def run(compensate: bool, args: argparse.Namespace) -> dict:
                 time.sleep(0.05)
             cpu_pct = 100.0 * (cpu_s(stack.daemon_pid) - cpu0) / (time.monotonic() - wall0)
             client.close()  # idle past control.idle_timeout_s: the daemon closed it
-            client = ControlClient(stack.control_path)
+            client = ControlConnection(stack.control_path)
             status = client.request({"cmd": "status"})["status"]
         finally:
             client.close()

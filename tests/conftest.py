@@ -1,4 +1,4 @@
-"""Fixtures over the shared helpers in ``tests/support``: simulator and daemon processes that
+"""Fixtures over the shared helpers in ``devkit``: simulator and daemon processes that
 are always stopped and reaped, whatever the test did."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from typing import Any, Protocol
 
 import pytest
 
-from tests.support.daemon_process import DaemonProcess
-from tests.support.sim_process import SimProcess
-from tests.support.timing import FakeClock
+from devkit.daemon_process import DaemonProcess
+from devkit.sim_process import SimProcess
+from devkit.timing import FakeClock
 
 
 class _Started(Protocol):

@@ -25,19 +25,43 @@ def json_line_request(path: str | Path, obj: Any, *, timeout_s: float = 10.0) ->
     """Send ``obj`` as one JSON line to the Unix socket at ``path``; return the first reply line,
     decoded. ``ConnectionError`` if the peer closes first or the reply exceeds
     :data:`MAX_REPLY_BYTES`; ``OSError`` (``TimeoutError`` …) from the socket itself."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+    with connect(path, timeout_s=timeout_s) as sock:
+        sock.sendall(encode_line(obj))
+        reply, _ = read_line(sock, path)
+    return reply
+
+
+def connect(path: str | Path, *, timeout_s: float = 10.0) -> socket.socket:
+    """A stream socket connected to the Unix socket at ``path``, its timeout ``timeout_s``
+    (the waiting of :func:`_connect`)."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
         _connect(sock, path, timeout_s)
         sock.settimeout(timeout_s)
-        sock.sendall((json.dumps(obj) + "\n").encode())
-        buffer = b""
-        while b"\n" not in buffer:
-            if len(buffer) > MAX_REPLY_BYTES:
-                raise ConnectionError(f"reply from {path} exceeds {MAX_REPLY_BYTES} bytes")
-            chunk = sock.recv(65536)
-            if not chunk:
-                raise ConnectionError(f"{path} closed the connection without a reply")
-            buffer += chunk
-    return json.loads(buffer.split(b"\n", 1)[0])
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+def encode_line(obj: Any) -> bytes:
+    """``obj`` as one request line: JSON, then a newline."""
+    return (json.dumps(obj) + "\n").encode()
+
+
+def read_line(sock: socket.socket, path: str | Path, buffer: bytes = b"") -> tuple[Any, bytes]:
+    """Receive on ``sock`` until ``buffer`` plus what came holds a whole line; return that line
+    decoded and the bytes after it (the start of the next reply). Nothing is received when
+    ``buffer`` already holds a line. ``ConnectionError`` as :func:`json_line_request`."""
+    while b"\n" not in buffer:
+        if len(buffer) > MAX_REPLY_BYTES:
+            raise ConnectionError(f"reply from {path} exceeds {MAX_REPLY_BYTES} bytes")
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise ConnectionError(f"{path} closed the connection without a reply")
+        buffer += chunk
+    line, rest = buffer.split(b"\n", 1)
+    return json.loads(line), rest
 
 
 def _connect(sock: socket.socket, path: str | Path, timeout_s: float) -> None:

@@ -19,7 +19,8 @@ from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request
 from companion.daemon.demo import PAPER_TARGET_G, write_demo_plot
 from companion.kinematics.arm import Arm, Pose
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.timing import wait_until
 
 WAIT_S = 15.0
 
@@ -418,21 +419,19 @@ def test_a_goto_waiting_at_sigterm_is_answered(sims, daemons):
         {"link": {"url": sim.url}, "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "park_on_stop": True}}
     )
     daemon.wait_link("up")
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
-        conn.settimeout(WAIT_S)
-        conn.connect(str(daemon.control_path))
+    with ControlConnection(daemon.control_path, timeout_s=WAIT_S) as conn:
         pose = [62.14, 22.25, -3.32, 17.24, -1.47, 19.70]
-        conn.sendall((json.dumps({"cmd": "goto", "pose": pose}) + "\n").encode())
+        conn.send({"cmd": "goto", "pose": pose})
         # Its update reached the autopilot, whose ACKs will not come (FAILED only after
         # (1 + command_retries) × command_timeout_s = 1.5 s): SIGTERM now.
         assert wait_until(lambda: sim.events("servo"), WAIT_S)
         daemon.proc.send_signal(signal.SIGTERM)
         assert daemon.proc.wait(timeout=5) == 0
-        reply = b""
-        while not reply.endswith(b"\n") and (chunk := conn.recv(65536)):
-            reply += chunk
-    assert reply.endswith(b"\n"), f"no answer, the connection ended after {reply!r}"
-    assert json.loads(reply)["outcome"] in ("cancelled", "failed")
+        try:
+            reply = conn.reply()
+        except ConnectionError as exc:
+            raise AssertionError(f"no answer, the connection ended: {exc}") from exc
+    assert reply["outcome"] in ("cancelled", "failed")
     # Parked all the same (the autopilot applies what it does not acknowledge), no traceback.
     park_pwm = parse_config(daemon.config).calibration.angles_to_pwm_us([0, 90, 0, 0, 0, 0])
     outputs = sim.state()["outputs"]

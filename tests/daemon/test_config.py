@@ -10,7 +10,7 @@ import pytest
 
 from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
-from tests.support.keepout import QUAD_450
+from devkit.keepout import QUAD_450
 
 EXAMPLE = (resources.files("companion.daemon") / "examples" / "armbridge.toml").read_text()
 

@@ -2,7 +2,7 @@
 knows, makes ``armbridge check-config`` exit 2 with a message naming the file and the field;
 ``armbridge run`` on a bad config exits 2 and sends nothing to a listening autopilot.
 
-The cases come from ``tests/support/campaign.py`` (``config_cases``), which enumerates the fields
+The cases come from ``devkit/campaign.py`` (``config_cases``), which enumerates the fields
 from ``companion.daemon.config``'s own key lists: a new field without a fuzz entry fails here.
 At the end, a hypothesis property: whatever ``parse_config`` accepts maps the arm's whole range
 and park into every servo's PWM range.
@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from companion.daemon.config import load_config, parse_config
 from companion.errors import ConfigError
 from companion.kinematics.arm import Arm
-from tests.support.campaign import (
+from devkit.campaign import (
     ARM_DOF,
     EXAMPLE_TEXT,
     FIELD_KINDS,

@@ -14,7 +14,8 @@ from companion.daemon.config import parse_config
 from companion.daemon.control_socket import ControlServer, request
 from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
-from tests.support.timing import wait_until
+from devkit.control_client import ControlConnection
+from devkit.timing import wait_until
 
 
 @pytest.fixture
@@ -76,20 +77,15 @@ def test_the_socket_path_appears_only_once_it_listens(tmp_path, daemon, monkeypa
 def raw(srv, *lines: bytes) -> list[dict]:
     """Send ``lines`` on one connection; the replies that come before it closes (up to one a
     line)."""
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(5)
-        sock.connect(srv.path)
-        sock.sendall(b"".join(line + b"\n" for line in lines))
-        buffer = b""
-        while buffer.count(b"\n") < len(lines):
+    replies = []
+    with ControlConnection(srv.path, timeout_s=5) as conn:
+        conn.send_raw(b"".join(line + b"\n" for line in lines))
+        while len(replies) < len(lines):
             try:
-                chunk = sock.recv(65536)
-            except ConnectionResetError:
+                replies.append(conn.reply())
+            except ConnectionError:  # closed (or reset, our unread bytes in its buffer)
                 break
-            if not chunk:
-                break
-            buffer += chunk
-    return [json.loads(x) for x in buffer.splitlines()]
+    return replies
 
 
 def test_status_and_several_requests_on_one_connection(server):

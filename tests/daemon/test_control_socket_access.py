@@ -24,7 +24,7 @@ import pytest
 from companion.daemon.config import parse_config
 from companion.daemon.control_socket import ControlServer, ControlSocketError, request
 from companion.daemon.service import ArmDaemon
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 NOBODY = 65534
 #: A group that exists on any Debian-like system and is not root's primary group.

@@ -19,7 +19,7 @@ from companion.daemon.control_socket import (
     request,
 )
 from companion.daemon.service import ArmDaemon
-from tests.support.timing import wait_until
+from devkit.timing import wait_until
 
 
 @pytest.fixture

@@ -30,7 +30,7 @@ from companion.daemon.core import (
 )
 from companion.daemon.requests import Outcome, Request
 from companion.kinematics.arm import Pose
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 PARK = (0.0, 90.0, 0.0, 0.0, 0.0, 0.0)
 SPEED_DEG_S, RATE_HZ = 60.0, 20.0
@@ -1320,7 +1320,7 @@ def _quad_sections() -> dict:
     """The example quad's volumes as config (tests/support/keepout.QUAD_450)."""
     from dataclasses import asdict
 
-    from tests.support.keepout import QUAD_450
+    from devkit.keepout import QUAD_450
 
     kinds = {"Box": "box", "Cylinder": "cylinder", "Capsule": "capsule", "Sphere": "sphere"}
     volumes = [
@@ -1358,7 +1358,7 @@ def test_property_no_commanded_configuration_or_step_enters_a_keepout_volume(eve
     and solver answers, every configuration the servos are commanded to, and every straight
     step between two in a row (and each output's own change, in the order sent), keeps the
     margin by an independent dense sampling (tests/support/keepout)."""
-    from tests.support.keepout import sampled_clearance
+    from devkit.keepout import sampled_clearance
 
     rig = Rig(sections=_quad_sections())
     rig.up()

@@ -23,7 +23,7 @@ from companion.daemon.core import (
     SendCommand,
 )
 from companion.daemon.requests import Outcome, Request
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 #: BRD_SAFETY_MASK with the default arm outputs 9–14 (bits 8–13).
 ARM_MASK = sum(1 << (o - 1) for o in range(9, 15))

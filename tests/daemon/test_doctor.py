@@ -14,9 +14,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.cli import main
 from companion.daemon.config import parse_config
 from companion.daemon.doctor import Findings, Verdict, evaluate, param_names
+from devkit.config import write_config
+from devkit.sim_process import SimProcess
 from sim_servo.gcs import GroundStation
-from tests.support.config import write_config
-from tests.support.sim_process import SimProcess
 
 URL = {"url": "udpout:127.0.0.1:14550"}
 ARDUPILOT = (1, 1, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_path
-from tests.support.daemon_process import ROOT
+from devkit.daemon_process import ROOT
 
 # -- the lock, in-process (flock locks belong to an open file description: a second open in
 # the same process conflicts like a second process would) --------------------------------------

@@ -8,7 +8,7 @@ import tracemalloc
 
 from companion.daemon.intake import Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import Outcome, Reply, Request
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 
 def req(kind="goto", source=("mavlink", 255, 190), payload=(1, 2, 3, 0, 0, 0)) -> Request:

@@ -20,12 +20,12 @@ from companion.daemon.config import parse_config
 from companion.daemon.requests import Reply
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.sim_process import assert_within_quantisation
+from devkit.timing import wait_until
 from sim_servo.query import query
 from tests.daemon.test_core import PARK, RATE_HZ, Rig, near
 from tests.daemon.test_core_world import telemetry, world_goto, world_rig
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.sim_process import assert_within_quantisation
-from tests.support.timing import wait_until
 
 WAIT_S = 10.0
 HEARTBEAT_PERIOD_S = 1.0  # the simulator's HEARTBEAT rate is 1 Hz

@@ -3,11 +3,11 @@ import threading
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.timing import wait_until
 from firmware_interface.commands import CommandSender, command_name, result_name
 from firmware_interface.errors import CommandRejected, ConfigurationError, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, MavlinkLink
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import wait_until
 
 SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 

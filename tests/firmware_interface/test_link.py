@@ -5,11 +5,11 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import PtyEndpoint, ScriptedPeer, TcpEndpoint, UdpEndpoint
+from devkit.timing import wait_until
 from firmware_interface.errors import ConfigurationError, InvalidUrl, LinkClosed, LinkTimeout
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink, _Codec
 from firmware_interface.transport import open_transport, parse_url
-from tests.support.mavlink_peer import PtyEndpoint, ScriptedPeer, TcpEndpoint, UdpEndpoint
-from tests.support.timing import wait_until
 
 FAST = dict(heartbeat_rate_hz=20.0, reconnect_initial_s=0.02, reconnect_max_s=0.2)
 

@@ -12,10 +12,10 @@ import time
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import ScriptedPeer, UdpClientEndpoint, UdpEndpoint
+from devkit.timing import FakeClock, wait_until
 from firmware_interface.link import PEER_HOLD_S, LinkConfig, LinkState, MavlinkLink
 from firmware_interface.signing import SigningConfig, wall_to_ticks
-from tests.support.mavlink_peer import ScriptedPeer, UdpClientEndpoint, UdpEndpoint
-from tests.support.timing import FakeClock, wait_until
 
 KEY = bytes(range(32))
 

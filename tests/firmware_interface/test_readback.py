@@ -3,12 +3,12 @@ import threading
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.timing import FakeClock
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import ConfigurationError, LinkTimeout
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.readback import OutputReadback
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import FakeClock
 
 
 @pytest.fixture

@@ -3,6 +3,7 @@ import math
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import PtyEndpoint, ScriptedPeer, UdpEndpoint
 from firmware_interface.calibration import calibration_from_ranges, default_calibration
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import (
@@ -21,7 +22,6 @@ from firmware_interface.servo import (
     make_servo_dialect,
 )
 from firmware_interface.updates import UpdateState, UpdateTracker
-from tests.support.mavlink_peer import PtyEndpoint, ScriptedPeer, UdpEndpoint
 
 IN_USE = "ServoRelayEvent: Channel 11 is already in use"
 

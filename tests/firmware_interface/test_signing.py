@@ -1,6 +1,8 @@
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.timing import wait_until
 from firmware_interface.errors import ConfigurationError, SigningStateError
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.signing import (
@@ -11,8 +13,6 @@ from firmware_interface.signing import (
     load_key,
     wall_to_ticks,
 )
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import wait_until
 
 KEY = bytes(range(32))
 WRONG_KEY = bytes(32)

@@ -9,6 +9,8 @@ import os
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.timing import FakeClock, wait_until
 from firmware_interface.errors import SigningStateError
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
 from firmware_interface.signing import (
@@ -19,8 +21,6 @@ from firmware_interface.signing import (
     wall_to_ticks,
     write_state_file,
 )
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import FakeClock, wait_until
 
 KEY = bytes(range(32))
 NOW_UNIX_S = 1_790_000_000.0  # late 2026

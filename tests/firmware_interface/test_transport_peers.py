@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import socket
 
+from devkit.timing import wait_until
 from firmware_interface.transport import UdpInTransport, local_address_towards, open_transport
-from tests.support.timing import wait_until
 
 
 def udp_socket() -> socket.socket:

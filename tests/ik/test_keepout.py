@@ -12,8 +12,8 @@ from companion.ik.keepout import ClearVerdict, solve_clear
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.collision import KeepOut
 from companion.kinematics.vehicle import Mount
-from tests.support.keepout import QUAD_450
-from tests.support.timing import FakeClock
+from devkit.keepout import QUAD_450
+from devkit.timing import FakeClock
 
 ARM = Arm.default()
 QUAD = KeepOut(ARM, QUAD_450, Mount(), 1.0)

@@ -13,7 +13,7 @@ from companion.ik import SolverSettings, StopReason, TargetMode, layout, solve, 
 from companion.kinematics import rotation_angle
 from companion.kinematics.arm import Arm, Pose
 from companion.papers.objective import IKObjective
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 ARM = Arm.default()
 G = Pose(-20, 3, 40, 0, 10, 15)  # the papers' target: unreachable within the Table 2 limits

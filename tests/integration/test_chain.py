@@ -18,9 +18,9 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.kinematics.arm import Arm
+from devkit.sim_process import assert_within_quantisation
+from devkit.timing import wait_until
 from sim_servo.gcs import GroundStation
-from tests.support.sim_process import assert_within_quantisation
-from tests.support.timing import wait_until
 
 pytestmark = pytest.mark.slow  # three processes per test
 

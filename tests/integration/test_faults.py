@@ -25,8 +25,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
-from tests.support.sim_process import SimProcess, assert_within_quantisation, hand_errors
-from tests.support.timing import wait_until
+from devkit.sim_process import SimProcess, assert_within_quantisation, hand_errors
+from devkit.timing import wait_until
 
 pytestmark = pytest.mark.slow  # a simulator process per test, faults that take seconds
 

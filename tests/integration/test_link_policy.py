@@ -14,9 +14,9 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.timing import wait_until
 from firmware_interface.signing import write_state_file
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.timing import wait_until
 
 KEY = bytes(range(32))
 PARK_DEG = [10, 80, 10, 5, 5, 5]

@@ -7,6 +7,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.service import Outcome
+from devkit.sim_process import hand_errors
+from devkit.timing import wait_until
 from sim_servo.lua_bridge import SCRIPT_ANSWER_MS
 from tests.integration.test_faults import (
     QUANT_ORI_DEG,
@@ -16,8 +18,6 @@ from tests.integration.test_faults import (
     sim_pwm,
     start_daemon,
 )
-from tests.support.sim_process import hand_errors
-from tests.support.timing import wait_until
 
 pytestmark = pytest.mark.slow  # a simulator process
 

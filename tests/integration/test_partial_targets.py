@@ -12,8 +12,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.kinematics.arm import Arm, Pose
+from devkit.timing import WAIT_S, wait_until
 from sim_servo.gcs import GroundStation
-from tests.support.timing import WAIT_S, wait_until
 
 pytestmark = pytest.mark.slow
 

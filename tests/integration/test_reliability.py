@@ -1,6 +1,6 @@
 """Reliability campaign, inputs side (issue 8), at CI size: adversarial targets through the
 daemon's target path and fuzz on its MAVLink input. The machinery is
-``tests/support/campaign.py``; ``python -m bench.reliability`` runs the same campaign longer;
+``devkit/campaign.py``; ``python -m bench.reliability`` runs the same campaign longer;
 the config fuzz is ``tests/daemon/test_config_fuzz.py``.
 
 Everything is real: the daemon's control thread, UDP sockets, the simulator and the daemon as
@@ -9,10 +9,8 @@ subprocesses. Waits are bounded waits on conditions (futures, ACKs, the control 
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import socket
 
 import numpy as np
 import pytest
@@ -21,7 +19,7 @@ from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from companion.kinematics.arm import Arm
-from tests.support.campaign import (
+from devkit.campaign import (
     ALLOWED_OUTCOMES,
     TARGET_MIX,
     make_targets,
@@ -30,6 +28,7 @@ from tests.support.campaign import (
     start_sim,
     target_daemon_config,
 )
+from devkit.control_client import ControlConnection
 
 SEED = 8
 #: Targets at CI size; ``python -m bench.reliability --targets 100000`` (or its default 300000)
@@ -210,16 +209,10 @@ def test_control_socket_survives_an_integer_too_big_for_a_float(sims, daemons):
     daemon = daemons({"link": {"url": sim.url}})
     daemon.wait_link("up", 30.0)
     # request() would serialise a Python int just the same; raw bytes show the wire.
-    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-        sock.settimeout(WAIT_S)
-        sock.connect(str(daemon.control_path))
-        sock.sendall(b'{"cmd": "goto", "pose": [' + b"9" * 400 + b", 0, 0, 0, 0, 0]}\n")
-        reply = b""
-        while not reply.endswith(b"\n"):
-            chunk = sock.recv(65536)
-            assert chunk, "the daemon closed the connection without a reply"
-            reply += chunk
-    assert json.loads(reply) == {
+    with ControlConnection(daemon.control_path, timeout_s=WAIT_S) as conn:
+        conn.send_raw(b'{"cmd": "goto", "pose": [' + b"9" * 400 + b", 0, 0, 0, 0, 0]}\n")
+        reply = conn.reply()
+    assert reply == {
         "ok": False,
         "error": "refused: a number with 400 digits in a row (at most 20)",
     }

@@ -11,8 +11,8 @@ import time
 import pytest
 
 from companion.daemon.config import parse_config
-from tests.support.daemon_process import NOT_SERVING
-from tests.support.timing import WAIT_S, wait_until
+from devkit.daemon_process import NOT_SERVING
+from devkit.timing import WAIT_S, wait_until
 
 PARK = [0, 90, 0, 0, 0, 0]
 

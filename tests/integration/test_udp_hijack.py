@@ -16,8 +16,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
-from tests.support.mavlink_peer import ScriptedPeer, UdpClientEndpoint
-from tests.support.timing import wait_until
+from devkit.mavlink_peer import ScriptedPeer, UdpClientEndpoint
+from devkit.timing import wait_until
 
 PARK_DEG = [10, 80, 10, 5, 5, 5]
 

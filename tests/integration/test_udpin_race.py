@@ -25,8 +25,8 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.timing import wait_until
 from sim_servo.gcs import GroundStation
-from tests.support.timing import wait_until
 
 WAIT_S = 15.0
 #: A reachable target (the hand of the demo's comfortable pose).

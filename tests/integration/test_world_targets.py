@@ -10,7 +10,7 @@ import pytest
 from companion.kinematics.arm import Arm
 from companion.kinematics.rotations import rpy_to_matrix
 from companion.kinematics.vehicle import Mount, base_to_world, transform
-from tests.support.timing import WAIT_S, wait_until
+from devkit.timing import WAIT_S, wait_until
 
 pytestmark = pytest.mark.slow
 

@@ -26,7 +26,7 @@ from companion.kinematics.collision import (
     segment_segment_distance,
 )
 from companion.kinematics.vehicle import Mount
-from tests.support.keepout import QUAD_450, point_segment, sampled_clearance
+from devkit.keepout import QUAD_450, point_segment, sampled_clearance
 
 ARM = Arm.default()
 MOUNT = Mount()

@@ -16,7 +16,7 @@ from companion.papers.de import (
     distinct_indices,
 )
 from companion.papers.objective import IKObjective, OrientationMetric
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 # A hand-built population of five 2-D points; costs make row 3 the best.
 POP = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [2.0, 2.0], [3.0, 1.0]])

@@ -7,7 +7,7 @@ import pytest
 
 from companion.papers.base import StopReason
 from companion.papers.hs import HarmonySearch, harmony_search
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 
 class Sphere:

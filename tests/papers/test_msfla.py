@@ -9,7 +9,7 @@ from companion.kinematics.arm import Arm, Pose
 from companion.papers.base import StopReason
 from companion.papers.msfla import ShuffledFrogLeaping, shuffled_frog_leaping
 from companion.papers.objective import IKObjective
-from tests.support.timing import FakeClock
+from devkit.timing import FakeClock
 
 
 class Sphere:

@@ -7,6 +7,7 @@ import time
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from devkit.mavlink_peer import MavPeer
 from sim_servo.autopilot import SimAutopilot
 from sim_servo.config import SimConfig
 from sim_servo.endpoints import UdpEndpoint
@@ -31,17 +32,9 @@ def start(tmp_path, autopilot_cls=SimAutopilot, gcs=None, config=None):
 
 def test_exchange_query_and_stop(tmp_path):
     server, endpoint, _, thread, result = start(tmp_path)
-    _, host, port = endpoint.url.split(":")
-    mav, dec = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None)
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
-        client.settimeout(5)
-        client.sendto(
-            mav.command_long_encode(1, 1, 183, 0, 9, 1234, 0, 0, 0, 0, 0).pack(mav),
-            (host, int(port)),
-        )
-        got = []
-        while not any(m.get_type() == "COMMAND_ACK" for m in got):
-            got += dec.parse_buffer(client.recvfrom(4096)[0]) or []
+    with MavPeer.connect(endpoint.url) as client:
+        client.command(183, 9, 1234)
+        client.next_message(lambda m: m.get_type() == "COMMAND_ACK")
     state = query(tmp_path / "q.sock", "state")
     assert state["outputs"]["9"]["pwm_us"] == 1234 and state["link"]["closed"] is False
     assert any(e["event"] == "ack" for e in query(tmp_path / "q.sock", "events")["events"])
@@ -51,47 +44,23 @@ def test_exchange_query_and_stop(tmp_path):
     assert not (tmp_path / "q.sock").exists()
 
 
-def address(endpoint):
-    _, host, port = endpoint.url.split(":")
-    return host, int(port)
-
-
-def receive_until(sock, dec, predicate, timeout_s=5.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for msg in dec.parse_buffer(sock.recvfrom(4096)[0]) or []:
-            if predicate(msg):
-                return msg
-    raise AssertionError("no matching message within the timeout")
-
-
 def test_frames_are_routed_between_the_companion_and_the_ground_station(tmp_path):
     gcs_endpoint = UdpEndpoint("127.0.0.1", 0)
     server, endpoint, _, thread, result = start(tmp_path, gcs=gcs_endpoint)
-    gcs, companion = mavlink.MAVLink(None, 255, 190), mavlink.MAVLink(None, 1, 191)
-    dec_gcs, dec_companion = mavlink.MAVLink(None), mavlink.MAVLink(None)
     with (
-        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as c_sock,
-        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as g_sock,
+        MavPeer.connect(endpoint.url, system_id=1, component_id=191) as companion,
+        MavPeer.connect(gcs_endpoint.url) as gcs,
     ):
-        for sock in (c_sock, g_sock):
-            sock.settimeout(5)
-        g_sock.sendto(gcs.heartbeat_encode(6, 8, 0, 0, 4).pack(gcs), address(gcs_endpoint))
+        gcs.send_heartbeat(8, 6)
         # The autopilot's heartbeat tells us it has heard (and routes to) the ground station.
-        receive_until(g_sock, dec_gcs, lambda m: m.get_type() == "HEARTBEAT")
-        c_sock.sendto(companion.heartbeat_encode(18, 8, 0, 0, 4).pack(companion), address(endpoint))
-        receive_until(g_sock, dec_gcs, lambda m: m.get_srcComponent() == 191)
-        target = gcs.command_long_encode(1, 191, mavlink.MAV_CMD_USER_1, 0, 1, 2, 3, 4, 5, 6, 0)
-        g_sock.sendto(target.pack(gcs), address(gcs_endpoint))
-        got = receive_until(c_sock, dec_companion, lambda m: m.get_type() == "COMMAND_LONG")
+        gcs.next_message(lambda m: m.get_type() == "HEARTBEAT")
+        companion.send_heartbeat(8, 18)
+        gcs.next_message(lambda m: m.get_srcComponent() == 191)
+        gcs.command(mavlink.MAV_CMD_USER_1, 1, 2, 3, 4, 5, 6, target=(1, 191))
+        got = companion.next_message(lambda m: m.get_type() == "COMMAND_LONG")
         assert got.get_srcSystem() == 255 and (got.param1, got.param6) == (1.0, 6.0)
-        ack = companion.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190)
-        c_sock.sendto(ack.pack(companion), address(endpoint))
-        got = receive_until(
-            g_sock,
-            dec_gcs,
-            lambda m: m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_USER_1,
-        )
+        companion.send(companion.mav.command_ack_encode(mavlink.MAV_CMD_USER_1, 0, 0, 0, 255, 190))
+        got = gcs.ack(mavlink.MAV_CMD_USER_1)
         assert got.get_srcComponent() == 191
     state = query(tmp_path / "q.sock", "state")
     assert state["stats"]["routed"] >= 3 and state["gcs_link"]["closed"] is False

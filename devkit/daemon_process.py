@@ -1,7 +1,7 @@
 """``armbridge run`` as a subprocess: the one way the tests (and benches) start the daemon.
 
 :class:`DaemonProcess` writes the config it is given (a dict, see
-:func:`tests.support.config.write_config`), starts ``python -m companion.daemon.cli run
+:func:`devkit.config.write_config`), starts ``python -m companion.daemon.cli run
 --config FILE``, and returns once the control socket answers a ``status`` request, bounded.
 It always stops and reaps the process; its stdout and stderr go to one log file, which every
 failure message includes.
@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from companion.daemon.control_socket import request
-from tests.support.config import write_config
-from tests.support.process import kill, terminate
-from tests.support.timing import WAIT_S, wait_until
+from devkit.config import write_config
+from devkit.process import kill, terminate
+from devkit.timing import WAIT_S, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Start-up bound: importing numba and loading the solver's kernels take seconds when loaded.

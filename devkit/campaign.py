@@ -49,11 +49,11 @@ from companion.daemon.config import parse_config
 from companion.daemon.service import ArmDaemon, Outcome
 from companion.ik import warm_up
 from companion.kinematics.arm import Arm, Pose
+from devkit.config import toml_document
+from devkit.daemon_process import NOT_SERVING, DaemonProcess, run_daemon
+from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
+from devkit.sim_process import SimProcess
 from firmware_interface import ArmCalibration
-from tests.support.config import toml_document
-from tests.support.daemon_process import NOT_SERVING, DaemonProcess, run_daemon
-from tests.support.mavlink_peer import ScriptedPeer, UdpEndpoint
-from tests.support.sim_process import SimProcess
 
 WAIT_S = 10.0
 OUR_COMPONENT = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191, the daemon's default
@@ -220,7 +220,7 @@ def make_targets(arm: Arm, n: int, rng: np.random.Generator) -> list[tuple[str, 
             for slot in rng.choice(6, size=int(rng.integers(1, 7)), replace=False)
         ]
 
-        def non_finite(pose: list[float], slots=slots) -> list[float]:
+        def non_finite(pose: list[float], slots: list[tuple[int, float]] = slots) -> list[float]:
             for slot, value in slots:
                 pose[slot] = value
             return pose
@@ -252,7 +252,7 @@ def make_targets(arm: Arm, n: int, rng: np.random.Generator) -> list[tuple[str, 
         q = rng.uniform(lo, hi)
         turns = rng.integers(-1000, 1001, 3) * 360.0
 
-        def wrapped(pose: list[float], turns=turns) -> list[float]:
+        def wrapped(pose: list[float], turns: np.ndarray = turns) -> list[float]:
             return pose[:3] + [p + t for p, t in zip(pose[3:], turns, strict=True)]
 
         fk_later("angle_wrapped", q, wrapped)
@@ -265,7 +265,7 @@ def make_targets(arm: Arm, n: int, rng: np.random.Generator) -> list[tuple[str, 
         q = np.where(at_limit, side + np.where(side == lo, -offset, offset), q)
         nudge = rng.choice([0.0, 1.0], 6) * rng.normal(0, 1e-6, 6)  # tiny nudges
 
-        def nudged(pose: list[float], nudge=nudge) -> list[float]:
+        def nudged(pose: list[float], nudge: np.ndarray = nudge) -> list[float]:
             return list(np.array(pose) + nudge)
 
         fk_later("near_boundary", q, nudged)
@@ -471,7 +471,8 @@ def _await(future: Any, deadline: float, daemon: ArmDaemon) -> Any:
         try:
             return future.result(timeout=max(0.0, min(1.0, remaining)))
         except TimeoutError:
-            if remaining <= 0 or not daemon._thread.is_alive():
+            thread = daemon._thread
+            if remaining <= 0 or thread is None or not thread.is_alive():
                 return None
 
 
@@ -508,10 +509,10 @@ def _random_scalar(rng: np.random.Generator, kind: str) -> Any:
     raise ValueError(f"unknown MAVLink field type {kind!r}")
 
 
-def random_message(rng: np.random.Generator, cls: type) -> mavlink.MAVLink_message:
+def random_message(rng: np.random.Generator, cls: Any) -> mavlink.MAVLink_message:
     """An instance of pymavlink message class ``cls`` with random values in every field."""
     lengths = dict(zip(cls.ordered_fieldnames, cls.array_lengths, strict=True))
-    values = []
+    values: list[Any] = []
     for name, kind in zip(cls.fieldnames, cls.fieldtypes, strict=True):
         length = lengths[name]
         if kind == "char":
@@ -981,6 +982,7 @@ def config_cases(directory: Path, rng: np.random.Generator) -> list[ConfigCase]:
         data = _base_config()
         section, key = dotted.split(".")
         if section == "joint":
+            assert joint_index is not None
             data["joint"][joint_index - 1][key] = value
         else:
             table = data.setdefault(section, {})

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.support.joint_steps import Change, JointStep, joint_steps, output_changes
+from devkit.joint_steps import Change, JointStep, joint_steps, output_changes
 
 #: 0.1 ° per µs around 1500 µs (1000 µs ↔ −50°, 2000 µs ↔ 50°).
 DEG_PER_US = 0.1

@@ -7,19 +7,21 @@ import math
 import select
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from companion.kinematics import rotation_angle
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.jacobian import geometric_jacobian
+from devkit.process import kill, terminate
+from devkit.timing import WAIT_S, wait_until
 from firmware_interface.calibration import ArmCalibration, default_calibration
 from sim_servo.errors import SimIOError
 from sim_servo.eventlog import read_events
 from sim_servo.query import query
-from tests.support.process import kill, terminate
-from tests.support.timing import WAIT_S, wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -84,8 +86,10 @@ class SimProcess:
             raise AssertionError(f"simulator did not start ({exc}): {self.stderr()}") from exc
 
     def _line(self, timeout_s: float) -> str:
-        ready, _, _ = select.select([self.proc.stdout], [], [], timeout_s)
-        line = self.proc.stdout.readline().decode().strip() if ready else ""
+        stdout = self.proc.stdout
+        assert stdout is not None
+        ready, _, _ = select.select([stdout], [], [], timeout_s)
+        line = stdout.readline().decode().strip() if ready else ""
         if not line:
             raise AssertionError(f"no line on stdout within {timeout_s} s")
         return line
@@ -124,7 +128,7 @@ class SimProcess:
         False while it is away. Wait for the ``fault`` events ``hangup``/``reopen``."""
         return bool(query(self.query_path, "hangup").get("ok"))
 
-    def events(self, event: str | None = None, **fields) -> list[dict]:
+    def events(self, event: str | None = None, **fields: Any) -> list[dict]:
         """The event log so far, optionally only ``event`` entries with these field values."""
         return [
             e
@@ -156,7 +160,7 @@ class SimProcess:
         self.stop()
 
 
-def hand_errors(target, hand: dict) -> tuple[float, float]:
+def hand_errors(target: Sequence[float], hand: dict) -> tuple[float, float]:
     """Position (cm) and orientation (deg, rotation angle) of the sim's reported ``hand`` from a
     target pose (6 numbers)."""
     goal = Pose(*target)
@@ -167,7 +171,10 @@ def hand_errors(target, hand: dict) -> tuple[float, float]:
 
 
 def quantisation_bound(
-    q_deg, slack_us: float, arm: Arm | None = None, calibration: ArmCalibration | None = None
+    q_deg: Sequence[float],
+    slack_us: float,
+    arm: Arm | None = None,
+    calibration: ArmCalibration | None = None,
 ) -> tuple[float, float]:
     """The largest hand error (cm, deg) that each joint's PWM being off by ``slack_us`` can
     cause at ``q_deg``: first order, summed over joints (a bound), plus 10 %. Defaults: the
@@ -191,7 +198,9 @@ def quantisation_bound(
 SERVO_SLACK_US = 1.5
 
 
-def assert_within_quantisation(target, hand: dict, q_deg, slack_us: float = SERVO_SLACK_US):
+def assert_within_quantisation(
+    target: Sequence[float], hand: dict, q_deg: Sequence[float], slack_us: float = SERVO_SLACK_US
+) -> tuple[float, float]:
     """The sim's ``hand`` is at ``target`` as nearly as PWM off by ``slack_us`` at the commanded
     joints ``q_deg`` allows; returns the errors (cm, deg)."""
     pos, ori = hand_errors(target, hand)

@@ -4,6 +4,8 @@ arm's capsules by dense sampling along their axes. Used by the tests and ``bench
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from companion.kinematics import rpy_to_matrix
@@ -19,19 +21,19 @@ QUAD_450 = (
 )
 
 
-def point_segment(p, a, b):
+def point_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     d = b - a
     dd = float(d @ d)
     t = np.clip(((p - a) @ d) / dd, 0.0, 1.0) if dd > 0 else np.zeros(p.shape[:-1])
     return np.linalg.norm(p - (a + t[..., None] * d), axis=-1)
 
 
-def _local(p, center, rpy_deg):
+def _local(p: np.ndarray, center: Sequence[float], rpy_deg: Sequence[float]) -> np.ndarray:
     rot = rpy_to_matrix(*np.radians(rpy_deg))
     return (p - np.asarray(center)) @ rot
 
 
-def point_distance(p, v):
+def point_distance(p: np.ndarray, v: Box | Capsule | Cylinder | Sphere) -> np.ndarray:
     """Distance (cm) from points ``(..., 3)`` in body FRD to volume ``v``; 0 inside."""
     if isinstance(v, Sphere):
         return np.maximum(np.linalg.norm(p - np.asarray(v.center_cm), axis=-1) - v.radius_cm, 0)
@@ -47,7 +49,7 @@ def point_distance(p, v):
     return np.hypot(radial, axial)
 
 
-def sampled_clearance(ko: KeepOut, q, points=200):
+def sampled_clearance(ko: KeepOut, q: np.ndarray, points: int = 200) -> np.ndarray:
     """Per configuration of ``q`` ``(S, n)``: the least (distance − capsule radius) over
     ``points`` samples along every link capsule's axis and every volume (cm)."""
     seg = ko.segments(np.atleast_2d(q))  # (S, C, 2, 3)

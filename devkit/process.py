@@ -5,7 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 
-from tests.support.timing import WAIT_S
+from devkit.timing import WAIT_S
 
 
 def terminate(proc: subprocess.Popen, timeout_s: float = WAIT_S) -> int:
