@@ -1251,9 +1251,9 @@ def test_a_motion_that_became_unsafe_stops_before_the_volume():
     rig.up()
     goal = tuple(p + d for p, d in zip(PARK, (40.0, 0, 0, 0, 0, 0), strict=True))
     request = rig.goto(goal)
-    rig.core.config = keepout_rig(
-        tuple(p + d for p, d in zip(PARK, (20.0, 0, 0, 0, 0, 0), strict=True))
-    ).config
+    rig.core.reconfigure(
+        keepout_rig(tuple(p + d for p, d in zip(PARK, (20.0, 0, 0, 0, 0, 0), strict=True))).config
+    )
     for _ in range(40):  # 3 deg a tick
         rig.ack_all(rig.sent)
         rig.sent.clear()
@@ -1266,7 +1266,7 @@ def test_a_motion_that_became_unsafe_stops_before_the_volume():
 
 def test_a_clear_verdict_is_checked_again_at_the_pwm_sent(monkeypatch):
     # Should solve_clear ever call a colliding answer clear, the core refuses it all the same.
-    from companion.daemon import core as core_module
+    from companion.daemon.core import keepout_gate
     from companion.ik.keepout import ClearResult, ClearVerdict
 
     goal = tuple(p + d for p, d in zip(PARK, (30.0, 0, 0, 0, 0, 0), strict=True))
@@ -1274,7 +1274,7 @@ def test_a_clear_verdict_is_checked_again_at_the_pwm_sent(monkeypatch):
     wrong = ClearResult(
         ClearVerdict.CLEAR, fake_solve(Pose.from_sequence(goal), None), None, 1, 0.1
     )
-    monkeypatch.setattr(core_module, "solve_clear", lambda *a, **k: wrong)
+    monkeypatch.setattr(keepout_gate, "solve_clear", lambda *a, **k: wrong)
     reply = rig.reply(rig.goto(goal))
     assert reply.outcome is Outcome.FAILED and "'ball'" in reply.message
     assert "at the PWM sent" in reply.message
