@@ -107,11 +107,12 @@ class Rig:
         self.sent += new
         return new
 
-    def frame(self, build, src=(1, 1)):
+    def frame(self, build, src=(1, 1), received_s=None):
+        """A frame from ``src``, taken now; ``received_s``: when it arrived (default: now)."""
         codec = self.codecs.setdefault(src, mavlink.MAVLink(None, *src))
         buf = build(codec).pack(codec)
         msg = self.decoder.parse_buffer(buf)[0]
-        return self.take(self.core.frame(msg))
+        return self.take(self.core.frame(msg, received_s))
 
     def heartbeat(self, src=(1, 1), autopilot=mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA):
         return self.frame(
@@ -124,8 +125,8 @@ class Rig:
     def statustext(self, text, src=(1, 1)):
         return self.frame(lambda c: c.statustext_encode(6, text.encode()), src)
 
-    def system_time(self, boot_ms, src=(1, 1)):
-        return self.frame(lambda c: c.system_time_encode(0, boot_ms), src)
+    def system_time(self, boot_ms, src=(1, 1), received_s=None):
+        return self.frame(lambda c: c.system_time_encode(0, boot_ms), src, received_s)
 
     def readback(self, pwm_by_output, src=(1, 1)):
         """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0)."""

@@ -16,6 +16,8 @@ from companion.daemon.core import (
     ReadParam,
     SendCommand,
 )
+from companion.daemon.core.outputs import band_of, middle
+from companion.daemon.core.outputs_ardupilot import band_allows, widen
 from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.autopilot_models import (
     ARM_MASK,
@@ -220,3 +222,23 @@ def test_ardupilot_no_joint_moves_faster_than_a_step_through_switch_and_reboot_c
         ap.run(float(np.exp(rng.uniform(math.log(0.01), math.log(0.6)))))
     assert len(ap.changes) > 100
     assert ap.fast_changes() == []
+
+
+# -- the safety band, alone ----------------------------------------------------------------------
+
+
+def test_the_band_of_poses_spans_each_joint_and_its_middle_is_within_half_of_it():
+    band = band_of([(0.0, 10.0), (3.0, 8.0), (1.0, 9.0)])
+    assert band == ([0.0, 8.0], [3.0, 10.0])
+    assert middle(band) == (1.5, 9.0)
+
+
+def test_a_step_may_widen_the_band_only_up_to_its_width():
+    band = band_of([(0.0, 0.0)])
+    assert band_allows(band, (3.0, -3.0), 3.0)
+    assert not band_allows(band, (3.1, 0.0), 3.0)
+    widen(band, (3.0, -1.0))
+    assert band == ([0.0, -1.0], [3.0, 0.0])
+    # Back within the band is always allowed; further out on the wide joint is not.
+    assert band_allows(band, (1.0, -0.5), 3.0)
+    assert not band_allows(band, (-0.5, 0.0), 3.0)

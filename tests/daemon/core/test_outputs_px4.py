@@ -11,6 +11,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from companion.daemon.core import (
     MARKER_OFFSET_US,
 )
+from companion.daemon.core.outputs_px4 import marker_pwm_candidates
 from companion.daemon.requests import Outcome
 from tests.daemon.core.rig import (
     ACTUATOR,
@@ -262,3 +263,24 @@ def test_property_px4_outputs_never_jump_faster_than_the_speed_limit(events):
         joint = rig.calibration.for_output(output)
         step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
         assert abs(after - before) <= step_us + 1, (output, before, after)
+
+
+# -- the marker, alone ---------------------------------------------------------------------------
+
+
+def test_the_marker_is_tried_towards_the_middle_of_the_range_first():
+    assert marker_pwm_candidates(1000, 1500.0, 1000) == [1000 + MARKER_OFFSET_US, 998, 1000]
+    assert marker_pwm_candidates(2000, 1500.0, 2000) == [2000 - MARKER_OFFSET_US, 2002, 2000]
+
+
+def test_an_output_showing_a_pwm_outside_its_range_is_marked_at_the_nearest_end():
+    rig, px4 = px4_rig(disarmed_us=900)  # below every servo's 1000 us
+    px4.readback()
+    rig.advance(0.05)
+    output = rig.calibration.outputs[0]
+    joint = rig.calibration.for_output(output)
+    stored = [c for c in rig.sent if c.command == ACTUATOR]
+    assert stored  # the markers went out
+    px4.handle()
+    # Nothing fits 2 us from 900 inside the range: the nearest angle (the range's end).
+    assert px4.stored[output] == joint.pwm_min_us

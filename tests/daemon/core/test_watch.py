@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.daemon.core.watch import is_reboot
 from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.autopilot_models import (
     SERVO_OUTPUT_RAW,
@@ -262,3 +263,14 @@ def test_after_a_reboot_every_stream_the_core_reads_is_asked_for_again():
     assert ap.core.status()["counters"]["autopilot_reboots"] == 1
     assert ap.streams == asked_before
     assert ap.core.status()["safety_on"] is False
+
+
+def test_a_reboot_is_time_boot_going_back_or_falling_behind_the_time_elapsed():
+    # Backwards by more than a reordering:
+    assert is_reboot(60_000, 0.0, 59_000, 0.25, after_silence=False)
+    assert not is_reboot(60_000, 0.0, 59_950, 0.0, after_silence=False)
+    # Behind the time elapsed by more than a delayed frame (REBOOT_LAG_MS) ...
+    assert not is_reboot(60_000, 0.0, 60_000, 0.5, after_silence=False)
+    assert is_reboot(60_000, 0.0, 60_000, 1.0, after_silence=False)
+    # ... or after a silence, by more than REBOOT_LAG_AFTER_SILENCE_MS.
+    assert is_reboot(60_000, 0.0, 60_000, 0.6, after_silence=True)
