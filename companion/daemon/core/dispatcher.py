@@ -124,7 +124,8 @@ class ControlCore:
 
     def frame(self, msg: Any, received_s: float | None = None) -> list[Action]:
         """A frame from the link (see ``service.CORE_FRAMES``), received at ``received_s``
-        (default: now; the vehicle's telemetry and the readback are dated from it)."""
+        (default: now; the ACKs, SYSTEM_TIME, the readback and the vehicle's telemetry are
+        dated from it)."""
         actions: list[Action] = []
         kind = msg.get_type()
         source = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -149,7 +150,7 @@ class ControlCore:
                 text = text.decode("ascii", "replace")
             self.updates.on_statustext(str(text))
         elif kind == "SYSTEM_TIME":
-            watch.on_system_time(actions, int(msg.time_boot_ms))
+            watch.on_system_time(actions, int(msg.time_boot_ms), at_s)
         elif kind == "SERVO_OUTPUT_RAW":
             shown = {
                 n: int(v)

@@ -167,17 +167,19 @@ class AutopilotWatch:
         for name in core.outputs.params_to_read():
             actions.append(ReadParam(self.pinned, name))
 
-    def on_system_time(self, actions: list[Action], boot_ms: int) -> None:
-        """A SYSTEM_TIME from the pinned autopilot: a reboot shows in ``time_boot_ms``."""
+    def on_system_time(self, actions: list[Action], boot_ms: int, received_s: float) -> None:
+        """A SYSTEM_TIME from the pinned autopilot, arrived at ``received_s``: a reboot shows
+        in ``time_boot_ms``. Its arrival dates it, not when this thread takes it: a control
+        thread that stalls (a loaded machine) would otherwise see ``time_boot_ms`` fall behind
+        the time elapsed, a reboot that did not happen."""
         previous, previous_s = self.boot_ms, self._boot_seen_s
-        now = self._core.clock()
         after_silence = previous is not None and (
-            self._system_time_s is None or now - previous_s > SYSTEM_TIME_GAP_S
+            self._system_time_s is None or received_s - previous_s > SYSTEM_TIME_GAP_S
         )
-        self.boot_ms, self._boot_seen_s = boot_ms, now
-        self._system_time_s = now
+        self.boot_ms, self._boot_seen_s = boot_ms, received_s
+        self._system_time_s = received_s
         if previous is not None and is_reboot(
-            previous, previous_s, boot_ms, now, after_silence=after_silence
+            previous, previous_s, boot_ms, received_s, after_silence=after_silence
         ):
             self._core.state.counters["autopilot_reboots"] += 1
             log.warning(

@@ -274,3 +274,22 @@ def test_a_reboot_is_time_boot_going_back_or_falling_behind_the_time_elapsed():
     assert is_reboot(60_000, 0.0, 60_000, 1.0, after_silence=False)
     # ... or after a silence, by more than REBOOT_LAG_AFTER_SILENCE_MS.
     assert is_reboot(60_000, 0.0, 60_000, 0.6, after_silence=True)
+
+
+def test_a_system_time_that_arrived_on_time_but_is_taken_late_is_not_a_reboot(rig):
+    # The control thread stalled for 0.26 s: the SYSTEM_TIME that arrived 0.25 s after the one
+    # before is taken 0.51 s after it. Its arrival dates it, not when it was taken.
+    rig.goto(near(PARK))
+    rig.ack_all(rig.sent)
+    acknowledged = rig.core.status()["last_pwm_us"]
+    assert acknowledged
+    rig.system_time(60_000)
+    arrived_s = rig.clock() + 0.25
+    rig.clock.advance(0.51)
+    rig.system_time(60_250, received_s=arrived_s)
+    status = rig.core.status()
+    assert status["counters"]["autopilot_reboots"] == 0
+    assert status["last_pwm_us"] == acknowledged  # nothing forgotten, nothing to re-send
+    rig.clock.advance(0.05)
+    rig.system_time(60_560)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 0
