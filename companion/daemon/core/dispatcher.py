@@ -56,7 +56,8 @@ class ControlCore:
         self._config = config
         self.settings = CoreSettings.from_config(config)
         self.clock = clock
-        self._solve = solve
+        #: The injected IK solver (see :data:`Solve`).
+        self.solve = solve
         start = config.park_deg or tuple(
             math.degrees((j.min_rad + j.max_rad) / 2) for j in config.arm.joints
         )

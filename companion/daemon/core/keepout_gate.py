@@ -46,11 +46,11 @@ class KeepoutGate:
         core = self._core
         keepout = core.settings.keepout
         if keepout is None:
-            return core._solve(pose, start, mode, budget_ms), None
+            return core.solve(pose, start, mode, budget_ms), None
         config = core.config
 
         def solver(arm: Any, target: Pose, **kwargs: Any) -> Any:
-            return core._solve(
+            return core.solve(
                 target,
                 kwargs["q_start_deg"],
                 kwargs["mode"].value,

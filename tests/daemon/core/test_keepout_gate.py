@@ -90,7 +90,7 @@ def test_a_colliding_first_solution_is_replaced_by_a_clear_one():
     def two_branches(pose, q_start_deg, mode="pose", budget_ms=None, *, seed=None):
         return fake_solve(Pose.from_sequence(ball_q if q_start_deg == PARK else other), None)
 
-    rig.core._solve = two_branches
+    rig.core.solve = two_branches
     request = rig.goto(ball_q)
     rig.ack_all(rig.sent)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
@@ -156,7 +156,7 @@ def test_property_no_commanded_configuration_or_step_enters_a_keepout_volume(eve
             return fake_solve(Pose.from_sequence(alternative[0]), None)
         return fake_solve(pose, q_start_deg)
 
-    rig.core._solve = solver
+    rig.core.solve = solver
     commanded = np.array(PARK, float)  # what the outputs hold (as sent, in order)
     path = [commanded.copy()]
 

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import logging
 
-from companion.daemon.requests import Outcome
-from tests.daemon.core.rig import PARK, near
+from companion.daemon.core.status import source_name
+from companion.daemon.requests import Outcome, Request
+from tests.daemon.core.rig import PARK, Rig, near
 
 
 def test_a_stream_of_targets_logs_one_accepted_line_a_second_per_source(rig, caplog):
@@ -33,3 +34,19 @@ def test_a_stream_of_targets_logs_one_accepted_line_a_second_per_source(rig, cap
     assert "from socket 3 accepted" in lines[1]
     assert lines[2].endswith("(and 19 more since the last line)")
     assert lines[3].startswith("stop from mavlink 255/190 accepted")
+
+
+def test_a_log_line_names_who_asked():
+    assert source_name(Request("goto", None, source=("mavlink", 255, 190))) == "mavlink 255/190"
+    assert source_name(Request("goto", None, source=("socket", 3))) == "socket 3"
+
+
+def test_before_any_ack_status_holds_nothing_acknowledged_and_the_assumed_start_pose():
+    rig = Rig()  # the link never came up
+    status = rig.core.status()
+    assert status["current_deg"] == list(PARK) and status["last_pwm_us"] is None
+    assert status["autopilot"] is None and status["holding"] is False
+    assert {o["state"] for o in status["outputs"].values()} == {"unknown"}
+    assert status["moving"] is False and status["goal_deg"] is None
+    # The cheap subset the service publishes each step agrees with it.
+    assert rig.core.link_and_outcome_counts() == (False, 0, 0, 0)
