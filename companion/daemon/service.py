@@ -178,7 +178,7 @@ class ArmDaemon:
         self._status: dict[str, Any] = self._core.status()
         # What the service's main loop reports to systemd twice a second (brief()), published
         # by the control thread after each step: that loop then never wakes it for a snapshot.
-        self._brief = self._core.brief()
+        self._brief = self._core.link_and_outcome_counts()
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
         self._thread: threading.Thread | None = None
@@ -547,7 +547,8 @@ class ArmDaemon:
     def _step(self) -> None:
         core = self._core
         if self._new_config is not None:
-            core.config, self._new_config = self._new_config, None
+            new_config, self._new_config = self._new_config, None
+            core.reconfigure(new_config)
         # Requests first, then the frames: every frame that arrived before a request (the
         # autopilot's first HEARTBEAT, say) is then seen before it.
         requests = self.intake.take()
@@ -556,7 +557,7 @@ class ArmDaemon:
         for request in requests:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
-        self._brief = core.brief()
+        self._brief = core.link_and_outcome_counts()
         # The snapshot other threads asked for (status()), once for all of them.
         with self._status_cond:
             asked = self._status_asked

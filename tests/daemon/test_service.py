@@ -24,8 +24,7 @@ from devkit.mavlink_peer import ScriptedPeer, UdpEndpoint
 from devkit.sim_process import assert_within_quantisation
 from devkit.timing import wait_until
 from sim_servo.query import query
-from tests.daemon.test_core import PARK, RATE_HZ, Rig, near
-from tests.daemon.test_core_world import telemetry, world_goto, world_rig
+from tests.daemon.core.rig import PARK, RATE_HZ, Rig, near, telemetry, world_goto, world_rig
 
 WAIT_S = 10.0
 HEARTBEAT_PERIOD_S = 1.0  # the simulator's HEARTBEAT rate is 1 Hz
@@ -453,7 +452,7 @@ def _ack_frame(result=mavlink.MAV_RESULT_ACCEPTED):
 
 def test_the_control_thread_is_woken_by_the_ack_that_completes_an_update_not_by_each():
     """In-process, no threads: the reader's side (_on_frame) and the control thread's
-    (_feed_frames, _arm_ack_wake) around a core driven as in test_core."""
+    (_feed_frames, _arm_ack_wake) around a core driven as in tests/daemon/core."""
     rig = Rig()
     rig.up()
     daemon = ArmDaemon(rig.config, clock=rig.clock)

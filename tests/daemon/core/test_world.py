@@ -1,6 +1,8 @@
-"""World-frame targets in the control core (issue 18): the hand held in LOCAL_NED while the
-vehicle moves. The fake solver of ``test_core`` reads a base-frame pose as joint angles, so
-the goal's first three "angles" are the target's position in the arm's base frame."""
+"""World-frame targets (``core/world.py``): the hand held in LOCAL_NED while the vehicle moves.
+The fake solver reads a base-frame pose as joint angles, so the goal's first three "angles" are
+the target's position in the arm's base frame."""
+
+from __future__ import annotations
 
 import math
 
@@ -8,33 +10,24 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.requests import Outcome
-from tests.daemon.test_core import PARK, RATE_HZ, SERVO, Rig
-
-MOUNT_Z_CM = 10.0  # the default mount: the base 10 cm below the body origin, axes aligned
-LEAD_MS = 20.0
-
-
-def world_rig(**world) -> Rig:
-    rig = Rig(sections={"world": {"enabled": True, "lead_ms": LEAD_MS, **world}})
-    rig.up()
-    return rig
-
-
-def telemetry(rig, north_cm=0.0, vn_cm_s=0.0, yaw_rad=0.0, boot_ms=None):
-    boot_ms = int(rig.clock() * 1000) if boot_ms is None else boot_ms
-    rig.frame(lambda c: c.attitude_encode(boot_ms, 0.0, 0.0, yaw_rad, 0.0, 0.0, 0.0))
-    rig.frame(
-        lambda c: c.local_position_ned_encode(
-            boot_ms, north_cm / 100, 0.0, 0.0, vn_cm_s / 100, 0.0, 0.0
-        )
-    )
+from tests.daemon.core.rig import (
+    LEAD_MS,
+    MOUNT_Z_CM,
+    PARK,
+    RATE_HZ,
+    SERVO,
+    near,
+    telemetry,
+    world_goto,
+    world_rig,
+)
 
 
-def world_goto(rig, base_q):
-    """A LOCAL_NED target that is ``base_q`` in the base frame with the vehicle at the origin."""
-    x, y, z, roll, pitch, yaw = base_q
-    pose = (x, y, z + MOUNT_Z_CM, roll, pitch, yaw)
-    return rig.request("goto", {"pose": pose, "frame": "local_ned"})
+def test_a_world_frame_target_is_refused_while_world_targets_are_off(rig):
+    request = rig.request("goto", {"pose": near(PARK), "mode": "pose", "frame": "local_ned"})
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.DENIED and "local_ned" in reply.message
+    assert not [c for c in rig.sent if c.command == SERVO]
 
 
 def test_the_streams_are_asked_for_when_world_targets_are_on():

@@ -1,0 +1,301 @@
+"""ArduPilot's outputs' truth: its SYS_STATUS says where its safety switch is.
+
+ArduPilot shows in its readback what it was told even with the safety switch on; SYS_STATUS
+(MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled: the switch is off) says whether the outputs are
+live, and BRD_SAFETY_MASK which outputs the switch leaves live. What the outputs may hold
+while the switch is unseen stays within a band a step wide (``SAFETY_STEPS_AHEAD``); once the
+switch is seen on, the held outputs are sent back to the middle of that band (the rewind).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from companion.daemon.core.outputs import Band, OutputsTruth, band_of, middle
+
+if TYPE_CHECKING:
+    from companion.daemon.core.actions import Action
+    from companion.daemon.core.dispatcher import ControlCore
+    from companion.daemon.core.state import Flight
+
+log = logging.getLogger("armbridge")
+
+#: Nothing moves until a SYS_STATUS said where the safety switch is (at start, after a loss or
+#: a reboot: ArduPilot boots with it on, ``BRD_SAFETY_DEFLT``, and what is sent then is stored
+#: and goes out in one step at its release); with none this long after asking, the arm moves
+#: without knowing (and says so once).
+SYS_STATUS_WAIT_S = 2.0
+#: A SYS_STATUS stream silent for this many intervals says nothing of the switch any more:
+#: status shows the outputs as not known to be live (a reboot: they are not).
+SYS_STATUS_STALE_INTERVALS = 4
+#: ... and silent this long (at least SYS_STATUS_STALE_INTERVALS), every stream is asked for
+#: again (a rebooted ArduPilot forgot them; one asked while it reboots is lost), so a reboot is
+#: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
+SYS_STATUS_SILENT_S = 0.5
+
+SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
+
+
+def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
+    """Whether adding ``step`` to ``band`` keeps it within ``width_deg`` on every joint."""
+    low, high = band
+    width = width_deg + 1e-9
+    return all(max(hi, a) - min(lo, a) <= width for lo, hi, a in zip(low, high, step, strict=True))
+
+
+def widen(band: Band, step: Sequence[float]) -> None:
+    """Widen ``band`` (in place) to hold ``step``."""
+    low, high = band
+    for i, a in enumerate(step):
+        low[i], high[i] = min(low[i], a), max(high[i], a)
+
+
+class ArduPilotOutputs(OutputsTruth):
+    """ArduPilot: the safety switch says whether the outputs are live (module docstring)."""
+
+    def __init__(self, core: ControlCore) -> None:
+        super().__init__(core)
+        #: BRD_SAFETY_MASK (None: not read yet; then no output is assumed to be in it).
+        self._safety_mask: int | None = None
+        self._sys_status_asked_s = core.clock()
+        self._sys_status_s: float | None = None  # when the last SYS_STATUS came (None: none)
+        #: A SYS_STATUS came from this autopilot once: it streams them, so the arm never moves
+        #: without one (a stream lost in a reboot is asked for again instead).
+        self._sys_status_ever = False
+        self._sys_status_warned = False
+        #: Per joint, the lowest and highest angle the outputs may hold since the last
+        #: SYS_STATUS that said the switch was off (see ``SAFETY_STEPS_AHEAD``; None: no such
+        #: SYS_STATUS since the start, a loss or a reboot). A loss or a reboot forgets it (a
+        #: rebooted ArduPilot comes back with its switch at BRD_SAFETY_DEFLT).
+        self._held_since_off: Band | None = None
+        #: After a loss or a reboot until every output is acknowledged again: the band of
+        #: poses the outputs may hold from before it (the re-send among them).
+        self._held_before_loss: Band | None = None
+        #: A motion step waited for a SYS_STATUS (the band): it goes out when one comes.
+        self._step_waits_for_sys_status = False
+        #: The pose to send the held outputs back to once the switch was seen on (the rewind).
+        self._rewind_to: tuple[float, ...] | None = None
+
+    # -- frames -----------------------------------------------------------------------------
+
+    def on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
+        """The safety switch, as a SYS_STATUS says (see ``SAFETY_STEPS_AHEAD``)."""
+        core, state = self._core, self._core.state
+        self._sys_status_s = core.clock()
+        self._sys_status_ever = True
+        if safety_on != self.safety_on:
+            log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+            if safety_on and self._held_since_off is not None:
+                self._rewind_to = middle(self._held_since_off)
+            elif not safety_on:
+                self._rewind_to = None
+        self.safety_on = safety_on
+        if safety_on:
+            return
+        # Off now: the outputs hold what was acknowledged, or a step still on its way (or one
+        # whose update ended unanswered: it is sent again before anything else).
+        poses = [f.step_deg for f in state.flights]
+        if state.unconfirmed is not None:
+            poses.append(state.unconfirmed)
+        if self._held_before_loss is not None:  # what they held before is unknown: that band
+            poses += [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
+        else:
+            poses.append(tuple(state.position))
+        self._held_since_off = band_of(poses)
+        if self._step_waits_for_sys_status and state.link_up:
+            self._step_waits_for_sys_status = False
+            core.motion.next_step(actions, immediate=False)  # the step held back for this
+
+    def on_param(self, name: str, value: float) -> None:
+        if name == SAFETY_MASK_PARAM:
+            # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
+            self._safety_mask = int(value) if math.isfinite(value) and value >= 0 else None
+
+    def params_to_read(self) -> list[str]:
+        return [SAFETY_MASK_PARAM] if self._safety_mask is None else []
+
+    def streams_asked(self, now: float) -> None:
+        self._sys_status_asked_s = now
+
+    def rebooted(self) -> None:
+        # It reads BRD_SAFETY_MASK anew at boot: a new mask applies only then.
+        self._safety_mask = None
+
+    # -- losses -----------------------------------------------------------------------------
+
+    def _forget_safety(self) -> None:
+        """A loss or a (possible) reboot: the switch is unknown until a SYS_STATUS says (it
+        boots at BRD_SAFETY_DEFLT), and no pose from before is rewound to."""
+        self.safety_on = None
+        self._sys_status_s = None
+        self._held_since_off = self._rewind_to = None
+
+    def _resend_pose(self, flights: Sequence[Flight]) -> tuple[float, ...]:
+        """After a loss or a reboot: the pose to send every output to again, within one step of
+        anything they may hold. The switch seen on: the pose they were sent back to (nothing
+        moved since). Else the middle of the band of poses they may hold since the last
+        SYS_STATUS that said off (``SAFETY_STEPS_AHEAD``: the switch may have gone on since),
+        or with none, the oldest step that was on its way (they hold it, the acknowledged
+        pose, or the step behind it)."""
+        if self.safety_on is True and self._rewind_to is not None:
+            return self._rewind_to  # seen on, not sent back yet
+        if self.safety_on is not True and self._held_since_off is not None:
+            return middle(self._held_since_off)
+        if self._held_before_loss is not None:  # lost again before the re-send was acknowledged
+            return middle(self._held_before_loss)
+        return flights[0].step_deg if flights else tuple(self._core.state.position)
+
+    def _forget_outputs(self, flights: Sequence[Flight]) -> tuple[float, ...] | None:
+        """A loss or a (possible) reboot: what the outputs may hold is kept as the band held
+        before the loss, the switch forgotten; the pose to send them to again (None: nothing
+        was ever sent)."""
+        state = self._core.state
+        if not (flights or state.ever_sent):
+            self._forget_safety()
+            return None
+        resend = self._resend_pose(flights)
+        if self._held_since_off is not None:
+            poses = [tuple(self._held_since_off[0]), tuple(self._held_since_off[1])]
+        elif self._held_before_loss is not None:
+            poses = [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
+        else:
+            poses = [tuple(state.position)] + [f.step_deg for f in flights]
+        self._held_before_loss = band_of([*poses, resend])
+        self._forget_safety()
+        return resend
+
+    def lost(self, flights: Sequence[Flight]) -> None:
+        resend = self._forget_outputs(flights)  # the switch unknown (it boots on)
+        if resend is not None:
+            # The outputs hold what they were last told (see _resend_pose): sent again within
+            # one step of it.
+            state = self._core.state
+            state.unconfirmed = resend
+            state.resend_at_once = True
+
+    def went_quiet(self, flights: Sequence[Flight], now: float) -> None:
+        resend = self._forget_outputs(flights)  # it may have rebooted, switch on
+        if not flights and resend is not None:
+            state = self._core.state
+            state.unconfirmed = resend
+            state.resend_at_once = True
+
+    # -- the motion's questions --------------------------------------------------------------
+
+    def may_move(self, actions: list[Action], now: float) -> bool:
+        if not self._safety_known(now):
+            return False
+        dead = self.dead()
+        if dead and self._rewind_to is not None:
+            self._rewind(actions, dead, now)
+        # The safety switch: whatever is sent is applied at once when it goes off.
+        return not dead
+
+    def may_pipeline(self) -> bool:
+        return True
+
+    def may_step_to(self, step: tuple[float, ...]) -> bool:
+        """A motion step to ``step`` keeps the poses the outputs may hold since the last
+        SYS_STATUS that said the switch is off within ``SAFETY_STEPS_AHEAD`` (always true when
+        none came since the start, a loss or a reboot: see ``_safety_known``)."""
+        if self._held_since_off is None:
+            return True
+        width_deg = self._core.settings.safety_band_width_deg
+        ok = band_allows(self._held_since_off, step, width_deg)
+        self._step_waits_for_sys_status = not ok
+        return ok
+
+    def stepped_to(self, step: tuple[float, ...]) -> None:
+        """A step to ``step`` went out: the outputs may hold it."""
+        if self._held_since_off is not None:
+            widen(self._held_since_off, step)
+
+    def all_acknowledged(self) -> None:
+        self._held_before_loss = None  # they hold what was acknowledged
+
+    def dead(self) -> dict[int, str]:
+        if not self.safety_on:
+            return {}
+        mask = self._safety_mask or 0
+        return {
+            o: f"safety switch on (output {o} not in BRD_SAFETY_MASK)"
+            for o in self._core.state.outputs
+            if not mask >> (o - 1) & 1
+        }
+
+    def unknown(self, now: float) -> dict[int, str]:
+        """While its SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a
+        reboot, a loss) or has not said where the switch is since a loss or a reboot."""
+        if not self._sys_status_ever:
+            return {}
+        if self._sys_status_s is None or self.safety_on is None:
+            why = "safety switch unknown (no SYS_STATUS since the link came back or a reboot)"
+        else:
+            silent_s = now - self._sys_status_s
+            interval_s = self._core.settings.sys_status_interval_s
+            if silent_s <= SYS_STATUS_STALE_INTERVALS * interval_s:
+                return {}
+            why = f"safety switch unknown (no SYS_STATUS for {silent_s * 1e3:.0f} ms)"
+        return dict.fromkeys(self._core.state.outputs, why)
+
+    def streams_silent(self, now: float) -> bool:
+        """A SYS_STATUS stream that fell silent holds the arm (``SAFETY_STEPS_AHEAD``; after a
+        loss or a reboot, until one says where the switch is); every SYS_STATUS_SILENT_S of
+        silence, every stream is asked for again (a request lost in a reboot)."""
+        if not self._sys_status_ever:
+            return False
+        heard = -math.inf if self._sys_status_s is None else self._sys_status_s
+        interval_s = self._core.settings.sys_status_interval_s
+        silent_s = max(SYS_STATUS_SILENT_S, SYS_STATUS_STALE_INTERVALS * interval_s)
+        if now - max(heard, self._sys_status_asked_s) < silent_s:
+            return False
+        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
+        say = log.info if now - heard < 2 * silent_s else log.debug
+        say("no SYS_STATUS for %.2f s: asking for every stream again", now - heard)
+        return True
+
+    def refusal_advice(self, refused: dict[int, str]) -> tuple[str, str]:
+        hint = " ".join(
+            f"Set SERVO{o}_FUNCTION = 0 on the flight controller." for o in sorted(refused)
+        )
+        first = min(refused)
+        more = f"+{len(refused) - 1}" if len(refused) > 1 else ""
+        return hint, f"Arm: set SERVO{first}_FUNCTION=0{more} (output in use)"
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def _safety_known(self, now: float) -> bool:
+        """A SYS_STATUS said where the safety switch is since the start, the last loss or
+        reboot (or none came for SYS_STATUS_WAIT_S, which is said once)."""
+        if self.safety_on is not None:
+            return True
+        if self._sys_status_ever or now - self._sys_status_asked_s < SYS_STATUS_WAIT_S:
+            return False  # (an autopilot that sent one sends them: asked again meanwhile)
+        if not self._sys_status_warned:
+            self._sys_status_warned = True
+            log.warning(
+                "no SYS_STATUS from the autopilot in %.0f s: moving without knowing its safety "
+                "switch (outputs held by it store what is sent, and jump to it at its release)",
+                SYS_STATUS_WAIT_S,
+            )
+        return True
+
+    def _rewind(self, actions: list[Action], dead: dict[int, str], now: float) -> None:
+        """The safety switch seen on: it went on at some moment since the SYS_STATUS before,
+        and its outputs have held since then what they had; the steps sent meanwhile are
+        stored and would go out in one step at its release. The dead outputs are sent back to
+        the pose commanded at that SYS_STATUS (within one SYS_STATUS interval of motion of
+        what they hold), and the motion goes on from there once the switch is off."""
+        rewind, self._rewind_to = self._rewind_to, None
+        assert rewind is not None
+        state = self._core.state
+        current = list(state.position)
+        step = tuple(
+            rewind[i] if output in dead else current[i] for i, output in enumerate(state.outputs)
+        )
+        if step != tuple(current) or not state.settled():
+            log.info("safety switch on: the held outputs sent back to where they stopped")
+            self._core.updates.send_step(actions, step, now)

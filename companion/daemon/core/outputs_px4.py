@@ -1,0 +1,394 @@
+"""PX4's outputs' truth: its readback (SERVO_OUTPUT_RAW) says whether each output is live.
+
+PX4 shows the PWM it outputs (the disarmed PWM until armed or prearmed), so an output that does
+not show what it acknowledged, READBACK_MISMATCHES times in a row once settled, is not live:
+the joint is where the readback says, and the motion holds. One found dead holds a marker
+(``MARKER_OFFSET_US`` from its disarmed PWM), so coming alive moves it 2 µs and shows at the
+next readback. Coming alive never moves a joint faster than the speed limit: while the outputs
+are not known to be live, one speed-limited step at a time, each once the readback's verdict
+on the one before is in.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+from companion.daemon.core.outputs import OutputsTruth
+
+if TYPE_CHECKING:
+    from companion.daemon.core.actions import Action
+    from companion.daemon.core.dispatcher import ControlCore
+    from companion.daemon.core.state import Flight
+
+log = logging.getLogger("armbridge")
+
+#: A readback this long after an output's ACK shows what the output does with that command
+#: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
+READBACK_SETTLE_S = 0.15
+#: This many such readbacks in a row not showing the acknowledged PWM: the output is not live.
+READBACK_MISMATCHES = 2
+#: An output found not live (showing its disarmed PWM) is told to hold a PWM this far from it,
+#: towards the middle of its range: the "marker". It moves the joint by that much when the
+#: output comes alive (arm, prearm), which the next readback then shows: live again is seen
+#: within one readback, where a readback of the disarmed PWM itself could not tell storage
+#: from output. The same at the start and after a reboot or a loss, with the arm still: the
+#: PWM the output shows, plus the offset, tells whether it is live.
+MARKER_OFFSET_US = 2
+#: Where no marker fits (a range too narrow for it), one speed-limited step towards the goal at
+#: this interval shows whether the outputs came alive instead.
+PROBE_INTERVAL_S = 1.0
+#: Outputs not yet known to be live: the next step waits for the readback's verdict on the one
+#: before (shown: live; not shown READBACK_MISMATCHES times: not live), at most this long (a
+#: readback stream that stopped must not stop the arm for good).
+VERDICT_TIMEOUT_S = 2.0
+#: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
+READBACK_TOLERANCE_US = 1
+assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from the disarmed PWM
+#: For status: a readback stream silent this many intervals says nothing of the outputs any
+#: more (a reboot: they are at the disarmed PWM; seen 44 ms after it at 50 Hz, against 66 with
+#: 3 intervals, in bench.output_cycles; one lost frame makes a 40 ms gap, not more); silent
+#: READBACK_SILENT_S (at least this many intervals), every stream is asked for again (a
+#: rebooted PX4 forgot them).
+READBACK_STALE_INTERVALS = 2
+READBACK_SILENT_S = 0.5
+#: With no readback this long after the link came up, move without it (and say so).
+READBACK_WAIT_S = 2.0
+
+
+def marker_pwm_candidates(shown_us: int, middle_us: float, nearest_us: int) -> list[int]:
+    """The PWMs to try, in order, as the marker of an output showing ``shown_us``:
+    MARKER_OFFSET_US towards ``middle_us``, then away from it, then ``nearest_us``."""
+    towards = 1 if shown_us <= middle_us else -1
+    return [
+        shown_us + towards * MARKER_OFFSET_US,
+        shown_us - towards * MARKER_OFFSET_US,
+        nearest_us,
+    ]
+
+
+class Px4Outputs(OutputsTruth):
+    """PX4: the readback says which outputs are live (see the module docstring)."""
+
+    def __init__(self, core: ControlCore) -> None:
+        super().__init__(core)
+        #: The motion moves only after a readback newer than this (start, link loss, reboot),
+        #: or READBACK_WAIT_S after it with none (a firmware that does not stream it).
+        self._readback_since_s = core.clock()
+        self._readback_warned = False
+        #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
+        #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
+        #: start, a loss or a reboot.
+        self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
+        #: Per output: readbacks in a row, settled after its ACK, not showing the acked PWM.
+        self._mismatches: dict[int, int] = {}
+        #: Outputs whose readback does not show what they acknowledged → the reason, and the
+        #: PWM they showed then (the disarmed PWM): a readback of that PWM proves nothing.
+        self._not_live: dict[int, str] = {}
+        self._dead_pwm: dict[int, int] = {}
+        #: ... how many updates had been sent when each was found not live (those sent before
+        #: it store no pose of its: its hold goes out behind them), and the PWM it is told to
+        #: hold meanwhile (its marker, ``MARKER_OFFSET_US`` from the disarmed PWM; or, with no
+        #: room for one, the PWM nearest it: then probes, ``PROBE_INTERVAL_S``).
+        self._dead_seq: dict[int, int] = {}
+        self._held_pwm: dict[int, int] = {}
+        #: Outputs whose latest settled readback showed what they acknowledged (live).
+        self._confirmed: set[int] = set()
+        #: Store the pose the outputs show now (an output was found not live).
+        self._store_hold_now = False
+
+    # -- frames -----------------------------------------------------------------------------
+
+    def on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
+        self.safety_on = safety_on  # shown, not relied on
+
+    def _check_readback(self) -> None:
+        """PX4 shows the PWM it outputs: an output that does not show what it acknowledged,
+        READBACK_MISMATCHES times in a row once settled, is not live (the joint is where the
+        readback says; the motion holds)."""
+        core, state = self._core, self._core.state
+        now = core.clock()
+        outputs = state.outputs
+        joint_of = {o: i for i, o in enumerate(outputs)}
+        for output in outputs:
+            shown = self.shown.get(output)
+            acked = state.acked_pwm.get(output)
+            if shown is None:
+                continue
+            if acked is None:
+                if not state.flights and output not in self._ack_history:
+                    # Nothing of ours acknowledged yet (start, reboot): the joint is where the
+                    # output puts it, not at the assumed start pose.
+                    state.position[joint_of[output]] = self._angle_shown(output, shown)
+                continue
+            shown_ok, settled = self._expected_pwms(output, now)
+            # PX4 applies a command on its output cycle and answers it on its commander's: a
+            # readback in between shows a step on its way, not acknowledged yet. It is ours,
+            # so the output is live.
+            on_its_way = {
+                f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
+            }
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in shown_ok | on_its_way):
+                self._mismatches[output] = 0
+                dead_pwm = self._dead_pwm.get(output)
+                if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
+                    continue  # the hold at the disarmed PWM: shown either way, proves nothing
+                self._confirmed.add(output)
+                self._dead_pwm.pop(output, None)
+                self._dead_seq.pop(output, None)
+                self._held_pwm.pop(output, None)
+                if self._not_live.pop(output, None) is not None:
+                    log.info("output %d live again (shows %d us)", output, shown)
+                continue
+            if not settled:
+                continue  # acknowledged too lately to be shown yet
+            # A live output that stops showing what it acknowledged long ago was disarmed,
+            # killed or rebooted: no second look (PX4 would apply our stored pose at once on
+            # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).
+            needed = 1 if output in self._confirmed else READBACK_MISMATCHES
+            self._confirmed.discard(output)
+            if output in self._not_live and acked == self._held_pwm.get(output):
+                continue  # told to hold its marker (or the PWM nearest the disarmed one)
+            self._mismatches[output] = self._mismatches.get(output, 0) + 1
+            if self._mismatches[output] < needed:
+                continue
+            if output not in self._not_live:
+                reason = (
+                    f"output {output} shows {shown} us, not the {acked} us acknowledged "
+                    "(disarmed, or the outputs not armed)"
+                )
+                log.warning("%s: holding the arm where it is", reason)
+                self._not_live[output] = reason
+            self._dead_pwm[output] = shown
+            self._dead_seq[output] = state.updates_sent
+            # The joint is where the output puts it. Its marker is stored at once (PX4 would
+            # apply what we stored in one step when the outputs come alive): it moves the
+            # joint by MARKER_OFFSET_US then, and the readback shows it.
+            held_deg = self._marker_deg(output, shown)
+            state.position[joint_of[output]] = held_deg
+            self._held_pwm[output] = core.config.calibration.for_output(output).angle_to_pwm_us(
+                held_deg
+            )
+            state.acked_pwm.pop(output, None)
+            self._ack_history.pop(output, None)
+            self._mismatches[output] = 0
+            self._store_hold_now = True
+
+    # -- losses -----------------------------------------------------------------------------
+
+    def _forget_liveness(self, now: float) -> None:
+        """A loss or a (possible) reboot: what was stored is gone (a rebooted PX4 holds
+        nothing), so whether each output is live is unknown again until its marker, sent
+        anew, shows or does not (status: not known live)."""
+        self._ack_history.clear()
+        self._confirmed.clear()
+        self._not_live.clear()
+        self._dead_pwm.clear()
+        self._dead_seq.clear()
+        self._held_pwm.clear()
+        self._store_hold_now = False
+        self.safety_on = None
+        self._readback_since_s = now
+
+    def lost(self, flights: Sequence[Flight]) -> None:
+        self._mismatches.clear()
+        self._forget_liveness(self._core.clock())
+        # PX4 applies what it stores in one step once its outputs are live: re-sending the
+        # pose of before would jump from wherever the outputs are now (the disarmed PWM after
+        # a reboot). The joints are where the next readback says; the motion goes on from
+        # there at the speed limit.
+        self._core.state.unconfirmed = None
+
+    def went_quiet(self, flights: Sequence[Flight], now: float) -> None:
+        # Never re-send a stale pose (see lost): the readback says where the joints are.
+        self._forget_liveness(now)
+
+    # -- the motion's questions --------------------------------------------------------------
+
+    def take_hold(self) -> bool:
+        # Outputs found not live: their markers stored now, behind whatever is on its way (PX4
+        # takes the frames in order), before a re-arm would bring out the pose stored before.
+        hold, self._store_hold_now = self._store_hold_now, False
+        return hold
+
+    @property
+    def hold_wanted(self) -> bool:
+        return self._store_hold_now
+
+    def may_move(self, actions: list[Action], now: float) -> bool:
+        if not self._readback_seen(now):
+            return False
+        state = self._core.state
+        if self._confirmed.issuperset(state.outputs):
+            return True
+        # Outputs not known to be live: one speed-limited step at a time, the next only once
+        # the readback showed it (found not live: once it shows its marker, or with no marker,
+        # once a PROBE_INTERVAL_S): if they come alive meanwhile, they jump by at most that one
+        # step.
+        if self._not_live:
+            return not (self._markers_held() or now - state.last_step_s < PROBE_INTERVAL_S)
+        if self._unmarked_unknown():
+            # The start, a loss or a reboot: the markers say whether the outputs are live,
+            # moving each joint by MARKER_OFFSET_US; the motion waits for that. (A motion step
+            # could leave an output at the disarmed PWM it shows, and a readback of that would
+            # prove nothing.) (hold: 2 us from what the outputs show, no keep-out path to
+            # check; a disarmed PWM inside a volume would refuse it at every tick.)
+            self._core.updates.send_step(actions, self._marker_pose(), now, hold=True)
+            return False
+        if (
+            any(o in state.acked_pwm for o in state.outputs if o not in self._confirmed)
+            and now - state.last_step_s < VERDICT_TIMEOUT_S
+        ):
+            return False  # the readback's verdict on the step before is not in yet
+        return True
+
+    def may_pipeline(self) -> bool:
+        return not self._store_hold_now and self._confirmed.issuperset(self._core.state.outputs)
+
+    def acknowledged(self, output: int, pwm: int, now: float) -> None:
+        self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
+        self._mismatches[output] = 0
+
+    def overtaken(self, seq: int) -> set[int]:
+        # Outputs found not live since that update went out hold their markers, stored behind
+        # it: what it stored there is no pose of theirs (nor of the joints').
+        return {
+            o for o, dead_seq in self._dead_seq.items() if seq < dead_seq and o in self._not_live
+        }
+
+    def dead(self) -> dict[int, str]:
+        return dict(self._not_live)
+
+    def unknown(self, now: float) -> dict[int, str]:
+        """While the readback is silent for READBACK_STALE_INTERVALS, and each output until a
+        readback showed what it stored since the start, a loss or a reboot (its marker, or a
+        step)."""
+        outputs = self._core.state.outputs
+        if self.shown_s == -math.inf:
+            return dict.fromkeys(outputs, "not known live (no SERVO_OUTPUT_RAW yet)")
+        silent_s = now - self.shown_s
+        if silent_s > READBACK_STALE_INTERVALS * self._core.settings.readback_interval_s:
+            why = f"not known live (no SERVO_OUTPUT_RAW for {silent_s * 1e3:.0f} ms)"
+            return dict.fromkeys(outputs, why)
+        why = (
+            "not known live yet (no readback has shown what it stores since the start, "
+            "a loss or a reboot)"
+        )
+        return {o: why for o in outputs if o not in self._confirmed}
+
+    def streams_silent(self, now: float) -> bool:
+        """A readback stream (once seen) silent for READBACK_SILENT_S: a rebooted PX4 forgot
+        the streams, so the reboot is seen from the SYSTEM_TIME that comes back rather than
+        after SYSTEM_TIME_SILENT_S."""
+        if self.shown_s == -math.inf:
+            return False
+        interval_s = self._core.settings.readback_interval_s
+        silent_s = max(READBACK_SILENT_S, READBACK_STALE_INTERVALS * interval_s)
+        if now - max(self.shown_s, self._core.watch.streams_asked_s) < silent_s:
+            return False
+        silent_for_s = now - self.shown_s
+        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
+        say = log.info if silent_for_s < 2 * silent_s else log.debug
+        say("no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", silent_for_s)
+        return True
+
+    def refusal_advice(self, refused: dict[int, str]) -> tuple[str, str]:
+        first = min(refused)
+        more = f"+{len(refused) - 1}" if len(refused) > 1 else ""
+        return "", f"Arm: output {first}{more} refused by the autopilot"
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def _readback_seen(self, now: float) -> bool:
+        """A readback since the start, link loss or reboot tells where the joints are; without
+        one for READBACK_WAIT_S, go on from the acknowledged pose (and say so once)."""
+        if self.shown_s >= self._readback_since_s:
+            return True
+        if now - self._readback_since_s < READBACK_WAIT_S:
+            return False
+        if not self._readback_warned:
+            self._readback_warned = True
+            log.warning(
+                "no SERVO_OUTPUT_RAW from the autopilot in %.0f s: moving from the pose last "
+                "acknowledged; outputs that come alive later may jump to it",
+                READBACK_WAIT_S,
+            )
+        return True
+
+    def _unmarked_unknown(self) -> bool:
+        """An output with nothing acknowledged since the start, a loss or a reboot, and none on
+        its way (its liveness unknown: a marker would tell)."""
+        state = self._core.state
+        ahead = {o for f in state.flights for o in f.sent_outputs}
+        return any(
+            o not in state.acked_pwm and o not in ahead and o in self.shown for o in state.outputs
+        )
+
+    def _marker_pose(self) -> tuple[float, ...]:
+        """The pose with each output that has nothing acknowledged at its marker (from the PWM
+        the readback shows), the others where they are."""
+        state = self._core.state
+        pose = list(state.position)
+        for i, output in enumerate(state.outputs):
+            shown = self.shown.get(output)
+            if output not in state.acked_pwm and shown is not None:
+                pose[i] = self._marker_deg(output, shown)
+        return tuple(pose)
+
+    def _markers_held(self) -> bool:
+        """Every output not live holds a PWM the readback tells from the one it shows (a
+        marker): the next readback shows when they come alive, no probe needed."""
+        return all(
+            abs(self._held_pwm[o] - self._dead_pwm[o]) > READBACK_TOLERANCE_US
+            for o in self._not_live
+        )
+
+    def _marker_deg(self, output: int, shown_us: int) -> float:
+        """The angle an output showing ``shown_us`` (not live, or not known to be) is told to
+        hold: its marker (``MARKER_OFFSET_US`` from it, towards the middle of the range: the
+        readback tells it from ``shown_us``; for a disarmed PWM outside the servo's range, the
+        nearest end of the range) or, with no room for one, the angle nearest ``shown_us``."""
+        config = self._core.config
+        joint = config.calibration.for_output(output)
+        limits = config.arm.joints[self._core.state.outputs.index(output)]
+        low_deg = max(joint.angle_min_deg, math.degrees(limits.min_rad))
+        high_deg = min(joint.angle_max_deg, math.degrees(limits.max_rad))
+        nearest = self._angle_shown(output, shown_us)
+        candidates = marker_pwm_candidates(
+            shown_us, (joint.pwm_min_us + joint.pwm_max_us) / 2, joint.angle_to_pwm_us(nearest)
+        )
+        for pwm in candidates:
+            if abs(pwm - shown_us) <= READBACK_TOLERANCE_US:
+                continue
+            if not joint.pwm_min_us <= pwm <= joint.pwm_max_us:
+                continue
+            angle = joint.pwm_us_to_angle_deg(pwm)
+            if low_deg <= angle <= high_deg and joint.angle_to_pwm_us(angle) == pwm:
+                return angle
+        return nearest
+
+    def _expected_pwms(self, output: int, now: float) -> tuple[set[int], bool]:
+        """The PWMs a readback at ``now`` may show for ``output`` if it is live: the last one
+        acknowledged at least READBACK_SETTLE_S ago and any acknowledged since (the readback
+        lags by up to that); and whether that older one exists (settled: a readback showing
+        none of them then says the output is not live; before, it may just lag)."""
+        history = self._ack_history.get(output)
+        if not history:
+            return set(), False
+        cutoff = now - READBACK_SETTLE_S + 1e-9
+        recent = {pwm for t, pwm in history if t >= cutoff}
+        older = [pwm for t, pwm in history if t < cutoff]
+        return recent | set(older[-1:]), bool(older)
+
+    def _angle_shown(self, output: int, pwm_us: int) -> float:
+        """The joint angle an output's PWM means, within the calibration and the arm's limits
+        (a disarmed PWM may lie outside the servo's range)."""
+        config = self._core.config
+        joint = config.calibration.for_output(output)
+        pwm = min(max(pwm_us, joint.pwm_min_us), joint.pwm_max_us)
+        angle = joint.pwm_us_to_angle_deg(pwm)
+        limits = config.arm.joints[self._core.state.outputs.index(output)]
+        return min(max(angle, math.degrees(limits.min_rad)), math.degrees(limits.max_rad))

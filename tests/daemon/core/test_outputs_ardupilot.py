@@ -1,0 +1,244 @@
+"""ArduPilot's outputs' truth (``core/outputs_ardupilot.py``): the safety switch from
+SYS_STATUS, BRD_SAFETY_MASK, the safety band and the rewind, against a model of its outputs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.core import (
+    SAFETY_STEPS_AHEAD,
+    SYS_STATUS_SILENT_S,
+    Answer,
+    ReadParam,
+    SendCommand,
+)
+from companion.daemon.core.outputs import band_of, middle
+from companion.daemon.core.outputs_ardupilot import band_allows, widen
+from companion.daemon.requests import Outcome, Request
+from tests.daemon.core.autopilot_models import (
+    ARM_MASK,
+    SYS_STATUS,
+    ArduPilotOutputsModel,
+    Autopilot,
+    deg_per_us,
+    far_target,
+)
+from tests.daemon.core.rig import PARK, near
+
+
+def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(rig):
+    rig.sys_status(safety_on=True)
+    rig.sent.clear()
+    request = rig.goto(near(PARK))
+    assert not rig.servo()  # nothing: it would be applied at once when the switch goes off
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.ACCEPTED
+    assert "outputs not live: safety switch on (output 9 not in BRD_SAFETY_MASK)" in reply.message
+    assert rig.core.status()["safety_on"] is True
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", math.nan, 6, 1, 0))
+    assert rig.core.status()["outputs_live"] is False  # a NaN mask frees nothing
+    mask = sum(1 << (o - 1) for o in rig.calibration.outputs)
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", mask, 6, 1, 0))
+    rig.advance(0.05)
+    assert rig.core.status()["outputs_live"] is True and rig.servo()
+
+
+def test_ardupilot_safety_mask_is_read_again_after_a_reboot():
+    ap = Autopilot("ardupilot")
+    assert [a.name for a in ap.actions if isinstance(a, ReadParam)] == ["BRD_SAFETY_MASK"]
+    ap.answer_intervals()
+    ap.frame(
+        ap.codec.param_value_encode(
+            b"BRD_SAFETY_MASK", float(ARM_MASK), mavlink.MAV_PARAM_TYPE_INT32, 1, 65535
+        )
+    )
+    actions = ap.reboot()
+    assert [a.name for a in actions if isinstance(a, ReadParam)] == ["BRD_SAFETY_MASK"]
+
+
+def test_ardupilot_steps_sent_before_the_switch_was_seen_do_not_jump_at_its_release():
+    """An autopilot streaming SYS_STATUS at the interval the core asked for; the switch goes on
+    just after one (the worst case) while the arm moves, and is released a second later. What
+    the outputs then show must be within one step of what they showed when it went on."""
+    ap = Autopilot("ardupilot")
+    asked = {
+        int(a.params[0]): a.params[1] / 1e6
+        for a in ap.actions
+        if isinstance(a, SendCommand) and a.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
+    }
+    status_interval_s = asked[mavlink.MAVLINK_MSG_ID_SYS_STATUS]
+    ap.answer_intervals()
+    ap.frame(ap.codec.param_value_encode(b"BRD_SAFETY_MASK", 0.0, 9, 1, 65535))  # arm not in it
+    outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+
+    def sys_status(switch_on: bool) -> list:
+        enabled = 0 if switch_on else outputs
+        return ap.frame(
+            ap.codec.sys_status_encode(outputs, enabled, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+        )
+
+    sys_status(False)
+    start = ap.core.status()["current_deg"]
+    low = math.degrees(ap.config.arm.joints[0].min_rad)
+    goal = [low + 1.0, *start[1:]]  # a long way on joint 1: seconds at 60 deg/s
+    request = Request("goto", tuple(goal))
+    step_us = ap.config.joint_speed_deg_s / ap.config.rate_hz / deg_per_us(ap) + 1
+
+    def acked_pwm() -> int:
+        return int((ap.core.status()["last_pwm_us"] or {}).get(9, 0))
+
+    def carry_out(actions: list) -> None:
+        """The edge: answers set, every servo command acknowledged (and what that brings)."""
+        while actions:
+            action = actions.pop(0)
+            if isinstance(action, Answer):
+                action.request.answer(action.reply)
+            elif isinstance(action, SendCommand) and action.command == mavlink.MAV_CMD_DO_SET_SERVO:
+                actions += ap.frame(
+                    ap.codec.command_ack_encode(
+                        action.command, mavlink.MAV_RESULT_ACCEPTED, 0, 0, 1, 191
+                    )
+                )
+
+    carry_out(ap.core.request(request))
+    switch_on, t0_pwm, released_pwm = False, None, None
+    next_status_s = ap.clock() + status_interval_s
+    t_start = ap.clock()
+    while ap.clock() - t_start < 2.0:
+        ap.clock.advance(0.005)
+        now = ap.clock() - t_start
+        carry_out(ap.core.tick(True))
+        if ap.clock() >= next_status_s:
+            carry_out(sys_status(switch_on))
+            next_status_s += status_interval_s
+            if t0_pwm is None and now >= 0.3:
+                # Just after a SYS_STATUS: the switch goes on, and the outputs hold this PWM.
+                switch_on, t0_pwm = True, acked_pwm()
+        if switch_on and now >= 1.3:
+            released_pwm = acked_pwm()  # released: the stored PWM goes out at once
+            break
+    assert request.future.result(0).outcome is Outcome.ACCEPTED
+    assert t0_pwm is not None and released_pwm is not None
+    assert abs(released_pwm - t0_pwm) <= step_us, (t0_pwm, released_pwm, step_us)
+
+
+def test_ardupilot_a_switch_seen_on_after_a_reboot_rewinds_to_no_pose_from_before_it():
+    """Cause 2: moving, the switch goes on and is seen (the outputs sent back), the autopilot
+    reboots and comes back with its switch on (BRD_SAFETY_DEFLT 1): nothing is sent while it is
+    on (the rewind was to a pose recorded before the reboot), and its release moves no joint by
+    more than a step."""
+    ap = ArduPilotOutputsModel(safety_default_on=True)
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 40.0, *start[1:]])
+    ap.run(0.4)
+    ap.set_safety(True)
+    ap.run(0.3)  # seen on: the held outputs are sent back
+    ap.reboot_now()
+    ap.run(0.4)
+    assert ap.commanded == {}  # rebooted: nothing stored
+    ap.run(2.0)
+    assert ap.core.status()["counters"]["autopilot_reboots"] == 1
+    assert ap.core.status()["safety_on"] is True
+    assert ap.commanded == {}  # nothing sent while its switch is on after the reboot
+    ap.set_safety(False)
+    ap.run(1.0)
+    assert ap.commanded  # moving again
+    assert ap.fast_changes() == []
+
+
+def test_ardupilot_a_silent_sys_status_stream_stops_the_arm_within_a_step():
+    """Cause 3: a SYS_STATUS that said "off" long ago is not trusted: with the stream silent,
+    the arm moves at most SAFETY_STEPS_AHEAD steps (one) from where it was when the last one
+    came, status says the outputs are not known to be live after SYS_STATUS_STALE_INTERVALS,
+    and every stream is asked for again after SYS_STATUS_SILENT_S; the arm goes on once
+    SYS_STATUS is back."""
+    ap = ArduPilotOutputsModel()
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 60.0, *start[1:]])
+    ap.run(0.2)
+    interval_s = ap.streams.pop(SYS_STATUS)  # the stream stops
+    at_last_status = ap.core.status()["current_deg"][0]
+    ap.run(SYS_STATUS_SILENT_S - 0.05)
+    step_deg = ap.config.joint_speed_deg_s / ap.config.rate_hz
+    moved_deg = abs(ap.core.status()["current_deg"][0] - at_last_status)
+    assert moved_deg <= SAFETY_STEPS_AHEAD * step_deg + 1e-6
+    status = ap.core.status()
+    assert status["outputs_live"] is False
+    assert "no SYS_STATUS for" in status["not_live"]["9"]
+    ap.run(0.1)  # silent SYS_STATUS_SILENT_S: asked for again (the model streams it again)
+    assert ap.streams.get(SYS_STATUS) == interval_s
+    ap.run(0.5)
+    assert ap.core.status()["outputs_live"] is True
+    assert abs(ap.core.status()["current_deg"][0] - at_last_status) > 5 * step_deg
+    assert ap.fast_changes() == []
+
+
+@pytest.mark.parametrize("ack_delay_s", [0.003, 0.012])
+def test_ardupilot_at_50_hz_the_safety_band_does_not_slow_the_arm(ack_delay_s):
+    """At 50 Hz control SYS_STATUS (40 Hz) comes less often than the ticks, and one may come
+    while a step is on its way: a band one 50 Hz step wide held the arm to 48 of 60 deg/s (and
+    a followed world target fell behind). SAFETY_BAND_MIN_S keeps it at full speed."""
+    ap = ArduPilotOutputsModel(rate_hz=50.0, ack_delay_s=ack_delay_s)
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 90.0, *start[1:]])
+    ap.run(0.1)
+    at_deg = ap.core.status()["current_deg"][0]
+    ap.run(1.0)
+    speed_deg_s = abs(ap.core.status()["current_deg"][0] - at_deg) / 1.0
+    assert speed_deg_s >= 0.95 * ap.config.joint_speed_deg_s
+    assert ap.fast_changes() == []
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ardupilot_no_joint_moves_faster_than_a_step_through_switch_and_reboot_cycles(seed):
+    """Causes 2, 4 and 5 together: random targets (some in 50 Hz bursts), the safety switch on
+    and off at any moment (some presses shorter than a SYS_STATUS interval) and reboots with the
+    switch at either default: every physical change of a pulse is within one control tick's
+    step (plus one µs) of the last pulse before it."""
+    rng = np.random.default_rng(seed)
+    ap = ArduPilotOutputsModel(safety_default_on=bool(seed % 2))
+    ap.run(0.3)
+    if ap.safety_on:
+        ap.set_safety(False)
+    for _ in range(60):
+        roll = rng.random()
+        if roll < 0.4:
+            ap.goto(far_target(ap, rng))
+        elif roll < 0.5:
+            for _ in range(10):  # a ground station's 50 Hz stream, each a little further
+                ap.goto(far_target(ap, rng))
+                ap.run(0.02)
+        elif roll < 0.8:
+            ap.set_safety(not ap.safety_on)
+        elif roll < 0.85 and ap.rebooting_until_s is None:
+            ap.reboot_now()
+        ap.run(float(np.exp(rng.uniform(math.log(0.01), math.log(0.6)))))
+    assert len(ap.changes) > 100
+    assert ap.fast_changes() == []
+
+
+# -- the safety band, alone ----------------------------------------------------------------------
+
+
+def test_the_band_of_poses_spans_each_joint_and_its_middle_is_within_half_of_it():
+    band = band_of([(0.0, 10.0), (3.0, 8.0), (1.0, 9.0)])
+    assert band == ([0.0, 8.0], [3.0, 10.0])
+    assert middle(band) == (1.5, 9.0)
+
+
+def test_a_step_may_widen_the_band_only_up_to_its_width():
+    band = band_of([(0.0, 0.0)])
+    assert band_allows(band, (3.0, -3.0), 3.0)
+    assert not band_allows(band, (3.1, 0.0), 3.0)
+    widen(band, (3.0, -1.0))
+    assert band == ([0.0, -1.0], [3.0, 0.0])
+    # Back within the band is always allowed; further out on the wide joint is not.
+    assert band_allows(band, (1.0, -0.5), 3.0)
+    assert not band_allows(band, (-0.5, 0.0), 3.0)

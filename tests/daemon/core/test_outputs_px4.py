@@ -1,0 +1,286 @@
+"""PX4's outputs' truth (``core/outputs_px4.py``): the readback, outputs found not live, the
+markers, probes and the verdict on each step, against a model of PX4's outputs."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import ardupilotmega as mavlink
+
+from companion.daemon.core import (
+    MARKER_OFFSET_US,
+)
+from companion.daemon.core.outputs_px4 import marker_pwm_candidates
+from companion.daemon.requests import Outcome
+from tests.daemon.core.rig import (
+    ACTUATOR,
+    PARK,
+    RATE_HZ,
+    STEP_DEG,
+    Px4OutputsModel,
+    Rig,
+    assert_seen_live_at_the_next_readback,
+    max_physical_step_us,
+    near,
+    px4_rig,
+    rig_park_pwm,
+    run,
+)
+
+
+def test_px4_moves_only_once_a_readback_said_where_the_joints_are():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)  # prearmed: live, showing the disarmed PWM (nothing stored yet)
+    request = rig.goto(near(PARK))
+    assert not [c for c in rig.sent if c.command == ACTUATOR]  # no readback yet
+    px4.readback()
+    run(rig, px4, 0.2)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    # It started from where the outputs were (1500 us), not from the assumed park pose.
+    first = px4.physical_moves[0]
+    joint = rig.calibration.for_output(first[0])
+    step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+    assert first[1] == 1500 and abs(first[2] - first[1]) <= step_us + 1
+
+
+def test_px4_outputs_that_do_not_show_what_they_acknowledged_hold_the_arm():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.readback()
+    request = rig.goto(near(PARK, 20.0))  # far: many steps
+    run(rig, px4, 1.0)  # disarmed: every step ACCEPTED, none shown
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    status = rig.core.status()
+    assert status["outputs_live"] is False
+    why = status["not_live"][str(rig.calibration.outputs[0])]
+    assert "shows 1500 us, not the" in why and "acknowledged" in why
+    # Held: at most one probing step a second goes out while they stay dead.
+    sent_before = len(px4.physical_moves), rig.core.counters["servo_updates"]
+    run(rig, px4, 3.0)
+    assert rig.core.counters["servo_updates"] - sent_before[1] <= 4
+    later = rig.goto(near(PARK, 19.0))
+    assert "outputs not live" in rig.reply(later).message
+    assert rig.reply(later).outcome is Outcome.ACCEPTED
+    # Armed: no output jumps by more than one step; then the arm goes on to the goal.
+    px4.set_live(True)
+    run(rig, px4, 6.0)
+    assert rig.core.status()["outputs_live"] is True
+    for output, before, after in px4.physical_moves:
+        joint = rig.calibration.for_output(output)
+        step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+        assert abs(after - before) <= step_us + 1, (output, before, after)
+    assert rig.core.status()["goal_deg"] == pytest.approx(list(near(PARK, 19.0)))
+    assert rig.core.status()["moving"] is False
+
+
+def test_px4_a_readback_showing_a_step_before_its_ack_is_not_a_dead_output():
+    # PX4 applies DO_SET_ACTUATOR on its output cycle and answers on its commander's: a
+    # readback in between shows a step not acknowledged yet. Taken for "not what was
+    # acknowledged", it held the arm as if disarmed (a target waited 201 ms in bench.latency).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    request = rig.goto(near(PARK, 20.0))
+    unanswered = px4.apply()
+    px4.readback()  # shows the step before its ACK
+    for _ in unanswered:
+        rig.ack(command=ACTUATOR)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["outputs_live"] is True
+    rig.advance(1.0 / RATE_HZ)
+    assert [c for c in rig.sent if c.command == ACTUATOR]  # the next step at once
+
+
+def test_px4_after_a_reboot_the_stale_pose_is_not_sent_again():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    rig.system_time(600_000)
+    rig.advance(0.36)
+    rig.sent.clear()
+    rig.system_time(150)  # rebooted: its outputs are back at the disarmed PWM
+    px4.stored = dict.fromkeys(px4.stored)
+    px4.set_live(True)
+    rig.tick()
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
+
+
+def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_readback():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    px4.set_live(False)  # disarm: every output at 1500
+    px4.readback()  # the first readback tells (they were confirmed live)
+    assert rig.core.status()["outputs_live"] is False
+    # The markers go out at once (not at the next tick), 2 us from the disarmed PWM.
+    sent = [c for c in rig.sent if c.command == ACTUATOR]
+    assert len(sent) == 1
+    px4.handle()
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+    # Dead, nothing more is sent (no probing steps): the goal waits.
+    updates = rig.core.counters["servo_updates"]
+    run(rig, px4, 3.0)
+    assert rig.core.counters["servo_updates"] == updates
+    assert rig.core.status()["outputs_live"] is False
+    # Armed: the next readback shows the markers; live again, and the motion goes on.
+    px4.set_live(True)
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is True
+    run(rig, px4, 2.0)
+    assert rig.core.counters["servo_updates"] > updates
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_hold():
+    # Found dead while a step was on its way: that step's ACK came after, and its pose was
+    # taken as the joints' (the hold stored it: at a re-arm the outputs went from the
+    # disarmed PWM to it, bench.output_cycles' "arm then arm" fast command steps).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))  # 7 steps
+    run(rig, px4, 0.2)
+    rig.advance(1.0 / RATE_HZ)  # the next step goes out...
+    on_its_way = px4.apply()
+    assert on_its_way
+    px4.set_live(False)
+    px4.readback()  # ...the outputs are found dead before its ACK
+    for _ in on_its_way:
+        rig.ack(command=ACTUATOR)
+    rig.advance(1.0 / RATE_HZ)
+    px4.handle()  # the hold
+    px4.set_live(True)  # re-armed before the readback saw the hold
+    run(rig, px4, 2.0)
+    assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_at_the_start_with_the_arm_still_the_markers_say_whether_it_is_live():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    status = rig.core.status()
+    assert status["outputs_live"] is False and "no SERVO_OUTPUT_RAW yet" in str(status["not_live"])
+    px4.readback()  # disarmed, nothing stored: 1500 everywhere
+    assert "not known live yet" in str(rig.core.status()["not_live"])
+    run(rig, px4, 0.5)  # markers stored, not shown: not live
+    assert px4.stored[rig.calibration.outputs[0]] == 1500 + MARKER_OFFSET_US
+    status = rig.core.status()
+    assert status["outputs_live"] is False and "shows 1500 us" in str(status["not_live"])
+    assert_seen_live_at_the_next_readback(rig, px4)
+
+
+def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again():
+    # A rebooted PX4 holds nothing: waiting for the markers stored before it to show would
+    # wait for ever (status "not live" through every later arm, bench.output_cycles).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.readback()
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is False  # held at the markers
+    rig.system_time(600_000)
+    rig.advance(0.3)
+    rig.system_time(150)  # rebooted: nothing stored, disarmed
+    px4.stored = dict.fromkeys(px4.stored)
+    px4.set_live(False)
+    assert "not known live" in str(rig.core.status()["not_live"])
+    run(rig, px4, 0.5)
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+    assert_seen_live_at_the_next_readback(rig, px4)
+
+
+def test_px4_markers_go_out_even_where_the_disarmed_pose_lies_in_a_keepout_volume():
+    # The outputs are where the readback shows them whatever the volumes; a marker moves them
+    # 2 us. Checked as a motion, it was refused at every tick (and the outputs never known).
+    from companion.kinematics.vehicle import Mount
+
+    disarmed_us = 1100  # far from park: the config refuses a park in a volume
+
+    calibration = Rig().calibration
+    q_dis = [
+        calibration.for_output(o).pwm_us_to_angle_deg(disarmed_us) for o in calibration.outputs
+    ]
+    centre = Mount().to_body(Rig().config.arm.fk(q_dis).position_cm)
+    sphere = {"name": "ball", "type": "sphere", "center_cm": list(centre), "radius_cm": 4.0}
+    rig = Rig(dialect="px4", sections={"keepout": [sphere]})
+    rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
+    rig.tick()
+    px4 = Px4OutputsModel(rig, disarmed_us)
+    px4.readback()
+    run(rig, px4, 0.5)
+    assert rig.core.status()["counters"]["keepout_refusals"] == 0
+    assert px4.stored[rig.calibration.outputs[0]] == disarmed_us + MARKER_OFFSET_US
+    assert_seen_live_at_the_next_readback(rig, px4)
+
+
+def test_px4_a_silent_readback_says_nothing_of_the_outputs_and_the_streams_are_asked_again():
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is True
+    rig.sent.clear()
+    for _ in range(5):
+        rig.advance(0.02)  # no readback: a reboot, a link gone quiet
+    assert "no SERVO_OUTPUT_RAW for" in str(rig.core.status()["not_live"])
+    for _ in range(25):
+        rig.advance(0.02)
+    assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["live", "dead", "goto", "run"]),
+            st.floats(-25, 25),
+        ),
+        min_size=1,
+        max_size=12,
+    )
+)
+def test_property_px4_outputs_never_jump_faster_than_the_speed_limit(events):
+    """Over any arm/disarm/prearm sequence and targets, no output moves by more than
+    one step's PWM at once, neither on our commands nor when the outputs come alive (the
+    disarmed PWM within the calibration, as PWM_MAIN_DIS = park makes it). Disarming drives
+    them to the disarmed PWM at once: PX4's own jump, not counted."""
+    rig, px4 = px4_rig(disarmed_us=rig_park_pwm())
+    px4.readback()
+    for kind, value in events:
+        if kind == "live":
+            px4.set_live(True)
+        elif kind == "dead":
+            px4.set_live(False)
+        elif kind == "goto":
+            rig.goto(near(PARK, value))
+        # Each state lasts a second: a disarm and re-arm within the readback's detection
+        # window (~0.3 s at 10 Hz) while moving would apply that window's steps at once.
+        run(rig, px4, 1.0)
+    for output, before, after in px4.physical_moves:
+        joint = rig.calibration.for_output(output)
+        step_us = STEP_DEG / (joint.angle_max_deg - joint.angle_min_deg) * 1000
+        assert abs(after - before) <= step_us + 1, (output, before, after)
+
+
+# -- the marker, alone ---------------------------------------------------------------------------
+
+
+def test_the_marker_is_tried_towards_the_middle_of_the_range_first():
+    assert marker_pwm_candidates(1000, 1500.0, 1000) == [1000 + MARKER_OFFSET_US, 998, 1000]
+    assert marker_pwm_candidates(2000, 1500.0, 2000) == [2000 - MARKER_OFFSET_US, 2002, 2000]
+
+
+def test_an_output_showing_a_pwm_outside_its_range_is_marked_at_the_nearest_end():
+    rig, px4 = px4_rig(disarmed_us=900)  # below every servo's 1000 us
+    px4.readback()
+    rig.advance(0.05)
+    output = rig.calibration.outputs[0]
+    joint = rig.calibration.for_output(output)
+    stored = [c for c in rig.sent if c.command == ACTUATOR]
+    assert stored  # the markers went out
+    px4.handle()
+    # Nothing fits 2 us from 900 inside the range: the nearest angle (the range's end).
+    assert px4.stored[output] == joint.pwm_min_us
