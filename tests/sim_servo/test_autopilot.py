@@ -1128,7 +1128,7 @@ def test_px4_function_change_applies_without_reboot_and_stored_values_jump_on_ar
     for i, output in enumerate(ARM_OUTPUTS):
         set_param(h, f"PWM_MAIN_FUNC{output}", 301 + i)
     h.run_for(0.01)
-    assert [h.ap._function(o) for o in ARM_OUTPUTS] == [301, 302, 303, 304, 305, 306]
+    assert [h.ap.params.function(o) for o in ARM_OUTPUTS] == [301, 302, 303, 304, 305, 306]
     values = (0.112, -0.778, -0.334, 0.444, -0.222, 0.0)
     h.command(SET_ACTUATOR, *values, 0)
     h.run_for(0.1)

@@ -107,9 +107,7 @@ def _jsonable(value: Any) -> Any:
 
 
 def _heartbeats(s: Session) -> None:
-    s.companion_send(
-        s.companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0)
-    )
+    s.companion_send(s.companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0))
     s.gcs_send(s.gcs.heartbeat_encode(mavlink.MAV_TYPE_GCS, 8, 0, 0, 0))
 
 
