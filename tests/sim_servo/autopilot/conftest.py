@@ -14,6 +14,8 @@ from dataclasses import replace
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.autopilot import SimAutopilot
+from sim_servo.autopilot.flavour import flavour_for
+from sim_servo.autopilot.state import AutopilotState
 from sim_servo.config import (
     DEFAULT_ARM_OUTPUTS,
     FaultConfig,
@@ -196,3 +198,16 @@ def mapped(**settings) -> Harness:
 
 def ardupilot(**settings) -> Harness:
     return Harness(config_from_mapping({"flavour": "ardupilot", **settings}))
+
+
+def part_state(config: SimConfig | None = None, events: list | None = None) -> AutopilotState:
+    """The shared state a part is built on, for testing the part alone (events into
+    ``events``)."""
+    config = config or SimConfig()
+    return AutopilotState(
+        config,
+        flavour_for(config),
+        now_s=START_S,
+        emit=events.append if events is not None else None,
+        wall_clock=lambda: WALL_S,
+    )

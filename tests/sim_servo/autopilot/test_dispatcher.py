@@ -9,12 +9,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.config import SimConfig
-from tests.sim_servo.autopilot.conftest import (
-    START_S,
-    Harness,
-    acks,
-    faulty,
-)
+from tests.sim_servo.autopilot.conftest import START_S, Harness, acks, faulty
 
 
 def test_system_id_is_configurable():

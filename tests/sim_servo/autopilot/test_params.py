@@ -7,6 +7,8 @@ import math
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from sim_servo.autopilot.params import ParamTable
+from sim_servo.config import SimConfig
 from sim_servo.errors import SimConfigError
 from tests.sim_servo.autopilot.conftest import (
     READY_PX4,
@@ -16,6 +18,7 @@ from tests.sim_servo.autopilot.conftest import (
     ardupilot,
     mapped,
     param_values,
+    part_state,
     px4,
 )
 
@@ -93,3 +96,28 @@ def test_ardupilot_safety_parameters_read_and_set():
     assert (value.param_value, value.param_type) == (0.0, mavlink.MAV_PARAM_TYPE_INT8)
     assert not h.ap.set_armed(True, h.now)  # no arming here: PX4 only
     assert not Harness(READY_PX4).ap.set_safety(True, START_S)  # no safety switch on PX4
+
+
+# -- the parameter table alone ---------------------------------------------------------------
+
+
+def test_the_table_is_a_mapping_in_index_order_with_functions_and_limits():
+    table = ParamTable(part_state(SimConfig(params={"SERVO9_MIN": 1050})))
+    assert table.names[:4] == ["SERVO1_FUNCTION", "SERVO1_MIN", "SERVO1_MAX", "SERVO1_TRIM"]
+    assert list(table) == table.names and len(table) == 66 and "BRD_SAFETY_MASK" in table
+    assert table.function(1) == 33 and table.function(9) == 0  # a motor, a free output
+    assert table.pwm_limits(9) == (1050, 1900)
+    px4 = ParamTable(part_state(SimConfig(flavour="px4", functions={9: 301})))
+    assert (px4.function(9), px4.pwm_limits(9)) == (301, (1000, 2000))
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"SERVO99_MIN": 1}, "parameter 'SERVO99_MIN' unknown to the ardupilot flavour"),
+        ({"SERVO9_MIN": 40_000}, r"parameter SERVO9_MIN=40000 outside \[-32768, 32767\]"),
+    ],
+)
+def test_configured_values_are_checked(params, message):
+    with pytest.raises(SimConfigError, match=message):
+        ParamTable(part_state(SimConfig(params=params)))

@@ -6,16 +6,16 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_servo.config import (
-    FaultConfig,
-    SimConfig,
-)
+from sim_servo.autopilot.reboot import Reboot
+from sim_servo.autopilot.state import AutopilotState
+from sim_servo.config import FaultConfig, SimConfig
 from tests.sim_servo.autopilot.conftest import (
     READY_PX4,
     START_S,
     SYSTEM_TIME,
     Harness,
     faulty,
+    part_state,
     routing_harness,
 )
 
@@ -86,3 +86,56 @@ def test_the_vehicle_goes_on_through_a_reboot_and_its_frames_restart_with_time_b
     assert [m.time_boot_ms for m in after][:2] == [0, 100]  # from the boot 1.5 s after start
     state = h.ap.vehicle.state(1.5)
     assert after[0].roll == pytest.approx(state.roll_rad, rel=1e-6)
+
+
+# -- the reboot part alone -------------------------------------------------------------------
+
+
+def reboot_part(events: list, steps: list, **faults) -> tuple[Reboot, AutopilotState]:
+    state = part_state(SimConfig(faults=FaultConfig(**faults)), events)
+    part = Reboot(
+        state,
+        halt=[lambda t: steps.append(("halt a", t)), lambda t: steps.append(("halt b", t))],
+        boot=[lambda t: steps.append(("boot a", t)), lambda t: steps.append(("boot b", t))],
+        now_s=START_S,
+    )
+    return part, state
+
+
+def test_the_parts_halt_then_boot_in_order_after_the_gap():
+    events: list = []
+    steps: list = []
+    part, state = reboot_part(events, steps)
+    assert part.reboot(START_S + 1.0, gap_s=0.5) is True
+    assert steps == [("halt a", START_S + 1.0), ("halt b", START_S + 1.0)]
+    assert state.rebooting and part.next_events_s() == [START_S + 1.5]
+    assert part.reboot(START_S + 1.2) is False  # already rebooting
+    part.run(START_S + 1.4)
+    assert len(steps) == 2
+    part.run(START_S + 1.7)  # late: the boot keeps the gap's end as its time
+    assert steps[2:] == [("boot a", START_S + 1.5), ("boot b", START_S + 1.5)]
+    assert not state.rebooting and state.boot_s == START_S + 1.5
+    assert [e.get("fault") for e in events] == ["reboot", "booted"]
+    assert state.stats["reboots"] == 1
+
+
+def test_a_zero_gap_boots_at_once_and_the_gap_is_bounded():
+    steps: list = []
+    part, state = reboot_part([], steps)
+    part.reboot(START_S, gap_s=0.0)
+    assert [name for name, _ in steps] == ["halt a", "halt b", "boot a", "boot b"]
+    assert not state.rebooting
+    with pytest.raises(ValueError, match=r"gap_s=600.5 outside \[0.0, 600.0\]"):
+        part.reboot(START_S, gap_s=600.5)
+
+
+def test_a_scheduled_reboot_happens_once_at_its_time():
+    steps: list = []
+    part, state = reboot_part([], steps, reboot_after_s=2.0, reboot_gap_s=0.25)
+    assert part.next_events_s() == [START_S + 2.0]
+    part.run(START_S + 2.1)
+    assert steps[0] == ("halt a", START_S + 2.0)
+    assert state.rebooting_until_s == START_S + 2.25
+    part.run(START_S + 2.3)
+    part.run(START_S + 9.0)
+    assert [name for name, _ in steps] == ["halt a", "halt b", "boot a", "boot b"]

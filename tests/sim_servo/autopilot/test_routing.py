@@ -7,17 +7,19 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_servo.config import (
-    Px4TimingConfig,
-    config_from_mapping,
-)
+from sim_servo.autopilot.params import ParamTable
+from sim_servo.autopilot.wire import Wire
+from sim_servo.config import Px4TimingConfig, SimConfig, config_from_mapping
+from sim_servo.faults import FaultInjector
 from tests.sim_servo.autopilot.conftest import (
     COMPANION,
     KEY,
     READY_PX4,
     START_S,
+    WALL_S,
     Harness,
     acks,
+    part_state,
     routing_harness,
 )
 
@@ -289,3 +291,48 @@ def test_px4_timing_forwarded_frames_wait_forward_delay_then_a_main_loop_pass():
     assert out[0][0] == 0
     # 100.3 ms after boot + 3.5 ms = 103.8 ms, then the next 1.5 ms pass: 105.0 ms.
     assert (h.now - sent) * 1000 == pytest.approx(4.7)
+
+
+# -- the routers alone -----------------------------------------------------------------------
+
+
+def router_for(config: SimConfig, events: list):
+    state = part_state(config, events)
+    wire = Wire(state, FaultInjector(config.faults), links=2, wall_clock=lambda: WALL_S)
+    return state.flavour.make_router(state, wire, ParamTable(state)), wire
+
+
+def test_ardupilot_router_learns_routes_and_forwards_a_command_to_a_heard_component():
+    events: list = []
+    router, wire = router_for(SimConfig(), events)
+    companion = mavlink.MAVLink(None, *COMPANION)
+    gcs = mavlink.MAVLink(None, 255, 190)
+    hb = companion.heartbeat_encode(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, 8, 0, 0, 0)
+    assert router.route(decoded(hb.pack(companion)), 0, START_S) is True
+    assert router.routes == [(1, 191, 0)] and router.active_links == {0}
+    command = gcs.command_long_encode(1, 191, 31010, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert router.route(decoded(command.pack(gcs)), 1, START_S) is False  # the companion's
+    assert router.routes == [(1, 191, 0), (255, 190, 1)]
+    assert [e["links"] for e in events if e["event"] == "routed"] == [[0]]
+    router.boot(START_S)
+    assert (router.routes, router.active_links, router.peer) == ([], set(), None)
+
+
+def test_px4_router_forwards_only_where_forwarding_is_on_and_the_target_was_heard():
+    events: list = []
+    router, _ = router_for(SimConfig(flavour="px4"), events)
+    companion = mavlink.MAVLink(None, *COMPANION)
+    gcs = mavlink.MAVLink(None, 255, 190)
+    assert (router.forwarding(0), router.forwarding(1)) == (False, True)  # MAV_1, MAV_0
+    router.route(decoded(companion.heartbeat_encode(18, 8, 0, 0, 0).pack(companion)), 0, START_S)
+    command = gcs.command_long_encode(1, 191, 31010, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert router.route(decoded(command.pack(gcs)), 1, START_S) is False
+    # Forwarding is off on the companion's link (MAV_1_FORWARD 0): nothing goes out; the
+    # command for another component of ours is ignored without an answer.
+    assert [e["event"] for e in events] == ["ignored"]
+    assert router.routes == []
+
+
+def decoded(frame: bytes) -> mavlink.MAVLink_message:
+    (msg,) = mavlink.MAVLink(None).parse_buffer(frame)
+    return msg

@@ -7,10 +7,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from sim_servo.config import (
-    LinkTimingConfig,
-    SimConfig,
-)
+from sim_servo.config import LinkTimingConfig, SimConfig
 from tests.sim_servo.autopilot.conftest import (
     COMPANION,
     KEY,

@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.kinematics.rotations import rpy_to_matrix
-from sim_servo.config import (
-    SimConfig,
-    VehicleConfig,
-)
+from sim_servo.autopilot.outputs import make_servos
+from sim_servo.autopilot.world import VEHICLE_LOG_LAG_S, WorldLog
+from sim_servo.config import SimConfig, VehicleConfig
 from sim_servo.eventlog import world_timeline
-from tests.sim_servo.autopilot.conftest import (
-    START_S,
-    Harness,
-)
+from tests.sim_servo.autopilot.conftest import START_S, Harness, part_state
 
 
 def test_vehicle_events_log_the_vehicle_and_the_hand_in_the_world():
@@ -78,3 +76,21 @@ def test_vehicle_samples_written_late_keep_the_horn_positions_of_their_time():
     assert len(before) == 51 and all(hand == before[0] for hand in before)
     assert after[0] != before[0]  # the horn started at once
     assert after[-1] != after[0] and after[-1] == after[-2]  # it moved, then stopped
+
+
+# -- the world log alone ---------------------------------------------------------------------
+
+
+def test_samples_fall_on_their_cadence_and_are_written_in_batches():
+    events: list = []
+    config = replace(SimConfig(), vehicle=replace(SimConfig().vehicle, log_rate_hz=10.0))
+    state = part_state(config, events)
+    servos = make_servos(state, None, START_S)
+    log = WorldLog(state, None, servos, now_s=START_S)
+    assert log.next_event_s() == pytest.approx(START_S + VEHICLE_LOG_LAG_S)
+    log.run(START_S + 0.25)
+    assert [e["t_s"] for e in events] == [0.0, 0.1, 0.2]
+    assert all(e["hand_ned"] is None for e in events)  # no hand model
+    assert log.next_event_s() == pytest.approx(START_S + 0.3 + VEHICLE_LOG_LAG_S)
+    log.run(START_S + 10.0)  # far behind: the cadence restarts from now
+    assert events[-1]["t_s"] == 10.0 and len(events) == 4
