@@ -1,8 +1,11 @@
 """The parameter table and the PARAM_* messages (GCS_Param.cpp; PX4's mavlink_parameters.cpp).
 
-Unknown names get no reply; the answer is PARAM_VALUE, deferred to the next main-loop pass.
-How a value is carried (ArduPilot: as a float; PX4: an INT32's bytes) and which index a set
-answers with are the flavour's (:mod:`sim_servo.autopilot.flavour`).
+Unknown names get no reply; the answer is PARAM_VALUE, deferred to the next main-loop pass. A
+set applies at once, without a reboot; parameters keep their values through a reboot. How a
+value is carried and which index a set answers with are the flavour's
+(:mod:`sim_servo.autopilot.flavour`): ArduPilot's integer parameters take ``value + 0.01`` (away
+from zero) truncated, and a set or a read by name is answered with ``param_index`` −1 (65535 on
+the wire, a uint16); PX4 carries an INT32's bytes in the float and answers with the index.
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ SRn_EXTRA3 default is 0 on Copter (GCS_MAVLink_Parameters.cpp), so off until
 SET_MESSAGE_INTERVAL asks; PX4 streams it at 1 Hz on a companion (ONBOARD mode) link
 (mavlink_main.cpp ``configure_streams_to_default``). ATTITUDE and LOCAL_POSITION_NED
 (ArduPilot: off until asked, SRn_EXTRA1 / SRn_POSITION 0 on Copter; PX4: 100 and 30 Hz, its
-ONBOARD defaults) carry the vehicle's state at exactly their ``time_boot_ms``. SYS_STATUS
+ONBOARD defaults) carry the vehicle's state at exactly their ``time_boot_ms``. SERVO_OUTPUT_RAW
+and PX4's ACTUATOR_OUTPUT_STATUS (``active`` 16, µs as floats) report the outputs. SYS_STATUS
 (ArduPilot, off until asked, as Copter's EXT_STAT stream) tells whether the safety switch holds
 the outputs. A reboot puts every stream back to its default.
 """
