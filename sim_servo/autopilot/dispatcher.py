@@ -114,9 +114,10 @@ class SimAutopilot:
             {**self._streams.handlers(), **state.flavour.command_handlers(self._outputs)},
             self._lua,
         )
-        halt = [self._drop_inbox, self._wire.halt, self._commands.halt, self._outputs.halt]
+        halt = [self._drop_inbox, self._wire.halt, self._commands.halt]
         if self._lua is not None:
-            halt.insert(2, self._lua.halt)
+            halt.append(self._lua.halt)
+        halt.append(self._outputs.halt)  # last: its events follow the queues' clearing
         self._reboot = Reboot(
             state,
             halt=halt,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -166,9 +167,7 @@ def px4_steps() -> list[Step]:
     int32 = mavlink.MAV_PARAM_TYPE_INT32
 
     def bytewise(value: int) -> float:
-        import struct
-
-        return struct.unpack("<f", struct.pack("<i", value))[0]
+        return float(struct.unpack("<f", struct.pack("<i", value))[0])
 
     arm = mavlink.MAV_CMD_COMPONENT_ARM_DISARM
     act = mavlink.MAV_CMD_DO_SET_ACTUATOR
