@@ -5,7 +5,7 @@ with ``--udpout``, where we send to a daemon that listens, ``udpin:127.0.0.1:POR
 ``tcp:127.0.0.1:PORT``, ``/dev/pts/N,115200`` or, with ``--pty-link``, ``PATH,115200``), printed
 once the port is open. With ``--gcs`` a second line ``gcs udpout:HOST:PORT`` gives the ground
 station's address: frames between the two links are routed as ArduPilot routes them (see
-:meth:`SimAutopilot._route`). SIGTERM or
+:class:`~sim_servo.autopilot.routing.ArduPilotRouter`). SIGTERM or
 SIGINT stops the simulator cleanly (exit status 0).
 """
 

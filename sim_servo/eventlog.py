@@ -18,7 +18,7 @@ log_rate_hz``) carry the vehicle's state and the hand's pose in LOCAL_NED at the
 bounds, mount) that rebuild the same motion at any time:
 ``HoverDisturbance.from_config(config_from_mapping({"vehicle": start["vehicle"]}).vehicle)``.
 ``vehicle`` events are written up to 0.2 s late, in batches (see
-:meth:`~sim_servo.autopilot.SimAutopilot._run_vehicle_log`): in time order among themselves, not
+:meth:`~sim_servo.autopilot.world.WorldLog.run`): in time order among themselves, not
 with the other events.
 """
 

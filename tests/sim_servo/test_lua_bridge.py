@@ -22,7 +22,7 @@ from sim_servo.lua_bridge import (
     refusal_text,
 )
 from tests.firmware_interface.test_lua_bridge import Bridge, as_mavlink_message_t, command_long
-from tests.sim_servo.test_autopilot import Harness, acks
+from tests.sim_servo.autopilot.conftest import Harness, acks
 
 NAN = math.nan
 
