@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import numbers
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Self
 
@@ -50,7 +50,11 @@ def is_real(value: object) -> bool:
 
 
 def _text(bound: float) -> str:
-    return str(bound) if is_int(bound) else f"{bound:g}"
+    if is_int(bound):
+        return str(bound)
+    if float(bound).is_integer() and abs(bound) < 1e16:  # 1e6 reads as 1000000, not 1e+06
+        return str(int(bound))
+    return f"{bound:g}"
 
 
 def range_text(min_value: float | None, max_value: float | None, *, positive: bool = False) -> str:
@@ -127,6 +131,39 @@ def check_integer(
     return int(value)
 
 
+def check_numbers(
+    value: Any,
+    field: str,
+    *,
+    length: int,
+    error: type[FieldError],
+    source: str = "",
+    min_value: float | None = None,
+    max_value: float | None = None,
+    unit: str = "",
+) -> list[float]:
+    """A list (or tuple) of exactly ``length`` finite numbers, each within
+    ``[min_value, max_value]``; a bad one is named ``field[i]``, counted from 0."""
+    if not isinstance(value, list | tuple) or len(value) != length:
+        raise error(source, field, f"must be a list of {length} numbers, got {value!r}")
+    out = []
+    for i, item in enumerate(value):
+        if not is_real(item):
+            raise error(source, f"{field}[{i}]", f"must be a finite number, got {item!r}")
+        out.append(
+            check_number(
+                item,
+                f"{field}[{i}]",
+                error=error,
+                source=source,
+                min_value=min_value,
+                max_value=max_value,
+                unit=unit,
+            )
+        )
+    return out
+
+
 def check_boolean(value: Any, field: str, *, error: type[FieldError], source: str = "") -> bool:
     """``value`` if it is ``True`` or ``False`` (not 0 or 1, not a string)."""
     if not isinstance(value, bool):
@@ -167,7 +204,7 @@ class Table:
         prefix: str = "",
         *,
         error: type[FieldError],
-        allowed: Sequence[str] | None = None,
+        allowed: Collection[str] | None = None,
     ) -> None:
         self.source = source
         self.prefix = prefix
@@ -178,7 +215,7 @@ class Table:
         if allowed is not None:
             self.allow(allowed)
 
-    def allow(self, allowed: Sequence[str]) -> None:
+    def allow(self, allowed: Collection[str]) -> None:
         """Refuse any key but ``allowed``, naming the first unknown one and listing the rest."""
         unknown = sorted((key for key in self.data if key not in allowed), key=str)
         if unknown:
@@ -262,34 +299,24 @@ class Table:
         min_value: float | None = None,
         max_value: float | None = None,
     ) -> list[float]:
-        """A list of exactly ``length`` finite numbers, each within ``[min_value, max_value]``
-        (a bad one is named ``key[i]``, counted from 0)."""
-        value = self._get(key, default)
-        if not isinstance(value, list | tuple) or len(value) != length:
-            raise self.fail(key, f"must be a list of {length} numbers, got {value!r}")
-        out = []
-        for i, item in enumerate(value):
-            if not is_real(item):
-                raise self.fail(f"{key}[{i}]", f"must be a finite number, got {item!r}")
-            out.append(
-                check_number(
-                    item,
-                    self.name(f"{key}[{i}]"),
-                    error=self.error,
-                    source=self.source,
-                    min_value=min_value,
-                    max_value=max_value,
-                )
-            )
-        return out
+        """A list of exactly ``length`` finite numbers (see :func:`check_numbers`)."""
+        return check_numbers(
+            self._get(key, default),
+            self.name(key),
+            length=length,
+            error=self.error,
+            source=self.source,
+            min_value=min_value,
+            max_value=max_value,
+        )
 
-    def table(self, key: str, *, allowed: Sequence[str] | None = None) -> Table:
+    def table(self, key: str, *, allowed: Collection[str] | None = None) -> Table:
         """A sub-table (an empty one if absent)."""
         return Table(
             self.data.get(key, {}), self.source, self.name(key), allowed=allowed, error=self.error
         )
 
-    def tables(self, key: str, *, allowed: Sequence[str] | None = None) -> list[Table]:
+    def tables(self, key: str, *, allowed: Collection[str] | None = None) -> list[Table]:
         """An array of tables (``[[key]]``), required and non-empty; row ``i`` (from 1) is
         named ``key[i]``."""
         rows = self.data.get(key)
