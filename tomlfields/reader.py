@@ -246,6 +246,7 @@ class Table:
         min_value: float | None = None,
         max_value: float | None = None,
         positive: bool = False,
+        unit: str = "",
     ) -> float:
         """A finite number (see :func:`check_number`)."""
         return check_number(
@@ -256,6 +257,7 @@ class Table:
             min_value=min_value,
             max_value=max_value,
             positive=positive,
+            unit=unit,
         )
 
     def integer(
@@ -265,6 +267,7 @@ class Table:
         *,
         min_value: int | None = None,
         max_value: int | None = None,
+        unit: str = "",
     ) -> int:
         """An integer (see :func:`check_integer`)."""
         return check_integer(
@@ -274,6 +277,7 @@ class Table:
             source=self.source,
             min_value=min_value,
             max_value=max_value,
+            unit=unit,
         )
 
     def string(self, key: str, default: Any = _MISSING, *, choices: Sequence[str] = ()) -> str:
@@ -298,6 +302,7 @@ class Table:
         length: int,
         min_value: float | None = None,
         max_value: float | None = None,
+        unit: str = "",
     ) -> list[float]:
         """A list of exactly ``length`` finite numbers (see :func:`check_numbers`)."""
         return check_numbers(
@@ -308,6 +313,7 @@ class Table:
             source=self.source,
             min_value=min_value,
             max_value=max_value,
+            unit=unit,
         )
 
     def table(self, key: str, *, allowed: Collection[str] | None = None) -> Table:

@@ -324,26 +324,26 @@ def _vehicle_point(
     t: Table, key: str, default: list[float] | None = None
 ) -> tuple[float, float, float]:
     """3 numbers (cm) within :data:`VEHICLE_EXTENT_CM` of the body origin."""
-    values = t.numbers(key, length=3) if default is None else t.numbers(key, default, length=3)
-    for i, v in enumerate(values):
-        if abs(v) > VEHICLE_EXTENT_CM:
-            raise t.fail(
-                f"{key}[{i}]",
-                f"{v:g} outside [{-VEHICLE_EXTENT_CM:g}, {VEHICLE_EXTENT_CM:g}] cm (body frame)",
-            )
-    return (values[0], values[1], values[2])
+    x, y, z = t.numbers(
+        key,
+        *(() if default is None else (default,)),
+        length=3,
+        min_value=-VEHICLE_EXTENT_CM,
+        max_value=VEHICLE_EXTENT_CM,
+        unit="cm (body frame)",
+    )
+    return (x, y, z)
 
 
 def _angles(t: Table, key: str) -> tuple[float, float, float]:
-    rpy = t.numbers(key, [0.0, 0.0, 0.0], length=3)
-    for i, v in enumerate(rpy):
-        if abs(v) > 360.0:
-            raise t.fail(f"{key}[{i}]", f"{v:g} outside [-360, 360] deg")
-    return (rpy[0], rpy[1], rpy[2])
+    roll, pitch, yaw = t.numbers(
+        key, [0.0, 0.0, 0.0], length=3, min_value=-360.0, max_value=360.0, unit="deg"
+    )
+    return (roll, pitch, yaw)
 
 
 def _size(t: Table, key: str) -> float:
-    return t.number(key, min_value=None, max_value=VEHICLE_EXTENT_CM, positive=True)
+    return t.number(key, max_value=VEHICLE_EXTENT_CM, positive=True, unit="cm")
 
 
 def _parse_mount(t: Table) -> Mount:
@@ -670,8 +670,10 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
                     ),
                 )
             )
-        except SettingError as exc:  # a rule between two fields of the row: exc.field names one
-            raise row.fail(exc.field, exc.problem) from exc
+        except SettingError as exc:
+            # A rule between fields of the row (the field checks above came first): named by
+            # the row, exc.field one of the fields, the problem the other.
+            raise ConfigError(root.source, row.prefix, f"{exc.field}: {exc.problem}") from exc
         except FirmwareInterfaceError as exc:
             raise ConfigError(root.source, row.prefix, str(exc)) from exc
         cal = joints[-1]

@@ -148,8 +148,8 @@ BAD = [
     (
         "pwm order",
         lambda t: t.replace("output = 9\n", "output = 9\npwm_min_us = 2000\npwm_max_us = 1000\n"),
-        "joint[1].pwm_min_us",
-        "2000 must be below pwm_max_us = 1000",
+        "joint[1]",
+        "pwm_min_us: 2000 must be below pwm_max_us = 1000",
     ),
     (
         "narrow calibration",
