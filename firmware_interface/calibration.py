@@ -27,9 +27,7 @@ from firmware_interface.errors import (
     PwmOutOfRange,
     SettingError,
 )
-from tomlfields import check_boolean, check_integer, check_number
-from tomlfields import is_int as _is_int
-from tomlfields import is_real as _is_real
+from tomlfields import check_boolean, check_integer, check_number, is_int, is_real
 
 #: Servo output numbers ArduPilot addresses with DO_SET_SERVO (SERVO1…SERVO16).
 OUTPUT_MIN = 1
@@ -144,7 +142,7 @@ class JointCalibration:
 
     def check_angle_deg(self, angle_deg: float) -> float:
         """Return ``angle_deg`` as a float, or raise if it is non-finite or out of range."""
-        if not _is_real(angle_deg):
+        if not is_real(angle_deg):
             raise NonFiniteAngle(
                 f"angle_deg={angle_deg!r} is not a real number for {self._describe()}"
             )
@@ -164,7 +162,7 @@ class JointCalibration:
     def check_pwm_us(self, pwm_us: float) -> None:
         """Raise :class:`PwmOutOfRange` unless ``pwm_us`` is finite and in the servo's range."""
         if (
-            not _is_real(pwm_us)
+            not is_real(pwm_us)
             or not math.isfinite(float(pwm_us))
             or not (self.pwm_min_us <= pwm_us <= self.pwm_max_us)
         ):
@@ -289,7 +287,7 @@ class ArmCalibration:
         This is the last gate before anything is sent."""
         for output, pwm in pwm_by_output.items():
             joint = self.for_output(output)
-            if not _is_int(pwm):
+            if not is_int(pwm):
                 raise PwmOutOfRange(
                     f"pwm_us={pwm!r} is not an integer µs for servo output {output} "
                     f"(joint {joint.name!r}); allowed [{joint.pwm_min_us}, {joint.pwm_max_us}]"

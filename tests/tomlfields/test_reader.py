@@ -136,7 +136,7 @@ def test_table_names_dotted_fields_and_refuses_unknown_keys():
     )
 
 
-def test_a_unknown_key_that_is_not_text_is_named():
+def test_an_unknown_key_that_is_not_text_is_named():
     error = refused(Table, {1: "x", "a": 2}, "<dict>", "outputs", error=MyError, allowed=("a",))
     assert error.field == "outputs.1"
 
