@@ -348,7 +348,7 @@ def test_vehicle_settings_are_validated(data, message):
         ({"outputs": {"nine": 33}}, "outputs.nine", "'nine' is not an output number (1-16)"),
         ({"outputs": {"9": 1.5}}, "outputs.9", "must be an integer, got 1.5"),
         ({"faults": {"withhold_ack": ["NOPE"]}}, "faults.withhold_ack", "'NOPE' is not a command"),
-        # Shapes that escaped as TypeError, not a settings error.
+        # Shapes a plain tuple() or frozenset() would meet with a TypeError.
         ({"arm": {"outputs": 9}}, "arm.outputs", "must be a list of output numbers, got 9"),
         ({"faults": {"nack_outputs": 9}}, "faults.nack_outputs", "must be a list of output"),
         ({"faults": {"nack_outputs": [[9]]}}, "faults.nack_outputs", "must be a list of output"),
