@@ -6,23 +6,19 @@ Configuration problems are also ``ValueError`` so that plain ``except ValueError
 
 from __future__ import annotations
 
+from tomlfields import FieldError
+
 
 class ArmError(Exception):
     """Base of every error raised by :mod:`companion`."""
 
 
-class ConfigError(ArmError, ValueError):
+class ConfigError(ArmError, FieldError):
     """A configuration file (arm description or daemon config) is malformed.
 
     ``source`` names the file (or ``"<dict>"``), ``field`` the offending field in dotted form
     (``joint[2].min_deg``), and the message states the allowed values.
     """
-
-    def __init__(self, source: str, field: str, problem: str) -> None:
-        self.source = source
-        self.field = field
-        self.problem = problem
-        super().__init__(f"{source}: {field}: {problem}")
 
 
 class ArmConfigError(ConfigError):

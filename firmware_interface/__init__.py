@@ -31,6 +31,7 @@ from firmware_interface.errors import (
     NonFiniteAngle,
     PwmOutOfRange,
     ServoOutputUnavailable,
+    SettingError,
     SigningStateError,
     TransportError,
 )
@@ -73,6 +74,7 @@ __all__ = [
     "LinkTimeout",
     "NonFiniteAngle",
     "PwmOutOfRange",
+    "SettingError",
     "ServoOutputUnavailable",
     "SigningStateError",
     "TransportError",

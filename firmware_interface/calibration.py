@@ -17,7 +17,6 @@ This module knows nothing of the arm model: joint ranges come in as plain number
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -26,7 +25,9 @@ from firmware_interface.errors import (
     ConfigurationError,
     NonFiniteAngle,
     PwmOutOfRange,
+    SettingError,
 )
+from tomlfields import check_boolean, check_integer, check_number, is_int, is_real
 
 #: Servo output numbers ArduPilot addresses with DO_SET_SERVO (SERVO1…SERVO16).
 OUTPUT_MIN = 1
@@ -52,19 +53,6 @@ DEFAULT_PWM_MIN_US = 1000
 DEFAULT_PWM_MAX_US = 2000
 
 
-def _is_int(value: object) -> bool:
-    # The exact type first: the ABC check costs a microsecond, six times a control tick.
-    return type(value) is int or (
-        isinstance(value, numbers.Integral) and not isinstance(value, bool)
-    )
-
-
-def _is_real(value: object) -> bool:
-    return type(value) in (float, int) or (
-        isinstance(value, numbers.Real) and not isinstance(value, bool)
-    )
-
-
 def round_half_up_us(pwm_exact_us: float) -> int:
     """Round an exact PWM to the integer µs sent on the wire (nearest, halves up)."""
     return math.floor(pwm_exact_us + 0.5)
@@ -88,45 +76,61 @@ class JointCalibration:
     trim_us: int = 0
 
     def __post_init__(self) -> None:
-        where = f"joint {self.name!r}"
         if not isinstance(self.name, str) or not self.name:
-            raise ConfigurationError(f"joint name={self.name!r} must be a non-empty string")
-        if not _is_int(self.output) or not OUTPUT_MIN <= self.output <= OUTPUT_MAX:
-            raise ConfigurationError(
-                f"output={self.output!r} outside [{OUTPUT_MIN}, {OUTPUT_MAX}] for {where}"
+            raise SettingError("joint", "name", f"must be a non-empty string, got {self.name!r}")
+        where = f"joint {self.name!r}"
+        check_integer(
+            self.output,
+            "output",
+            min_value=OUTPUT_MIN,
+            max_value=OUTPUT_MAX,
+            error=SettingError,
+            source=where,
+        )
+        for label in ("angle_min_deg", "angle_max_deg"):
+            check_number(
+                getattr(self, label),
+                label,
+                min_value=-ANGLE_LIMIT_DEG,
+                max_value=ANGLE_LIMIT_DEG,
+                unit="deg",
+                error=SettingError,
+                source=where,
             )
-        for label, angle in (
-            ("angle_min_deg", self.angle_min_deg),
-            ("angle_max_deg", self.angle_max_deg),
-        ):
-            if not _is_real(angle) or not -ANGLE_LIMIT_DEG <= angle <= ANGLE_LIMIT_DEG:
-                raise ConfigurationError(
-                    f"{label}={angle!r} outside [{-ANGLE_LIMIT_DEG}, {ANGLE_LIMIT_DEG}] for {where}"
-                )
         if not self.angle_min_deg < self.angle_max_deg:
-            raise ConfigurationError(
-                f"angle_min_deg={self.angle_min_deg!r} must be below "
-                f"angle_max_deg={self.angle_max_deg!r} for {where}"
+            raise SettingError(
+                where,
+                "angle_min_deg",
+                f"{self.angle_min_deg!r} must be below angle_max_deg = {self.angle_max_deg!r}",
             )
-        for label, pwm in (("pwm_min_us", self.pwm_min_us), ("pwm_max_us", self.pwm_max_us)):
-            if not _is_int(pwm) or not PWM_LIMIT_MIN_US <= pwm <= PWM_LIMIT_MAX_US:
-                raise ConfigurationError(
-                    f"{label}={pwm!r} outside [{PWM_LIMIT_MIN_US}, {PWM_LIMIT_MAX_US}] "
-                    f"(integer µs) for {where}"
-                )
+        for label in ("pwm_min_us", "pwm_max_us"):
+            check_integer(
+                getattr(self, label),
+                label,
+                min_value=PWM_LIMIT_MIN_US,
+                max_value=PWM_LIMIT_MAX_US,
+                unit="µs",
+                error=SettingError,
+                source=where,
+            )
         if not self.pwm_min_us < self.pwm_max_us:
-            raise ConfigurationError(
-                f"pwm_min_us={self.pwm_min_us} must be below pwm_max_us={self.pwm_max_us} "
-                f"for {where}"
+            raise SettingError(
+                where,
+                "pwm_min_us",
+                f"{self.pwm_min_us} must be below pwm_max_us = {self.pwm_max_us}",
             )
-        if not isinstance(self.reversed, bool):
-            raise ConfigurationError(f"reversed={self.reversed!r} must be a bool for {where}")
+        check_boolean(self.reversed, "reversed", error=SettingError, source=where)
+        # Beyond half the span the joint's mid-range would leave the PWM range.
         half_span = (self.pwm_max_us - self.pwm_min_us) // 2
-        if not _is_int(self.trim_us) or not -half_span <= self.trim_us <= half_span:
-            raise ConfigurationError(
-                f"trim_us={self.trim_us!r} outside [{-half_span}, {half_span}] "
-                f"(integer µs) for {where}"
-            )
+        check_integer(
+            self.trim_us,
+            "trim_us",
+            min_value=-half_span,
+            max_value=half_span,
+            unit="µs",
+            error=SettingError,
+            source=where,
+        )
 
     @property
     def pwm_range_us(self) -> tuple[int, int]:
@@ -138,7 +142,7 @@ class JointCalibration:
 
     def check_angle_deg(self, angle_deg: float) -> float:
         """Return ``angle_deg`` as a float, or raise if it is non-finite or out of range."""
-        if not _is_real(angle_deg):
+        if not is_real(angle_deg):
             raise NonFiniteAngle(
                 f"angle_deg={angle_deg!r} is not a real number for {self._describe()}"
             )
@@ -158,7 +162,7 @@ class JointCalibration:
     def check_pwm_us(self, pwm_us: float) -> None:
         """Raise :class:`PwmOutOfRange` unless ``pwm_us`` is finite and in the servo's range."""
         if (
-            not _is_real(pwm_us)
+            not is_real(pwm_us)
             or not math.isfinite(float(pwm_us))
             or not (self.pwm_min_us <= pwm_us <= self.pwm_max_us)
         ):
@@ -283,7 +287,7 @@ class ArmCalibration:
         This is the last gate before anything is sent."""
         for output, pwm in pwm_by_output.items():
             joint = self.for_output(output)
-            if not _is_int(pwm):
+            if not is_int(pwm):
                 raise PwmOutOfRange(
                     f"pwm_us={pwm!r} is not an integer µs for servo output {output} "
                     f"(joint {joint.name!r}); allowed [{joint.pwm_min_us}, {joint.pwm_max_us}]"

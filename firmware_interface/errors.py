@@ -6,6 +6,7 @@ FirmwareInterfaceError
 │   ├── AngleOutOfRange
 │   └── PwmOutOfRange
 ├── ConfigurationError        (also a ValueError: bad settings, URL, key file …)
+│   ├── SettingError          (one named field; also a tomlfields.FieldError)
 │   └── InvalidUrl
 └── LinkError
     ├── TransportError        (serial / socket failure; the OS error is the ``__cause__``)
@@ -16,6 +17,8 @@ FirmwareInterfaceError
 """
 
 from __future__ import annotations
+
+from tomlfields import FieldError
 
 
 class FirmwareInterfaceError(Exception):
@@ -40,6 +43,12 @@ class PwmOutOfRange(CalibrationError):
 
 class ConfigurationError(FirmwareInterfaceError, ValueError):
     """A setting (calibration table, URL, key file, dialect name …) is invalid."""
+
+
+class SettingError(ConfigurationError, FieldError):
+    """One field of a setting is invalid: ``SettingError(source, field, problem)``, where
+    ``source`` says whose field it is (``joint 'theta2'``) and ``problem`` gives the value and
+    the allowed range."""
 
 
 class InvalidUrl(ConfigurationError):

@@ -243,7 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--loop-rate-hz",
         type=_non_negative,
         help="main-loop rate: frames are handled, and STATUSTEXT / PARAM_VALUE "
-        "sent, on loop passes (default 400, as ArduCopter)",
+        "sent, on loop passes (1-10000; default 400, as ArduCopter)",
     )
 
     motion = parser.add_argument_group(

@@ -22,14 +22,14 @@ PX4 does); ArduPilot — nothing to do (the safety switch is off by default).
 
 from __future__ import annotations
 
-import math
-import tomllib
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from sim_servo.errors import SimConfigError
+import tomlfields
+from sim_servo.errors import SimConfigError, SimFieldError
+from tomlfields import Table, check_boolean, check_integer, check_number, check_numbers, is_int
 
 FLAVOURS = ("ardupilot", "px4")
 #: SERVO1…SERVO16: the outputs SERVO_OUTPUT_RAW port 0 reports.
@@ -75,32 +75,47 @@ DEFAULT_LOCAL_POSITION_RATE_HZ = {"ardupilot": 0.0, "px4": 30.0}
 PX4_PREARM_MODES = (0, 1, 2)
 #: Measured on PX4 SITL: with ``COM_PREARM_MODE`` 2 the outputs come alive 5 s after boot.
 PX4_PREARM_DELAY_S = 5.0
+#: The autopilot's HEARTBEAT rate. Real ones send 1 Hz. Below 0.1 Hz (one every 10 s) any
+#: peer takes the link for lost (the daemon waits at most 60 s, most far less): a silent
+#: autopilot is the fault ``heartbeat_pause_after_s`` models. Above 100 Hz it floods the link.
+HEARTBEAT_RATE_HZ = (0.1, 100.0)
+#: The main loop's rate (ArduCopter's is 400 Hz). Below 1 Hz every command waits seconds for
+#: its pass; above 10 kHz the loop does nothing but spin.
+LOOP_RATE_HZ = (1.0, 10_000.0)
 
 
-def _where(source: str, name: str) -> str:
-    return f"{name} in {source}" if source else name
+# Every value is checked by the shared reader (tomlfields), raising SimFieldError named by its
+# dotted TOML field; a value built in code has no source, and config_from_mapping adds the file.
 
 
-def _real(value: Any, name: str, low: float, high: float, source: str = "") -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise SimConfigError(f"{_where(source, name)}={value!r} is not a finite number")
-    if not low <= value <= high:
-        raise SimConfigError(f"{_where(source, name)}={value!r} outside [{low}, {high}]")
-    return float(value)
+def _real(value: Any, field: str, low: float, high: float) -> float:
+    """A finite number in ``[low, high]``."""
+    return check_number(value, field, min_value=low, max_value=high, error=SimFieldError)
 
 
-def _int(value: Any, name: str, low: int, high: int, source: str = "") -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise SimConfigError(f"{_where(source, name)}={value!r} is not an integer")
-    if not low <= value <= high:
-        raise SimConfigError(f"{_where(source, name)}={value!r} outside [{low}, {high}]")
-    return value
+def _positive(value: Any, field: str, high: float) -> float:
+    """A finite number in ``(0, high]``."""
+    return check_number(value, field, max_value=high, positive=True, error=SimFieldError)
 
 
-def _optional_real(
-    value: Any, name: str, low: float, high: float, source: str = ""
-) -> float | None:
-    return None if value is None else _real(value, name, low, high, source)
+def _int(value: Any, field: str, low: int, high: int) -> int:
+    """An integer in ``[low, high]``."""
+    return check_integer(value, field, min_value=low, max_value=high, error=SimFieldError)
+
+
+def _bool(value: Any, field: str) -> bool:
+    return check_boolean(value, field, error=SimFieldError)
+
+
+def _optional_real(value: Any, field: str, low: float, high: float) -> float | None:
+    return None if value is None else _real(value, field, low, high)
+
+
+def _triple(value: Any, field: str, low: float, high: float) -> tuple[float, float, float]:
+    x, y, z = check_numbers(
+        value, field, length=3, min_value=low, max_value=high, error=SimFieldError
+    )
+    return (x, y, z)
 
 
 @dataclass(frozen=True)
@@ -122,18 +137,19 @@ class ServoConfig:
     initial_us: float = 1500.0
 
     def __post_init__(self) -> None:
-        _real(self.slew_s_per_60deg, "slew_s_per_60deg", 0.0, 60.0)
-        _real(self.deadband_us, "deadband_us", 0.0, 100.0)
-        if _real(self.deg_per_us, "deg_per_us", 0.0, 10.0) == 0.0:
-            raise SimConfigError("deg_per_us=0 must be > 0")
-        _real(self.travel_min_us, "travel_min_us", 0.0, 5000.0)
-        _real(self.travel_max_us, "travel_max_us", 0.0, 5000.0)
+        _real(self.slew_s_per_60deg, "servo.slew_s_per_60deg", 0.0, 60.0)
+        _real(self.deadband_us, "servo.deadband_us", 0.0, 100.0)
+        _positive(self.deg_per_us, "servo.deg_per_us", 10.0)
+        _real(self.travel_min_us, "servo.travel_min_us", 0.0, 5000.0)
+        _real(self.travel_max_us, "servo.travel_max_us", 0.0, 5000.0)
         if not self.travel_min_us < self.travel_max_us:
-            raise SimConfigError(
-                f"travel_min_us={self.travel_min_us} must be below "
-                f"travel_max_us={self.travel_max_us}"
+            raise SimFieldError(
+                "",
+                "servo.travel_min_us",
+                f"{self.travel_min_us!r} must be below servo.travel_max_us = "
+                f"{self.travel_max_us!r}",
             )
-        _real(self.initial_us, "initial_us", self.travel_min_us, self.travel_max_us)
+        _real(self.initial_us, "servo.initial_us", self.travel_min_us, self.travel_max_us)
 
 
 @dataclass(frozen=True)
@@ -174,9 +190,9 @@ class LinkTimingConfig:
     burst_frames: int = 2
 
     def __post_init__(self) -> None:
-        _real(self.output_delay_ms, "output_delay_ms", 0.0, 1000.0)
-        _real(self.hold_ms, "hold_ms", 0.0, 1000.0)
-        _int(self.burst_frames, "burst_frames", 1, 1000)
+        _real(self.output_delay_ms, "link_timing.output_delay_ms", 0.0, 1000.0)
+        _real(self.hold_ms, "link_timing.hold_ms", 0.0, 1000.0)
+        _int(self.burst_frames, "link_timing.burst_frames", 1, 1000)
 
     @classmethod
     def instant(cls) -> LinkTimingConfig:
@@ -218,9 +234,9 @@ class Px4TimingConfig:
     forward_delay_ms: float = 2.5
 
     def __post_init__(self) -> None:
-        _real(self.commander_period_ms, "commander_period_ms", 0.0, 1000.0)
-        _real(self.mavlink_loop_ms, "mavlink_loop_ms", 0.0, 1000.0)
-        _real(self.forward_delay_ms, "forward_delay_ms", 0.0, 1000.0)
+        _real(self.commander_period_ms, "px4_timing.commander_period_ms", 0.0, 1000.0)
+        _real(self.mavlink_loop_ms, "px4_timing.mavlink_loop_ms", 0.0, 1000.0)
+        _real(self.forward_delay_ms, "px4_timing.forward_delay_ms", 0.0, 1000.0)
 
     @classmethod
     def instant(cls) -> Px4TimingConfig:
@@ -251,28 +267,26 @@ class FaultConfig:
 
     def __post_init__(self) -> None:
         for name in ("drop_in", "drop_out", "corrupt_in", "corrupt_out"):
-            _real(getattr(self, name), name, 0.0, 1.0)
-        _real(self.latency_ms, "latency_ms", 0.0, 60_000.0)
-        _real(self.jitter_ms, "jitter_ms", 0.0, 60_000.0)
-        _optional_real(self.heartbeat_pause_after_s, "heartbeat_pause_after_s", 0.0, 1e6)
-        _optional_real(self.heartbeat_pause_for_s, "heartbeat_pause_for_s", 0.0, 1e6)
-        _optional_real(self.hangup_after_s, "hangup_after_s", 0.0, 1e6)
-        _optional_real(self.hangup_for_s, "hangup_for_s", 0.0, 1e6)
-        _optional_real(self.reboot_after_s, "reboot_after_s", 0.0, 1e6)
-        _real(self.reboot_gap_s, "reboot_gap_s", 0.0, 600.0)
+            _real(getattr(self, name), f"faults.{name}", 0.0, 1.0)
+        _real(self.latency_ms, "faults.latency_ms", 0.0, 60_000.0)
+        _real(self.jitter_ms, "faults.jitter_ms", 0.0, 60_000.0)
+        for name in (
+            "heartbeat_pause_after_s",
+            "heartbeat_pause_for_s",
+            "hangup_after_s",
+            "hangup_for_s",
+            "reboot_after_s",
+        ):
+            _optional_real(getattr(self, name), f"faults.{name}", 0.0, 1e6)
+        _real(self.reboot_gap_s, "faults.reboot_gap_s", 0.0, 600.0)
+        _bool(self.withhold_all_acks, "faults.withhold_all_acks")
         for command in self.withhold_ack_commands:
-            _int(command, "withhold_ack command", 0, 65535)
+            _int(command, "faults.withhold_ack", 0, 65535)
         for output in self.nack_outputs:
-            _int(output, "nack_output", 1, OUTPUT_COUNT)
-        _int(self.seed, "seed", 0, 2**63 - 1)
+            _int(output, "faults.nack_outputs", 1, OUTPUT_COUNT)
+        _int(self.seed, "faults.seed", 0, 2**63 - 1)
         object.__setattr__(self, "withhold_ack_commands", frozenset(self.withhold_ack_commands))
         object.__setattr__(self, "nack_outputs", frozenset(self.nack_outputs))
-
-
-def _triple(value: Any, name: str, low: float, high: float, source: str = "") -> tuple[float, ...]:
-    if not isinstance(value, list | tuple) or len(value) != 3:
-        raise SimConfigError(f"{_where(source, name)}={value!r} must be a list of 3 numbers")
-    return tuple(_real(v, f"{name}[{i}]", low, high, source) for i, v in enumerate(value))
 
 
 @dataclass(frozen=True)
@@ -288,8 +302,10 @@ class MountConfig:
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "xyz_cm", _triple(self.xyz_cm, "mount xyz_cm", -500.0, 500.0))
-        object.__setattr__(self, "rpy_deg", _triple(self.rpy_deg, "mount rpy_deg", -360.0, 360.0))
+        xyz_cm = _triple(self.xyz_cm, "vehicle.mount.xyz_cm", -500.0, 500.0)
+        object.__setattr__(self, "xyz_cm", xyz_cm)
+        rpy_deg = _triple(self.rpy_deg, "vehicle.mount.rpy_deg", -360.0, 360.0)
+        object.__setattr__(self, "rpy_deg", rpy_deg)
 
 
 @dataclass(frozen=True)
@@ -323,29 +339,30 @@ class VehicleConfig:
     mount: MountConfig = field(default_factory=MountConfig)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.hover, bool):
-            raise SimConfigError(f"vehicle hover={self.hover!r} must be true or false")
-        _int(self.seed, "vehicle seed", 0, 2**63 - 1)
-        _real(self.drift_cm, "vehicle drift_cm", 0.0, 500.0)
-        _real(self.heave_cm, "vehicle heave_cm", 0.0, 500.0)
-        _real(self.tilt_deg, "vehicle tilt_deg", 0.0, 45.0)
-        _real(self.yaw_deg, "vehicle yaw_deg", 0.0, 180.0)
+        _bool(self.hover, "vehicle.hover")
+        _int(self.seed, "vehicle.seed", 0, 2**63 - 1)
+        _real(self.drift_cm, "vehicle.drift_cm", 0.0, 500.0)
+        _real(self.heave_cm, "vehicle.heave_cm", 0.0, 500.0)
+        _real(self.tilt_deg, "vehicle.tilt_deg", 0.0, 45.0)
+        _real(self.yaw_deg, "vehicle.yaw_deg", 0.0, 180.0)
         for low_name, high_name in (
             ("period_min_s", "period_max_s"),
             ("yaw_period_min_s", "yaw_period_max_s"),
         ):
-            low = _real(getattr(self, low_name), f"vehicle {low_name}", 0.05, 3600.0)
-            high = _real(getattr(self, high_name), f"vehicle {high_name}", 0.05, 3600.0)
+            low = _real(getattr(self, low_name), f"vehicle.{low_name}", 0.05, 3600.0)
+            high = _real(getattr(self, high_name), f"vehicle.{high_name}", 0.05, 3600.0)
             if low > high:
-                raise SimConfigError(
-                    f"vehicle {low_name}={low} must not exceed vehicle {high_name}={high}"
+                raise SimFieldError(
+                    "",
+                    f"vehicle.{low_name}",
+                    f"{getattr(self, low_name)!r} must not exceed vehicle.{high_name} = "
+                    f"{getattr(self, high_name)!r}",
                 )
-        _int(self.components, "vehicle components", 1, 16)
-        object.__setattr__(
-            self, "home_ned_m", _triple(self.home_ned_m, "vehicle home_ned_m", -1e6, 1e6)
-        )
-        _real(self.home_yaw_deg, "vehicle home_yaw_deg", -360.0, 360.0)
-        _real(self.log_rate_hz, "vehicle log_rate_hz", 0.0, 1000.0)
+        _int(self.components, "vehicle.components", 1, 16)
+        home_ned_m = _triple(self.home_ned_m, "vehicle.home_ned_m", -1e6, 1e6)
+        object.__setattr__(self, "home_ned_m", home_ned_m)
+        _real(self.home_yaw_deg, "vehicle.home_yaw_deg", -360.0, 360.0)
+        _real(self.log_rate_hz, "vehicle.log_rate_hz", 0.0, 1000.0)
         if not isinstance(self.mount, MountConfig):
             raise SimConfigError(f"vehicle mount={self.mount!r} must be a MountConfig")
 
@@ -378,37 +395,59 @@ class ArmConfig:
     trims_us: Mapping[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.outputs, list | tuple):
+            raise SimFieldError(
+                "", "arm.outputs", f"must be a list of output numbers, got {self.outputs!r}"
+            )
         outputs = tuple(self.outputs)
-        for output in outputs:
-            _int(output, "arm output", 1, OUTPUT_COUNT)
+        for i, output in enumerate(outputs):
+            _int(output, f"arm.outputs[{i}]", 1, OUTPUT_COUNT)
         if len(set(outputs)) != len(outputs):
-            raise SimConfigError(f"arm outputs={list(outputs)} repeat an output")
+            raise SimFieldError("", "arm.outputs", f"{list(outputs)} repeat an output")
         object.__setattr__(self, "outputs", outputs)
         for name in ("pwm_min_us", "pwm_max_us"):
-            _int(getattr(self, name), f"arm {name}", ARM_PWM_LIMIT_MIN_US, ARM_PWM_LIMIT_MAX_US)
+            check_integer(
+                getattr(self, name),
+                f"arm.{name}",
+                min_value=ARM_PWM_LIMIT_MIN_US,
+                max_value=ARM_PWM_LIMIT_MAX_US,
+                unit="µs",
+                error=SimFieldError,
+            )
         if not self.pwm_min_us < self.pwm_max_us:
-            raise SimConfigError(
-                f"arm pwm_min_us={self.pwm_min_us} must be below arm pwm_max_us={self.pwm_max_us}"
+            raise SimFieldError(
+                "",
+                "arm.pwm_min_us",
+                f"{self.pwm_min_us} must be below arm.pwm_max_us = {self.pwm_max_us}",
             )
         # A bare string would otherwise be taken as a list of one-letter joint names.
         if not isinstance(self.reversed_joints, list | tuple | set | frozenset):
-            raise SimConfigError(
-                f"arm reversed={self.reversed_joints!r} must be a list of joint names"
+            raise SimFieldError(
+                "", "arm.reversed", f"must be a list of joint names, got {self.reversed_joints!r}"
             )
         for name in self.reversed_joints:
             if not isinstance(name, str):
-                raise SimConfigError(f"arm reversed joint {name!r} is not a joint name")
+                raise SimFieldError("", "arm.reversed", f"{name!r} is not a joint name")
         object.__setattr__(self, "reversed_joints", tuple(self.reversed_joints))
         if not isinstance(self.trims_us, Mapping):
-            raise SimConfigError(
-                f"arm trims_us={self.trims_us!r} must be a table of joint name = trim in µs"
+            raise SimFieldError(
+                "",
+                "arm.trims_us",
+                f"must be a table of joint name = trim in µs, got {self.trims_us!r}",
             )
         # Beyond half the span the joint's mid-range (its neutral) would leave the PWM range.
         half_span_us = (self.pwm_max_us - self.pwm_min_us) // 2
         for name, trim_us in self.trims_us.items():
             if not isinstance(name, str):
-                raise SimConfigError(f"arm trims_us key {name!r} is not a joint name")
-            _int(trim_us, f"arm trims_us.{name}", -half_span_us, half_span_us)
+                raise SimFieldError("", "arm.trims_us", f"key {name!r} is not a joint name")
+            check_integer(
+                trim_us,
+                f"arm.trims_us.{name}",
+                min_value=-half_span_us,
+                max_value=half_span_us,
+                unit="µs",
+                error=SimFieldError,
+            )
         object.__setattr__(self, "trims_us", dict(self.trims_us))
 
 
@@ -448,32 +487,38 @@ class SimConfig:
     lua_script: bool = False
 
     def __post_init__(self) -> None:
-        if self.flavour not in FLAVOURS:
-            raise SimConfigError(f"flavour={self.flavour!r}; valid: {list(FLAVOURS)}")
-        if not isinstance(self.lua_script, bool):
-            raise SimConfigError(f"lua_script={self.lua_script!r} must be true or false")
-        if self.lua_script and self.flavour != "ardupilot":
-            raise SimConfigError(f"lua_script=true needs flavour='ardupilot', not {self.flavour!r}")
+        if not isinstance(self.flavour, str) or self.flavour not in FLAVOURS:
+            raise SimFieldError(
+                "", "flavour", f"{self.flavour!r} is not one of {', '.join(FLAVOURS)}"
+            )
+        if _bool(self.lua_script, "lua_script") and self.flavour != "ardupilot":
+            raise SimFieldError(
+                "", "lua_script", f"true needs flavour = 'ardupilot', not {self.flavour!r}"
+            )
         _int(self.system_id, "system_id", 1, 255)
         _int(self.component_id, "component_id", 1, 255)
         functions = default_functions(self.flavour, self.arm.outputs)
         for output, function in dict(self.functions).items():
-            _int(output, "output", 1, OUTPUT_COUNT)
-            functions[output] = _int(function, f"function of output {output}", 0, 65535)
+            if not is_int(output) or not 1 <= output <= OUTPUT_COUNT:
+                raise SimFieldError(
+                    "", f"outputs.{output}", f"output number {output!r} outside [1, {OUTPUT_COUNT}]"
+                )
+            functions[output] = _int(function, f"outputs.{output}", 0, 65535)
         object.__setattr__(self, "functions", functions)
         if not isinstance(self.params, Mapping):
-            raise SimConfigError(f"params={self.params!r} must be a table of name = integer")
+            raise SimFieldError(
+                "", "params", f"must be a table of name = integer, got {self.params!r}"
+            )
         for name, value in self.params.items():
             if not isinstance(name, str) or not name:
-                raise SimConfigError(f"parameter name {name!r} is not a name")
-            _int(value, f"parameter {name}", -(2**31), 2**31 - 1)
+                raise SimFieldError("", "params", f"parameter name {name!r} is not a name")
+            _int(value, f"params.{name}", -(2**31), 2**31 - 1)
         object.__setattr__(self, "params", dict(self.params))
-        if not isinstance(self.armed, bool):
-            raise SimConfigError(f"armed={self.armed!r} must be true or false")
+        _bool(self.armed, "armed")
         if self.signing_key is not None and (
             not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32
         ):
-            raise SimConfigError("signing_key must be 32 bytes")
+            raise SimFieldError("", "signing_key", "must be 32 bytes")
         _real(self.servo_output_rate_hz, "servo_output_rate_hz", 0.0, 1000.0)
         if self.servo_output_min_interval_ms is not None:
             _int(self.servo_output_min_interval_ms, "servo_output_min_interval_ms", 0, 60_000)
@@ -482,10 +527,8 @@ class SimConfig:
         _optional_real(self.local_position_rate_hz, "local_position_rate_hz", 0.0, 1000.0)
         if not isinstance(self.vehicle, VehicleConfig):
             raise SimConfigError(f"vehicle={self.vehicle!r} must be a VehicleConfig")
-        if _real(self.heartbeat_rate_hz, "heartbeat_rate_hz", 0.0, 100.0) == 0.0:
-            raise SimConfigError("heartbeat_rate_hz=0 must be > 0")
-        if _real(self.loop_rate_hz, "loop_rate_hz", 0.0, 10_000.0) == 0.0:
-            raise SimConfigError("loop_rate_hz=0 must be > 0")
+        _real(self.heartbeat_rate_hz, "heartbeat_rate_hz", *HEARTBEAT_RATE_HZ)
+        _real(self.loop_rate_hz, "loop_rate_hz", *LOOP_RATE_HZ)
 
     @property
     def servo_output_floor_ms(self) -> int:
@@ -610,19 +653,6 @@ _FAULT_KEYS = {
 _ARM_KEYS = {"file", "outputs", "pwm_min_us", "pwm_max_us", "reversed", "trims_us"}
 
 
-def _reject_unknown(table: Mapping[str, Any], allowed: set[str], where: str) -> None:
-    unknown = sorted(set(table) - allowed)
-    if unknown:
-        raise SimConfigError(f"unknown keys {unknown} in {where}; valid: {sorted(allowed)}")
-
-
-def _table(data: Mapping[str, Any], key: str, source: str) -> Mapping[str, Any]:
-    value = data.get(key, {})
-    if not isinstance(value, Mapping):
-        raise SimConfigError(f"[{key}] in {source} must be a table")
-    return value
-
-
 def parse_withhold(values: list[Any] | str, source: str = "") -> tuple[frozenset[int], bool]:
     """``"all"`` or a list of command ids / names (``DO_SET_SERVO``, ``183``)."""
     from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -641,9 +671,10 @@ def parse_withhold(values: list[Any] | str, source: str = "") -> tuple[frozenset
         name = text if text.startswith("MAV_CMD_") else f"MAV_CMD_{text}"
         number = getattr(mavlink, name, None)
         if not isinstance(number, int):
-            raise SimConfigError(
-                f"{_where(source, 'withhold_ack')}={value!r} is not a command id, MAV_CMD name "
-                "or 'all'"
+            raise SimFieldError(
+                source,
+                "faults.withhold_ack",
+                f"{value!r} is not a command id, MAV_CMD name or 'all'",
             )
         commands.add(number)
     return frozenset(commands), False
@@ -652,8 +683,22 @@ def parse_withhold(values: list[Any] | str, source: str = "") -> tuple[frozenset
 def config_from_mapping(
     data: Mapping[str, Any], source: str = "<dict>", base_dir: Path | None = None
 ) -> SimConfig:
-    """Build a :class:`SimConfig` from the TOML structure; paths are relative to ``base_dir``."""
-    _reject_unknown(data, _TOP_KEYS, source)
+    """Build a :class:`SimConfig` from the TOML structure; paths are relative to ``base_dir``.
+    Every refusal is a :class:`SimFieldError` naming ``source`` and the dotted field."""
+    try:
+        return _config_from_mapping(
+            Table(data, source, allowed=_TOP_KEYS, error=SimFieldError), base_dir
+        )
+    except SimFieldError as exc:
+        # The settings classes check their own values, before the file is known.
+        raise exc if exc.source else exc.at(source) from None
+
+
+def _fields(cls: Any) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
+
+
+def _config_from_mapping(root: Table, base_dir: Path | None) -> SimConfig:
     kwargs: dict[str, Any] = {}
     for key in (
         "flavour",
@@ -669,67 +714,59 @@ def config_from_mapping(
         "lua_script",
         "armed",
     ):
-        if key in data:
-            kwargs[key] = data[key]
-    kwargs["params"] = dict(_table(data, "params", source))
-    if "signing_key_file" in data:
-        kwargs["signing_key"] = load_key(_resolve(data["signing_key_file"], base_dir))
-    outputs = _table(data, "outputs", source)
+        if key in root:
+            kwargs[key] = root.data[key]
+    kwargs["params"] = dict(root.table("params").data)
+    if "signing_key_file" in root:
+        kwargs["signing_key"] = load_key(_resolve(root.string("signing_key_file"), base_dir))
+    outputs = root.table("outputs")
     functions = {}
-    for key, function in outputs.items():
+    for key, function in outputs.data.items():
         try:
             output = int(key)
         except ValueError:
-            raise SimConfigError(
-                f"[outputs] key {key!r} in {source} is not an output number"
-            ) from None
-        functions[output] = _int(function, f"outputs.{key}", 0, 65535, source)
+            raise outputs.fail(key, f"{key!r} is not an output number (1-{OUTPUT_COUNT})") from None
+        functions[output] = function
     kwargs["functions"] = functions
-    servo = _table(data, "servo", source)
-    _reject_unknown(servo, set(ServoConfig.__dataclass_fields__), f"[servo] in {source}")
-    kwargs["servo"] = ServoConfig(**servo)
-    arm = _table(data, "arm", source)
-    _reject_unknown(arm, _ARM_KEYS, f"[arm] in {source}")
+    kwargs["servo"] = ServoConfig(**root.table("servo", allowed=_fields(ServoConfig)).data)
+    arm = root.table("arm", allowed=_ARM_KEYS)
     kwargs["arm"] = ArmConfig(
-        arm_file=_resolve(arm["file"], base_dir) if "file" in arm else None,
-        outputs=tuple(arm.get("outputs", DEFAULT_ARM_OUTPUTS)),
-        pwm_min_us=arm.get("pwm_min_us", DEFAULT_ARM_PWM_MIN_US),
-        pwm_max_us=arm.get("pwm_max_us", DEFAULT_ARM_PWM_MAX_US),
-        reversed_joints=arm.get("reversed", ()),
-        trims_us=arm.get("trims_us", {}),
+        arm_file=_resolve(arm.string("file"), base_dir) if "file" in arm else None,
+        outputs=arm.data.get("outputs", DEFAULT_ARM_OUTPUTS),
+        pwm_min_us=arm.data.get("pwm_min_us", DEFAULT_ARM_PWM_MIN_US),
+        pwm_max_us=arm.data.get("pwm_max_us", DEFAULT_ARM_PWM_MAX_US),
+        reversed_joints=arm.data.get("reversed", ()),
+        trims_us=arm.data.get("trims_us", {}),
     )
-    faults = dict(_table(data, "faults", source))
-    _reject_unknown(faults, _FAULT_KEYS, f"[faults] in {source}")
+    fault_table = root.table("faults", allowed=_FAULT_KEYS)
+    faults = dict(fault_table.data)
     if "withhold_ack" in faults:
-        commands, all_acks = parse_withhold(faults.pop("withhold_ack"), source)
+        commands, all_acks = parse_withhold(faults.pop("withhold_ack"), root.source)
         faults["withhold_ack_commands"], faults["withhold_all_acks"] = commands, all_acks
     if "nack_outputs" in faults:
-        faults["nack_outputs"] = frozenset(faults["nack_outputs"])
+        nack = faults["nack_outputs"]
+        if not isinstance(nack, list) or not all(is_int(output) for output in nack):
+            raise fault_table.fail(
+                "nack_outputs", f"must be a list of output numbers, got {nack!r}"
+            )
+        faults["nack_outputs"] = frozenset(nack)
     kwargs["faults"] = FaultConfig(**faults)
-    vehicle = dict(_table(data, "vehicle", source))
-    _reject_unknown(vehicle, set(VehicleConfig.__dataclass_fields__), f"[vehicle] in {source}")
-    mount = vehicle.get("mount", {})
-    if not isinstance(mount, Mapping):
-        raise SimConfigError(f"[vehicle.mount] in {source} must be a table")
-    _reject_unknown(mount, set(MountConfig.__dataclass_fields__), f"[vehicle.mount] in {source}")
-    vehicle["mount"] = MountConfig(**mount)
+    vehicle_table = root.table("vehicle", allowed=_fields(VehicleConfig))
+    vehicle = dict(vehicle_table.data)
+    vehicle["mount"] = MountConfig(
+        **vehicle_table.table("mount", allowed=_fields(MountConfig)).data
+    )
     kwargs["vehicle"] = VehicleConfig(**vehicle)
-    timing = _table(data, "link_timing", source)
-    _reject_unknown(
-        timing, set(LinkTimingConfig.__dataclass_fields__), f"[link_timing] in {source}"
+    kwargs["link_timing"] = LinkTimingConfig(
+        **root.table("link_timing", allowed=_fields(LinkTimingConfig)).data
     )
-    kwargs["link_timing"] = LinkTimingConfig(**timing)
-    px4_timing = _table(data, "px4_timing", source)
-    _reject_unknown(
-        px4_timing, set(Px4TimingConfig.__dataclass_fields__), f"[px4_timing] in {source}"
+    kwargs["px4_timing"] = Px4TimingConfig(
+        **root.table("px4_timing", allowed=_fields(Px4TimingConfig)).data
     )
-    kwargs["px4_timing"] = Px4TimingConfig(**px4_timing)
     return SimConfig(**kwargs)
 
 
-def _resolve(path: Any, base_dir: Path | None) -> Path:
-    if not isinstance(path, str) or not path:
-        raise SimConfigError(f"path={path!r} must be a non-empty string")
+def _resolve(path: str, base_dir: Path | None) -> Path:
     candidate = Path(path).expanduser()
     if not candidate.is_absolute() and base_dir is not None:
         candidate = base_dir / candidate
@@ -737,11 +774,6 @@ def _resolve(path: Any, base_dir: Path | None) -> Path:
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
-    """Read a simulator TOML file into a plain dict (validated by :func:`config_from_mapping`)."""
-    path = Path(path)
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise SimConfigError(f"cannot read config file {str(path)!r}: {exc.strerror}") from exc
-    except tomllib.TOMLDecodeError as exc:
-        raise SimConfigError(f"config file {str(path)!r} is not valid TOML: {exc}") from exc
+    """Read a simulator TOML file into a plain dict (validated by :func:`config_from_mapping`);
+    an unreadable or invalid file raises :class:`SimFieldError` naming it."""
+    return tomlfields.load_toml(path, SimFieldError)

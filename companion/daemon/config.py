@@ -20,7 +20,6 @@ from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.kinematics.arm import Arm
 from companion.kinematics.collision import Box, Capsule, Cylinder, KeepOut, Sphere, Volume
 from companion.kinematics.vehicle import Mount
-from companion.tomltable import Table, load_toml
 from firmware_interface import (
     SERVO_DIALECTS,
     ArmCalibration,
@@ -38,8 +37,9 @@ from firmware_interface.calibration import (
     PWM_LIMIT_MAX_US,
     PWM_LIMIT_MIN_US,
 )
-from firmware_interface.errors import CalibrationError, PwmOutOfRange
+from firmware_interface.errors import CalibrationError, PwmOutOfRange, SettingError
 from firmware_interface.link_budget import LinkBudget, link_budget
+from tomlfields import Table, load_toml
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
 
@@ -71,8 +71,10 @@ BUDGET_MS = (None, 1000.0)
 #: is not at the target; 180 deg is the largest orientation error there is (position only).
 TOL_POS_CM = (1e-6, 10.0)
 TOL_ORI_DEG = (1e-6, 180.0)
-#: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing.
-JOINT_SPEED_DEG_S = (None, 1000.0)
+#: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing. Below
+#: 1 deg/s a joint takes three minutes to cross a 180 deg range: the arm would hang mid-motion
+#: long after its target went stale (and 1e-300 is a typo, not a speed).
+JOINT_SPEED_DEG_S = (1.0, 1000.0)
 #: The control socket's connections: each holds at most a 64 KiB request line and 64 KiB of
 #: queued replies (control_socket.MAX_LINE_BYTES, MAX_QUEUED_REPLY_BYTES), so 256 bound the
 #: socket's buffers to 32 MiB; onboard software needs a handful.
@@ -222,11 +224,11 @@ _JOINT_KEYS = (
 
 def load_config(path: str | Path) -> DaemonConfig:
     """Read and validate the daemon config at ``path``."""
-    return parse_config(load_toml(path), source=str(path))
+    return parse_config(load_toml(path, ConfigError), source=str(path))
 
 
 def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
-    root = Table(data, source, allowed=_SECTIONS)
+    root = Table(data, source, allowed=_SECTIONS, error=ConfigError)
     base = Path(source).parent if source != "<dict>" else Path.cwd()
     link = _parse_link(root.table("link", allowed=_LINK_KEYS), base)
 
@@ -322,26 +324,26 @@ def _vehicle_point(
     t: Table, key: str, default: list[float] | None = None
 ) -> tuple[float, float, float]:
     """3 numbers (cm) within :data:`VEHICLE_EXTENT_CM` of the body origin."""
-    values = t.numbers(key, length=3) if default is None else t.numbers(key, default, length=3)
-    for i, v in enumerate(values):
-        if abs(v) > VEHICLE_EXTENT_CM:
-            raise t.fail(
-                f"{key}[{i}]",
-                f"{v:g} outside [{-VEHICLE_EXTENT_CM:g}, {VEHICLE_EXTENT_CM:g}] cm (body frame)",
-            )
-    return (values[0], values[1], values[2])
+    x, y, z = t.numbers(
+        key,
+        *(() if default is None else (default,)),
+        length=3,
+        min_value=-VEHICLE_EXTENT_CM,
+        max_value=VEHICLE_EXTENT_CM,
+        unit="cm (body frame)",
+    )
+    return (x, y, z)
 
 
 def _angles(t: Table, key: str) -> tuple[float, float, float]:
-    rpy = t.numbers(key, [0.0, 0.0, 0.0], length=3)
-    for i, v in enumerate(rpy):
-        if abs(v) > 360.0:
-            raise t.fail(f"{key}[{i}]", f"{v:g} outside [-360, 360] deg")
-    return (rpy[0], rpy[1], rpy[2])
+    roll, pitch, yaw = t.numbers(
+        key, [0.0, 0.0, 0.0], length=3, min_value=-360.0, max_value=360.0, unit="deg"
+    )
+    return (roll, pitch, yaw)
 
 
 def _size(t: Table, key: str) -> float:
-    return t.number(key, min_value=None, max_value=VEHICLE_EXTENT_CM, positive=True)
+    return t.number(key, max_value=VEHICLE_EXTENT_CM, positive=True, unit="cm")
 
 
 def _parse_mount(t: Table) -> Mount:
@@ -360,7 +362,7 @@ def _parse_keepout(root: Table, arm: Arm) -> tuple[Volume, ...]:
     seen: dict[str, int] = {}
     for index, row in enumerate(rows, start=1):
         kind = row.string("type", choices=tuple(_KEEPOUT_KEYS))
-        Table(row.data, row.source, row.prefix, allowed=("name", "type", *_KEEPOUT_KEYS[kind]))
+        row.allow(("name", "type", *_KEEPOUT_KEYS[kind]))
         name = row.string("name")
         if name in seen:
             raise row.fail("name", f"{name!r} is already the name of keepout[{seen[name]}]")
@@ -635,7 +637,7 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
         if arm.dof != len(DEFAULT_OUTPUTS):
             raise root.fail("joint", f"missing: a {arm.dof}-joint arm needs [[joint]] tables")
         rows = [
-            Table({"output": o}, root.source, f"joint[{i}]")
+            Table({"output": o}, root.source, f"joint[{i}]", error=ConfigError)
             for i, o in enumerate(DEFAULT_OUTPUTS, start=1)
         ]
     joints = []
@@ -668,6 +670,10 @@ def _parse_calibration(root: Table, arm: Arm) -> ArmCalibration:
                     ),
                 )
             )
+        except SettingError as exc:
+            # A rule between fields of the row (the field checks above came first): named by
+            # the row, exc.field one of the fields, the problem the other.
+            raise ConfigError(root.source, row.prefix, f"{exc.field}: {exc.problem}") from exc
         except FirmwareInterfaceError as exc:
             raise ConfigError(root.source, row.prefix, str(exc)) from exc
         cal = joints[-1]

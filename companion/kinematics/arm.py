@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from companion.errors import ArmConfigError, JointLimitError, KinematicsError
 from companion.kinematics.dh import DHConvention, split_dh_row
 from companion.kinematics.rotations import FloatArray, matrix_to_rpy, rpy_to_matrix
-from companion.tomltable import Table, load_toml
+from tomlfields import Table, load_toml
 
 LENGTH_UNITS_TO_CM = {"mm": 0.1, "cm": 1.0, "m": 100.0}
 """Units accepted for ``length_unit`` and their size in centimetres."""
@@ -587,14 +587,55 @@ _PRISMATIC_FIELDS = (
 )
 _FRAME_FIELDS = ("xyz", "rpy_deg")
 
+#: Every length in an arm file (DH ``a`` and ``d``, prismatic limits and offsets, base and
+#: tool, shapes) lies within 100 m of its frame (10 000 cm; the file's unit scales it): the
+#: longest industrial arms reach about 4 m, so more is a unit slip. It also keeps the maths
+#: finite: 1e308 m would be inf in cm, and squared errors of lengths past 1e154 overflow.
+LENGTH_LIMIT_CM = 10_000.0
+#: Every fixed angle in an arm file (DH ``alpha_deg``, ``offset_deg``, ``theta_deg``,
+#: ``rpy_deg``) lies within one turn either way: a larger one is the same angle written with a
+#: slip (a radian value multiplied out, a digit too many).
+ANGLE_LIMIT_DEG = 360.0
+#: A revolute joint's limits may span more than a turn (a multi-turn joint), but not past ten
+#: turns either way: no servo or geared joint travels that far, and the solver draws its start
+#: points across the whole range, so a huge range would leave it searching mostly nowhere.
+JOINT_LIMIT_DEG = 3600.0
+
+
+def _length(t: Table, key: str, to_cm: float, default: float | None = None) -> float:
+    """A length in the file's unit, within :data:`LENGTH_LIMIT_CM`, returned in cm."""
+    limit = LENGTH_LIMIT_CM / to_cm
+    args = () if default is None else (default,)
+    return t.number(key, *args, min_value=-limit, max_value=limit) * to_cm
+
+
+def _angle(t: Table, key: str, default: float | None = None) -> float:
+    """An angle in degrees within :data:`ANGLE_LIMIT_DEG`."""
+    args = () if default is None else (default,)
+    return t.number(key, *args, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG)
+
+
+def _point_cm(t: Table, key: str, to_cm: float, default: list[float] | None = None) -> list[float]:
+    """3 lengths in the file's unit, each within :data:`LENGTH_LIMIT_CM`, returned in cm."""
+    limit = LENGTH_LIMIT_CM / to_cm
+    args = () if default is None else (default,)
+    return [v * to_cm for v in t.numbers(key, *args, length=3, min_value=-limit, max_value=limit)]
+
+
+def _radius_cm(t: Table, key: str, to_cm: float) -> float:
+    """A positive length in the file's unit, within :data:`LENGTH_LIMIT_CM`, returned in cm."""
+    return t.number(key, max_value=LENGTH_LIMIT_CM / to_cm, positive=True) * to_cm
+
 
 def _parse_frame(root: Table, key: str, to_cm: float) -> FloatArray | None:
     if key not in root:
         return None
     table = root.table(key, allowed=_FRAME_FIELDS)
-    xyz = table.numbers("xyz", [0.0, 0.0, 0.0], length=3)
-    rpy = table.numbers("rpy_deg", [0.0, 0.0, 0.0], length=3)
-    return transform(np.asarray(xyz) * to_cm, np.radians(rpy))
+    xyz = _point_cm(table, "xyz", to_cm, [0.0, 0.0, 0.0])
+    rpy = table.numbers(
+        "rpy_deg", [0.0, 0.0, 0.0], length=3, min_value=-ANGLE_LIMIT_DEG, max_value=ANGLE_LIMIT_DEG
+    )
+    return transform(np.asarray(xyz), np.radians(rpy))
 
 
 def _parse_joint(row: Table, index: int, to_cm: float) -> Joint:
@@ -602,27 +643,30 @@ def _parse_joint(row: Table, index: int, to_cm: float) -> Joint:
     kind = JointKind(kind_text)
     name = row.string("name", f"q{index}")
     if kind is JointKind.REVOLUTE:
-        Table(row.data, row.source, row.prefix, allowed=_REVOLUTE_FIELDS, error=row.error)
+        row.allow(_REVOLUTE_FIELDS)
         lo_key, hi_key = "min_deg", "max_deg"
-        lo, hi = row.number(lo_key), row.number(hi_key)
+        lo = row.number(lo_key, min_value=-JOINT_LIMIT_DEG, max_value=JOINT_LIMIT_DEG)
+        hi = row.number(hi_key, min_value=-JOINT_LIMIT_DEG, max_value=JOINT_LIMIT_DEG)
         scale = math.pi / 180.0
         dh = DHRow(
-            alpha_rad=math.radians(row.number("alpha_deg")),
-            a_cm=row.number("a") * to_cm,
-            d_cm=row.number("d") * to_cm,
+            alpha_rad=math.radians(_angle(row, "alpha_deg")),
+            a_cm=_length(row, "a", to_cm),
+            d_cm=_length(row, "d", to_cm),
         )
-        offset = math.radians(row.number("offset_deg", 0.0))
+        offset = math.radians(_angle(row, "offset_deg", 0.0))
     else:
-        Table(row.data, row.source, row.prefix, allowed=_PRISMATIC_FIELDS, error=row.error)
+        row.allow(_PRISMATIC_FIELDS)
         lo_key, hi_key = "min", "max"
-        lo, hi = row.number(lo_key), row.number(hi_key)
+        limit = LENGTH_LIMIT_CM / to_cm  # the limits stay in the file's unit until scaled
+        lo = row.number(lo_key, min_value=-limit, max_value=limit)
+        hi = row.number(hi_key, min_value=-limit, max_value=limit)
         scale = to_cm
         dh = DHRow(
-            alpha_rad=math.radians(row.number("alpha_deg")),
-            a_cm=row.number("a") * to_cm,
-            theta_rad=math.radians(row.number("theta_deg", 0.0)),
+            alpha_rad=math.radians(_angle(row, "alpha_deg")),
+            a_cm=_length(row, "a", to_cm),
+            theta_rad=math.radians(_angle(row, "theta_deg", 0.0)),
         )
-        offset = row.number("offset", 0.0) * to_cm
+        offset = _length(row, "offset", to_cm, 0.0)
     if not lo < hi:
         raise row.fail(lo_key, f"{lo_key}={lo:g} must be less than {hi_key}={hi:g}")
     direction = row.integer("direction", 1)
@@ -659,9 +703,7 @@ def _parse_arm(data: Mapping[str, Any], source: str, dof: int | None) -> Arm:
     base = _parse_frame(root, "base", to_cm)
     tool = _parse_frame(root, "tool", to_cm)
     arm = Arm.from_dh(name, convention, joints, base=base, tool=tool)
-    default_radius = (
-        root.number("link_radius", positive=True) * to_cm if "link_radius" in root else None
-    )
+    default_radius = _radius_cm(root, "link_radius", to_cm) if "link_radius" in root else None
     shapes = tuple(_parse_shapes(row, arm, i, default_radius, to_cm) for i, row in enumerate(rows))
     return replace(arm, link_shapes=shapes) if any(shapes) else arm
 
@@ -689,21 +731,17 @@ def _parse_shapes(
                 allowed=_CAPSULE_FIELDS,
                 error=row.error,
             )
-            start = [v * to_cm for v in t.numbers("from", length=3)]
-            end = [v * to_cm for v in t.numbers("to", length=3)]
+            start = _point_cm(t, "from", to_cm)
+            end = _point_cm(t, "to", to_cm)
             out.append(
                 LinkCapsule(
                     from_cm=(start[0], start[1], start[2]),
                     to_cm=(end[0], end[1], end[2]),
-                    radius_cm=t.number("radius", positive=True) * to_cm,
+                    radius_cm=_radius_cm(t, "radius", to_cm),
                 )
             )
         return tuple(out)
-    radius = (
-        row.number("link_radius", positive=True) * to_cm
-        if "link_radius" in row
-        else default_radius_cm
-    )
+    radius = _radius_cm(row, "link_radius", to_cm) if "link_radius" in row else default_radius_cm
     if radius is None:
         return ()
     end = arm.frames_array[index + 1][:3, 3]

@@ -122,7 +122,7 @@ OUT_OF_BOUNDS = {
     "joint-speed": (
         "[arm]\njoint_speed_deg_s = 1e6\n",
         "arm.joint_speed_deg_s",
-        "outside (0, 1000]",
+        "outside [1, 1000]",
     ),
     "trim": (
         "[arm]\npark_deg = [0, 170, 0, 0, 0, 0]\n"

@@ -150,7 +150,7 @@ BAD = [
         "pwm order",
         lambda t: t.replace("output = 9\n", "output = 9\npwm_min_us = 2000\npwm_max_us = 1000\n"),
         "joint[1]",
-        "pwm",
+        "pwm_min_us: 2000 must be below pwm_max_us = 1000",
     ),
     (
         "narrow calibration",
@@ -247,7 +247,7 @@ BOUNDS = [
     ("solver", "budget_ms", 0, 1e-3, 1000, 1000.001, "(0, 1000]"),
     ("solver", "tol_pos_cm", 9e-7, 1e-6, 10, 10.001, "[1e-06, 10]"),
     ("solver", "tol_ori_deg", 9e-7, 1e-6, 180, 180.001, "[1e-06, 180]"),
-    ("arm", "joint_speed_deg_s", 0, 1e-3, 1000, 1000.001, "(0, 1000]"),
+    ("arm", "joint_speed_deg_s", 0.999, 1, 1000, 1000.001, "[1, 1000]"),
 ]
 
 
@@ -306,6 +306,14 @@ def test_values_that_broke_the_daemon_are_refused(section, values, field, words)
         parse_config(data)
     assert info.value.field == field, str(info.value)
     assert words in str(info.value)
+
+
+def test_an_absurdly_slow_joint_speed_is_refused_naming_the_range():
+    # A speed that would leave the arm hanging mid-motion for ever (1e-300 deg/s).
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(arm={"joint_speed_deg_s": 1e-300}))
+    assert info.value.field == "arm.joint_speed_deg_s"
+    assert "1e-300 outside [1, 1000]" in str(info.value)
 
 
 def test_command_wait_of_exactly_a_minute_is_accepted():

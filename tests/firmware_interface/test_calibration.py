@@ -169,15 +169,15 @@ def test_subset_by_name():
 @pytest.mark.parametrize(
     "overrides, pattern",
     [
-        (dict(output=0), r"output=0 outside \[1, 16\]"),
-        (dict(output=17), r"output=17 outside \[1, 16\]"),
+        (dict(output=0), r"output: 0 outside \[1, 16\]"),
+        (dict(output=17), r"output: 17 outside \[1, 16\]"),
         (dict(angle_min_deg=10.0, angle_max_deg=10.0), "must be below"),
-        (dict(angle_min_deg=math.nan), "angle_min_deg=nan outside"),
+        (dict(angle_min_deg=math.nan), "angle_min_deg: must be a finite number, got nan"),
         (dict(pwm_min_us=2000, pwm_max_us=1000), "must be below"),
-        (dict(pwm_max_us=3000), r"pwm_max_us=3000 outside \[500, 2500\]"),
-        (dict(pwm_min_us=1000.5), "pwm_min_us=1000.5"),
-        (dict(trim_us=600), r"trim_us=600 outside \[-500, 500\]"),
-        (dict(reversed=1), "reversed=1 must be a bool"),
+        (dict(pwm_max_us=3000), r"pwm_max_us: 3000 outside \[500, 2500\] µs"),
+        (dict(pwm_min_us=1000.5), "pwm_min_us: must be an integer, got 1000.5"),
+        (dict(trim_us=600), r"trim_us: 600 outside \[-500, 500\] µs"),
+        (dict(reversed=1), "reversed: must be true or false, got 1"),
     ],
 )
 def test_bad_joint_settings_are_refused(overrides, pattern):

@@ -263,6 +263,63 @@ def test_range_beyond_a_turn_is_taken(tmp_path):
     )
 
 
+# Finite bounds on every number of an arm file (the reasons are at LENGTH_LIMIT_CM,
+# ANGLE_LIMIT_DEG and JOINT_LIMIT_DEG in arm.py): each is refused naming field and range.
+ABSURD = [
+    ("a = 30.2\n", "a = 1e308\n", "joint[2].a", "1e+308 outside [-10000, 10000]"),
+    ("a = 30.2\n", "a = -10000.5\n", "joint[2].a", "-10000.5 outside [-10000, 10000]"),
+    ("d = 0\noffset_deg = -90", "d = 1e6\noffset_deg = -90", "joint[2].d", "outside"),
+    ("alpha_deg = 0\n", "alpha_deg = 1e308\n", "joint[2].alpha_deg", "outside [-360, 360]"),
+    ("offset_deg = -90\n", "offset_deg = 361\n", "joint[2].offset_deg", "361 outside [-360, 360]"),
+    ("min_deg = 0\n", "min_deg = -3601\n", "joint[2].min_deg", "-3601 outside [-3600, 3600]"),
+    ("max_deg = 180\n", "max_deg = 1e308\n", "joint[2].max_deg", "outside [-3600, 3600]"),
+    ("link_radius = 2.5\n", "link_radius = 1e308\n", "link_radius", "outside (0, 10000]"),
+    ("link_radius = 3.0\n", "link_radius = 2e4\n", "joint[3].link_radius", "outside (0, 10000]"),
+]
+
+
+@pytest.mark.parametrize(("old", "new", "field", "words"), ABSURD, ids=[a[2] for a in ABSURD])
+def test_absurd_numbers_in_an_arm_file_are_refused_naming_field_and_range(
+    tmp_path, old, new, field, words
+):
+    assert old in PAPER_TOML
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_toml(_write(tmp_path, PAPER_TOML.replace(old, new, 1)))
+    assert info.value.field == field, str(info.value)
+    assert words in info.value.problem, str(info.value)
+
+
+def test_absurd_base_tool_and_capsule_lengths_are_refused():
+    data = {
+        "convention": "standard",
+        "joint": [{"alpha_deg": 0, "a": 10, "d": 0, "min_deg": -90, "max_deg": 90}],
+    }
+    Arm.from_dict({**data, "base": {"xyz": [0, 0, 9999]}})
+    for extra, field in (
+        ({"base": {"xyz": [0, 0, 1e308]}}, "base.xyz[2]"),
+        ({"tool": {"rpy_deg": [0, 720, 0]}}, "tool.rpy_deg[1]"),
+    ):
+        with pytest.raises(ArmConfigError) as info:
+            Arm.from_dict({**data, **extra})
+        assert info.value.field == field and "outside" in info.value.problem, str(info.value)
+    capsule = {"from": [0, 0, 0], "to": [1e308, 0, 0], "radius": 1}
+    row = {**data["joint"][0], "capsules": [capsule]}
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_dict({**data, "joint": [row]})
+    assert info.value.field == "joint[1].capsules[0].to[0]", str(info.value)
+    assert "outside [-10000, 10000]" in info.value.problem
+
+
+def test_a_prismatic_limit_is_bounded_in_the_files_unit():
+    joint = {"type": "prismatic", "alpha_deg": 0, "a": 0, "min": 0, "max": 101}
+    data = {"convention": "standard", "length_unit": "m", "joint": [joint]}
+    with pytest.raises(ArmConfigError) as info:
+        Arm.from_dict(data)
+    assert info.value.field == "joint[1].max" and "101 outside [-100, 100]" in str(info.value)
+    joint["max"] = 100
+    assert Arm.from_dict(data).joints[0].upper == 10_000.0  # cm
+
+
 @pytest.mark.parametrize(
     ("edit", "field"),
     [

@@ -107,9 +107,12 @@ def test_clear_forgets_frames_and_the_window():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"hold_ms": -1}, "hold_ms=-1 outside [0.0, 1000.0]"),
-        ({"output_delay_ms": float("nan")}, "output_delay_ms=nan is not a finite number"),
-        ({"burst_frames": 0}, "burst_frames=0 outside [1, 1000]"),
+        ({"hold_ms": -1}, "link_timing.hold_ms: -1 outside [0, 1000]"),
+        (
+            {"output_delay_ms": float("nan")},
+            "link_timing.output_delay_ms: must be a finite number, got nan",
+        ),
+        ({"burst_frames": 0}, "link_timing.burst_frames: 0 outside [1, 1000]"),
     ],
 )
 def test_config_validation_names_field_and_range(kwargs, message):

@@ -131,5 +131,5 @@ def test_without_the_script_user_2_is_unsupported_and_px4_cannot_have_it():
     h.command(MAV_CMD_USER_2, 1500, NAN, NAN, NAN, NAN, NAN, 9)
     (ack,) = acks(h.run_for(0.05))
     assert ack.result == mavlink.MAV_RESULT_UNSUPPORTED
-    with pytest.raises(SimConfigError, match="lua_script=true needs flavour='ardupilot'"):
+    with pytest.raises(SimConfigError, match="lua_script: true needs flavour = 'ardupilot'"):
         replace(SimConfig(flavour="px4"), lua_script=True)

@@ -332,7 +332,7 @@ def test_help_documents_every_fault_flag(capsys):
 
 def test_bad_settings_exit_2_with_a_message(capsys, tmp_path):
     assert main(["--udp", "127.0.0.1:0", "--system-id", "300"]) == 2
-    assert "system_id=300 outside [1, 255]" in capsys.readouterr().err
+    assert "<flags>: system_id: 300 outside [1, 255]" in capsys.readouterr().err
     assert main(["--udp", "127.0.0.1:0", "--withhold-ack", "NO_SUCH_COMMAND"]) == 2
     assert "NO_SUCH_COMMAND" in capsys.readouterr().err
     assert main(["--udp", "127.0.0.1:0", "--signing-key", str(tmp_path / "missing")]) == 2
