@@ -14,7 +14,7 @@ sends ``--rate-hz`` COMMAND_LONG ``MAV_CMD_USER_1`` a second for ``--duration-s`
 from 255/190, addressed to the daemon (the autopilot's system id, component 191), with
 ``--via autopilot`` (the default) to the simulator's ground-station link, which routes them to
 the daemon as a ground station's targets are; with ``--via direct`` straight to the daemon's UDP
-socket, which since issue 14 reads only its autopilot (the flood is dropped and counted there);
+socket, which reads only its autopilot (the flood is dropped and counted there);
 the poses are seeded, a fraction ``--unreachable`` of them out of reach (their solve runs the
 whole budget). The
 flooder heartbeats to the simulator's ground-station link, so the daemon's ACKs, sent to the
@@ -320,7 +320,7 @@ def main() -> int:
         default="autopilot",
         help="autopilot: to the simulator's ground-station link, routed to the daemon (a ground "
         "station's path); direct: to the daemon's UDP socket, which reads only its autopilot "
-        "(issue 14): the flood is dropped there",
+        "the flood is dropped there",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--markdown", type=Path, default=ROOT / "bench/results/flood.md")

@@ -2,7 +2,7 @@
 process (shared by ``bench/flood.py`` and ``bench/shutdown.py``).
 
 The daemon's ``udpout`` link socket is bound to an ephemeral port and today accepts datagrams
-from any address (issue 14): a sender that learns the port (here from ``/proc``,
+from any address: a sender that learns the port (here from ``/proc``,
 :func:`bench.loopback.udp_ports`) can talk to the daemon past the autopilot. The flooder sends
 COMMAND_LONG ``MAV_CMD_USER_1`` addressed to the daemon (system = the autopilot's, component
 191) from 255/190, unsigned, at a fixed rate, the poses seeded, reachable and unreachable mixed.

@@ -29,7 +29,7 @@ Per target, all on CLOCK_MONOTONIC (client, daemon ``Reply.timing`` / status
 ``last_target.timing``, simulator event log):
 
 * ``→ servos``: target sent → the simulator handled the last servo command of its first update;
-* ``→ last servo ACK`` (issue 13): the daemon received the target (``received_s``) → it had the
+* ``→ last servo ACK``: the daemon received the target (``received_s``) → it had the
   last ACK of the target's first update (``acked_s``): the daemon's own share, without the way
   in and the answer's way out;
 * ``→ ACK``: target sent → the answer (ACCEPTED) is back at the client;
@@ -43,7 +43,7 @@ Per target, all on CLOCK_MONOTONIC (client, daemon ``Reply.timing`` / status
   daemon has the ACKs → the answer is at the client; for MAVLink, routed back by the autopilot).
 
 ``--old-core DIR`` adds, as peers in the same run on the same targets, a daemon run from another
-checkout (e.g. the code before issue 13's core: ``git archive 22321ac | tar -x -C DIR``) for
+checkout (e.g. an older core: ``git archive 22321ac | tar -x -C DIR``) for
 each dialect, each with its own simulator: "not worse than before" is then measured on the
 same simulator, the same machine and the same moment.
 
@@ -90,9 +90,9 @@ SEGMENTS = (
     "answer out",
 )  # fmt: skip
 TOTALS = ("→ servos", "→ last servo ACK", "→ ACK")
-#: Issue 13: the daemon's share (received → last ACK of the first update), p99, ardupilot.
+#: The daemon's share (received → last ACK of the first update), p99, ardupilot.
 ISSUE13_ARDUPILOT_P99_MS = 8.0
-#: The README's px4 "→ ACK" row before issue 13 (p50, p99 ms), on the simulator without the
+#: An earlier px4 "→ ACK" row (p50, p99 ms), on the simulator without the
 #: link timing model: the bar "not worse than before" is measured against.
 OLD_PX4_ACK_MS = (6.7, 8.0)
 #: A tick wait longer than this: the target waited for an update in flight.
@@ -236,7 +236,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         f"with the joint speed limit at its maximum, 1000 °/s; simulator: ArduCopter link "
         f"timing (default); input: {INPUTS[args.input].name}; {args.targets} reachable targets "
         f"(seed {args.seed}) per dialect, one at a time, 0–{args.gap_ms:g} ms apart, the "
-        "dialects' stacks running at once and the targets interleaved. Issue 13's targets: "
+        "dialects' stacks running at once and the targets interleaved. Targets: "
         f"→ last servo ACK p99 ≤ {ISSUE13_ARDUPILOT_P99_MS:g} ms for ardupilot; px4 not worse "
         f"than the README's old → ACK row ({OLD_PX4_ACK_MS[0]:g} / {OLD_PX4_ACK_MS[1]:g} ms "
         "p50 / p99, measured on the old simulator without link timing).",

@@ -1,4 +1,4 @@
-"""Random arm/disarm/prearm/kill/reboot and safety-switch cycles against moving targets (issue 20).
+"""Random arm/disarm/prearm/kill/reboot and safety-switch cycles against moving targets.
 
     python -m bench.output_cycles [--cycles 1000] [--flavour px4|ardupilot|both] [--seed 0]
                                   [--min-dwell-s 0.03] [--max-dwell-s 1.0]
@@ -33,7 +33,7 @@ are split by the simulator's cause of the change: *the autopilot to its disarmed
 disarm, kill, prearm off, reboot: PX4 itself drives the outputs to ``PWM_MAIN_DISn``; ``doctor``
 asks for the park PWM there), *coming alive* (arm, prearm, safety off, boot: the stored values
 appear at once) and *commands* (the daemon's own updates). The last two are the daemon's
-responsibility (issue 20's target: 0). The count under the looser reading (allowance
+responsibility (the target: 0). The count under the looser reading (allowance
 ``joint_speed_deg_s × max(Δt, 1 / rate_hz)``, Δt since the output's previous change) is given too.
 
 **Status "outputs live" against the simulator's truth.** After each event, the time from the

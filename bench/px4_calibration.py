@@ -7,7 +7,7 @@
 Starts ``python -m sim_servo --flavour px4 --ready`` (default PX4 timing, see
 ``sim_servo.config.Px4TimingConfig``) as a subprocess on UDP loopback with a ground-station link,
 and measures it with plain pymavlink codecs over real UDP sockets, as the reference figures were
-taken on PX4 SITL (main of 2026-03, SIH quadrotor, UDP loopback; issue 20):
+taken on PX4 SITL (main of 2026-03, SIH quadrotor, UDP loopback):
 
 1. one MAV_CMD_DO_SET_ACTUATOR from the companion (1/191): sent → its COMMAND_ACK received
    (SITL: median 5.8 ms, p90 10.8, max 13.0);
@@ -40,7 +40,7 @@ from devkit.sim_process import SimProcess
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT_S = 5.0
-#: PX4 SITL (issue 20): DO_SET_ACTUATOR → ACK median, p90, max (ms); USER_1 through PX4 to the
+#: PX4 SITL: DO_SET_ACTUATOR → ACK median, p90, max (ms); USER_1 through PX4 to the
 #: daemon's ACK, median range (ms).
 REAL_ACK_MS = (5.8, 10.8, 13.0)
 REAL_CHAIN_MEDIAN_MS = "17.9–18.4"

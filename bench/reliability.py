@@ -1,4 +1,4 @@
-"""Reliability campaign, inputs side (issue 8): adversarial targets, MAVLink input fuzz, config
+"""Reliability campaign, inputs side: adversarial targets, MAVLink input fuzz, config
 fuzz, at full size, written up as a Markdown report.
 
 The machinery is ``devkit/campaign.py`` (tests never import ``bench``); the CI-sized

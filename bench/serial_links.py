@@ -16,7 +16,7 @@ maximum (1000 °/s); targets come over the control socket, so only servo traffic
 
 * **Latency**: ``--targets`` reachable targets one at a time (each 0–50 ms after the previous
   answer, seeded), twice: **from rest** (each sent once the arm is still, so its first update
-  has the line to itself, as issue 19's figure is one update's) and **mid-motion** (the
+  has the line to itself, as the from-rest figure is one update's) and **mid-motion** (the
   previous target's later steps, speed-limited, may still be on their way: its first update
   then goes out behind one of them and waits for its bytes and its answer). ``update`` = the
   daemon started the target's first servo update → it had every ACK (``timing.first_out_s`` →
@@ -29,7 +29,7 @@ maximum (1000 °/s); targets come over the control socket, so only servo traffic
 * **50 Hz stream** (``bench/sustained.py``'s figure-eight, open loop, one target every 20 ms
   for ``--duration-s``, round robin over 4 control-socket connections, as a client streaming
   targets must: a connection answers one request at a time): a miss, as in
-  ``bench/sustained.py`` (issue 13's definition), is a target not ACCEPTED (a newer one replaced
+  ``bench/sustained.py``, is a target not ACCEPTED (a newer one replaced
   it while it waited: CANCELLED) or whose first update the autopilot had not carried out within
   the target's 20 ms slot (its last servo command handled; for the Lua bridge, the script
   setting the outputs); with the daemon 4 targets behind, a slot is skipped (a miss) rather than
@@ -221,7 +221,7 @@ def stream(stack: Stack, duration_s: float, period_s: float = 4.0) -> dict:
 
 
 def stream_misses(run: dict, events: list[dict]) -> dict:
-    """The stream's figures from its answers and the simulator's log (issue 13's definition, as
+    """The stream's figures from its answers and the simulator's log (as
     ``bench/sustained.py``): a miss is a slot skipped, a target not ACCEPTED (a newer one
     replaced it while it waited: CANCELLED), or one whose first update the autopilot had not
     carried out within its 20 ms slot (the last servo command handled; for the Lua bridge the
@@ -313,7 +313,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
             rows,
         ),  # fmt: skip
         "",
-        "predicted: bytes both ways + the FC's measured median answer (issue 19). sim model: the "
+        "predicted: bytes both ways + the FC's measured median answer. sim model: the "
         "simulator's autopilot and serial-line models on a simulated clock (400 updates at "
         "random loop phases): what the simulator itself gives, free of the OS. update / "
         "target→last ACK / stream: the daemon and the simulator as processes on this machine, "

@@ -21,7 +21,7 @@ and a MAVLink ``goto`` (COMMAND_LONG USER_1 from a ground station through the si
 autopilot) every second, alternating between two reachable poses so that each one moves the
 arm; it samples the daemon's RSS at each probe.
 
-Targets (issue 14): RSS growth (peak during the attack − before) < 10 MB; every probe answered,
+Targets: RSS growth (peak during the attack − before) < 10 MB; every probe answered,
 every goto accepted, latencies as before within reason; the socket alive afterwards; the link
 up throughout.
 """

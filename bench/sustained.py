@@ -168,7 +168,7 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         f"{args.rate_hz:g} Hz (budget {args.budget_ms:g} ms); sender clock {args.drift_ppm:g} "
         "ppm fast. Missed = not ACCEPTED, or the target's servo update not handled by the "
         f"autopilot within its {SLOT_S * 1e3:.0f} ms slot (from the slot's start); also counted: "
-        "the answer not back at the client within the slot. Issue 8's target: 0 misses, RSS "
+        "the answer not back at the client within the slot. The target: 0 misses, RSS "
         "growth < 5 MB over 10 min. Beside each run an idle process (`bench/stall_probe.py`) "
         "wakes every 2 ms: a miss during one of its late wakes (5 ms or more) is counted as "
         "during a machine stall (the scheduler's or the hypervisor's, not the daemon's). "

@@ -1,5 +1,5 @@
 """World-frame hold: the hand's error in the world while the simulated vehicle hovers, with and
-without the daemon's compensation (issue 18).
+without the daemon's compensation.
 
     python -m bench.world_hold [--duration-s 30] [--start-s 10] [--seed 0]
                                [--dialect ardupilot|px4] [--rate-hz 50] [--telemetry-hz 50]

@@ -1,4 +1,4 @@
-"""The reliability campaign's machinery (issue 8), inputs side: adversarial targets, MAVLink
+"""The reliability campaign's machinery, inputs side: adversarial targets, MAVLink
 input fuzz, config fuzz.
 
 The CI-sized tests (``tests/integration/test_reliability.py``, ``tests/daemon/test_config_fuzz.py``)

@@ -36,7 +36,7 @@ class SimProcess:
 
     ``ready`` (default) starts a vehicle set up for the arm (``--ready``): on PX4 the arm's
     outputs on functions 301–306, ``COM_PREARM_MODE`` 2, forwarding on, armed at start, so its
-    outputs are live as every test before issue 20 assumed; ArduPilot's safety switch is off
+    outputs are live as most tests assume; ArduPilot's safety switch is off
     anyway. ``ready=False`` gives the firmware's defaults (PX4: outputs dead until armed).
     """
 

@@ -94,7 +94,7 @@ class MavMessage(Protocol):
     def __getattr__(self, name: str) -> Any: ...
 
 
-#: Our HEARTBEAT identity (issue 5).
+#: Our HEARTBEAT identity.
 DEFAULT_COMPONENT_ID = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER  # 191
 #: Used as our own system id until the vehicle's is learned (ArduPilot's SYSID_THISMAV default).
 PROVISIONAL_SYSTEM_ID = 1

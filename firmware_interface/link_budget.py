@@ -15,7 +15,7 @@ measured, so a fit holds for every update, not the median one:
   (ArduCopter 4.7.0-dev SITL);
 * ``ardupilot-lua``: the Lua bridge script answers in 8.9 ms median, 11.5 ms max (same SITL);
 * ``px4``: DO_SET_ACTUATOR answered in 5.8 ms median, 13.0 ms max (PX4 main of 2026-03,
-  SITL with the SIH quadrotor, issue 20; the p90 was 10.8 ms).
+  SITL with the SIH quadrotor; the p90 was 10.8 ms).
 
 UDP and TCP links have no such byte budget here (their bandwidth is orders of magnitude above
 an arm's needs): :func:`link_budget` says so and everything fits. Pure: no I/O, no clock.

@@ -203,7 +203,7 @@ class LinkTimingConfig:
 @dataclass(frozen=True)
 class Px4TimingConfig:
     """When the PX4 flavour answers and forwards: a model fitted to PX4 SITL (main of 2026-03,
-    SIH quadrotor, UDP on loopback, a pymavlink client; issue 20's figures).
+    SIH quadrotor, UDP on loopback, a pymavlink client).
 
     Measured there: MAV_CMD_DO_SET_ACTUATOR → COMMAND_ACK median 5.8 ms, p90 10.8, max 13.0; a
     ground station's MAV_CMD_USER_1 through PX4 to the companion and its COMMAND_ACK back

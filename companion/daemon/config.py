@@ -126,7 +126,7 @@ def link_config(settings: LinkSettings) -> LinkConfig:
 
 @dataclass(frozen=True)
 class WorldSettings:
-    """``[world]``: world-frame targets (issue 18).
+    """``[world]``: world-frame targets.
 
     ``enabled``: the daemon asks the autopilot for ATTITUDE and LOCAL_POSITION_NED at
     ``telemetry_hz`` and takes targets in LOCAL_NED (off by default: on a serial link the two
@@ -303,7 +303,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
 
 
 #: ArduPilot streams a message at most at its main loop's rate; 50 Hz is what SERVO_OUTPUT_RAW
-#: reached when 400 Hz was asked (issue 13), so more is not asked for.
+#: reached when 400 Hz was asked, so more is not asked for.
 TELEMETRY_HZ = (1.0, 50.0)
 LEAD_MS = (0.0, 500.0)
 MAX_AGE_MS = (10.0, 2000.0)

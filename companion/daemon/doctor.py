@@ -145,7 +145,7 @@ def param_names(config: DaemonConfig, autopilot: str) -> list[str]:
     return names
 
 
-#: The vehicle-wide parameters read (issue 20): ArduPilot's safety switch; PX4's prearm mode and
+#: The vehicle-wide parameters read: ArduPilot's safety switch; PX4's prearm mode and
 #: MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is one of them).
 _VEHICLE_PARAMS = {
     "ardupilot": ["BRD_SAFETY_DEFLT", "BRD_SAFETY_MASK"],

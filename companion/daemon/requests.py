@@ -136,7 +136,7 @@ def as_pose(value: Any) -> Pose:
 TARGET_MODES = ("pose", "position", "position_axis")
 #: The frame a target's pose is given in: the arm's base frame, or the world (MAVLink's
 #: LOCAL_NED: north-east-down from the autopilot's origin, cm and degrees like every pose
-#: here), where the daemon holds the hand while the vehicle moves (issue 18).
+#: here), where the daemon holds the hand while the vehicle moves.
 TARGET_FRAMES = ("base", "local_ned")
 #: MAV_CMD_USER_1 param7 → (target mode, frame): 0-2 the modes in the base frame; 3-15 are
 #: kept for more modes; 16 + mode in LOCAL_NED (16 pose, 17 position, 18 position_axis).

@@ -207,7 +207,7 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         while not stop.is_set():
             # Not status(): a snapshot built on the control thread twice a second for this.
             s = daemon.brief()
-            # Up for targets once the autopilot has answered us, so knows our route (issue 20).
+            # Up for targets once the autopilot has answered us, so knows our route.
             waiting.update(s["link"] == "up" and s["autopilot_heard_us"], time.monotonic())
             if reload.is_set():
                 reload.clear()

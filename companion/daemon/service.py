@@ -85,7 +85,7 @@ CORE_FRAMES = (
     "SYS_STATUS",
     "PARAM_VALUE",
 )
-#: The vehicle's telemetry, read with ``[world]`` on (issue 18). PX4 streams them on a
+#: The vehicle's telemetry, read with ``[world]`` on. PX4 streams them on a
 #: companion's link unasked (100 and 30 Hz): they do not wake the control thread, which
 #: takes them on its next pass (at least every control period).
 TELEMETRY_FRAMES = ("ATTITUDE", "LOCAL_POSITION_NED")

@@ -1,5 +1,5 @@
 """The vehicle's motion from the autopilot's ATTITUDE and LOCAL_POSITION_NED, on the daemon's
-clock (issue 18: world-frame targets).
+clock.
 
 Each frame says when its state held in the autopilot's clock (``time_boot_ms``). To carry the
 state forward to when the servos will move, that time is mapped onto the daemon's clock: the

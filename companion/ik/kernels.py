@@ -497,7 +497,7 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
 # A revolute joint whose range is at least this wide (but less than a turn) is free in LM: its
 # steps are not clamped at the limits, and only the configuration LM ends at is brought back
 # into them (:func:`_lm_steps`). Clamped steps stall at a limit, where a step round the other
-# way, through the short forbidden arc, leads to a solution. Issue 16, tuning seeds: on
+# way, through the short forbidden arc, leads to a solution. Tuning seeds: on
 # Stanford (4 joints of 340°) p99 of the work −35 %, Puma560 (one of 320°) −10 %, Panda (4 of
 # 332°) −15 %, and the median −8–20 % on the three; with every revolute joint free, the default
 # arm's and Panda's narrower joints (180°, about 200°) did worse.

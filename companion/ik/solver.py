@@ -124,7 +124,7 @@ class SolverSettings:
     """A generation makes progress when it brings the best cost below ``stall_gain`` times
     what it was (0.5: at least halves it). 0, the default, counts no generation as progress:
     with ``stall_generations`` 1 every generation after the first is a restart, i.e. the
-    search is LM from the best of ``pop_size`` fresh draws again and again (issue 16: on
+    search is LM from the best of ``pop_size`` fresh draws again and again (on
     Puma560's and Stanford's poses with few solutions within the limits this took half the
     work at p99 of the settings before, NP 8, 2 generations, gain 0.5, which keep DE
     generations between restarts and were 10-25 % faster at p99 on UR5, UR10 and Baxter)."""

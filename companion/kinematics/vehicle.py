@@ -1,6 +1,6 @@
 """The vehicle in the world, and a hand target carried between the world and the arm's base.
 
-Frames (MAVLink's, issue 18):
+Frames (MAVLink's):
 
 * **world**: LOCAL_NED, north-east-down from the autopilot's origin (LOCAL_POSITION_NED);
 * **body**: FRD (forward-right-down), its attitude in the world from ATTITUDE:
