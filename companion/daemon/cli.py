@@ -195,16 +195,21 @@ def _client(args: argparse.Namespace, obj: dict[str, Any]) -> int:
     reply = _ask(args, obj)
     print(json.dumps(reply, indent=2))
     if reply.get("ok") and getattr(args, "wait", False):
-        return _wait_until_still(args)
+        return _wait_until_still(args, trajectory=obj.get("cmd") == "trajectory")
     return 0 if reply.get("ok") else 1
 
 
-def _wait_until_still(args: argparse.Namespace) -> int:
+def _wait_until_still(args: argparse.Namespace, *, trajectory: bool = False) -> int:
     """``--wait``: poll status until the arm stops moving with no trajectory point left (exit
-    0, the hand printed) or ``--timeout-s`` passes (exit 1)."""
+    0, the hand printed) or ``--timeout-s`` passes (exit 1). A ``trajectory`` the daemon
+    abandoned (a point out of reach, the motion stopped) exits 1 saying why."""
     deadline = time.monotonic() + args.timeout_s
     while True:
         status = _ask(args, {"cmd": "status"}).get("status") or {}
+        aborted = status.get("trajectory_aborted") if trajectory else None
+        if aborted:
+            print(f"armbridge: the daemon abandoned the trajectory: {aborted}", file=sys.stderr)
+            return 1
         if not status.get("moving", True) and not status.get("trajectory_points_left"):
             print(f"still: hand {_fmt_hand(status.get('hand'))}")
             return 0

@@ -69,7 +69,12 @@ from typing import Any
 from companion.daemon.client import request  # the client half, re-exported
 from companion.daemon.config import file_kind
 from companion.daemon.intake import RefusalLog
-from companion.daemon.requests import Reply, Request
+from companion.daemon.requests import (
+    MAX_TRAJECTORY_POINTS,
+    POINT_JSON_BYTES,
+    Reply,
+    Request,
+)
 from companion.daemon.service import ArmDaemon, Outcome
 
 log = logging.getLogger("armbridge.control")
@@ -81,9 +86,11 @@ __all__ = [
     "request",
 ]
 
-#: A request line longer than this (without its newline) is refused. A trajectory of 1 000
-#: points takes about 50 KiB; 64 KiB per connection times the connection cap bounds the memory.
-MAX_LINE_BYTES = 64 * 1024
+#: A request line longer than this (without its newline) is refused: room for a trajectory of
+#: MAX_TRAJECTORY_POINTS points however its numbers are written (the limit follows points, not
+#: bytes), ~370 KiB; this per connection times the connection cap bounds the memory (12 MiB
+#: at the default 32).
+MAX_LINE_BYTES = MAX_TRAJECTORY_POINTS * POINT_JSON_BYTES + 4096
 #: Replies waiting for a client to read them; past this its further requests wait.
 MAX_QUEUED_REPLY_BYTES = 64 * 1024
 #: Nesting of JSON arrays and objects: a request needs 3 (object, points, point).

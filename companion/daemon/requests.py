@@ -186,16 +186,20 @@ def mavlink_target_payload(params: Sequence[float], param7: float) -> dict[str, 
     return {"pose": tuple(params), "mode": mode, "frame": frame}
 
 
-#: Points in one trajectory request: the daemon holds them until they are due.
-MAX_TRAJECTORY_POINTS = 10_000
+#: Points in one trajectory request: the daemon holds them until they are due (40 s of points
+#: at 50 Hz).
+MAX_TRAJECTORY_POINTS = 2_000
+#: The longest a point can be in JSON: seven numbers of at most 24 characters (Python's longest
+#: float repr, ``-1.2345678901234567e-300``) with their separators, and its brackets.
+POINT_JSON_BYTES = 7 * (24 + 2) + 4
 
 
 def parse_trajectory(payload: Any) -> list[tuple[float, Pose]]:
-    """``[[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]`` (or ``(t_s, pose)``
-    pairs), times never decreasing (points at the same time: the last one wins), at most
-    :data:`MAX_TRAJECTORY_POINTS` → the points; ``ValueError`` says what is wrong (a point out
-    of order is refused, never re-sorted: a file written in the wrong order would otherwise
-    run in an order nobody wrote)."""
+    """``[(t_s, pose), ...]`` (a pose: six numbers ``x_cm .. yaw_deg`` or a Pose; the control
+    socket turns its rows of seven numbers into these pairs), times never decreasing (points
+    at the same time: the last one wins), at most :data:`MAX_TRAJECTORY_POINTS` → the points;
+    ``ValueError`` says what is wrong (a point out of order is refused, never re-sorted: a file
+    written in the wrong order would otherwise run in an order nobody wrote)."""
     if isinstance(payload, list | tuple) and len(payload) > MAX_TRAJECTORY_POINTS:
         raise ValueError(f"bad trajectory: {len(payload)} points, at most {MAX_TRAJECTORY_POINTS}")
     try:

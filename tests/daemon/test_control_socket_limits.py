@@ -139,6 +139,18 @@ def test_a_line_longer_than_the_limit_is_refused_and_the_connection_closed(serve
     assert request(srv.path, {"cmd": "status"})["ok"]
 
 
+def test_a_trajectory_of_the_most_points_fits_a_line_however_its_numbers_are_written():
+    from companion.daemon.control_socket import parse_request_line
+    from companion.daemon.requests import MAX_TRAJECTORY_POINTS
+
+    longest = -1.2345678901234567e-300  # the longest float repr json.dumps writes
+    points = [[float(i), *[longest] * 6] for i in range(MAX_TRAJECTORY_POINTS)]
+    line = json.dumps({"cmd": "trajectory", "points": points}).encode()
+    assert len(line) <= MAX_LINE_BYTES
+    cmd, payload = parse_request_line(line)
+    assert cmd == "trajectory" and len(payload) == MAX_TRAJECTORY_POINTS
+
+
 def test_a_line_of_exactly_the_limit_is_served(serve):
     srv = serve()
     line = b'{"cmd": "status"}'

@@ -40,6 +40,10 @@ class Motion:
         #: The trajectory's points still to come: (seconds from its start, pose).
         self.trajectory: list[tuple[float, Pose]] = []
         self._trajectory_t0 = 0.0
+        #: Why the daemon abandoned the last trajectory before its end (None: it did not, or
+        #: a newer request replaced it): status shows it, ``trajectory --wait`` exits on it.
+        self.trajectory_aborted: str | None = None
+        self._point_refusal = ""
         #: Accepted targets whose first step has not gone out yet.
         self._waiting: list[AwaitingFirstStep] = []
 
@@ -100,6 +104,7 @@ class Motion:
                 answers.answer(actions, request, reply)
             else:
                 log.warning("trajectory point refused: %s", reply.message)
+                self._point_refusal = reply.message
             return False
         try:
             core.config.calibration.angles_to_pwm_us(result.q_deg)
@@ -145,6 +150,7 @@ class Motion:
     ) -> None:
         self.stop(actions, Reply(Outcome.CANCELLED, f"superseded by a {request.kind}"))
         self.trajectory = points
+        self.trajectory_aborted = None
         self._trajectory_t0 = self._core.clock()
         self._core.answers.answer(
             actions, request, Reply(Outcome.ACCEPTED, f"trajectory of {len(points)} points")
@@ -159,8 +165,10 @@ class Motion:
         if not due:
             return
         self.trajectory = self.trajectory[len(due) :]
+        self._point_refusal = "refused"
         if not self.goto(actions, None, Target(due[-1][1])):
-            log.warning("trajectory aborted: a point is out of reach")
+            self.trajectory_aborted = f"the point at t_s={due[-1][0]:g}: {self._point_refusal}"
+            log.warning("trajectory aborted: %s", self.trajectory_aborted)
             self.trajectory.clear()
 
     def stop(self, actions: list[Action], reply: Reply) -> None:
@@ -174,6 +182,8 @@ class Motion:
         self._waiting.clear()
 
     def fail(self, actions: list[Action], reason: str) -> None:
+        if self.trajectory:
+            self.trajectory_aborted = f"motion stopped: {reason}"
         self.stop(actions, Reply(Outcome.FAILED, f"motion stopped: {reason}"))
 
     def reject_waiting(self, actions: list[Action], flights: Sequence[Flight], reason: str) -> None:
@@ -185,6 +195,8 @@ class Motion:
             self._core.answers.answer(actions, w.request, rejected)
         self._waiting.clear()
         if unanswered:  # the goal is theirs: never carried out after that answer
+            if self.trajectory:
+                self.trajectory_aborted = reason
             self.goal = None
             self.trajectory.clear()
 

@@ -120,6 +120,7 @@ class StatusAndAnswers:
             "outputs": outputs,
             "last_target": self.last_target,
             "trajectory_points_left": len(motion.trajectory),
+            "trajectory_aborted": motion.trajectory_aborted,
             # World-frame targets: the one held, whether it is within reach, the telemetry's
             # age, the hand in LOCAL_NED by the acknowledged joints.
             "world": core.world.status(position, self._hand_at),

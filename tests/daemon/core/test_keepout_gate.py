@@ -176,7 +176,7 @@ def test_property_no_commanded_configuration_or_step_enters_a_keepout_volume(eve
                 alternative[:] = [tuple(np.clip(np.subtract(PARK, arg), lo, hi))]
             if kind == "trajectory":
                 mid = tuple((np.array(q) + PARK) / 2)
-                rig.request("trajectory", [[0.0, *mid], [0.1, *q]])
+                rig.request("trajectory", [(0.0, mid), (0.1, q)])  # as the socket hands them
             else:
                 rig.goto(q)
         elif kind == "nan":

@@ -50,3 +50,20 @@ def test_bad_targets_are_refused_and_nothing_moves(rig, payload, outcome):
     request = rig.goto(payload)
     assert rig.reply(request).outcome is outcome
     assert rig.servo() == {}
+
+
+def test_a_trajectory_with_a_point_out_of_reach_is_abandoned_and_status_says_why(rig):
+    # (t_s, pose) pairs, as the control socket hands them to the core
+    request = rig.request("trajectory", [(0.0, near(PARK)), (0.2, (2000, 0, 0, 0, 0, 0))])
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["trajectory_aborted"] is None
+    for _ in range(10):  # 0.5 s of ticks, every update answered
+        rig.ack_all(rig.sent)
+        rig.sent.clear()
+        rig.advance(0.05)
+    status = rig.core.status()
+    assert status["trajectory_points_left"] == 0
+    assert status["trajectory_aborted"].startswith("the point at t_s=0.2: unreachable")
+    again = rig.request("trajectory", [(0.0, PARK)])
+    assert rig.reply(again).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["trajectory_aborted"] is None  # a new trajectory starts clean
