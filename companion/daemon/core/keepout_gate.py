@@ -82,11 +82,16 @@ class KeepoutGate:
             )
             return out.refused_answer, f"keep-out: {what} is refused: {why}"
         nearest = out.result
-        if nearest is None:
-            return None, (
-                "unreachable clear of the keep-out volumes within the budget"
-                + ("" if why is None else f" ({why})")
+        if nearest is None and out.refused_answer is not None:
+            # No answer met the tolerances: the target is out of reach, whatever the volumes;
+            # that the nearest configurations also collide is the lesser news.
+            near = out.refused_answer
+            return near, (
+                f"unreachable: pos {near.pos_err_cm:.2f}cm ori {near.ori_err_deg:.1f}deg"
+                + ("" if why is None else f" (the nearest configurations found also put {why})")
             )
+        if nearest is None:
+            return None, "unreachable clear of the keep-out volumes within the budget"
         return nearest, (
             f"unreachable: pos {nearest.pos_err_cm:.2f}cm ori {nearest.ori_err_deg:.1f}deg"
         )

@@ -199,3 +199,24 @@ def test_property_no_commanded_configuration_or_step_enters_a_keepout_volume(eve
     s = np.linspace(0.0, 1.0, 9)[:, None]
     dense = np.concatenate([q[:1]] + [a + s * (b - a) for a, b in zip(q[:-1], q[1:], strict=True)])
     assert sampled_clearance(keepout, dense, 60).min() >= keepout.margin_cm - 0.3
+
+
+def test_a_target_out_of_reach_is_refused_as_unreachable_not_blamed_on_a_volume():
+    from types import SimpleNamespace
+
+    goal = tuple(p + d for p, d in zip(PARK, (30.0, 0, 0, 0, 0, 0), strict=True))
+    rig = keepout_rig(goal)
+
+    def short_of_it(pose, q_start_deg, mode="pose", budget_ms=None, *, seed=None):
+        # The nearest the solver gets is 12 cm off, in the ball: the target is out of reach.
+        return SimpleNamespace(
+            q_deg=goal, q_rad=np.radians(goal), converged=False, pos_err_cm=12.0,
+            ori_err_deg=3.0, cost=144.0, elapsed_ms=0.1,
+        )  # fmt: skip
+
+    rig.core.solve = short_of_it
+    reply = rig.reply(rig.goto((1.0, 2.0, 3.0, 0.0, 0.0, 0.0)))
+    assert reply.outcome is Outcome.FAILED
+    assert reply.message.startswith("unreachable: pos 12.00cm ori 3.0deg")
+    assert "(the nearest configurations found also put" in reply.message
+    assert rig.servo() == {}
