@@ -87,7 +87,10 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_s = core.clock()
         self._sys_status_ever = True
         if safety_on != self.safety_on:
-            log.warning("safety switch %s", "on: outputs not live" if safety_on else "off")
+            if safety_on:
+                log.warning("safety switch on: outputs not live")
+            elif self.safety_on is not None:  # off after on: a board without one never says
+                log.info("safety switch off")
             if safety_on and self._held_since_off is not None:
                 self._rewind_to = middle(self._held_since_off)
             elif not safety_on:

@@ -242,3 +242,17 @@ def test_a_step_may_widen_the_band_only_up_to_its_width():
     # Back within the band is always allowed; further out on the wide joint is not.
     assert band_allows(band, (1.0, -0.5), 3.0)
     assert not band_allows(band, (-0.5, 0.0), 3.0)
+
+
+def test_a_switch_seen_off_from_the_start_is_not_warned_of(rig, caplog):
+    # A board without a safety switch reports it off from its first SYS_STATUS: nothing to say.
+    with caplog.at_level("INFO", logger="armbridge"):
+        rig.sys_status(safety_on=False)
+        assert not [r for r in caplog.records if "safety switch" in r.getMessage()]
+        rig.sys_status(safety_on=True)
+        rig.sys_status(safety_on=False)
+    said = [(r.levelname, r.getMessage()) for r in caplog.records if "safety" in r.getMessage()]
+    assert said == [
+        ("WARNING", "safety switch on: outputs not live"),
+        ("INFO", "safety switch off"),
+    ]
