@@ -287,7 +287,12 @@ class ArmDaemon:
         self._wake.set()
         for warning in warnings:
             log.warning("reload: %s", warning)
-        log.info("reloaded %s", new.source)
+        applied = _changed_fields(old, self.config)
+        log.info(
+            "reloaded %s: %s",
+            new.source,
+            ", ".join(applied) + " applied" if applied else "nothing to apply",
+        )
         return warnings
 
     # -- requests (any thread) --------------------------------------------------------------
@@ -677,3 +682,15 @@ class ArmDaemon:
 
 def _bind(work: Callable[[Request], None], request: Request) -> Callable[[], None]:
     return lambda: work(request)
+
+
+def _changed_fields(old: DaemonConfig, new: DaemonConfig) -> list[str]:
+    """The config's fields a reload changed, as ``name old → new`` (sections by name only)."""
+    changed = []
+    for f in dataclasses.fields(old):
+        before, after = getattr(old, f.name), getattr(new, f.name)
+        if f.name == "source" or before == after:
+            continue
+        simple = isinstance(before, int | float | str | bool | type(None))
+        changed.append(f"{f.name} {before!r} → {after!r}" if simple else f.name)
+    return changed

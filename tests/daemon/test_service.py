@@ -595,3 +595,14 @@ def test_status_is_built_for_whoever_asks_and_only_then():
     finally:
         daemon.close()
     assert not daemon._thread.is_alive()
+
+
+def test_a_reload_says_what_it_applied(caplog):
+    running = parse_config({"link": {"url": URL}})
+    daemon = ArmDaemon(running)  # never started: reload needs no link
+    with caplog.at_level("INFO", logger="armbridge"):
+        daemon.reload(dataclasses.replace(running, budget_ms=5.0, joint_speed_deg_s=120.0))
+        daemon.reload(daemon.config)
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("reloaded")]
+    assert said[0].endswith(": budget_ms 20.0 → 5.0, joint_speed_deg_s 60.0 → 120.0 applied")
+    assert said[1].endswith(": nothing to apply")
