@@ -123,6 +123,31 @@ def test_iteration_limit():
     assert res.stop_reason is StopReason.ITERATION_LIMIT and res.generations == 7
 
 
+def test_without_a_budget_only_the_generation_limit_ends_the_search(monkeypatch):
+    # Every generation costs a second on the clock: any budget would have ended the search at
+    # once; with none, the generation limit does, and the clock only says how long it took.
+    clock = FakeClock(0.0)
+    _charged_run(monkeypatch, clock, 1.0, lambda i: 1.0)
+    few = SolverSettings(max_generations=7)
+    res = solve(ARM, G, budget_ms=None, seed=1, settings=few, clock=clock, cpu_clock=clock)
+    assert res.stop_reason is StopReason.ITERATION_LIMIT and res.generations == 7
+    assert res.elapsed_ms == pytest.approx(8000.0)
+
+
+@pytest.mark.parametrize("target", [G, reachable(2), reachable(5)])
+def test_without_a_budget_the_result_is_the_one_an_uncut_budget_gives(target):
+    # A clock that never moves: the budget cuts nothing short, chunk after chunk.
+    bounded = SolverSettings(max_generations=40)
+    budgeted = solve(ARM, target, seed=9, budget_ms=10.0, settings=bounded, clock=FakeClock())
+    unbudgeted = solve(ARM, target, seed=9, budget_ms=None, settings=bounded)
+    assert unbudgeted.stop_reason is budgeted.stop_reason is not StopReason.DEADLINE
+    assert (unbudgeted.q, unbudgeted.generations, unbudgeted.evaluations) == (
+        budgeted.q,
+        budgeted.generations,
+        budgeted.evaluations,
+    )
+
+
 def test_same_seed_same_result():
     few = SolverSettings(max_generations=40)
     a = solve(ARM, G, seed=123, budget_ms=1e4, settings=few)
