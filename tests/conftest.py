@@ -1,5 +1,6 @@
 """Fixtures over the shared helpers in ``tests/support``: simulator and daemon processes that
-are always stopped and reaped, whatever the test did."""
+are always stopped and reaped, whatever the test did. And the one hypothesis profile every
+test runs under."""
 
 from __future__ import annotations
 
@@ -8,10 +9,17 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import pytest
+from hypothesis import HealthCheck, settings
 
 from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import FakeClock
+
+# Examples are judged by what they assert, never by how long one took: a machine shared with
+# other processes stretches an example's wall time many times over, and hypothesis would call
+# that a failure (deadline) or an error (too_slow).
+settings.register_profile("armbridge", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("armbridge")
 
 
 class _Started(Protocol):

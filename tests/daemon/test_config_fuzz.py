@@ -214,7 +214,7 @@ def spec_pwm_us(row: dict, angle_deg: float) -> int:
     return math.floor(row["pwm_min_us"] + fraction * span_us + row["trim_us"] + 0.5)
 
 
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=120)
 @given(calibrations(), st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3))
 def test_an_accepted_config_maps_the_whole_arm_range_and_park_into_each_servo_range(
     drawn, fractions

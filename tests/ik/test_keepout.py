@@ -49,7 +49,7 @@ class FakeSolver:
         )
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(seed=st.integers(0, 2**32), warm=st.booleans(), attempts=st.integers(1, 4))
 def test_never_a_colliding_answer_or_motion(seed, warm, attempts):
     clock = FakeClock()
@@ -70,7 +70,7 @@ def test_never_a_colliding_answer_or_motion(seed, warm, attempts):
             assert QUAD.check_motion(ARM.q_from_user(PARK_DEG), q) is None
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 2**32), cost_ms=st.floats(0.1, 30))
 def test_the_budget_is_shared_between_attempts(seed, cost_ms):
     clock = FakeClock()

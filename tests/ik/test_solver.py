@@ -231,7 +231,7 @@ def test_bad_input_raises_value_error_naming_the_argument(kwargs, name):
         solve(ARM, **kwargs)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     st.tuples(*[st.floats(-200, 200)] * 3, *[st.floats(-720, 720)] * 3),
     st.integers(0, 2**64 - 1),
@@ -385,7 +385,7 @@ def test_one_preempted_generation_does_not_end_the_search_early(monkeypatch):
 _ARMS = {name: Arm.from_package_file(name) for name in SHIPPED}
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     st.sampled_from(SHIPPED),
     st.sampled_from(list(TargetMode)),
