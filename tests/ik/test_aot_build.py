@@ -18,6 +18,10 @@ from companion.kinematics.arm import Arm, Pose
 
 pytestmark = pytest.mark.slow
 
+#: Both searches bounded by generations alone: a solve preempted past a wall-clock budget would
+#: stop at another generation than its twin, and the two would differ for that alone.
+UNTIMED = solver.SolverSettings(max_generations=10_000)
+
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory) -> Path:
@@ -49,7 +53,7 @@ def test_the_ahead_of_time_module_solves_bit_for_bit_like_the_jit(built, monkeyp
             monkeypatch.setattr(solver, "_goal_matrix", goal_matrix)
             runs.append(
                 [
-                    solve(arm, t, seed=i, budget_ms=1e3, **kw)
+                    solve(arm, t, seed=i, budget_ms=None, settings=UNTIMED, **kw)
                     for i, t in enumerate(targets)
                     for kw in ({}, {"mode": solver.TargetMode.POSITION_AXIS})
                 ]
