@@ -14,7 +14,7 @@ from tests.support.daemon_process import ROOT
 pytestmark = pytest.mark.slow
 
 #: How long each command may take to exit. It pays the imports only (about a second on a quiet
-#: machine), but the whole test took 22 s at load 5: 20 s was too short a bound.
+#: machine), but the whole test takes 22 s at load 5, so 20 s is too short a bound.
 EXIT_S = 120.0
 
 

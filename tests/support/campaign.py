@@ -371,9 +371,9 @@ def check_daemon_pwm(daemon: ArmDaemon, report: TargetReport) -> None:
 def target_daemon_config(url: str, *, budget_ms: float, seed: int) -> dict[str, Any]:
     return {
         # Loopback loses nothing and an update's ACKs come back in milliseconds; the control
-        # thread takes them, though, only when it runs, and on a loaded machine it was seen to
-        # run over a second late: an update judged then, 0.5 s after it went out, counted as a
-        # servo error. The timeout only has to outlast such a stall.
+        # thread takes them, though, only when it runs, and on a loaded machine it runs over a
+        # second late at times (measured): an update it judges then, past its timeout, counts
+        # as a servo error. The timeout only has to outlast such a stall.
         "link": {"url": url, "loss_timeout_s": 5.0, "command_timeout_s": 5.0},
         "arm": {"park_deg": [0, 90, 0, 0, 0, 0], "joint_speed_deg_s": 360.0},
         # A tick sends six acknowledged DO_SET_SERVO (~10 ms): 10 Hz leaves the thread free
