@@ -12,6 +12,7 @@ from typing import Any, Protocol
 import pytest
 from hypothesis import HealthCheck, settings
 
+from companion.ik import warm_up
 from tests.support.daemon_process import DaemonProcess
 from tests.support.sim_process import SimProcess
 from tests.support.timing import FakeClock
@@ -29,6 +30,16 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     lives as long as the process, and a full collection pass over it stops every thread of the
     process (1.3 s measured at load 13), in-process daemons' control threads included, which
     then judge ACKs and SYSTEM_TIME late."""
+    gc.freeze()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _kernels_loaded() -> None:
+    """The IK kernels loaded once per test process before its first test, as ``armbridge run``
+    loads them before READY: with numba's cache cold (a fresh clone) the first solve compiles
+    them, about 20 s of CPU, and an in-process daemon's first target would pay that inside a
+    test's bounded wait. The heap they leave is frozen with the rest."""
+    warm_up()
     gc.freeze()
 
 
