@@ -658,6 +658,10 @@ class MavlinkLink:
         )
         try:
             self.send(msg)
+        except LinkClosed:
+            # Closed, or ended by the reader on an error, since the heartbeat loop looked: it
+            # stops at its next look; the reason is the link's to report, not this thread's.
+            pass
         except TransportError as exc:
             log.debug("%s: heartbeat not sent: %s", self.description, exc)
         except SigningStateError as exc:

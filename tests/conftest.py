@@ -1,17 +1,46 @@
 """Fixtures over the shared helpers in ``devkit``: simulator and daemon processes that
-are always stopped and reaped, whatever the test did."""
+are always stopped and reaped, whatever the test did. Also what every test process needs on a
+busy machine: one hypothesis profile, and the collected heap kept out of the collector's way."""
 
 from __future__ import annotations
 
+import gc
 import subprocess
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, Protocol
 
 import pytest
+from hypothesis import HealthCheck, settings
 
+from companion.ik import warm_up
 from devkit.daemon_process import DaemonProcess
 from devkit.sim_process import SimProcess
 from devkit.timing import FakeClock
+
+# Examples are judged by what they assert, never by how long one took: a machine shared with
+# other processes stretches an example's wall time many times over, and hypothesis would call
+# that a failure (deadline) or an error (too_slow).
+settings.register_profile("armbridge", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("armbridge")
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Freeze the heap collection built (every test module and what it imports: ~115 000
+    objects, numba's among them), as ``armbridge run`` and the simulator freeze theirs: it
+    lives as long as the process, and a full collection pass over it stops every thread of the
+    process (1.3 s measured at load 13), in-process daemons' control threads included, which
+    then judge ACKs and SYSTEM_TIME late."""
+    gc.freeze()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _kernels_loaded() -> None:
+    """The IK kernels loaded once per test process before its first test, as ``armbridge run``
+    loads them before READY: with numba's cache cold (a fresh clone) the first solve compiles
+    them, about 20 s of CPU, and an in-process daemon's first target would pay that inside a
+    test's bounded wait. The heap they leave is frozen with the rest."""
+    warm_up()
+    gc.freeze()
 
 
 class _Started(Protocol):

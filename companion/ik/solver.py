@@ -17,6 +17,9 @@ the first call also initialises the population. It stops:
   not let this thread run;
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
+With ``budget_ms=None`` there is no deadline: the search is bounded by ``settings.max_generations``
+alone, so what it returns depends on the inputs and the seed, never on how busy the machine is.
+
 Any serial arm :class:`~companion.kinematics.arm.Arm` describes works (2–7 joints or more,
 revolute and prismatic, base and tool transforms, reversed joints, DH or URDF). At this API a
 prismatic joint is in cm wherever a revolute one is in degrees (``q_start_deg``, ``q_deg``).
@@ -303,7 +306,7 @@ def solve(
     arm: Arm,
     target: Pose | Sequence[float],
     *,
-    budget_ms: float = 20.0,
+    budget_ms: float | None = 20.0,
     seed: int | np.random.Generator | None = None,
     q_start_deg: Sequence[float] | None = None,
     tol_pos_cm: float = 1e-3,
@@ -321,7 +324,9 @@ def solve(
     ``q_start_deg`` is the joint vector to start from and stay close to (the previous
     command), or None for a cold start; degrees, cm for a prismatic joint. ``seed`` makes the
     search repeatable (same seed, same inputs → same result, as long as the budget doesn't cut
-    it short). Bad input raises ``ValueError`` naming the argument.
+    it short). ``budget_ms=None``: no deadline; the search ends when it converges or after
+    ``settings.max_generations`` (pass a small enough one), with the result a budget that did
+    not cut it short would give. Bad input raises ``ValueError`` naming the argument.
 
     ``mode`` (:class:`TargetMode`) says what must be met: the whole pose (default), the
     position only (the target's orientation is ignored), or the position and a pointing
@@ -342,6 +347,8 @@ def solve(
     # The common case inline (a Python call costs ~0.06 µs; a fast solve is ~15 µs).
     if type(budget_ms) is float and 0.0 < budget_ms < math.inf:
         budget_s = budget_ms * 1e-3
+    elif budget_ms is None:
+        budget_s = math.inf  # never "predicted not to finish": only convergence or the limit
     else:
         budget_s = _positive("budget_ms", budget_ms) * 1e-3
     ws = getattr(_local, "ws", None)

@@ -9,6 +9,8 @@ import sys
 
 import pytest
 
+pytestmark = pytest.mark.slow  # a Python process per test
+
 HEAVY = ("numba", "llvmlite", "companion.ik")
 
 PROBE = """

@@ -33,6 +33,9 @@ from devkit.campaign import (
     schema_fields,
 )
 
+# A campaign: `armbridge run` subprocesses, every malformed config, a 120-example property.
+pytestmark = pytest.mark.slow
+
 SEED = 8
 
 
@@ -46,7 +49,6 @@ def test_every_config_field_has_fuzz_values_and_is_in_the_example():
         assert re.search(rf"^#?\s*{key}\s*=", EXAMPLE_TEXT, re.M), f"{dotted} not in the example"
 
 
-@pytest.mark.slow
 def test_every_malformed_config_exits_2_naming_the_field(tmp_path):
     report = run_config_fuzz(tmp_path, seed=SEED)
     assert report.failures == []
@@ -70,7 +72,6 @@ def test_every_malformed_config_exits_2_naming_the_field(tmp_path):
     assert expected <= report.fields_covered
 
 
-@pytest.mark.slow
 def test_config_cases_are_seeded(tmp_path):
     runs = []
     for name in ("a", "b"):
@@ -119,7 +120,6 @@ def test_found_by_the_fuzz_now_names_the_field(tmp_path, content, field, words):
     assert words in str(info.value) and str(path) in str(info.value)
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     ("edit", "field"),
     [
@@ -215,7 +215,7 @@ def spec_pwm_us(row: dict, angle_deg: float) -> int:
     return math.floor(row["pwm_min_us"] + fraction * span_us + row["trim_us"] + 0.5)
 
 
-@settings(max_examples=120, deadline=None)
+@settings(max_examples=120)
 @given(calibrations(), st.lists(st.floats(0.0, 1.0), min_size=3, max_size=3))
 def test_an_accepted_config_maps_the_whole_arm_range_and_park_into_each_servo_range(
     drawn, fractions

@@ -230,7 +230,7 @@ def joints(draw):
     )
 
 
-@settings(max_examples=400, deadline=None)
+@settings(max_examples=400)
 @given(joint=joints(), angle=any_angle)
 def test_no_input_ever_yields_pwm_outside_the_servo_range(joint, angle):
     try:
@@ -241,7 +241,7 @@ def test_no_input_ever_yields_pwm_outside_the_servo_range(joint, angle):
     assert joint.pwm_min_us <= pwm <= joint.pwm_max_us
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(joint=joints(), angle=any_angle)
 def test_refusal_exactly_when_angle_is_bad_or_trim_pushes_it_out(joint, angle):
     in_range = (
@@ -256,7 +256,7 @@ def test_refusal_exactly_when_angle_is_bad_or_trim_pushes_it_out(joint, angle):
         joint.angle_to_pwm_us(angle)  # untrimmed: every in-range angle is accepted
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(joint=joints(), fraction=st.floats(min_value=0.0, max_value=1.0))
 def test_round_trip_angle_pwm_angle_within_half_a_microsecond(joint, fraction):
     span = joint.angle_max_deg - joint.angle_min_deg
@@ -271,7 +271,7 @@ def test_round_trip_angle_pwm_angle_within_half_a_microsecond(joint, fraction):
     assert abs(back - angle) <= 0.5 * step_deg + 1e-9 * max(1.0, abs(angle))
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(joint=joints(), pwm=st.integers(min_value=-(10**6), max_value=10**6))
 def test_pwm_to_normalized_stays_in_unit_interval_or_is_refused(joint, pwm):
     try:

@@ -136,6 +136,25 @@ def test_an_error_in_a_subscriber_ends_the_link_and_is_kept(udp_peer, udp_link):
     assert info.value.__cause__ is udp_link.failure
 
 
+def test_a_link_that_ends_as_a_heartbeat_goes_out_ends_the_heartbeat_loop_quietly(
+    udp_peer, udp_link
+):
+    # The reader thread ends the link on an error in protocol code whenever it happens: here
+    # between the heartbeat loop's look at the link and its send (made certain by ending it
+    # from the encoder). The loop, run here in the test's thread, must just stop.
+    udp_peer.wait_for_messages("HEARTBEAT")
+    encode = udp_link._encoder.heartbeat_encode
+
+    def ending_meanwhile(*args):
+        udp_link.failure = RuntimeError("ended by the reader meanwhile")
+        udp_link._stop.set()
+        return encode(*args)
+
+    udp_link._encoder.heartbeat_encode = ending_meanwhile
+    udp_link._heartbeat_loop()
+    assert udp_link.closed and udp_link.state is LinkState.CLOSED
+
+
 def test_cancelled_subscription_gets_nothing_more(udp_peer, udp_link):
     seen = []
     sub = udp_link.subscribe(seen.append, ["STATUSTEXT"])

@@ -262,7 +262,7 @@ def test_missing_binding_stops_the_script_with_a_message():
     assert any(b"block_command" in t for t in env.texts.values())
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     pwms=st.lists(
         st.one_of(st.floats(width=32), st.integers(0, 3000).map(float)), min_size=6, max_size=6

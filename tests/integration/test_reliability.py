@@ -9,6 +9,7 @@ subprocesses. Waits are bounded waits on conditions (futures, ACKs, the control 
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 
@@ -29,6 +30,8 @@ from devkit.campaign import (
     target_daemon_config,
 )
 from devkit.control_client import ControlConnection
+
+pytestmark = pytest.mark.slow  # a simulator process; the campaigns run long
 
 SEED = 8
 #: Targets at CI size; ``python -m bench.reliability --targets 100000`` (or its default 300000)
@@ -53,7 +56,6 @@ def test_target_mix_is_seeded_and_covers_every_category():
     assert math.isclose(sum(TARGET_MIX.values()), 1.0)
 
 
-@pytest.mark.slow
 def test_adversarial_targets_resolve_and_no_pwm_leaves_calibration(tmp_path):
     """``CI_TARGETS`` (1.2·10⁴) seeded targets go through ``ArmDaemon.submit("goto", ...)``, the
     path the control socket and the MAVLink input both use, to a daemon linked over UDP to a
@@ -101,7 +103,6 @@ def test_adversarial_targets_resolve_and_no_pwm_leaves_calibration(tmp_path):
     assert report.sim_exit_code == 0
 
 
-@pytest.mark.slow
 def test_mavlink_input_fuzz_sends_no_servo_command_and_keeps_memory_flat(tmp_path):
     """``armbridge run`` (subprocess) against a scripted autopilot on real UDP. Per round: one
     valid frame of each of the 301 ardupilotmega message types with random fields, and as many
@@ -152,6 +153,7 @@ def daemon(tmp_path_factory):
     sim = start_sim(tmp_path_factory.mktemp("regressions"))
     daemon = ArmDaemon(parse_config(target_daemon_config(sim.url, budget_ms=2.0, seed=1)))
     warm_up()  # as `armbridge run` does: a 2 ms budget has no room for loading the kernels
+    gc.freeze()  # and its heap: no full collection pass over it stalls the control thread
     daemon.start()
     try:
         assert daemon.wait_for_autopilot(WAIT_S)
@@ -161,7 +163,6 @@ def daemon(tmp_path_factory):
         assert sim.stop() == 0
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize(
     "payload",
     [
@@ -184,7 +185,6 @@ def test_target_that_is_not_six_numbers_is_denied_and_the_daemon_lives_on(daemon
     assert daemon.status()["counters"]["servo_errors"] == 0
 
 
-@pytest.mark.slow
 def test_trajectory_time_beyond_float_range_is_denied(daemon):
     pose = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
     reply = daemon.submit("trajectory", [(10**400, pose)]).result(WAIT_S)
@@ -192,7 +192,6 @@ def test_trajectory_time_beyond_float_range_is_denied(daemon):
     assert daemon.healthy
 
 
-@pytest.mark.slow
 def test_trajectory_with_two_points_at_the_same_time_is_accepted(daemon):
     # Sorting (t, Pose) pairs compared the Poses on a tie and raised TypeError: DENIED.
     a = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
@@ -201,7 +200,6 @@ def test_trajectory_with_two_points_at_the_same_time_is_accepted(daemon):
     assert reply.outcome is Outcome.ACCEPTED, reply.message
 
 
-@pytest.mark.slow
 def test_control_socket_survives_an_integer_too_big_for_a_float(sims, daemons):
     """The same overflow through the daemon's public door: a JSON integer of 400 digits (now
     refused by the socket's parser, which takes at most 20 digits; the daemon lives)."""

@@ -14,6 +14,8 @@ from companion.daemon.config import parse_config
 from devkit.daemon_process import NOT_SERVING
 from devkit.timing import WAIT_S, wait_until
 
+pytestmark = pytest.mark.slow  # a simulator and a daemon process
+
 PARK = [0, 90, 0, 0, 0, 0]
 
 
@@ -25,7 +27,6 @@ def config(url: str) -> dict:
     }
 
 
-@pytest.mark.slow
 def test_sigterm_under_a_backlog_parks_answers_and_exits_0(sims, daemons):
     # With withheld ACKs: tests/daemon/test_cli.py::test_a_goto_waiting_at_sigterm_is_answered.
     sim = sims("--udp", "127.0.0.1:0", "--slew-s-per-60deg", "0")

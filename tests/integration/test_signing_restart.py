@@ -17,10 +17,11 @@ import pytest
 from firmware_interface.link import LinkConfig, LinkState, MavlinkLink
 from firmware_interface.signing import SigningConfig
 
+pytestmark = pytest.mark.slow  # a simulator and daemon processes
+
 KEY = bytes(range(32))
 
 
-@pytest.mark.slow
 def test_a_daemon_started_two_minutes_after_the_autopilot_reconnects(sims, tmp_path):
     key_file = tmp_path / "signing.key"
     key_file.write_bytes(KEY)

@@ -28,6 +28,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from devkit.timing import wait_until
 from sim_servo.gcs import GroundStation
 
+pytestmark = pytest.mark.slow  # two processes per test
+
 WAIT_S = 15.0
 #: A reachable target (the hand of the demo's comfortable pose).
 TARGET = (62.14, 22.25, -3.32, 17.24, -1.47, 19.70)
@@ -74,7 +76,6 @@ def _target_at_once_is_accepted(gcs: GroundStation, sim) -> None:
     assert ack.result == mavlink.MAV_RESULT_ACCEPTED, (ack.result_name, ack.statustexts)
 
 
-@pytest.mark.slow  # two processes
 # ArduPilot on udpin passes too (run by hand: parametrize ("udpin", "ardupilot")); left out of
 # the suite for its time (a start costs ~3 s), since its routing is the more forgiving one.
 @pytest.mark.parametrize(("link", "flavour"), [("udpin", "px4"), ("udpout", "px4")])
@@ -87,7 +88,6 @@ def test_a_target_sent_as_soon_as_status_says_heard_is_accepted(
         _target_at_once_is_accepted(gcs, sim)
 
 
-@pytest.mark.slow  # two processes
 def test_a_target_sent_as_soon_as_systemd_status_says_link_up_is_accepted(sims, daemons, tmp_path):
     path = tmp_path / "notify.sock"
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as notify:

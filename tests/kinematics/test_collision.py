@@ -160,7 +160,7 @@ def _q(unit):
     return ARM.lower_q + np.asarray(unit) * (ARM.upper_q - ARM.lower_q)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(volumes=_volumes, unit=_unit, mount=_mount, margin=st.floats(0, 3))
 def test_an_accepted_configuration_is_clear_by_dense_sampling(volumes, unit, mount, margin):
     ko = KeepOut(ARM, volumes, mount, margin)
@@ -192,7 +192,7 @@ def test_accepted_configurations_are_clear_in_bulk():
     assert np.all(exact.clear_mask(q)[sampled >= 1.0 + gap])
 
 
-@settings(max_examples=20, deadline=None)
+@settings(max_examples=20)
 @given(volumes=_volumes, a=_unit, b=_unit, margin=st.floats(0, 2))
 def test_an_accepted_motion_is_clear_by_dense_sampling(volumes, a, b, margin):
     ko = KeepOut(ARM, volumes, MOUNT, margin)
@@ -275,7 +275,7 @@ def test_check_path_refuses_a_corner_the_straight_motion_misses():
     assert hit is not None and hit.volume == "ball"
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 2**32))
 def test_check_path_agrees_with_check_motion_leg_by_leg(seed):
     rng = np.random.default_rng(seed)

@@ -8,7 +8,7 @@ this test may import both; ``sim_servo`` itself never imports the daemon's code.
 import math
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from companion.kinematics import Arm
@@ -251,7 +251,6 @@ def daemon_calibration(config: ArmConfig):
     )
 
 
-@settings(deadline=None)
 @given(arm_configs(), st.integers(0, 5), st.floats(-0.1, 1.1))
 def test_agrees_with_the_daemons_calibration_across_each_range(config, index, where):
     """Same angle for any PWM in range (``where`` 0…1 across it), and no angle outside it."""
@@ -268,7 +267,6 @@ def test_agrees_with_the_daemons_calibration_across_each_range(config, index, wh
         assert joint.angle_deg(pwm_us) == pytest.approx(daemon_deg, rel=1e-12, abs=1e-9)
 
 
-@settings(deadline=None)
 @given(st.integers(400, 2600), st.integers(400, 2600), st.integers(-1300, 1300))
 def test_accepts_the_pwm_ranges_and_trims_the_daemon_accepts(pwm_min_us, pwm_max_us, trim_us):
     try:

@@ -50,7 +50,7 @@ def test_checks_accept_and_refuse_as_the_script_describes():
     assert check_user2((1500, 1500, 1500, NAN, NAN, NAN, 15), param).refused_output == 17
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(
     pwms=st.lists(
         st.one_of(st.just(NAN), st.integers(900, 2100).map(float), st.floats(width=32)),
