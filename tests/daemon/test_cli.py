@@ -58,7 +58,7 @@ def test_check_config(tmp_path, capsys):
 
 
 def test_check_config_warns_of_a_joint_on_a_default_motor_output(tmp_path, capsys):
-    # Issue 15: on real ArduCopter, output 1 of a quad is refused at the first target.
+    # On real ArduCopter, output 1 of a quad is refused at the first target.
     joints = "".join(f"[[joint]]\noutput = {o}\n" for o in (3, 10, 11, 12, 13, 14))
     path = tmp_path / "motor.toml"
     path.write_text('[link]\nurl = "udpout:127.0.0.1:14550"\n' + joints)
@@ -181,7 +181,7 @@ VERBS = ("run", "demo", "check-config", "solve", "goto", "trajectory", "status",
     ],
 )
 def test_a_newcomer_meets_no_traceback(argv, code, says, capsys):
-    # Issue 15: --help of every verb, and the mistakes a first-day user makes, each end in a
+    # --help of every verb, and the mistakes a first-day user makes, each end in a
     # clear message and an exit code, never a traceback.
     try:
         got = main(argv)

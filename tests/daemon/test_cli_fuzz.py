@@ -49,9 +49,8 @@ def tokens(paths: list[str]) -> st.SearchStrategy[str]:
 
 @settings(
     max_examples=250,
-    deadline=None,
     derandomize=True,  # the same argv every run: a failure here is a bug, not luck
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 @given(data=st.data())
 def test_every_verb_with_random_arguments_exits_with_a_message(data, files, tmp_path_factory):

@@ -1,4 +1,4 @@
-"""Config fuzz (issue 8): every field of the daemon config, malformed in every way the campaign
+"""Config fuzz: every field of the daemon config, malformed in every way the campaign
 knows, makes ``armbridge check-config`` exit 2 with a message naming the file and the field;
 ``armbridge run`` on a bad config exits 2 and sends nothing to a listening autopilot.
 

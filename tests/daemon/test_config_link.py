@@ -1,4 +1,4 @@
-"""``[link]`` settings added by issue 14: ``allowed_senders`` (who may send MAVLink targets),
+"""``[link]`` settings: ``allowed_senders`` (who may send MAVLink targets),
 and a signing state file the daemon must not replace."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Who may use the control socket, and what it may replace (issue 14): mode 0660 in its group
+"""Who may use the control socket, and what it may replace: mode 0660 in its group
 whatever the umask, peer credentials checked, nothing deleted but our own stale socket.
 
 The tests that connect as another user fork a child that drops to ``nobody`` (uid 65534): they

@@ -1,4 +1,4 @@
-"""The ``[control]`` socket fields (issue 14): a relative socket path counts from the config's
+"""The ``[control]`` socket fields: a relative socket path counts from the config's
 directory like every other path, and ``check-config`` refuses what ``run`` would."""
 
 from __future__ import annotations

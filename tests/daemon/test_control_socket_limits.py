@@ -1,4 +1,4 @@
-"""The control socket's limits (issue 14): connection cap, idle timeout, line length, replies a
+"""The control socket's limits: connection cap, idle timeout, line length, replies a
 client never reads, and the JSON parser's limits. In-process, real Unix sockets; the daemon's
 control thread never runs (requests wait in its intake until answered or withdrawn)."""
 

@@ -87,7 +87,7 @@ def test_doctor_against_the_simulator(tmp_path, sims, capsys):
 
 
 def test_doctor_names_px4s_default_setup_and_its_fix(tmp_path, capsys):
-    """Issue 20: PX4 as it comes (arm outputs on function 0, COM_PREARM_MODE 0, TELEM2 not
+    """PX4 as it comes (arm outputs on function 0, COM_PREARM_MODE 0, TELEM2 not
     forwarding): doctor names each parameter with the value to set."""
     with SimProcess(
         tmp_path / "sim", "--udp", "127.0.0.1:0", "--flavour", "px4", ready=False

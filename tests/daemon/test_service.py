@@ -268,7 +268,7 @@ def test_reload_keeps_a_park_the_running_arm_cannot_reach(tmp_path):
 
 
 def test_statustext_fits_in_50_characters_cut_at_a_word():
-    # Issue 15: a ground station's STATUSTEXT holds 50 characters; a longer message is cut at
+    # A ground station's STATUSTEXT holds 50 characters; a longer message is cut at
     # a word, marked, ASCII only.
     long = Reply(Outcome.FAILED, "unreachable: pos 30.02cm ori 10.2deg, and a much longer tail")
     text = long.statustext()

@@ -1,4 +1,4 @@
-"""Where a ``udpin`` link sends, and what one datagram can do to the next (issue 14).
+"""Where a ``udpin`` link sends, and what one datagram can do to the next.
 
 The autopilot is a :class:`ScriptedPeer` that sends first (ArduPilot's ``udpclient``); an
 attacker on loopback sends garbage and valid frames from other ids. Real sockets, bounded waits.
@@ -80,7 +80,7 @@ def test_udpin_peer_is_never_moved_by_garbage_or_frames_from_other_ids(attacker)
 
 def test_udpin_sends_its_heartbeat_as_soon_as_it_knows_the_autopilot():
     """The autopilot learns our route from our first frame: it comes at once, not at the next
-    1 Hz beat (issue 20: PX4 dropped a ground station's USER_1 sent right after we were up)."""
+    1 Hz beat (PX4 dropped a ground station's USER_1 sent right after we were up)."""
     link = MavlinkLink.open("udpin:127.0.0.1:0", LinkConfig(heartbeat_rate_hz=0.1))
     peer = ScriptedPeer(UdpClientEndpoint(link.transport.local_address))
     try:

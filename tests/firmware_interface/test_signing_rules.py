@@ -1,4 +1,4 @@
-"""Signing findings of issue 14, each against a real link on loopback: far-future frames,
+"""Signing findings, each against a real link on loopback: far-future frames,
 replays after a restart, and a state file that cannot be written (disk full, read-only)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Who a UDP transport listens to (issue 14): ``udpout`` reads only its configured peer, from
+"""Who a UDP transport listens to: ``udpout`` reads only its configured peer, from
 the local address that routes to it; ``udpin`` never moves its peer by itself."""
 
 from __future__ import annotations

@@ -143,7 +143,7 @@ def test_the_cost_term_steers_a_position_answer_away_from_the_volumes():
     # A hand position the plain solver reaches with a link close to a volume: steered, the
     # answer still meets the target and keeps more clearance (less penalty). Up to 4 attempts:
     # with one, whether its answer is clear (and so steered) depends on the seed (26 and 28 of
-    # seeds 0-39 with the solver settings before and after issue 16's p99 change; 38 of 40
+    # seeds 0-39 under two sets of solver settings; 38 of 40
     # either way with 4).
     from companion.ik.keepout import clearance_penalty
 

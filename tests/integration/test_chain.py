@@ -135,7 +135,7 @@ def test_ground_station_targets_end_to_end(chain, pty, dialect):
     assert c.sim_state()["outputs"] == before
 
     # Addressed to component 192, never heard: ArduPilot's routing keeps it and answers
-    # UNSUPPORTED itself (from 1/1); PX4 ignores it without an answer (issue 20, measured). The
+    # UNSUPPORTED itself (from 1/1); PX4 ignores it without an answer (measured). The
     # daemon never sees it.
     c.gcs.send_target(target, component_id=192)
     if dialect == "ardupilot":

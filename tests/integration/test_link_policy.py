@@ -1,4 +1,4 @@
-"""Issue 14 at the daemon (``ArmDaemon`` in-process, a scripted autopilot on loopback): who may
+"""At the daemon (``ArmDaemon`` in-process, a scripted autopilot on loopback): who may
 send targets (``link.allowed_senders``), and a signing state that cannot be stored, which must
 hold the arm with a clear reason in ``status``."""
 

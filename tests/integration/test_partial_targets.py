@@ -1,4 +1,4 @@
-"""Partial targets end to end (issue 16): a 4-joint arm cannot take every pose, but it can put
+"""Partial targets end to end: a 4-joint arm cannot take every pose, but it can put
 its hand at a position, or at a position with its z axis pointing a stated way. A ground
 station asks for them with MAV_CMD_USER_1 param7 (0 pose, 1 position, 2 position + pointing),
 the control socket with ``"mode"``; the simulated autopilot moves the same arm."""

@@ -1,4 +1,4 @@
-"""Reliability campaign, inputs side (issue 8), at CI size: adversarial targets through the
+"""Reliability campaign, inputs side, at CI size: adversarial targets through the
 daemon's target path and fuzz on its MAVLink input. The machinery is
 ``devkit/campaign.py``; ``python -m bench.reliability`` runs the same campaign longer;
 the config fuzz is ``tests/daemon/test_config_fuzz.py``.

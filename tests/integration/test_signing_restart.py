@@ -1,4 +1,4 @@
-"""Issue 14: a daemon restarted more than a minute after the simulated autopilot booted must
+"""A daemon restarted more than a minute after the simulated autopilot booted must
 reconnect with signing on. The simulator used to keep its own signing timestamp where it
 started (pymavlink adds 1 per frame), so a companion whose clock was over a minute ahead took
 every frame of it as a stream more than a minute old ("bad signature") for ever. Now it adopts

@@ -1,4 +1,4 @@
-"""Issue 14, "udpin hijack": the daemon listens (``udpin``); the autopilot sends to it first
+"""The "udpin hijack": the daemon listens (``udpin``); the autopilot sends to it first
 (ArduPilot's ``udpclient``); an attacker on the same network sends a 1-byte datagram every
 2 ms and valid unsigned frames from another system id. Today's udpin sent to the last sender:
 the servo commands went to the attacker. Target: 0 to the attacker, all to the autopilot.

@@ -1,4 +1,4 @@
-"""The start-up race on ``udpin`` (issue 20): a ground station's target sent the moment the
+"""The start-up race on ``udpin``: a ground station's target sent the moment the
 daemon says the autopilot has heard it must be ACCEPTED.
 
 On ``udpin`` the daemon cannot send until the autopilot speaks (it does not know where to),

@@ -1,4 +1,4 @@
-"""World-frame targets end to end (issue 18): the simulator hovers (a seeded drift and tilt,
+"""World-frame targets end to end: the simulator hovers (a seeded drift and tilt,
 streaming ATTITUDE and LOCAL_POSITION_NED); a target in LOCAL_NED keeps the hand where it is in
 the world, where holding the pose in the arm's frame would carry it along with the vehicle."""
 

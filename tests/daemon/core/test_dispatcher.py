@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.daemon.core import (
@@ -48,7 +48,7 @@ _EVENTS = st.one_of(
 )
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=200)
 @given(events=st.lists(_EVENTS, max_size=60))
 def test_any_sequence_answers_every_request_once_keeps_the_limit_and_the_range(events):
     rig = Rig()

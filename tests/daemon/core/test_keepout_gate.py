@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from companion.daemon.requests import Outcome
@@ -132,7 +132,7 @@ _KEEPOUT_EVENTS = st.one_of(
 )
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=15)
 @given(events=st.lists(_KEEPOUT_EVENTS, max_size=30))
 def test_property_no_commanded_configuration_or_step_enters_a_keepout_volume(events):
     """Whatever the targets (in, across and around the quad's volumes), trajectories

@@ -231,7 +231,7 @@ def test_px4_a_silent_readback_says_nothing_of_the_outputs_and_the_streams_are_a
     assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     st.lists(
         st.tuples(
