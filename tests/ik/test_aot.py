@@ -86,11 +86,20 @@ def test_the_solver_refuses_arrays_the_compiled_wrapper_would_misread():
         solver._check_search_arrays(tuple(strided))
 
 
-def test_without_a_compiler_the_build_says_why_instead_of_raising(tmp_path, monkeypatch):
+def test_without_a_compiler_the_build_says_why_instead_of_raising(tmp_path):
     # distutils takes the compiler from $CC: one that does not exist is a board without gcc.
-    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
-    with pytest.raises(aot.AotUnavailable, match=r"gcc g\+\+ python3-dev"):
-        aot.build(tmp_path / "out")
+    # In a process of its own: numba remembers a failed compiler probe for the process's life.
+    probe = (
+        "import sys; from pathlib import Path; from companion.ik import aot\n"
+        "try:\n    aot.build(Path(sys.argv[1]))\nexcept aot.AotUnavailable as exc:\n"
+        "    print('unavailable:', exc)\n"
+    )
+    env = {**os.environ, "CC": str(tmp_path / "no-such-cc")}
+    out = subprocess.run(
+        [sys.executable, "-c", probe, str(tmp_path / "out")],
+        env=env, capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert out.stdout.startswith("unavailable:") and "gcc g++ python3-dev" in out.stdout
     assert not list((tmp_path / "out").glob(aot.MODULE_PREFIX + "*"))
 
 
