@@ -115,7 +115,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "2dee681039a2ed1c59262fcb80377e56012fc1213d331be42ac67de1cce07908"
+LAYOUT_SHA256 = "32abd9710a71e89e1a5667861437ef42b49cdd723335e987f3f2e11d52420a44"
 
 _U64 = nb.types.uint64
 
@@ -165,16 +165,15 @@ def _into_range(v, lo, hi, wraps):
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
+def fk_frames(q, frames, joint_params, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
-    The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm;
-    see :mod:`companion.kinematics.arm`); ``jp`` rows: direction, offset, 1.0 for a revolute
-    joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``), and (not used here) 1.0 for a
-    joint whose range holds a whole turn, the lower and the upper limits. With ``want_axes``,
-    also each joint's axis (the z axis it moves about or along, signed by its direction) and a
-    point on it, in the base frame, for the geometric Jacobian.
-    """
+    The arm is ``F_0 · M_1(q_1) · F_1 · … · M_n(q_n) · F_n`` (``frames``, ``(n + 1, 4, 4)``, cm; see
+    :mod:`companion.kinematics.arm`); ``joint_params`` rows: direction, offset, 1.0 for a revolute
+    joint (``M = Rz``) or 0.0 for a prismatic one (``M = Tz``), and (not used here) 1.0 for a joint
+    whose range holds a whole turn, the lower and the upper limits. With ``want_axes``, also each
+    joint's axis (the z axis it moves about or along, signed by its direction) and a point on it, in
+    the base frame, for the geometric Jacobian."""
     n = q.shape[0]
     # Rotation and position as scalars until the end: stores into ``rot``/``pos`` that the
     # compiler cannot prove apart from ``frames`` would be re-read at every step.
@@ -182,16 +181,16 @@ def fk_frames(q, frames, jp, rot, pos, axes, points, want_axes):
     r10, r11, r12, p1 = frames[0, 1, 0], frames[0, 1, 1], frames[0, 1, 2], frames[0, 1, 3]
     r20, r21, r22, p2 = frames[0, 2, 0], frames[0, 2, 1], frames[0, 2, 2], frames[0, 2, 3]
     for i in range(n):
-        v = jp[0, i] * q[i] + jp[1, i]
+        v = joint_params[0, i] * q[i] + joint_params[1, i]
         if want_axes:
-            d = jp[0, i]
+            d = joint_params[0, i]
             axes[i, 0] = r02 * d
             axes[i, 1] = r12 * d
             axes[i, 2] = r22 * d
             points[i, 0] = p0
             points[i, 1] = p1
             points[i, 2] = p2
-        if jp[2, i] > 0.5:
+        if joint_params[2, i] > 0.5:
             cv = math.cos(v)
             sv = math.sin(v)
             r00, r01 = r00 * cv + r01 * sv, r01 * cv - r00 * sv
@@ -349,11 +348,11 @@ def _movement(q, q_prev):
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def candidate_cost(q, frames, jp, goal, mode, q_prev, move_w, rot, pos, res):
+def candidate_cost(q, frames, joint_params, goal, mode, q_prev, move_w, rot, pos, res):
     """Cost of one joint vector: ‖Δp‖² + θ_deg² + move_w·‖q − q_prev‖²."""
     # No axes wanted. ``mode < 0`` (always False) rather than the literal: numba compiles a
     # literal argument as a specialisation of its own, ~1 s more of the first compile.
-    fk_frames(q, frames, jp, rot, pos, rot, rot, mode < 0)
+    fk_frames(q, frames, joint_params, rot, pos, rot, rot, mode < 0)
     pos_err, ori_err = residual(rot, pos, goal, mode, res)
     cost = pos_err * pos_err + ori_err * ori_err
     if move_w > 0.0:
@@ -399,7 +398,7 @@ def _ldl_solve(a, b, n):
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr):
+def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr):
     """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
     ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
     n = jac.shape[0]
@@ -413,7 +412,7 @@ def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr
     r0, r1, r2, r3, r4, r5 = res[0], res[1], res[2], res[3], res[4], res[5]
     for j in range(n):
         zx, zy, zz = axes[j, 0], axes[j, 1], axes[j, 2]
-        if jp[2, j] > 0.5:
+        if joint_params[2, j] > 0.5:
             dx = pos[0] - points[j, 0]
             dy = pos[1] - points[j, 1]
             dz = pos[2] - points[j, 2]
@@ -452,7 +451,7 @@ def _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr
 
 
 @nb.njit(cache=CACHE)
-def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
+def lm_refine(q, lo, hi, frames, joint_params, goal, mode, fparams, iters, out):
     """Damped least squares on the target residual from ``q`` (modified in place).
 
     Each step solves ``(JᵀJ + λ·diag(JᵀJ) + 1e-9·I)·Δq = Jᵀr``; joints at a limit that the
@@ -460,8 +459,8 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
     active-set pass: a clamped step is no descent step, and solutions at the limits stalled).
     It clamps ``q + Δq`` into the limits and keeps it only if ``‖r‖`` drops (λ shrinks on
     success; on failure it grows and the same normal equations are solved again). Stops at the
-    tolerances, after ``iters`` steps, when λ explodes, or (``fp[F_LM_WINDOW]`` > 0) when a
-    window of steps did not bring the cost below ``fp[F_LM_PROGRESS]`` times what it was.
+    tolerances, after ``iters`` steps, when λ explodes, or (``fparams[F_LM_WINDOW]`` > 0) when a
+    window of steps did not bring the cost below ``fparams[F_LM_PROGRESS]`` times what it was.
     ``out`` receives ``(pose cost, pos_err_cm, ori_err_deg)``; returns the number of steps.
 
     One call site of the FK and of the residual: compiling each inlined copy of them cost
@@ -473,10 +472,10 @@ def lm_refine(q, lo, hi, frames, jp, goal, mode, fp, iters, out):
         lo,
         hi,
         frames,
-        jp,
+        joint_params,
         goal,
         mode,
-        fp,
+        fparams,
         iters,
         out,
         np.empty((3, 3)),
@@ -511,13 +510,13 @@ POLISH_RAD = math.radians(5.0)
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def _free(j, lo, hi, jp):
-    return jp[2, j] > 0.5 and jp[3, j] < 0.5 and hi[j] - lo[j] >= FREE_SPAN_RAD
+def _free(j, lo, hi, joint_params):
+    return joint_params[2, j] > 0.5 and joint_params[3, j] < 0.5 and hi[j] - lo[j] >= FREE_SPAN_RAD
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
 def _lm_steps(
-    q, lo, hi, frames, jp, goal, mode, fp, iters, out,
+    q, lo, hi, frames, joint_params, goal, mode, fparams, iters, out,
     rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try,
 ):  # fmt: skip
     """:func:`lm_refine`'s loop, on the scratch arrays it allocates (``q_try`` a copy of ``q``).
@@ -529,10 +528,10 @@ def _lm_steps(
     ends within the limits and ``out`` holds its own errors.
     """
     n = q.shape[0]
-    tol_pos = fp[F_TOL_POS]
-    tol_ori = fp[F_TOL_ORI]
-    window = int(fp[F_LM_WINDOW])
-    progress = fp[F_LM_PROGRESS]
+    tol_pos = fparams[F_TOL_POS]
+    tol_ori = fparams[F_TOL_ORI]
+    window = int(fparams[F_LM_WINDOW])
+    progress = fparams[F_LM_PROGRESS]
     cost = np.inf
     pos_err = np.inf
     ori_err = np.inf
@@ -540,7 +539,7 @@ def _lm_steps(
     limit = iters
     free = True
     while True:
-        lam = fp[F_LM_LAMBDA0]
+        lam = fparams[F_LM_LAMBDA0]
         cost = np.inf
         checkpoint = np.inf
         first = True
@@ -548,7 +547,9 @@ def _lm_steps(
         evaluate = True
         while True:
             if evaluate:
-                fk_frames(q_try, frames, jp, rot, pos, axes, points, mode >= 0)  # candidate_cost
+                fk_frames(
+                    q_try, frames, joint_params, rot, pos, axes, points, mode >= 0
+                )  # candidate_cost
                 new_pos, new_ori = residual(rot, pos, goal, mode, res)
                 new_cost = new_pos * new_pos + new_ori * new_ori
                 if new_cost < cost or first:
@@ -560,7 +561,9 @@ def _lm_steps(
                     cost, pos_err, ori_err = new_cost, new_pos, new_ori
                     if (pos_err <= tol_pos and ori_err <= tol_ori) or steps >= limit:
                         break
-                    _normal_equations(rot, pos, axes, points, goal, jp, mode, res, jac, jtj, jtr)
+                    _normal_equations(
+                        rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr
+                    )
                 else:
                     lam *= 8.0
                     if lam > 1e8 or steps >= limit:
@@ -593,8 +596,8 @@ def _lm_steps(
             held = 0
             for j in range(n):
                 if (
-                    jp[3, j] < 0.5
-                    and not (free and _free(j, lo, hi, jp))
+                    joint_params[3, j] < 0.5
+                    and not (free and _free(j, lo, hi, joint_params))
                     and ((q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0))
                 ):
                     held += 1
@@ -613,10 +616,10 @@ def _lm_steps(
                     continue
             evaluate = True
             for j in range(n):
-                if free and _free(j, lo, hi, jp):
+                if free and _free(j, lo, hi, joint_params):
                     q_try[j] = q[j] + g[j]
                 else:
-                    q_try[j] = _into_range(q[j] + g[j], lo[j], hi[j], jp[3, j])
+                    q_try[j] = _into_range(q[j] + g[j], lo[j], hi[j], joint_params[3, j])
         if not free:
             break
         # The free joints back into their ranges: the same angle where it is within the
@@ -625,7 +628,7 @@ def _lm_steps(
         # own errors) and, if no joint was more than POLISH_RAD outside, goes on from there.
         outside = -1.0
         for j in range(n):
-            if _free(j, lo, hi, jp) and not lo[j] <= q[j] <= hi[j]:
+            if _free(j, lo, hi, joint_params) and not lo[j] <= q[j] <= hi[j]:
                 v = lo[j] + (q[j] - lo[j]) % TWO_PI
                 if v > hi[j]:
                     below = lo[j] + TWO_PI - v
@@ -646,10 +649,12 @@ def _lm_steps(
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w, lm):
-    rot, pos, res = lm[0], lm[1], lm[4]
+def _evaluate_all(pop, cost, frames, joint_params, goal, mode, q_prev, move_w, scratch):
+    rot, pos, res = scratch[0], scratch[1], scratch[4]
     for i in range(pop.shape[0]):
-        cost[i] = candidate_cost(pop[i], frames, jp, goal, mode, q_prev, move_w, rot, pos, res)
+        cost[i] = candidate_cost(
+            pop[i], frames, joint_params, goal, mode, q_prev, move_w, rot, pos, res
+        )
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
@@ -739,29 +744,63 @@ def _scratch(buf, n, n_pop):
 
 @nb.njit(cache=CACHE, **NO_NRT)
 def _refine_best(
-    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
-):  # fmt: skip
+    pop,
+    cost,
+    stuck,
+    lo,
+    hi,
+    frames,
+    joint_params,
+    goal,
+    q_prev,
+    fparams,
+    iparams,
+    counts,
+    record,
+    record_q,
+    scratch,
+):
     """LM on the best individual not marked stuck; returns True once the tolerances are met.
-    ``lm``: :func:`_scratch`."""
+    ``scratch``: :func:`_scratch`."""
     best = -1
     for i in range(pop.shape[0]):
         if not stuck[i] and (best < 0 or cost[i] < cost[best]):
             best = i
     if best < 0:
         return False
-    q, q_try, out = lm[12], lm[11], lm[13]
+    q, q_try, out = scratch[12], scratch[11], scratch[13]
     for j in range(q.shape[0]):
         q[j] = pop[best, j]
         q_try[j] = q[j]
-    st[S_LM_ITERATIONS] += _lm_steps(
-        q, lo, hi, frames, jp, goal, ip[I_MODE], fp, ip[I_LM_ITERS], out,
-        lm[0], lm[1], lm[2], lm[3], lm[4], lm[5], lm[6], lm[7], lm[8], lm[9], lm[10], q_try,
-    )  # fmt: skip
-    st[S_EVALUATIONS] += 1
+    counts[S_LM_ITERATIONS] += _lm_steps(
+        q,
+        lo,
+        hi,
+        frames,
+        joint_params,
+        goal,
+        iparams[I_MODE],
+        fparams,
+        iparams[I_LM_ITERS],
+        out,
+        scratch[0],
+        scratch[1],
+        scratch[2],
+        scratch[3],
+        scratch[4],
+        scratch[5],
+        scratch[6],
+        scratch[7],
+        scratch[8],
+        scratch[9],
+        scratch[10],
+        q_try,
+    )
+    counts[S_EVALUATIONS] += 1
     pose_cost, pos_err, ori_err = out[0], out[1], out[2]
     new_cost = pose_cost
-    if ip[I_HAS_PREV]:
-        new_cost += fp[F_MOVE_W] * _movement(q, q_prev)
+    if iparams[I_HAS_PREV]:
+        new_cost += fparams[F_MOVE_W] * _movement(q, q_prev)
     # LM that still made good progress may go on next generation; otherwise it has done what it
     # can from here, until DE replaces the individual.
     stuck[best] = 0 if new_cost < 0.5 * cost[best] else 1
@@ -769,7 +808,7 @@ def _refine_best(
         for j in range(q.shape[0]):
             pop[best, j] = q[j]
         cost[best] = new_cost
-    within_tol = pos_err <= fp[F_TOL_POS] and ori_err <= fp[F_TOL_ORI]
+    within_tol = pos_err <= fparams[F_TOL_POS] and ori_err <= fparams[F_TOL_ORI]
     _update_record(q, pose_cost, pos_err, ori_err, within_tol, record, record_q)
     return within_tol
 
@@ -782,35 +821,36 @@ def init_population(
     lo,
     hi,
     frames,
-    jp,
+    joint_params,
     goal,
     q_prev,
-    fp,
-    ip,
+    fparams,
+    iparams,
     rng,
-    st,
+    counts,
     record,
     record_q,
     q_start,
     spread_rad,
-    lm,
+    scratch,
 ):
-    """Fill the population (around ``q_start`` when ``ip[I_HAS_PREV]``), evaluate, refine the best.
+    """Fill the population (around ``q_start`` when ``iparams[I_HAS_PREV]``), evaluate, refine
+    the best.
 
     Warm start: row 0 is ``q_start`` (clamped), the next third are ``q_start`` plus uniform noise
     of ±``spread_rad``, the rest uniform in the box, for when the target has jumped.
     Returns True if the tolerances are already met.
     """
     n_pop, n = pop.shape
-    for k in range(st.shape[0]):
-        st[k] = 0
+    for k in range(counts.shape[0]):
+        counts[k] = 0
     # "Nothing found yet": infinite errors at the start (or mid-range) configuration.
     record[R_POS_CM] = np.inf
     record[R_ORI_DEG] = np.inf
     for j in range(n):
-        record_q[j] = q_start[j] if ip[I_HAS_PREV] else 0.5 * (lo[j] + hi[j])
+        record_q[j] = q_start[j] if iparams[I_HAS_PREV] else 0.5 * (lo[j] + hi[j])
     first = 0
-    if ip[I_HAS_PREV]:
+    if iparams[I_HAS_PREV]:
         n_local = max(1, n_pop // 3)
         for i in range(n_local):
             for j in range(n):
@@ -819,25 +859,63 @@ def init_population(
         first = n_local
     _draw_population(pop, lo, hi, rng, first)
     _evaluate_all(
-        pop, cost, frames, jp, goal, ip[I_MODE], q_prev, fp[F_MOVE_W] * ip[I_HAS_PREV], lm
+        pop,
+        cost,
+        frames,
+        joint_params,
+        goal,
+        iparams[I_MODE],
+        q_prev,
+        fparams[F_MOVE_W] * iparams[I_HAS_PREV],
+        scratch,
     )
-    st[S_EVALUATIONS] += n_pop
+    counts[S_EVALUATIONS] += n_pop
     stuck[:] = 0
     record[R_COST] = np.inf
     return _refine_best(
-        pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
+        pop,
+        cost,
+        stuck,
+        lo,
+        hi,
+        frames,
+        joint_params,
+        goal,
+        q_prev,
+        fparams,
+        iparams,
+        counts,
+        record,
+        record_q,
+        scratch,
     )
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
 def generation(
-    pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, rng, st, record, record_q, lm, gens
+    pop,
+    cost,
+    stuck,
+    lo,
+    hi,
+    frames,
+    joint_params,
+    goal,
+    q_prev,
+    fparams,
+    iparams,
+    rng,
+    counts,
+    record,
+    record_q,
+    scratch,
+    gens,
 ):
     """``gens`` memetic generations (fewer once the tolerances are met; returns True then).
 
     One generation: DE rand/1/bin with greedy selection, then LM on the best unstuck
-    individual. After ``ip[I_STALL_GENS]`` generations in a row that did not bring the best
-    cost below ``fp[F_STALL_GAIN]`` times what it was, the next generation is a restart
+    individual. After ``iparams[I_STALL_GENS]`` generations in a row that did not bring the best
+    cost below ``fparams[F_STALL_GAIN]`` times what it was, the next generation is a restart
     instead of a DE step (the population drawn anew, a quarter at corners of the box), and LM
     then starts from the fresh population's best: an LM run from a fresh start converges far
     more often than one from a population that has gathered around a local minimum.
@@ -846,14 +924,21 @@ def generation(
     compiled calls re-optimises the code of all below it, ~2 s of the first compile.)
     """
     n_pop, n = pop.shape
-    f_scale = fp[F_SCALE]
-    cr = fp[F_CR]
-    move_w = fp[F_MOVE_W] * ip[I_HAS_PREV]
-    mode = ip[I_MODE]
+    f_scale = fparams[F_SCALE]
+    cr = fparams[F_CR]
+    move_w = fparams[F_MOVE_W] * iparams[I_HAS_PREV]
+    mode = iparams[I_MODE]
     # Scratch (:func:`_scratch`): LM's, free while DE runs, and DE's own trials.
-    rot, pos, res, trial, trials, trial_cost = lm[0], lm[1], lm[4], lm[11], lm[14], lm[15]
+    rot, pos, res, trial, trials, trial_cost = (
+        scratch[0],
+        scratch[1],
+        scratch[4],
+        scratch[11],
+        scratch[14],
+        scratch[15],
+    )
     for _ in range(gens):
-        if st[S_STALE] >= ip[I_STALL_GENS]:
+        if counts[S_STALE] >= iparams[I_STALL_GENS]:
             # Restart, instead of a DE step: the record keeps the best so far; the whole
             # population is drawn anew and LM starts from its best below. intp(0), not the
             # literal 0: numba would compile a second specialisation.
@@ -864,10 +949,10 @@ def generation(
             for i in range(n_pop // 4):
                 for j in range(n):
                     pop[i, j] = hi[j] if _rand(rng) < 0.5 else lo[j]
-            _evaluate_all(pop, cost, frames, jp, goal, mode, q_prev, move_w, lm)
+            _evaluate_all(pop, cost, frames, joint_params, goal, mode, q_prev, move_w, scratch)
             stuck[:] = 0
-            st[S_STALE] = 0
-            st[S_RESTARTS] += 1
+            counts[S_STALE] = 0
+            counts[S_RESTARTS] += 1
             best_before = _min(cost)
         else:
             best_before = _min(cost)
@@ -884,11 +969,11 @@ def generation(
                 for j in range(n):
                     if j == j_rand or _rand(rng) <= cr:
                         v = pop[r1, j] + f_scale * (pop[r2, j] - pop[r3, j])
-                        trial[j] = _into_range(v, lo[j], hi[j], jp[3, j])
+                        trial[j] = _into_range(v, lo[j], hi[j], joint_params[3, j])
                     else:
                         trial[j] = pop[i, j]
                 trial_cost[i] = candidate_cost(
-                    trial, frames, jp, goal, mode, q_prev, move_w, rot, pos, res
+                    trial, frames, joint_params, goal, mode, q_prev, move_w, rot, pos, res
                 )
                 for j in range(n):
                     trials[i, j] = trial[j]
@@ -899,34 +984,48 @@ def generation(
                     cost[i] = trial_cost[i]
                     for j in range(n):
                         pop[i, j] = trials[i, j]
-        st[S_GENERATIONS] += 1
-        st[S_EVALUATIONS] += n_pop
+        counts[S_GENERATIONS] += 1
+        counts[S_EVALUATIONS] += n_pop
         done = _refine_best(
-            pop, cost, stuck, lo, hi, frames, jp, goal, q_prev, fp, ip, st, record, record_q, lm
+            pop,
+            cost,
+            stuck,
+            lo,
+            hi,
+            frames,
+            joint_params,
+            goal,
+            q_prev,
+            fparams,
+            iparams,
+            counts,
+            record,
+            record_q,
+            scratch,
         )
         if done:
             return True
         # Progress is the best cost cut below F_STALL_GAIN of what it was this generation.
-        if _min(cost) < best_before * fp[F_STALL_GAIN]:
-            st[S_STALE] = 0
+        if _min(cost) < best_before * fparams[F_STALL_GAIN]:
+            counts[S_STALE] = 0
         else:
-            st[S_STALE] += 1
+            counts[S_STALE] += 1
     return False
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
-def _report(st, record, record_q, jp, out):
+def _report(counts, record, record_q, joint_params, out):
     out[O_COST] = record[R_COST]
     out[O_POS_CM] = record[R_POS_CM]
     out[O_ORI_DEG] = record[R_ORI_DEG]
-    out[O_GENERATIONS] = st[S_GENERATIONS]
-    out[O_EVALUATIONS] = st[S_EVALUATIONS]
-    out[O_LM_ITERATIONS] = st[S_LM_ITERATIONS]
-    out[O_RESTARTS] = st[S_RESTARTS]
+    out[O_GENERATIONS] = counts[S_GENERATIONS]
+    out[O_EVALUATIONS] = counts[S_EVALUATIONS]
+    out[O_LM_ITERATIONS] = counts[S_LM_ITERATIONS]
+    out[O_RESTARTS] = counts[S_RESTARTS]
     n = record_q.shape[0]
     for j in range(n):
         out[O_Q + j] = record_q[j]
-        out[O_Q + n + j] = record_q[j] * DEG_PER_RAD if jp[2, j] > 0.5 else record_q[j]
+        out[O_Q + n + j] = record_q[j] * DEG_PER_RAD if joint_params[2, j] > 0.5 else record_q[j]
 
 
 @nb.njit(cache=CACHE)
@@ -949,7 +1048,7 @@ def search(
     with ``START_HAS_PREV`` for a warm start and ``START_GOAL_SET`` when the caller has filled
     ``goal`` itself (else it is built from the pose arguments, cm and degrees), first starts a
     new one: :func:`init_population` from ``q_start`` (also the warm start's movement
-    reference). ``jp`` rows 4 and 5 are the lower and
+    reference). ``joint_params`` rows 4 and 5 are the lower and
     upper limits. Returns True once the tolerances are met; ``out`` receives the best so far
     (layout ``O_*``) either way. The per-call values are scalar arguments and the first call
     does the initialisation too: each call from Python, and each numpy item it sets, costs
@@ -968,11 +1067,11 @@ def search(
 @nb.njit(cache=CACHE, **NO_NRT)
 def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens):
     """:func:`search`'s body: the views of the buffers, then the search."""
-    ip = ibuf[:N_IPARAMS]
-    n = ip[I_DOF]
-    n_pop = ip[I_POP]
+    iparams = ibuf[:N_IPARAMS]
+    n = iparams[I_DOF]
+    n_pop = iparams[I_POP]
     i_ip, i_st, i_stuck, i_end = _int_layout(n_pop)
-    st = ibuf[i_st:i_stuck]
+    counts = ibuf[i_st:i_stuck]
     stuck = ibuf[i_stuck:i_end]
     o_pop, o_cost, o_frames, o_jp, o_goal, o_q, o_fp, o_rec, o_rec_q, o_out, o_lm, o_end = (
         _float_layout(n, n_pop)
@@ -980,20 +1079,20 @@ def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_d
     pop = fbuf[o_pop:o_cost].reshape((n_pop, n))
     cost = fbuf[o_cost:o_frames]
     frames = fbuf[o_frames:o_jp].reshape((n + 1, 4, 4))
-    jp = fbuf[o_jp:o_goal].reshape((6, n))
+    joint_params = fbuf[o_jp:o_goal].reshape((6, n))
     goal = fbuf[o_goal:o_q].reshape((4, 4))
     q_start = fbuf[o_q:o_fp]
-    fp = fbuf[o_fp:o_rec]
+    fparams = fbuf[o_fp:o_rec]
     record = fbuf[o_rec:o_rec_q]
     record_q = fbuf[o_rec_q:o_out]
     out = fbuf[o_out:o_lm]
-    lm = _scratch(fbuf[o_lm:o_end], n, n_pop)
-    lo = jp[4]
-    hi = jp[5]
+    scratch = _scratch(fbuf[o_lm:o_end], n, n_pop)
+    lo = joint_params[4]
+    hi = joint_params[5]
     done = False
     if start & START_NEW:
-        ip[I_MODE] = start & 3
-        ip[I_HAS_PREV] = 1 if start & START_HAS_PREV else 0
+        iparams[I_MODE] = start & 3
+        iparams[I_HAS_PREV] = 1 if start & START_HAS_PREV else 0
         if not start & START_GOAL_SET:
             goal_matrix(
                 x_cm,
@@ -1011,18 +1110,18 @@ def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_d
             lo,
             hi,
             frames,
-            jp,
+            joint_params,
             goal,
             q_start,
-            fp,
-            ip,
+            fparams,
+            iparams,
             rng,
-            st,
+            counts,
             record,
             record_q,
             q_start,
-            fp[F_SPREAD],
-            lm,
+            fparams[F_SPREAD],
+            scratch,
         )
     if not done and gens > 0:
         done = generation(
@@ -1032,17 +1131,17 @@ def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_d
             lo,
             hi,
             frames,
-            jp,
+            joint_params,
             goal,
             q_start,
-            fp,
-            ip,
+            fparams,
+            iparams,
             rng,
-            st,
+            counts,
             record,
             record_q,
-            lm,
+            scratch,
             gens,
         )
-    _report(st, record, record_q, jp, out)
+    _report(counts, record, record_q, joint_params, out)
     return done

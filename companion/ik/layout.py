@@ -9,18 +9,18 @@ here must change that line, which invalidates the cache; ``tests/ik/test_aot.py`
 
 from __future__ import annotations
 
-# Layout of the float parameter vector ``fp``.
+# Layout of the float parameter vector ``fparams``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
 F_SPREAD, F_STALL_GAIN = 8, 9
 N_FPARAMS = 10
-# Layout of the integer parameter vector ``ip``.
+# Layout of the integer parameter vector ``iparams``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE, I_DOF, I_POP = range(6)
 N_IPARAMS = 6
-# Target modes (``ip[I_MODE]``): the whole pose, the position only, the position and one axis.
+# Target modes (``iparams[I_MODE]``): the whole pose, the position only, the position and one axis.
 MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
 # Flags of ``kernels.search``'s ``start`` (the low two bits are the mode).
 START_HAS_PREV, START_GOAL_SET, START_NEW = 4, 8, 16
-# Layout of the integer state vector ``st`` (counters the Python loop reads).
+# Layout of the integer state vector ``counts`` (counters the Python loop reads).
 S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
 N_STATE = 5
 # Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
@@ -48,34 +48,47 @@ SEARCH_ARRAYS = (
 
 def float_layout(n: int, n_pop: int) -> tuple[int, ...]:
     """Where each float64 array starts in ``fbuf``, for ``n`` joints and a population of
-    ``n_pop``: pop ``(n_pop, n)``, cost ``(n_pop,)``, frames ``(n + 1, 4, 4)``, jp ``(6, n)``,
-    goal ``(4, 4)``, q_start ``(n,)``, fp ``(N_FPARAMS,)``, record ``(3,)``, record_q ``(n,)``,
-    out ``(O_Q + 2n,)``, the kernels' scratch (``kernels._scratch``), then the buffer's
-    length. Plain arithmetic: the kernels compile this very function."""
+    ``n_pop``: pop ``(n_pop, n)``, cost ``(n_pop,)``, frames ``(n + 1, 4, 4)``, joint_params
+    ``(6, n)``, goal ``(4, 4)``, q_start ``(n,)``, fparams ``(N_FPARAMS,)``, record ``(3,)``,
+    record_q ``(n,)``, out ``(O_Q + 2n,)``, the kernels' scratch (``kernels._scratch``), then the
+    buffer's length. Plain arithmetic: the kernels compile this very function."""
     pop = 0
     cost = pop + n_pop * n
     frames = cost + n_pop
-    jp = frames + (n + 1) * 16
-    goal = jp + 6 * n
+    joint_params = frames + (n + 1) * 16
+    goal = joint_params + 6 * n
     q_start = goal + 16
-    fp = q_start + n
-    record = fp + N_FPARAMS
+    fparams = q_start + n
+    record = fparams + N_FPARAMS
     record_q = record + 3
     out = record_q + n
-    lm = out + O_Q + 2 * n
+    scratch = out + O_Q + 2 * n
     # rot, pos, axes, points, res, jac, jtj, jtr, a, g, hold, q_try, q, out, then DE's trials
     # and their costs: kernels._scratch
-    end = lm + 9 + 3 + 3 * n + 3 * n + 6 + 6 * n + n * n + n + n * n + n + n + n + n + 3
+    end = scratch + 9 + 3 + 3 * n + 3 * n + 6 + 6 * n + n * n + n + n * n + n + n + n + n + 3
     end += n_pop * n + n_pop
-    return pop, cost, frames, jp, goal, q_start, fp, record, record_q, out, lm, end
+    return (
+        pop,
+        cost,
+        frames,
+        joint_params,
+        goal,
+        q_start,
+        fparams,
+        record,
+        record_q,
+        out,
+        scratch,
+        end,
+    )
 
 
 def int_layout(n_pop: int) -> tuple[int, ...]:
-    """Where each int64 array starts in ``ibuf``: ip ``(N_IPARAMS,)`` (``ip[I_DOF]`` and
-    ``ip[I_POP]`` give the sizes), st ``(N_STATE,)``, stuck ``(n_pop,)`` (0 or 1), then the
+    """Where each int64 array starts in ``ibuf``: iparams ``(N_IPARAMS,)`` (``iparams[I_DOF]`` and
+    ``iparams[I_POP]`` give the sizes), counts ``(N_STATE,)``, stuck ``(n_pop,)`` (0 or 1), then the
     length."""
-    ip = 0
-    st = ip + N_IPARAMS
-    stuck = st + N_STATE
+    iparams = 0
+    counts = iparams + N_IPARAMS
+    stuck = counts + N_STATE
     end = stuck + n_pop
-    return ip, st, stuck, end
+    return iparams, counts, stuck, end

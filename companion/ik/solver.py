@@ -211,7 +211,7 @@ class TargetMode(Enum):
 @dataclass(frozen=True)
 class _ArmArrays:
     frames: FloatArray
-    jp: FloatArray
+    joint_params: FloatArray
     lower: FloatArray
     upper: FloatArray
     to_joint: FloatArray
@@ -239,7 +239,7 @@ def kernel_arrays(arm: Arm) -> _ArmArrays:
 
 
 def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
-    jp = np.array(
+    joint_params = np.array(
         [
             [float(j.direction) for j in arm.joints],
             [j.offset for j in arm.joints],
@@ -252,7 +252,7 @@ def _build_kernel_arrays(arm: Arm) -> _ArmArrays:
     )
     return _ArmArrays(
         frames=np.array(arm.frames_array),
-        jp=jp,
+        joint_params=joint_params,
         lower=arm.lower_q.copy(),
         upper=arm.upper_q.copy(),
         to_joint=np.where(arm.revolute, math.pi / 180.0, 1.0),
@@ -356,8 +356,8 @@ def solve(
         ws = _workspace(arm, settings)
     # Tolerances are written only when they change: each numpy item set costs ~0.1 µs.
     if tol_pos_cm is not ws.tol_pos_cm or tol_ori_deg is not ws.tol_ori_deg:
-        ws.fp[F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
-        ws.fp[F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
+        ws.fparams[F_TOL_POS] = _positive("tol_pos_cm", tol_pos_cm)
+        ws.fparams[F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
         ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
     if mode is TargetMode.POSE:
@@ -378,7 +378,7 @@ def solve(
         start |= START_HAS_PREV
     ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
-    st = ws.st
+    counts = ws.counts
     max_gens = settings.max_generations
     search = _search
     x_cm, y_cm, z_cm = pose.x_cm, pose.y_cm, pose.z_cm
@@ -426,7 +426,7 @@ def solve(
         if done:
             reason = StopReason.CONVERGED
             break
-        left = max_gens - int(st[S_GENERATIONS])
+        left = max_gens - int(counts[S_GENERATIONS])
         if left <= 0:
             reason = StopReason.ITERATION_LIMIT
             break
@@ -515,10 +515,10 @@ class _Workspace:
             _pop,
             _cost,
             frames,
-            jp,
+            joint_params,
             goal,
             self.q_start,
-            self.fp,
+            self.fparams,
             record,
             self.record_q,
             self.out,
@@ -526,24 +526,24 @@ class _Workspace:
         ) = views
         i = layout.int_layout(size)
         self.ibuf = np.zeros(i[-1], dtype=np.int64)
-        self.ip, self.st, _stuck = (self.ibuf[i[m] : i[m + 1]] for m in range(len(i) - 1))
+        self.iparams, self.counts, _stuck = (self.ibuf[i[m] : i[m + 1]] for m in range(len(i) - 1))
         frames.reshape(k.frames.shape)[...] = k.frames
-        jp.reshape(k.jp.shape)[...] = k.jp
+        joint_params.reshape(k.joint_params.shape)[...] = k.joint_params
         self.goal = goal.reshape(4, 4)
         self.goal[...] = np.eye(4)
         record[...] = np.inf
-        self.fp[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
-        self.fp[layout.F_SCALE] = settings.F
-        self.fp[layout.F_CR] = settings.Cr
-        self.fp[layout.F_MOVE_W] = settings.movement_weight
-        self.fp[layout.F_LM_LAMBDA0] = settings.lm_lambda0
-        self.fp[layout.F_LM_WINDOW] = settings.lm_window
-        self.fp[layout.F_LM_PROGRESS] = settings.lm_progress
-        self.fp[layout.F_STALL_GAIN] = settings.stall_gain
-        self.ip[layout.I_LM_ITERS] = settings.lm_iterations
-        self.ip[layout.I_STALL_GENS] = settings.stall_generations
-        self.ip[layout.I_DOF] = n
-        self.ip[layout.I_POP] = size
+        self.fparams[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
+        self.fparams[layout.F_SCALE] = settings.F
+        self.fparams[layout.F_CR] = settings.Cr
+        self.fparams[layout.F_MOVE_W] = settings.movement_weight
+        self.fparams[layout.F_LM_LAMBDA0] = settings.lm_lambda0
+        self.fparams[layout.F_LM_WINDOW] = settings.lm_window
+        self.fparams[layout.F_LM_PROGRESS] = settings.lm_progress
+        self.fparams[layout.F_STALL_GAIN] = settings.stall_gain
+        self.iparams[layout.I_LM_ITERS] = settings.lm_iterations
+        self.iparams[layout.I_STALL_GENS] = settings.stall_generations
+        self.iparams[layout.I_DOF] = n
+        self.iparams[layout.I_POP] = size
         self.rng = np.zeros(1, dtype=np.uint64)
         # The deadline's estimate of a generation's wall time, carried from call to call, and
         # the clock it was measured on (see solve()).

@@ -55,7 +55,7 @@ def kernel_fk(arm, q, want_axes=False):
     k = kernel_arrays(arm)
     rot, pos = np.empty((3, 3)), np.empty(3)
     axes, points = np.empty((arm.dof, 3)), np.empty((arm.dof, 3))
-    kernels.fk_frames(q, k.frames, k.jp, rot, pos, axes, points, want_axes)
+    kernels.fk_frames(q, k.frames, k.joint_params, rot, pos, axes, points, want_axes)
     return rot, pos, axes, points
 
 
@@ -114,20 +114,20 @@ def test_pose_residual_is_position_and_rotation_vector():
 
 def _lm_inputs(arm, seed):
     k = kernel_arrays(arm)
-    fp = np.zeros(layout.N_FPARAMS)
-    fp[kernels.F_TOL_POS] = 1e-9
-    fp[kernels.F_TOL_ORI] = 1e-9
-    fp[kernels.F_LM_LAMBDA0] = 1e-3
+    fparams = np.zeros(layout.N_FPARAMS)
+    fparams[kernels.F_TOL_POS] = 1e-9
+    fparams[kernels.F_TOL_ORI] = 1e-9
+    fparams[kernels.F_LM_LAMBDA0] = 1e-3
     q_true = arm.random_q_rad(np.random.default_rng(seed), 1)[0]
-    return k, fp, q_true, arm.fk_matrix(q_true)
+    return k, fparams, q_true, arm.fk_matrix(q_true)
 
 
 def test_lm_converges_from_nearby_and_stays_in_limits():
-    k, fp, q_true, goal = _lm_inputs(PAPER, 5)
+    k, fparams, q_true, goal = _lm_inputs(PAPER, 5)
     q = np.clip(q_true + 0.1, k.lower, k.upper)
     out = np.empty(3)
     steps = kernels.lm_refine(
-        q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 30, out
+        q, k.lower, k.upper, k.frames, k.joint_params, goal, kernels.MODE_POSE, fparams, 30, out
     )
     assert 0 < steps <= 30
     assert out[1] < 1e-9 and out[2] < 1e-9
@@ -140,28 +140,32 @@ def test_lm_converges_to_a_solution_with_joints_at_their_limits(seed):
     # start inside the box: LM holds the joints a step pushes out and still converges.
     arm = Arm.from_package_file("panda.toml")
     k = kernel_arrays(arm)
-    fp = np.zeros(layout.N_FPARAMS)
-    fp[kernels.F_TOL_POS] = 1e-9
-    fp[kernels.F_TOL_ORI] = 1e-9
-    fp[kernels.F_LM_LAMBDA0] = 0.1
+    fparams = np.zeros(layout.N_FPARAMS)
+    fparams[kernels.F_TOL_POS] = 1e-9
+    fparams[kernels.F_TOL_ORI] = 1e-9
+    fparams[kernels.F_LM_LAMBDA0] = 0.1
     rng = np.random.default_rng(seed)
     at_upper = rng.random(arm.dof) < 0.5
     q_true = np.where(at_upper, k.upper, k.lower)
     goal = arm.fk_matrix(q_true)
     q = q_true + np.where(at_upper, -1.0, 1.0) * np.radians(rng.uniform(2.0, 4.0, arm.dof))
     out = np.empty(3)
-    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 60, out)
+    kernels.lm_refine(
+        q, k.lower, k.upper, k.frames, k.joint_params, goal, kernels.MODE_POSE, fparams, 60, out
+    )
     assert out[1] < 1e-6 and out[2] < 1e-6
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
 def test_lm_never_leaves_the_box_even_when_the_solution_is_outside():
-    k, fp, _, _ = _lm_inputs(PAPER, 6)
+    k, fparams, _, _ = _lm_inputs(PAPER, 6)
     q_outside = np.radians([0.0, -40.0, 0.0, 0.0, 0.0, 0.0])  # q2 below its 0° limit
     goal = PAPER.fk_matrix(q_outside)
     q = np.radians([0.0, 10.0, 0.0, 0.0, 0.0, 0.0])
     out = np.empty(3)
-    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 50, out)
+    kernels.lm_refine(
+        q, k.lower, k.upper, k.frames, k.joint_params, goal, kernels.MODE_POSE, fparams, 50, out
+    )
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
 
 
@@ -169,11 +173,13 @@ STANFORD = Arm.from_package_file("stanford.toml")  # q1, q2, q4, q6: ±170°, fr
 
 
 def _stanford_lm(q_goal_deg, q_start_deg):
-    k, fp, _, _ = _lm_inputs(STANFORD, 0)
+    k, fparams, _, _ = _lm_inputs(STANFORD, 0)
     goal = STANFORD.fk_matrix(STANFORD.q_from_user(q_goal_deg))
     q = STANFORD.q_from_user(q_start_deg)
     out = np.empty(3)
-    kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 30, out)
+    kernels.lm_refine(
+        q, k.lower, k.upper, k.frames, k.joint_params, goal, kernels.MODE_POSE, fparams, 30, out
+    )
     assert np.all(q >= k.lower) and np.all(q <= k.upper)
     # The errors handed back are those of the configuration handed back.
     t = STANFORD.fk_matrix(q)
@@ -198,12 +204,14 @@ def test_a_free_joint_that_ends_outside_its_range_comes_back_within_the_limits(q
 
 
 def test_lm_with_zero_iterations_leaves_q_alone():
-    k, fp, q_true, goal = _lm_inputs(PAPER, 7)
+    k, fparams, q_true, goal = _lm_inputs(PAPER, 7)
     q = q_true * 0.5
     before = q.copy()
     out = np.empty(3)
     assert (
-        kernels.lm_refine(q, k.lower, k.upper, k.frames, k.jp, goal, kernels.MODE_POSE, fp, 0, out)
+        kernels.lm_refine(
+            q, k.lower, k.upper, k.frames, k.joint_params, goal, kernels.MODE_POSE, fparams, 0, out
+        )
         == 0
     )
     np.testing.assert_array_equal(q, before)
