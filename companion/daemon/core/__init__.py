@@ -33,8 +33,9 @@ Each rule has one home:
 
 from companion.daemon.core.actions import Action, Answer, ReadParam, SendCommand
 from companion.daemon.core.dispatcher import SHUTDOWN_RETRY_S, ControlCore, Solve
+from companion.daemon.core.outputs import READBACK_SETTLE_S
 from companion.daemon.core.outputs_ardupilot import SYS_STATUS_SILENT_S, SYS_STATUS_WAIT_S
-from companion.daemon.core.outputs_px4 import MARKER_OFFSET_US, READBACK_SETTLE_S
+from companion.daemon.core.outputs_px4 import MARKER_OFFSET_US
 from companion.daemon.core.settings import (
     READBACK_FAST_INTERVAL_S,
     READBACK_INTERVAL_S,

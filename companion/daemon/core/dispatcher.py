@@ -164,7 +164,7 @@ class ControlCore:
         elif kind == "SYS_STATUS":
             enabled = msg.onboard_control_sensors_enabled
             safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
-            self.outputs.on_sys_status(actions, safety_on)
+            self.outputs.on_sys_status(actions, safety_on, at_s)
         elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
             self.world.on_frame(msg, at_s)
         elif kind == "PARAM_VALUE":

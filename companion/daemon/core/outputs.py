@@ -10,6 +10,8 @@ it talks to.
 from __future__ import annotations
 
 import abc
+import collections
+import logging
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
@@ -18,6 +20,25 @@ if TYPE_CHECKING:
     from companion.daemon.core.actions import Action
     from companion.daemon.core.dispatcher import ControlCore
     from companion.daemon.core.state import Flight
+
+log = logging.getLogger("armbridge")
+
+#: With no readback this long after the start (or, on PX4, a loss or a reboot), move without it
+#: (and say so).
+READBACK_WAIT_S = 2.0
+#: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
+READBACK_TOLERANCE_US = 1
+#: A readback this long after an output's ACK shows what the output does with that command
+#: (the autopilot applies it on its next output cycle, a few ms; the stream adds up to its
+#: interval, see :meth:`OutputsTruth.settle_s`).
+READBACK_SETTLE_S = 0.15
+#: An output's readback disagrees with what it acknowledged only after this many readbacks in
+#: a row show something else, spanning at least READBACK_SPAN_INTERVALS of the stream's
+#: interval (by arrival) with none showing it between: a frame forged as the autopilot's (an
+#: unsigned link) is contradicted by the autopilot's own next readback, and never makes the
+#: daemon command the outputs somewhere on its word alone.
+READBACK_MISMATCHES = 2
+READBACK_SPAN_INTERVALS = 0.9
 
 #: A band of poses: per joint, the lowest and the highest angle.
 Band = tuple[list[float], list[float]]
@@ -47,6 +68,22 @@ class OutputsTruth(abc.ABC):
         #: The safety switch by the last SYS_STATUS (None: none since the start, a loss or a
         #: reboot); shown in status.
         self.safety_on: bool | None = None
+        #: The motion moves only after a readback newer than this (the start; PX4: a loss or a
+        #: reboot too), or READBACK_WAIT_S after it with none (a firmware that does not stream
+        #: it): the joints are where the outputs show, not at an assumed pose.
+        self._readback_since_s = core.clock()
+        self._readback_warned = False
+        #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
+        #: those from the last :meth:`settle_s`); no entry: nothing acknowledged since the
+        #: start, a loss or a reboot.
+        self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
+        #: Per output: settled readbacks in a row not showing the acknowledged PWM, and when
+        #: the first of them arrived.
+        self._mismatches: dict[int, int] = {}
+        self._mismatch_since_s: dict[int, float] = {}
+        #: The last output found set by another sender, for status: output, PWM shown, PWM
+        #: acknowledged before, when it was seen (None: none since the start).
+        self.foreign_command: dict[str, float] | None = None
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -61,9 +98,73 @@ class OutputsTruth(abc.ABC):
     def _check_readback(self) -> None:  # noqa: B027
         """What the readback just shown says of the outputs (default: nothing)."""
 
+    def settle_s(self) -> float:
+        """How long after an ACK a readback surely shows it: READBACK_SETTLE_S, or one and a
+        half of the readback's intervals on a slower stream."""
+        return max(READBACK_SETTLE_S, 1.5 * self._core.settings.readback_interval_s)
+
+    def _expected_pwms(self, output: int, now: float) -> tuple[set[int], bool]:
+        """The PWMs a readback at ``now`` may show for ``output`` if it does what it
+        acknowledged: the last one acknowledged at least :meth:`settle_s` ago and any
+        acknowledged since (the readback lags by up to that); and whether that older one
+        exists (settled: a readback showing none of them then disagrees; before, it may just
+        lag)."""
+        history = self._ack_history.get(output)
+        if not history:
+            return set(), False
+        cutoff = now - self.settle_s() + 1e-9
+        recent = {pwm for t, pwm in history if t >= cutoff}
+        older = [pwm for t, pwm in history if t < cutoff]
+        return recent | set(older[-1:]), bool(older)
+
+    def _disagrees(self, output: int, at_s: float) -> bool:
+        """Another settled readback not showing what ``output`` acknowledged, arrived at
+        ``at_s``: whether the readbacks now disagree with it for long enough to be believed
+        (READBACK_MISMATCHES in a row over READBACK_SPAN_INTERVALS of the stream)."""
+        count = self._mismatches.get(output, 0) + 1
+        self._mismatches[output] = count
+        since_s = self._mismatch_since_s.setdefault(output, at_s)
+        span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
+        return count >= READBACK_MISMATCHES and at_s - since_s >= span_s
+
+    def _agrees(self, output: int) -> None:
+        """A readback showed what ``output`` acknowledged (or a step on its way)."""
+        self._mismatches[output] = 0
+        self._mismatch_since_s.pop(output, None)
+
+    def _readback_seen(self, now: float) -> bool:
+        """A readback since :attr:`_readback_since_s` tells where the joints are; without one
+        for READBACK_WAIT_S, go on from the pose assumed (and say so once)."""
+        if self.shown_s >= self._readback_since_s:
+            return True
+        if now - self._readback_since_s < READBACK_WAIT_S:
+            return False
+        if not self._readback_warned:
+            self._readback_warned = True
+            log.warning(
+                "no SERVO_OUTPUT_RAW from the autopilot in %.0f s: moving from the pose last "
+                "acknowledged (or the park pose); outputs may jump to it",
+                READBACK_WAIT_S,
+            )
+        return True
+
+    def in_range(self, output: int, pwm_us: int) -> bool:
+        """Whether ``pwm_us`` lies in ``output``'s servo range (a disarmed PWM may not)."""
+        joint = self._core.config.calibration.for_output(output)
+        return joint.pwm_min_us <= pwm_us <= joint.pwm_max_us
+
+    def angle_shown(self, output: int, pwm_us: int) -> float:
+        """The joint angle an output's PWM means, within the calibration and the arm's limits."""
+        config = self._core.config
+        joint = config.calibration.for_output(output)
+        pwm = min(max(pwm_us, joint.pwm_min_us), joint.pwm_max_us)
+        angle = joint.pwm_us_to_angle_deg(pwm)
+        limits = config.arm.joints[self._core.state.outputs.index(output)]
+        return min(max(angle, math.degrees(limits.min_rad)), math.degrees(limits.max_rad))
+
     @abc.abstractmethod
-    def on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
-        """A SYS_STATUS saying where the safety switch is."""
+    def on_sys_status(self, actions: list[Action], safety_on: bool, at_s: float) -> None:
+        """A SYS_STATUS saying where the safety switch is, arrived at ``at_s``."""
 
     def on_param(self, name: str, value: float) -> None:  # noqa: B027
         """A PARAM_VALUE from the pinned autopilot (default: none is read)."""
@@ -116,8 +217,10 @@ class OutputsTruth(abc.ABC):
     def stepped_to(self, step: tuple[float, ...]) -> None:  # noqa: B027
         """An update to ``step`` went out."""
 
-    def acknowledged(self, output: int, pwm: int, now: float) -> None:  # noqa: B027
+    def acknowledged(self, output: int, pwm: int, now: float) -> None:
         """``output`` acknowledged ``pwm`` at ``now``."""
+        self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
+        self._agrees(output)
 
     def all_acknowledged(self) -> None:  # noqa: B027
         """Every output holds what it acknowledged."""

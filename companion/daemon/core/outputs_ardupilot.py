@@ -2,7 +2,13 @@
 
 ArduPilot shows in its readback what it was told even with the safety switch on; SYS_STATUS
 (MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS enabled: the switch is off) says whether the outputs are
-live, and BRD_SAFETY_MASK which outputs the switch leaves live. What the outputs may hold
+live, and BRD_SAFETY_MASK which outputs the switch leaves live. The readback says where the
+joints are at the start (nothing moves before one came, or READBACK_WAIT_S without), and when
+another sender (a ground station's servo test) set an output: the joint is where it shows,
+the motion goes on from there at the speed limit, and status says so (``foreign_command``).
+A SYS_STATUS saying the switch is off while one said it is on less than
+SAFETY_ON_STICKY_INTERVALS ago is not believed (frames forged as the autopilot's, on an
+unsigned link, alternate with its own). What the outputs may hold
 while the switch is unseen stays within a band a step wide (``SAFETY_STEPS_AHEAD``); once the
 switch is seen on, the held outputs are sent back to the middle of that band (the rewind).
 """
@@ -14,7 +20,13 @@ import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from companion.daemon.core.outputs import Band, OutputsTruth, band_of, middle
+from companion.daemon.core.outputs import (
+    READBACK_TOLERANCE_US,
+    Band,
+    OutputsTruth,
+    band_of,
+    middle,
+)
 
 if TYPE_CHECKING:
     from companion.daemon.core.actions import Action
@@ -37,6 +49,10 @@ SYS_STATUS_STALE_INTERVALS = 4
 SYS_STATUS_SILENT_S = 0.5
 
 SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
+#: A SYS_STATUS saying the switch is off is believed only this many SYS_STATUS intervals after
+#: the last one that said it is on: the autopilot's own stream, saying on, would otherwise be
+#: overruled by a frame forged between two of its frames.
+SAFETY_ON_STICKY_INTERVALS = 1.5
 
 
 def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
@@ -78,14 +94,27 @@ class ArduPilotOutputs(OutputsTruth):
         self._step_waits_for_sys_status = False
         #: The pose to send the held outputs back to once the switch was seen on (the rewind).
         self._rewind_to: tuple[float, ...] | None = None
+        #: When a SYS_STATUS last said the switch is on (by arrival).
+        self._safety_on_seen_s = -math.inf
 
     # -- frames -----------------------------------------------------------------------------
 
-    def on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
-        """The safety switch, as a SYS_STATUS says (see ``SAFETY_STEPS_AHEAD``)."""
+    def on_sys_status(self, actions: list[Action], safety_on: bool, at_s: float) -> None:
+        """The safety switch, as a SYS_STATUS arrived at ``at_s`` says (see
+        ``SAFETY_STEPS_AHEAD`` and ``SAFETY_ON_STICKY_INTERVALS``)."""
         core, state = self._core, self._core.state
         self._sys_status_s = core.clock()
         self._sys_status_ever = True
+        interval_s = core.settings.sys_status_interval_s
+        if safety_on:
+            self._safety_on_seen_s = at_s
+        elif at_s - self._safety_on_seen_s < SAFETY_ON_STICKY_INTERVALS * interval_s:
+            if self.safety_on is False:
+                log.warning(
+                    "SYS_STATUS says the safety switch is both on and off (frames forged as "
+                    "the autopilot's?): taken as on"
+                )
+            safety_on = True
         if safety_on != self.safety_on:
             if safety_on:
                 log.warning("safety switch on: outputs not live")
@@ -111,6 +140,65 @@ class ArduPilotOutputs(OutputsTruth):
         if self._step_waits_for_sys_status and state.link_up:
             self._step_waits_for_sys_status = False
             core.motion.next_step(actions, immediate=False)  # the step held back for this
+
+    def _check_readback(self) -> None:
+        """At the start the joints are where the readback shows; later, an output that shows
+        something else than what it acknowledged, for long enough to be believed, was set by
+        another sender: the joint is where it shows."""
+        core, state = self._core, self._core.state
+        now = core.clock()
+        for i, output in enumerate(state.outputs):
+            shown = self.shown.get(output)
+            if shown is None or not self.in_range(output, shown):
+                continue  # no pulses (an output nothing set since boot), or not a joint's PWM
+            acked = state.acked_pwm.get(output)
+            if acked is None:
+                if not state.ever_sent:
+                    # The start: ArduPilot keeps what its outputs were told (by an earlier
+                    # daemon) until it reboots; the joint is there, not at the park pose.
+                    state.position[i] = self.angle_shown(output, shown)
+                    if self._held_since_off is not None:  # nothing sent: they hold that
+                        self._held_since_off = band_of([tuple(state.position)])
+                continue
+            expected, settled = self._expected_pwms(output, now)
+            on_its_way = {
+                f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
+            }
+            if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
+                self._agrees(output)
+                continue
+            if not settled or on_its_way or not self._disagrees(output, self.shown_s):
+                continue
+            self._agrees(output)
+            if not core.motion.moving(tuple(state.position)):
+                core.motion.goal = None  # the arm was still: it stays where it was put
+            angle = self.angle_shown(output, shown)
+            log.warning(
+                "output %d shows %d us, not the %d us acknowledged: set by another sender "
+                "(a ground station's servo test?); the joint is taken where it shows "
+                "(%.1f deg), the motion goes on from there",
+                output,
+                shown,
+                acked,
+                angle,
+            )
+            state.counters["foreign_commands"] += 1
+            self.foreign_command = {
+                "output": output,
+                "shown_us": shown,
+                "acknowledged_us": acked,
+                "at_s": self.shown_s,
+            }
+            state.position[i] = angle
+            state.acked_pwm[output] = shown
+            self._ack_history.pop(output, None)
+            self.acknowledged(output, shown, now)
+            if state.unconfirmed is not None:
+                unconfirmed = list(state.unconfirmed)
+                unconfirmed[i] = angle
+                state.unconfirmed = tuple(unconfirmed)
+            if self._held_since_off is not None:
+                widen(self._held_since_off, state.position)
 
     def on_param(self, name: str, value: float) -> None:
         if name == SAFETY_MASK_PARAM:
@@ -189,6 +277,8 @@ class ArduPilotOutputs(OutputsTruth):
     # -- the motion's questions --------------------------------------------------------------
 
     def may_move(self, actions: list[Action], now: float) -> bool:
+        if not self._core.state.ever_sent and not self._readback_seen(now):
+            return False  # where the joints are comes from the first readback
         if not self._safety_known(now):
             return False
         dead = self.dead()

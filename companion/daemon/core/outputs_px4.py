@@ -11,13 +11,15 @@ on the one before is in.
 
 from __future__ import annotations
 
-import collections
 import logging
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from companion.daemon.core.outputs import OutputsTruth
+from companion.daemon.core.outputs import (
+    READBACK_TOLERANCE_US,
+    OutputsTruth,
+)
 
 if TYPE_CHECKING:
     from companion.daemon.core.actions import Action
@@ -26,11 +28,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("armbridge")
 
-#: A readback this long after an output's ACK shows what the output does with that command
-#: (PX4 applies it on its next output cycle, a few ms; the stream adds up to its interval).
-READBACK_SETTLE_S = 0.15
-#: This many such readbacks in a row not showing the acknowledged PWM: the output is not live.
-READBACK_MISMATCHES = 2
 #: An output found not live (showing its disarmed PWM) is told to hold a PWM this far from it,
 #: towards the middle of its range: the "marker". It moves the joint by that much when the
 #: output comes alive (arm, prearm), which the next readback then shows: live again is seen
@@ -45,8 +42,6 @@ PROBE_INTERVAL_S = 1.0
 #: before (shown: live; not shown READBACK_MISMATCHES times: not live), at most this long (a
 #: readback stream that stopped must not stop the arm for good).
 VERDICT_TIMEOUT_S = 2.0
-#: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
-READBACK_TOLERANCE_US = 1
 assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from the disarmed PWM
 #: For status: a readback stream silent this many intervals says nothing of the outputs any
 #: more (a reboot: they are at the disarmed PWM; seen 44 ms after it at 50 Hz, against 66 with
@@ -55,8 +50,6 @@ assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from t
 #: rebooted PX4 forgot them).
 READBACK_STALE_INTERVALS = 2
 READBACK_SILENT_S = 0.5
-#: With no readback this long after the link came up, move without it (and say so).
-READBACK_WAIT_S = 2.0
 
 
 def marker_pwm_candidates(shown_us: int, middle_us: float, nearest_us: int) -> list[int]:
@@ -75,16 +68,6 @@ class Px4Outputs(OutputsTruth):
 
     def __init__(self, core: ControlCore) -> None:
         super().__init__(core)
-        #: The motion moves only after a readback newer than this (start, link loss, reboot),
-        #: or READBACK_WAIT_S after it with none (a firmware that does not stream it).
-        self._readback_since_s = core.clock()
-        self._readback_warned = False
-        #: Per output, the PWMs acknowledged lately with when (a readback may still show any of
-        #: those from the last READBACK_SETTLE_S); no entry: nothing acknowledged since the
-        #: start, a loss or a reboot.
-        self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
-        #: Per output: readbacks in a row, settled after its ACK, not showing the acked PWM.
-        self._mismatches: dict[int, int] = {}
         #: Outputs whose readback does not show what they acknowledged → the reason, and the
         #: PWM they showed then (the disarmed PWM): a readback of that PWM proves nothing.
         self._not_live: dict[int, str] = {}
@@ -102,7 +85,7 @@ class Px4Outputs(OutputsTruth):
 
     # -- frames -----------------------------------------------------------------------------
 
-    def on_sys_status(self, actions: list[Action], safety_on: bool) -> None:
+    def on_sys_status(self, actions: list[Action], safety_on: bool, at_s: float) -> None:
         self.safety_on = safety_on  # shown, not relied on
 
     def _check_readback(self) -> None:
@@ -119,10 +102,15 @@ class Px4Outputs(OutputsTruth):
             if shown is None:
                 continue
             if acked is None:
-                if not state.flights and output not in self._ack_history:
+                if (
+                    not state.flights
+                    and output not in self._ack_history
+                    and self.in_range(output, shown)
+                ):
                     # Nothing of ours acknowledged yet (start, reboot): the joint is where the
-                    # output puts it, not at the assumed start pose.
-                    state.position[joint_of[output]] = self._angle_shown(output, shown)
+                    # output puts it, not at the assumed start pose. (A PWM outside the servo's
+                    # range, such as PX4 SITL's disarmed 900 us, says nothing of where it is.)
+                    state.position[joint_of[output]] = self.angle_shown(output, shown)
                 continue
             shown_ok, settled = self._expected_pwms(output, now)
             # PX4 applies a command on its output cycle and answers it on its commander's: a
@@ -132,7 +120,7 @@ class Px4Outputs(OutputsTruth):
                 f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
             }
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in shown_ok | on_its_way):
-                self._mismatches[output] = 0
+                self._agrees(output)
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
                     continue  # the hold at the disarmed PWM: shown either way, proves nothing
@@ -145,16 +133,15 @@ class Px4Outputs(OutputsTruth):
                 continue
             if not settled:
                 continue  # acknowledged too lately to be shown yet
-            # A live output that stops showing what it acknowledged long ago was disarmed,
-            # killed or rebooted: no second look (PX4 would apply our stored pose at once on
-            # a quick re-arm). After a new command, READBACK_MISMATCHES (the readback lags).
-            needed = 1 if output in self._confirmed else READBACK_MISMATCHES
-            self._confirmed.discard(output)
+            # An output that stops showing what it acknowledged was disarmed, killed or
+            # rebooted, once the readbacks say so for long enough to be believed (a forged
+            # readback alone never moves a live output to a marker).
             if output in self._not_live and acked == self._held_pwm.get(output):
-                continue  # told to hold its marker (or the PWM nearest the disarmed one)
-            self._mismatches[output] = self._mismatches.get(output, 0) + 1
-            if self._mismatches[output] < needed:
+                self._agrees(output)
+                continue  # told to hold its marker (or the last PWM known)
+            if not self._disagrees(output, self.shown_s):
                 continue
+            self._confirmed.discard(output)
             if output not in self._not_live:
                 reason = (
                     f"output {output} shows {shown} us, not the {acked} us acknowledged "
@@ -166,15 +153,17 @@ class Px4Outputs(OutputsTruth):
             self._dead_seq[output] = state.updates_sent
             # The joint is where the output puts it. Its marker is stored at once (PX4 would
             # apply what we stored in one step when the outputs come alive): it moves the
-            # joint by MARKER_OFFSET_US then, and the readback shows it.
-            held_deg = self._marker_deg(output, shown)
-            state.position[joint_of[output]] = held_deg
+            # joint by MARKER_OFFSET_US then, and the readback shows it. Where the output shows
+            # a PWM outside the servo's range, the joint is where it was: that is held.
+            i = joint_of[output]
+            if self.in_range(output, shown):
+                state.position[i] = self._marker_deg(output, shown)
             self._held_pwm[output] = core.config.calibration.for_output(output).angle_to_pwm_us(
-                held_deg
+                state.position[i]
             )
             state.acked_pwm.pop(output, None)
             self._ack_history.pop(output, None)
-            self._mismatches[output] = 0
+            self._agrees(output)
             self._store_hold_now = True
 
     # -- losses -----------------------------------------------------------------------------
@@ -195,6 +184,7 @@ class Px4Outputs(OutputsTruth):
 
     def lost(self, flights: Sequence[Flight]) -> None:
         self._mismatches.clear()
+        self._mismatch_since_s.clear()
         self._forget_liveness(self._core.clock())
         # PX4 applies what it stores in one step once its outputs are live: re-sending the
         # pose of before would jump from wherever the outputs are now (the disarmed PWM after
@@ -248,10 +238,6 @@ class Px4Outputs(OutputsTruth):
     def may_pipeline(self) -> bool:
         return not self._store_hold_now and self._confirmed.issuperset(self._core.state.outputs)
 
-    def acknowledged(self, output: int, pwm: int, now: float) -> None:
-        self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
-        self._mismatches[output] = 0
-
     def overtaken(self, seq: int) -> set[int]:
         # Outputs found not live since that update went out hold their markers, stored behind
         # it: what it stored there is no pose of theirs (nor of the joints').
@@ -302,29 +288,19 @@ class Px4Outputs(OutputsTruth):
 
     # -- helpers ----------------------------------------------------------------------------
 
-    def _readback_seen(self, now: float) -> bool:
-        """A readback since the start, link loss or reboot tells where the joints are; without
-        one for READBACK_WAIT_S, go on from the acknowledged pose (and say so once)."""
-        if self.shown_s >= self._readback_since_s:
-            return True
-        if now - self._readback_since_s < READBACK_WAIT_S:
-            return False
-        if not self._readback_warned:
-            self._readback_warned = True
-            log.warning(
-                "no SERVO_OUTPUT_RAW from the autopilot in %.0f s: moving from the pose last "
-                "acknowledged; outputs that come alive later may jump to it",
-                READBACK_WAIT_S,
-            )
-        return True
-
     def _unmarked_unknown(self) -> bool:
         """An output with nothing acknowledged since the start, a loss or a reboot, and none on
-        its way (its liveness unknown: a marker would tell)."""
+        its way (its liveness unknown: a marker would tell). An output showing a PWM outside
+        its servo's range gets no marker: nothing is sent before a target unless it is where
+        the outputs show, and that PWM says nothing of where the joint is."""
         state = self._core.state
         ahead = {o for f in state.flights for o in f.sent_outputs}
         return any(
-            o not in state.acked_pwm and o not in ahead and o in self.shown for o in state.outputs
+            o not in state.acked_pwm
+            and o not in ahead
+            and o in self.shown
+            and self.in_range(o, self.shown[o])
+            for o in state.outputs
         )
 
     def _marker_pose(self) -> tuple[float, ...]:
@@ -334,7 +310,7 @@ class Px4Outputs(OutputsTruth):
         pose = list(state.position)
         for i, output in enumerate(state.outputs):
             shown = self.shown.get(output)
-            if output not in state.acked_pwm and shown is not None:
+            if output not in state.acked_pwm and shown is not None and self.in_range(output, shown):
                 pose[i] = self._marker_deg(output, shown)
         return tuple(pose)
 
@@ -349,14 +325,15 @@ class Px4Outputs(OutputsTruth):
     def _marker_deg(self, output: int, shown_us: int) -> float:
         """The angle an output showing ``shown_us`` (not live, or not known to be) is told to
         hold: its marker (``MARKER_OFFSET_US`` from it, towards the middle of the range: the
-        readback tells it from ``shown_us``; for a disarmed PWM outside the servo's range, the
-        nearest end of the range) or, with no room for one, the angle nearest ``shown_us``."""
+        readback tells it from ``shown_us``) or, with no room for one, the angle nearest
+        ``shown_us``. ``shown_us`` lies in the servo's range (outside it, the joint holds the
+        last PWM known instead)."""
         config = self._core.config
         joint = config.calibration.for_output(output)
         limits = config.arm.joints[self._core.state.outputs.index(output)]
         low_deg = max(joint.angle_min_deg, math.degrees(limits.min_rad))
         high_deg = min(joint.angle_max_deg, math.degrees(limits.max_rad))
-        nearest = self._angle_shown(output, shown_us)
+        nearest = self.angle_shown(output, shown_us)
         candidates = marker_pwm_candidates(
             shown_us, (joint.pwm_min_us + joint.pwm_max_us) / 2, joint.angle_to_pwm_us(nearest)
         )
@@ -369,26 +346,3 @@ class Px4Outputs(OutputsTruth):
             if low_deg <= angle <= high_deg and joint.angle_to_pwm_us(angle) == pwm:
                 return angle
         return nearest
-
-    def _expected_pwms(self, output: int, now: float) -> tuple[set[int], bool]:
-        """The PWMs a readback at ``now`` may show for ``output`` if it is live: the last one
-        acknowledged at least READBACK_SETTLE_S ago and any acknowledged since (the readback
-        lags by up to that); and whether that older one exists (settled: a readback showing
-        none of them then says the output is not live; before, it may just lag)."""
-        history = self._ack_history.get(output)
-        if not history:
-            return set(), False
-        cutoff = now - READBACK_SETTLE_S + 1e-9
-        recent = {pwm for t, pwm in history if t >= cutoff}
-        older = [pwm for t, pwm in history if t < cutoff]
-        return recent | set(older[-1:]), bool(older)
-
-    def _angle_shown(self, output: int, pwm_us: int) -> float:
-        """The joint angle an output's PWM means, within the calibration and the arm's limits
-        (a disarmed PWM may lie outside the servo's range)."""
-        config = self._core.config
-        joint = config.calibration.for_output(output)
-        pwm = min(max(pwm_us, joint.pwm_min_us), joint.pwm_max_us)
-        angle = joint.pwm_us_to_angle_deg(pwm)
-        limits = config.arm.joints[self._core.state.outputs.index(output)]
-        return min(max(angle, math.degrees(limits.min_rad)), math.degrees(limits.max_rad))

@@ -30,6 +30,7 @@ COUNTER_NAMES = (
     "autopilot_reboots",  # watch
     "internal_errors",  # the dispatcher
     "keepout_refusals",  # keep-out gate
+    "foreign_commands",  # the outputs' truth: an output set by another sender
 )
 
 

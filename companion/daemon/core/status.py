@@ -117,6 +117,8 @@ class StatusAndAnswers:
             "not_live": {str(o): why for o, why in sorted(dead.items())},
             "armed": watch.armed,
             "safety_on": outputs_truth.safety_on,
+            # The last output the readback showed set by another sender (ArduPilot).
+            "foreign_command": outputs_truth.foreign_command,
             "outputs": outputs,
             "last_target": self.last_target,
             "trajectory_points_left": len(motion.trajectory),

@@ -160,7 +160,10 @@ class Rig:
         self.heartbeat()
         sent = self.tick()
         if self.config.link.dialect.startswith("ardupilot"):
-            self.sys_status(safety_on=False)  # ArduPilot moves once it knows the switch is off
+            # ArduPilot moves once a readback said where the joints are (no pulses on the
+            # arm's outputs since its boot: nothing) and it knows the switch is off.
+            self.readback({})
+            self.sys_status(safety_on=False)
         return sent
 
     def request(self, kind, payload=None, **kw) -> Request:

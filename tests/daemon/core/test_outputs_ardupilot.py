@@ -27,7 +27,7 @@ from tests.daemon.core.autopilot_models import (
     deg_per_us,
     far_target,
 )
-from tests.daemon.core.rig import PARK, near
+from tests.daemon.core.rig import PARK, STEP_DEG, Rig, near
 
 
 def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(rig):
@@ -82,6 +82,7 @@ def test_ardupilot_steps_sent_before_the_switch_was_seen_do_not_jump_at_its_rele
         )
 
     sys_status(False)
+    ap.frame(ap.codec.servo_output_raw_encode(0, 0, *[0] * 16))  # no pulses since its boot
     start = ap.core.status()["current_deg"]
     low = math.degrees(ap.config.arm.joints[0].min_rad)
     goal = [low + 1.0, *start[1:]]  # a long way on joint 1: seconds at 60 deg/s
@@ -250,9 +251,132 @@ def test_a_switch_seen_off_from_the_start_is_not_warned_of(rig, caplog):
         rig.sys_status(safety_on=False)
         assert not [r for r in caplog.records if "safety switch" in r.getMessage()]
         rig.sys_status(safety_on=True)
+        rig.clock.advance(2 * rig.status_interval_s)  # off believed an interval and a half on
         rig.sys_status(safety_on=False)
     said = [(r.levelname, r.getMessage()) for r in caplog.records if "safety" in r.getMessage()]
     assert said == [
         ("WARNING", "safety switch on: outputs not live"),
         ("INFO", "safety switch off"),
     ]
+
+
+# -- the readback: where the joints are ----------------------------------------------------
+
+
+def _pwm_of(rig, pose) -> dict[int, int]:
+    return {
+        o: rig.calibration.for_output(o).angle_to_pwm_us(a)
+        for o, a in zip(rig.calibration.outputs, pose, strict=True)
+    }
+
+
+def _first_step_deg(rig, start_pose) -> float:
+    """The largest joint move of the first servo update sent, from ``start_pose``."""
+    sent = rig.servo()
+    return max(
+        abs(rig.angle(o, pwm) - start_pose[rig.calibration.outputs.index(o)])
+        for o, pwm in sent.items()
+    )
+
+
+def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_before():
+    # A daemon restarted with the arm away from park: ArduPilot still holds what the earlier
+    # daemon sent, and its readback shows it. Assuming park, the first goto moved every joint
+    # ~42 deg in one command.
+    rig = Rig()
+    rig.heartbeat()
+    rig.tick()
+    rig.sys_status(safety_on=False)
+    away = tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
+    request = rig.goto(tuple(a + 1.5 for a in away))
+    rig.advance(0.1)
+    assert not rig.servo()  # no readback yet: where the joints are is unknown
+    rig.readback(_pwm_of(rig, away))
+    rig.advance(0.05)
+    assert rig.servo()
+    assert _first_step_deg(rig, away) <= STEP_DEG + 0.2
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+
+
+def test_ardupilot_with_no_readback_the_arm_moves_after_the_wait():
+    rig = Rig()
+    rig.heartbeat()
+    rig.tick()
+    rig.sys_status(safety_on=False)
+    rig.goto(near(PARK))
+    rig.advance(1.0)
+    assert not rig.servo()
+    rig.advance(1.1)
+    assert rig.servo()  # READBACK_WAIT_S: from the park pose, said once in the log
+
+
+def _settle(rig, pose, seconds=1.0):
+    """The arm at ``pose``, acknowledged, with the readback streaming it every 0.1 s."""
+    rig.goto(pose)
+    done = 0
+    for i in range(round(seconds / 0.05)):
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+        if i % 2:
+            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    assert rig.core.status()["moving"] is False
+
+
+def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
+    # A ground station's servo test (DO_SET_SERVO) put output 9 at 2000 us: status showed the
+    # readback but the daemon went on believing its own PWM, and the next goto jumped 78-132
+    # deg in one command.
+    _settle(rig, near(PARK))
+    output = rig.calibration.outputs[0]
+    shown = dict(rig.core.status()["last_pwm_us"])
+    acked = shown[output]
+    shown[output] = 2000
+    rig.readback(shown)
+    assert rig.core.status()["foreign_command"] is None  # one readback alone is not believed
+    rig.advance(0.1)
+    rig.readback(shown)
+    status = rig.core.status()
+    assert status["foreign_command"]["output"] == output
+    assert status["foreign_command"]["shown_us"] == 2000
+    assert status["foreign_command"]["acknowledged_us"] == acked
+    assert status["counters"]["foreign_commands"] == 1
+    assert status["last_pwm_us"][output] == 2000
+    assert status["moving"] is False  # the arm was still: it stays where it was put
+    assert not rig.servo(rig.advance(0.2))
+    position = tuple(status["current_deg"])
+    rig.sent.clear()
+    rig.goto(near(PARK))
+    rig.sys_status(safety_on=False)  # the band of poses held: the joint where it shows
+    rig.advance(0.05)
+    assert _first_step_deg(rig, position) <= STEP_DEG + 0.2
+
+
+def test_ardupilot_a_forged_readback_between_the_autopilots_own_is_not_believed(rig):
+    _settle(rig, near(PARK))
+    real = dict(rig.core.status()["last_pwm_us"])
+    forged = {o: 2000 for o in real}
+    for _ in range(10):  # forged frames between the autopilot's own, at its rate
+        rig.readback(forged)
+        rig.clock.advance(0.05)
+        rig.readback(real)
+        rig.clock.advance(0.05)
+    status = rig.core.status()
+    assert status["foreign_command"] is None
+    assert status["last_pwm_us"] == real
+
+
+def test_ardupilot_a_forged_safety_off_between_the_autopilots_own_is_not_believed(rig):
+    # A forged "safety off" made the daemon send 132 commands into held outputs, which came on
+    # 35-58 deg away at the real release.
+    rig.sys_status(safety_on=True)  # the autopilot streams "on"
+    rig.advance(0.05)
+    rig.sent.clear()
+    rig.goto(near(PARK, 20.0))
+    for _ in range(20):
+        rig.clock.advance(rig.status_interval_s / 2)
+        rig.sys_status(safety_on=False, stream=False)  # forged, between two of its own
+        rig.tick()
+    assert not rig.servo()
+    assert rig.core.status()["outputs_live"] is False

@@ -118,7 +118,11 @@ def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_read
     run(rig, px4, 0.5)
     assert rig.core.status()["outputs_live"] is True
     px4.set_live(False)  # disarm: every output at 1500
-    px4.readback()  # the first readback tells (they were confirmed live)
+    rig.sent.clear()
+    px4.readback()  # one readback alone is not believed (a forged one would do that)
+    assert rig.core.status()["outputs_live"] is True
+    rig.clock.advance(0.02)
+    px4.readback()  # the next one, a readback interval later, tells
     assert rig.core.status()["outputs_live"] is False
     # The markers go out at once (not at the next tick), 2 us from the disarmed PWM.
     sent = [c for c in rig.sent if c.command == ACTUATOR]
@@ -152,7 +156,9 @@ def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_ho
     on_its_way = px4.apply()
     assert on_its_way
     px4.set_live(False)
-    px4.readback()  # ...the outputs are found dead before its ACK
+    px4.readback()  # ...the outputs are found dead before its ACK (two readbacks)
+    rig.clock.advance(0.02)
+    px4.readback()
     for _ in on_its_way:
         rig.ack(command=ACTUATOR)
     rig.advance(1.0 / RATE_HZ)
@@ -273,14 +279,25 @@ def test_the_marker_is_tried_towards_the_middle_of_the_range_first():
     assert marker_pwm_candidates(2000, 1500.0, 2000) == [2000 - MARKER_OFFSET_US, 2002, 2000]
 
 
-def test_an_output_showing_a_pwm_outside_its_range_is_marked_at_the_nearest_end():
-    rig, px4 = px4_rig(disarmed_us=900)  # below every servo's 1000 us
+def test_an_output_showing_a_pwm_outside_its_range_gets_no_marker_and_holds_the_last_pwm():
+    # PX4 SITL's disarmed PWM, 900 us, lies below every servo's range and says nothing of where
+    # a joint is: nothing is sent before a target (a marker at the range's end sent every joint
+    # to its minimum angle in one step when the outputs came alive), and a joint found dead
+    # holds the last PWM known, not the range's end.
+    rig, px4 = px4_rig(disarmed_us=900)
     px4.readback()
-    rig.advance(0.05)
+    run(rig, px4, 0.5)
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
+    assert rig.core.status()["outputs_live"] is False
+    rig.goto(near(PARK))
+    run(rig, px4, 1.0)  # one step stored; the outputs still show 900: not live, held
+    stored = dict(px4.stored)
     output = rig.calibration.outputs[0]
-    joint = rig.calibration.for_output(output)
-    stored = [c for c in rig.sent if c.command == ACTUATOR]
-    assert stored  # the markers went out
-    px4.handle()
-    # Nothing fits 2 us from 900 inside the range: the nearest angle (the range's end).
-    assert px4.stored[output] == joint.pwm_min_us
+    assert stored[output] != rig.calibration.for_output(output).pwm_min_us
+    assert rig.core.status()["outputs_live"] is False
+    px4.set_live(True)  # armed: the stored step comes out, and the motion goes on
+    run(rig, px4, 1.0)
+    assert rig.core.status()["outputs_live"] is True
+    moves = [(o, b, a) for o, b, a in px4.physical_moves if b != 900]
+    px4.physical_moves[:] = moves
+    assert max_physical_step_us(px4) <= 1.0
