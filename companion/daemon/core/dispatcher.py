@@ -131,15 +131,18 @@ class ControlCore:
         kind = msg.get_type()
         source = (msg.get_srcSystem(), msg.get_srcComponent())
         watch = self.watch
+        at_s = self.clock() if received_s is None else received_s
         if kind == "HEARTBEAT":
             if is_autopilot_heartbeat(msg):
+                if source == watch.pinned:
+                    watch.arrived(at_s)
                 watch.on_heartbeat(actions, source, msg)
             return actions
         if source != watch.pinned:
             self.state.counters["foreign_frames"] += 1
             return actions
+        watch.arrived(at_s)
         watch.after_silence(actions)
-        at_s = self.clock() if received_s is None else received_s
         if kind == "COMMAND_ACK":
             if msg.target_component in (0, self.config.link.component_id):
                 watch.heard_us()

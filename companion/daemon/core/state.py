@@ -27,6 +27,7 @@ COUNTER_NAMES = (
     "servo_errors",  # updates: ended unanswered or miscounted
     "refused_outputs",  # updates
     "foreign_frames",  # the dispatcher: frames from another system
+    "forged_frames",  # watch: frames from the autopilot's ids that contradict its own
     "autopilot_reboots",  # watch
     "internal_errors",  # the dispatcher
     "keepout_refusals",  # keep-out gate

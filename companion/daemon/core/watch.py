@@ -4,7 +4,12 @@
   and never change; frames from anyone else are counted and ignored.
 * **An autopilot reboot** (SYSTEM_TIME ``time_boot_ms`` going backwards, or falling behind the
   time elapsed, whatever the gap) is a link loss: the outputs' state is unknown, and every
-  output is re-sent before moving on.
+  output is re-sent before moving on. A reboot silences the autopilot (REBOOT_SILENCE_S at
+  least): with that silence before it, one SYSTEM_TIME is evidence enough; without, a second
+  signal is needed: the new clock's SYSTEM_TIMEs for REBOOT_CONFIRM_S with none of the old
+  clock's among them (a frame forged as the autopilot's on an unsigned link, alone, never
+  drops the outputs' state; a forger interleaving with the autopilot's own stream is told
+  apart and logged).
 * **Link lost**: hold (nothing is sent), answer waiting targets TEMPORARILY_REJECTED (and drop
   their goal); when it is back, re-send every output at the acknowledged pose, then carry on
   towards the goal of a target that was already ACCEPTED.
@@ -45,6 +50,14 @@ REBOOT_LAG_AFTER_SILENCE_MS = 250
 SYSTEM_TIME_GAP_S = 2 * SYSTEM_TIME_INTERVAL_S
 #: ``time_boot_ms`` going back by more than this is a reboot (smaller: frames reordered).
 REBOOT_BACKSTEP_MS = 100
+#: A reboot silences the autopilot at least this long (0.36 s measured on the simulator,
+#: seconds on ArduPilot and PX4 SITL): the largest gap between its frames (by arrival) since
+#: the SYSTEM_TIME before, if this long, makes a SYSTEM_TIME that says it rebooted evidence
+#: enough.
+REBOOT_SILENCE_S = 0.3
+#: Without that silence, the new clock must go on for this long (more than a SYSTEM_TIME
+#: interval) with no SYSTEM_TIME of the old clock among its frames.
+REBOOT_CONFIRM_S = 1.5 * SYSTEM_TIME_INTERVAL_S
 
 
 def is_reboot(
@@ -84,6 +97,13 @@ class AutopilotWatch:
         self.streams_asked_s = -float("inf")
         self._autopilot_heard_s: float | None = None  # the last frame from the pinned one
         self._autopilot_streaming = False  # its frames came within AUTOPILOT_GAP_INTERVALS
+        #: By arrival: the pinned autopilot's last frame, and the largest gap between its
+        #: frames since the last SYSTEM_TIME (see REBOOT_SILENCE_S).
+        self._arrived_s: float | None = None
+        self._largest_gap_s = 0.0
+        #: A SYSTEM_TIME that said it rebooted, with no silence before it: (its time_boot_ms,
+        #: when it arrived), until the second signal (REBOOT_CONFIRM_S) or the old clock.
+        self._reboot_suspected: tuple[int, float] | None = None
 
     @property
     def heard_us_on_link(self) -> bool:
@@ -167,31 +187,73 @@ class AutopilotWatch:
         for name in core.outputs.params_to_read():
             actions.append(ReadParam(self.pinned, name))
 
+    def arrived(self, at_s: float) -> None:
+        """A frame from the pinned autopilot arrived at ``at_s``."""
+        if self._arrived_s is not None:
+            self._largest_gap_s = max(self._largest_gap_s, at_s - self._arrived_s)
+        self._arrived_s = at_s
+
     def on_system_time(self, actions: list[Action], boot_ms: int, received_s: float) -> None:
         """A SYSTEM_TIME from the pinned autopilot, arrived at ``received_s``: a reboot shows
         in ``time_boot_ms``. Its arrival dates it, not when this thread takes it: a control
         thread that stalls (a loaded machine) would otherwise see ``time_boot_ms`` fall behind
-        the time elapsed, a reboot that did not happen."""
+        the time elapsed, a reboot that did not happen. A reboot with no silence before it
+        needs a second signal (module docstring)."""
+        silence_s, self._largest_gap_s = self._largest_gap_s, 0.0
         previous, previous_s = self.boot_ms, self._boot_seen_s
-        after_silence = previous is not None and (
-            self._system_time_s is None or received_s - previous_s > SYSTEM_TIME_GAP_S
-        )
+        if previous is None:
+            self._take_time(boot_ms, received_s)
+            return
+        after_silence = self._system_time_s is None or received_s - previous_s > SYSTEM_TIME_GAP_S
+        suspected = self._reboot_suspected
+        if not is_reboot(previous, previous_s, boot_ms, received_s, after_silence=after_silence):
+            if suspected is not None:  # the old clock goes on: that one was not the autopilot's
+                self._reboot_suspected = None
+                self._core.state.counters["forged_frames"] += 1
+                log.warning(
+                    "SYSTEM_TIME from two clocks (time_boot_ms %d, then %d): frames forged as "
+                    "the autopilot's? Not taken as a reboot",
+                    suspected[0],
+                    boot_ms,
+                )
+            self._take_time(boot_ms, received_s)
+            return
+        if silence_s < REBOOT_SILENCE_S:
+            if suspected is None or is_reboot(
+                suspected[0], suspected[1], boot_ms, received_s, after_silence=False
+            ):
+                if suspected is None:
+                    log.info(
+                        "SYSTEM_TIME says the autopilot rebooted (time_boot_ms %d → %d) with no "
+                        "silence before it: waiting for a second signal",
+                        previous,
+                        boot_ms,
+                    )
+                self._reboot_suspected = (boot_ms, received_s)
+                return
+            if received_s - suspected[1] < REBOOT_CONFIRM_S:
+                return  # the new clock goes on, not long enough yet
+        self._reboot_suspected = None
+        self._take_time(boot_ms, received_s)
+        self._rebooted(actions, previous, boot_ms)
+
+    def _take_time(self, boot_ms: int, received_s: float) -> None:
         self.boot_ms, self._boot_seen_s = boot_ms, received_s
         self._system_time_s = received_s
-        if previous is not None and is_reboot(
-            previous, previous_s, boot_ms, received_s, after_silence=after_silence
-        ):
-            self._core.state.counters["autopilot_reboots"] += 1
-            log.warning(
-                "autopilot rebooted (time_boot_ms %d → %d): re-sending every output",
-                previous,
-                boot_ms,
-            )
-            # It forgot our route (until it answers us again) and reads its parameters anew.
-            self._heard_us = False
-            self._core.outputs.rebooted()
-            self.lose_outputs(actions, "autopilot rebooted")
-            self.ask_for_streams(actions)
+
+    def _rebooted(self, actions: list[Action], previous_ms: int, boot_ms: int) -> None:
+        """The autopilot rebooted: its outputs, our route and its parameters are forgotten."""
+        self._core.state.counters["autopilot_reboots"] += 1
+        log.warning(
+            "autopilot rebooted (time_boot_ms %d → %d): re-sending every output",
+            previous_ms,
+            boot_ms,
+        )
+        # It forgot our route (until it answers us again) and reads its parameters anew.
+        self._heard_us = False
+        self._core.outputs.rebooted()
+        self.lose_outputs(actions, "autopilot rebooted")
+        self.ask_for_streams(actions)
 
     def after_silence(self, actions: list[Action]) -> None:
         """A frame from the pinned autopilot after it was silent for AUTOPILOT_GAP_INTERVALS

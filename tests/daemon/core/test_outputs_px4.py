@@ -189,7 +189,7 @@ def test_px4_a_reboot_while_not_live_forgets_the_markers_and_stores_them_again()
     run(rig, px4, 0.5)
     assert rig.core.status()["outputs_live"] is False  # held at the markers
     rig.system_time(600_000)
-    rig.advance(0.3)
+    rig.advance(0.36)  # a reboot's silence
     rig.system_time(150)  # rebooted: nothing stored, disarmed
     px4.stored = dict.fromkeys(px4.stored)
     px4.set_live(False)

@@ -293,3 +293,49 @@ def test_a_system_time_that_arrived_on_time_but_is_taken_late_is_not_a_reboot(ri
     rig.clock.advance(0.05)
     rig.system_time(60_560)
     assert rig.core.status()["counters"]["autopilot_reboots"] == 0
+
+
+def _stream_system_time(rig, boot_ms, seconds, *, forged=None):
+    """The autopilot's SYSTEM_TIME every 0.25 s from ``boot_ms``; ``forged``: a time_boot_ms
+    forged as its frame between each two of its own."""
+    for _ in range(round(seconds / 0.25)):
+        rig.clock.advance(0.125)
+        if forged is not None:
+            rig.system_time(forged)
+            forged += 125
+        rig.clock.advance(0.125)
+        boot_ms += 250
+        rig.system_time(boot_ms)
+        rig.tick()
+
+
+def test_a_forged_system_time_between_the_autopilots_own_is_no_reboot(rig):
+    # 1 013 false reboots in 6 minutes from forged SYSTEM_TIME: each dropped the outputs'
+    # state and rejected the targets.
+    rig.system_time(600_000)
+    request = rig.goto(near(PARK))
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    _stream_system_time(rig, 600_000, 3.0, forged=100)
+    status = rig.core.status()
+    assert status["counters"]["autopilot_reboots"] == 0
+    assert status["counters"]["forged_frames"] > 0
+    assert status["last_pwm_us"] is not None
+
+
+def test_a_reboot_with_no_silence_before_it_is_taken_on_the_new_clocks_second_signal(rig):
+    rig.system_time(600_000)
+    rig.clock.advance(0.25)
+    rig.system_time(40)  # went back, the frames never stopped: not evidence enough alone
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 0
+    _stream_system_time(rig, 40, 0.5)  # the new clock goes on, the old one is gone
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+
+
+def test_a_control_thread_stall_is_no_reboot(rig):
+    # A 0.26 s stall of the control thread: frames taken late, dated by their arrival.
+    rig.system_time(600_000, received_s=rig.clock())
+    arrived_s = rig.clock() + 0.25
+    rig.clock.advance(0.51)
+    rig.system_time(600_250, received_s=arrived_s)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 0
