@@ -298,13 +298,30 @@ def format_status(status: dict[str, Any]) -> str:
         lines.append(
             "last target  ("
             + ", ".join(f"{v:.2f}" for v in last.get("pose", []))
-            + f")  {'reached' if last.get('converged') else 'NOT reachable'}, "
+            + f")  {_target_word(status, last)}, "
             f"solve {last.get('solve_ms', math.nan):.2f} ms{took}"
         )
     counters = status.get("counters") or {}
     shown = [f"{k} {v}" for k, v in counters.items() if v]
     lines.append("counters  " + (", ".join(shown) if shown else "all 0"))
     return "\n".join(lines)
+
+
+def _target_word(status: dict[str, Any], last: dict[str, Any]) -> str:
+    """What became of the last target, as its answer and the outputs say: "reached" only for
+    one accepted, with the arm no longer moving and its outputs live."""
+    outcome = last.get("outcome")
+    if not last.get("converged"):
+        return "NOT reachable"
+    if outcome is None:
+        return "waiting for its answer"
+    if outcome != "accepted":
+        return f"{str(outcome).upper()}: {last.get('answer') or ''}".rstrip(": ")
+    if status.get("moving"):
+        return "moving"
+    if not status.get("outputs_live"):
+        return "accepted, outputs not live"
+    return "reached"
 
 
 def read_trajectory(path: str) -> list[list[float]]:

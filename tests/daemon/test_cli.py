@@ -323,3 +323,17 @@ def test_status_against_a_reply_it_cannot_read_says_so(reply, tmp_path, capsys):
         server.close()
     err = capsys.readouterr().err
     assert "armbridge:" in err and "Traceback" not in err
+
+
+def test_status_for_people_never_says_reached_for_a_target_that_failed():
+    base = {"link": "up", "autopilot": [1, 1], "current_deg": [], "counters": {},
+            "moving": False, "outputs_live": True}  # fmt: skip
+    target = {"pose": [1.0] * 6, "converged": True, "solve_ms": 0.2}
+    failed = {**target, "outcome": "failed", "answer": "servo output 14 refused"}
+    assert "FAILED: servo output 14 refused" in format_status({**base, "last_target": failed})
+    assert "reached" not in format_status({**base, "last_target": failed})
+    accepted = {**target, "outcome": "accepted", "answer": "moving"}
+    assert "reached" in format_status({**base, "last_target": accepted})
+    assert "moving" in format_status({**base, "moving": True, "last_target": accepted})
+    dead = {**base, "outputs_live": False, "last_target": accepted}
+    assert "reached" not in format_status(dead)

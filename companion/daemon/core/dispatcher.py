@@ -86,6 +86,8 @@ class ControlCore:
                 f"link.dialect {config.link.dialect!r} or the outputs changed: restart the daemon"
             )
         self._config, self.settings = config, settings
+        # The operator's word that the autopilot was fixed: refused outputs are tried again.
+        self.state.refused.clear()
 
     # -- events -----------------------------------------------------------------------------
 
@@ -113,7 +115,7 @@ class ControlCore:
             return actions
         if request.kind == "park":
             motion.stop(actions, Reply(Outcome.CANCELLED, f"superseded by a {request.kind}"))
-            if request.direct:
+            if request.direct and not self.state.refused:  # FAILED by accept, unsent
                 self.updates.send_direct(actions, tuple(parsed))
             motion.accept(actions, request, tuple(parsed), Reply(Outcome.ACCEPTED, "parking"))
         elif request.kind == "trajectory":

@@ -90,7 +90,12 @@ class Motion:
             "ori_err_deg": None if result is None else result.ori_err_deg,
             "solve_ms": None if result is None else result.elapsed_ms,
             "timing": timing,
+            # Its answer once given (outcome and message; None: not answered yet, or a
+            # trajectory's point, which has none).
+            "outcome": None,
+            "answer": None,
         }
+        answers.last_target_request = request
         if failure is None and result is not None and not result.converged:
             failure = f"unreachable: pos {result.pos_err_cm:.2f}cm ori {result.ori_err_deg:.1f}deg"
         if failure is None and result is not None:
@@ -115,6 +120,10 @@ class Motion:
                 )
             return False
         if request is None:
+            refused = self.refused_reply()
+            if refused is not None:
+                self._point_refusal = refused.message
+                return False
             self.goal = tuple(result.q_deg)
         else:
             superseded = Reply(Outcome.CANCELLED, "superseded by a newer target")
@@ -133,6 +142,10 @@ class Motion:
         """``goal`` is the goal; ``request`` is answered ``reply`` once its first step is
         acknowledged (at once if the arm is there)."""
         core = self._core
+        refused = self.refused_reply()
+        if refused is not None:  # a step would move the other joints, then fail again
+            core.answers.answer(actions, request, refused)
+            return
         self.goal = tuple(float(g) for g in goal)
         if tuple(core.state.position) == self.goal and core.state.settled():
             core.answers.answer(actions, request, reply)  # already there: nothing to send
@@ -144,6 +157,26 @@ class Motion:
             core.answers.answer(actions, request, not_live_reply(reply, dead))
             return
         self._waiting.append(AwaitingFirstStep(request, reply))
+
+    def refused_reply(self) -> Reply | None:
+        """FAILED, if the autopilot refused one of the arm's outputs: remembered until a
+        reload, a link loss or a reboot (the fix is made on the autopilot), so a target never
+        moves the other joints a step before failing again (a ground station retrying would
+        creep the arm)."""
+        refused = self._core.state.refused
+        if not refused:
+            return None
+        hint, brief = self._core.outputs.refusal_advice(refused)
+        reason = "; ".join(
+            f"servo output {o} refused by the autopilot: {why}"
+            for o, why in sorted(refused.items())
+        )
+        return Reply(
+            Outcome.FAILED,
+            f"{reason}. {hint} Nothing moves until it is fixed and the daemon reloaded "
+            "(systemctl reload armbridge) or the autopilot rebooted".replace(".  ", ". "),
+            brief=brief,
+        )
 
     def start_trajectory(
         self, actions: list[Action], request: Request, points: list[tuple[float, Pose]]

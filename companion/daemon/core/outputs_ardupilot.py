@@ -323,7 +323,8 @@ class ArduPilotOutputs(OutputsTruth):
         """While its SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a
         reboot, a loss) or has not said where the switch is since a loss or a reboot."""
         if not self._sys_status_ever:
-            return {}
+            why = "safety switch unknown (no SYS_STATUS from the autopilot yet)"
+            return dict.fromkeys(self._core.state.outputs, why)
         if self._sys_status_s is None or self.safety_on is None:
             why = "safety switch unknown (no SYS_STATUS since the link came back or a reboot)"
         else:

@@ -29,6 +29,8 @@ class StatusAndAnswers:
         self._core = core
         #: The last target solved, for status and the log (None: none yet).
         self.last_target: dict[str, Any] | None = None
+        #: The request the last target came with (None: a trajectory's point).
+        self.last_target_request: Request | None = None
         #: The hand (base frame) at a pose, computed once per pose.
         self._hand_at: tuple[tuple[float, ...], dict[str, float]] | None = None
         #: (kind, source) → (when its last "accepted" line was logged, how many since)
@@ -36,6 +38,12 @@ class StatusAndAnswers:
 
     def answer(self, actions: list[Action], request: Request, reply: Reply) -> None:
         actions.append(Answer(request, reply))
+        if request is self.last_target_request and self.last_target is not None:
+            self.last_target = {
+                **self.last_target,
+                "outcome": reply.outcome.value,
+                "answer": reply.message,
+            }
         if reply.outcome is Outcome.ACCEPTED:
             self._log_accepted(request, reply)
         if request.kind != "stop":
@@ -81,6 +89,13 @@ class StatusAndAnswers:
         state, outputs_truth, motion, watch = core.state, core.outputs, core.motion, core.watch
         now = core.clock()
         dead = {**outputs_truth.unknown(now), **outputs_truth.dead()}
+        # Only what the outputs showed: with no autopilot heard, or its link down, nothing.
+        if watch.pinned is None:
+            dead = dict.fromkeys(state.outputs, "not known live (no autopilot heard)")
+        elif not state.link_up:
+            dead = dict.fromkeys(state.outputs, "not known live (autopilot link down)")
+        for output, why in state.refused.items():
+            dead.setdefault(output, f"refused by the autopilot: {why}")
         outputs = {}
         for output in state.outputs:
             if output in state.refused:

@@ -155,6 +155,7 @@ class AutopilotWatch:
         state.flights.clear()
         core.motion.reject_waiting(actions, flights, reason)
         state.acked_pwm.clear()
+        state.refused.clear()  # asked again: it may have been fixed meanwhile
         core.world.telemetry.reset()
         core.outputs.lost(flights)
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import logging
 
+import pytest
+
 from companion.daemon.core.status import source_name
 from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.rig import PARK, Rig, near
@@ -50,3 +52,25 @@ def test_before_any_ack_status_holds_nothing_acknowledged_and_the_assumed_start_
     assert status["moving"] is False and status["goal_deg"] is None
     # The cheap subset the service publishes each step agrees with it.
     assert rig.core.link_and_outcome_counts() == (False, 0, 0, 0)
+
+
+@pytest.mark.parametrize("dialect", ["ardupilot", "px4"])
+def test_outputs_are_not_said_live_before_an_autopilot_was_heard_or_while_its_link_is_down(dialect):
+    rig = Rig(dialect=dialect)
+    status = rig.core.status()
+    assert status["outputs_live"] is False
+    assert "no autopilot heard" in status["not_live"]["9"]
+    rig.up()
+    rig.tick(link_up=False)
+    status = rig.core.status()
+    assert status["outputs_live"] is False
+    assert "link down" in status["not_live"]["9"]
+
+
+def test_the_last_target_says_its_answer(rig):
+    request = rig.goto(near(PARK))
+    assert rig.core.status()["last_target"]["outcome"] is None  # not answered yet
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    last = rig.core.status()["last_target"]
+    assert last["outcome"] == "accepted" and last["answer"] == "moving"

@@ -92,9 +92,20 @@ def test_a_refused_output_stops_the_motion_reports_what_moved_and_the_next_step_
     for j in range(5):
         assert status["current_deg"][j] == pytest.approx(PARK[j] + STEP_DEG)
     assert status["current_deg"][5] == PARK[5]
-    # The next target steps from what was acknowledged: no joint moves more than a step.
+    assert status["outputs_live"] is False
+    assert "refused" in status["not_live"]["14"]
+    # The refusal is remembered: the next target fails before any step (a ground station
+    # retrying crept the arm a step a target).
     rig.sent.clear()
     rig.advance(1.0 / RATE_HZ)
+    retried = rig.goto(tuple(p - 30.0 for p in PARK))
+    assert rig.reply(retried).outcome is Outcome.FAILED
+    assert "SERVO14_FUNCTION = 0" in rig.reply(retried).message
+    assert "reload" in rig.reply(retried).message
+    assert not rig.servo(rig.advance(0.5))
+    # Fixed on the autopilot, the daemon reloaded: the next target steps from what was
+    # acknowledged, no joint more than a step.
+    rig.core.reconfigure(rig.config)
     rig.goto(tuple(p - 30.0 for p in PARK))
     for output, pwm in rig.servo().items():
         before = status["last_pwm_us"].get(output, rig.calibration.angles_to_pwm_us(PARK)[output])
