@@ -166,6 +166,9 @@ class DaemonConfig:
     control_socket_group: str | None = None
     control_max_connections: int = 32
     control_idle_timeout_s: float = 30.0
+    #: After an autopilot reboot, go on towards the goal accepted before it (default: the
+    #: goal is dropped; the operator sends it again).
+    resume_after_reboot: bool = False
     #: Where the arm's base sits in the vehicle's body frame FRD (``[mount]``).
     mount: Mount = Mount()
     #: Keep-out volumes in the body frame FRD (``[[keepout]]``); none by default.
@@ -209,7 +212,14 @@ _LINK_KEYS = (
 )
 _ARM_KEYS = ("file", "park_deg", "park_on_stop", "joint_speed_deg_s")
 _SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed")
-_CONTROL_KEYS = ("rate_hz", "socket", "socket_group", "max_connections", "idle_timeout_s")
+_CONTROL_KEYS = (
+    "rate_hz",
+    "socket",
+    "socket_group",
+    "max_connections",
+    "idle_timeout_s",
+    "resume_after_reboot",
+)
 _JOINT_KEYS = (
     "name",
     "output",
@@ -295,6 +305,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
             "max_connections", 32, min_value=MAX_CONNECTIONS[0], max_value=MAX_CONNECTIONS[1]
         ),
         control_idle_timeout_s=_bounded(control, "idle_timeout_s", 30.0, IDLE_TIMEOUT_S),
+        resume_after_reboot=control.boolean("resume_after_reboot", False),
         mount=mount,
         keepout=volumes,
         keepout_margin_cm=margin,

@@ -255,6 +255,21 @@ class AutopilotWatch:
         self._core.outputs.rebooted()
         self.lose_outputs(actions, "autopilot rebooted")
         self.ask_for_streams(actions)
+        motion = self._core.motion
+        if not self._core.config.resume_after_reboot and (
+            motion.goal is not None or motion.trajectory
+        ):
+            # What was accepted before it is not carried out on its own after it: a vehicle
+            # whose autopilot crashed and restarted may be somewhere else by now.
+            log.warning(
+                "autopilot rebooted: the arm's goal is dropped (send it again; "
+                "control.resume_after_reboot = true goes on towards it)"
+            )
+            if motion.trajectory:
+                motion.trajectory_aborted = "autopilot rebooted"
+            motion.goal = None
+            motion.trajectory.clear()
+            self._core.world.drop()
 
     def after_silence(self, actions: list[Action]) -> None:
         """A frame from the pinned autopilot after it was silent for AUTOPILOT_GAP_INTERVALS

@@ -339,3 +339,25 @@ def test_a_control_thread_stall_is_no_reboot(rig):
     rig.clock.advance(0.51)
     rig.system_time(600_250, received_s=arrived_s)
     assert rig.core.status()["counters"]["autopilot_reboots"] == 0
+
+
+@pytest.mark.parametrize("dialect", ["px4", "ardupilot"])
+@pytest.mark.parametrize("resume", [False, True])
+def test_after_a_reboot_the_goal_accepted_before_it_is_dropped_unless_resume_is_set(
+    resume, dialect
+):
+    # After PX4 crashed and restarted, the arm went on towards its old goal on its own.
+    rig = Rig(dialect=dialect, sections={"control": {"resume_after_reboot": resume}})
+    rig.up()
+    rig.readback({})
+    rig.system_time(600_000)
+    far = tuple(p + 30.0 for p in PARK)
+    request = rig.goto(far)
+    for c in list(rig.sent):
+        if c.command in (mavlink.MAV_CMD_DO_SET_SERVO, mavlink.MAV_CMD_DO_SET_ACTUATOR):
+            rig.ack(command=c.command)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    rig.advance(0.36)
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    assert (rig.core.status()["goal_deg"] is not None) is resume
