@@ -28,9 +28,10 @@ setting), counted in ``not_allowed``, never queued; those answers share the floo
 rate-limited refusals (beyond it: unanswered, counted in ``flood_unanswered``).
 
 Shutdown (:meth:`ArmDaemon.close`): the intake refuses new requests and answers the waiting ones,
-the core answers its own, parks directly if asked (one update, every output, past the speed
-limit), waits for that update's ACKs for at most ``park_wait_s``, and the link closes. It never
-raises and is bounded in time whatever the backlog or the autopilot does.
+the core answers its own, parks if asked (at the speed limit, as any motion, for at most
+``park_wait_s``: :data:`PARK_STOP_S` by default, inside the unit's ``TimeoutStopSec=5``; where
+the arm is not parked by then, it holds), and the link closes. It never raises and is bounded
+in time whatever the backlog or the autopilot does.
 """
 
 from __future__ import annotations
@@ -71,6 +72,10 @@ log = logging.getLogger("armbridge")
 #: A thread asking for status waits this long at most for the control thread to build a fresh
 #: snapshot (it builds one at the end of its step); past it, the last one is served.
 STATUS_WAIT_S = 0.25
+#: With ``park_on_stop``, the arm goes to park at the speed limit for at most this long at
+#: shutdown (the shipped unit's TimeoutStopSec=5 leaves the rest for the link to close): 180
+#: deg at the default 60 deg/s.
+PARK_STOP_S = 3.0
 #: Frames waiting for the control thread; beyond this the oldest is dropped (and counted).
 FRAME_QUEUE_MAX = 1024
 #: ``_acks_wake_at`` when no ACCEPTED ACK needs to wake the control thread.
@@ -128,7 +133,7 @@ class ArmDaemon:
         config: DaemonConfig,
         *,
         clock: Callable[[], float] = time.monotonic,
-        park_wait_s: float = 0.4,
+        park_wait_s: float = PARK_STOP_S,
     ) -> None:
         self.config = config
         self.clock = clock
@@ -225,10 +230,12 @@ class ArmDaemon:
         alive = self._thread is not None and self._thread.is_alive()
         return alive and self.clock() - self._last_tick < 2.0 / self.config.rate_hz + 1.0
 
-    def close(self, *, park: bool = False, timeout_s: float = 0.7) -> None:
-        """Stop: refuse and answer every request, park directly if asked (and configured),
-        close the link. Never raises; returns within about ``timeout_s`` plus the link's
-        close."""
+    def close(self, *, park: bool = False, timeout_s: float | None = None) -> None:
+        """Stop: refuse and answer every request, park at the speed limit if asked (and
+        configured), close the link. Never raises; returns within about ``timeout_s`` (default:
+        0.7 s, plus ``park_wait_s`` when parking) plus the link's close."""
+        if timeout_s is None:
+            timeout_s = 0.7 + (self.park_wait_s if park else 0.0)
         stopping = Reply(Outcome.TEMPORARILY_REJECTED, "daemon stopping")
         self.intake.close(stopping, Reply(Outcome.CANCELLED, "daemon stopping"))
         self._closing = park
@@ -661,10 +668,10 @@ class ArmDaemon:
         core = self._core
         park = bool(self._closing) and self.config.park_deg is not None
         self._carry_out(core.shutdown(park=park))
-        with self._frames_lock:  # the ACK that completes the park wakes us (it is waited for)
-            self._acks_wake_at = self._acks_fed + core.acks_to_progress()
         deadline = self.clock() + (self.park_wait_s if park else 0.0)
-        while not core.idle and self.clock() < deadline:
+        while (not core.idle or (park and core.parking())) and self.clock() < deadline:
+            with self._frames_lock:  # the ACK that completes a step wakes us (it is waited for)
+                self._acks_wake_at = self._acks_fed + core.acks_to_progress()
             self._wake.wait(min(0.01, max(0.0, deadline - self.clock())))
             self._wake.clear()
             self._feed_frames()
@@ -674,8 +681,13 @@ class ArmDaemon:
                 log.info("parked")
             elif not core.link_up:
                 log.warning("not parked: the autopilot link is down")
+            elif core.outputs.dead():
+                log.warning("not parked: the outputs are not live")
             else:
-                log.warning("park not acknowledged within %.2f s", self.park_wait_s)
+                log.warning(
+                    "not parked within %.1f s at the speed limit: the arm holds where it got",
+                    self.park_wait_s,
+                )
         self._carry_out(core.finish())
         self._status = core.status()
 

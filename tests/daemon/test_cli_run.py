@@ -13,7 +13,6 @@ import time
 import pytest
 
 from companion.daemon.cli import main
-from companion.daemon.config import parse_config
 from companion.daemon.control_socket import request
 from companion.kinematics.arm import Arm
 from devkit.control_client import ControlConnection
@@ -151,10 +150,9 @@ def test_a_goto_waiting_at_sigterm_is_answered(sims, daemons):
         except ConnectionError as exc:
             raise AssertionError(f"no answer, the connection ended: {exc}") from exc
     assert reply["outcome"] in ("cancelled", "failed")
-    # Parked all the same (the autopilot applies what it does not acknowledge), no traceback.
-    park_pwm = parse_config(daemon.config).calibration.angles_to_pwm_us([0, 90, 0, 0, 0, 0])
-    outputs = sim.state()["outputs"]
-    assert {o: outputs[str(o)]["pwm_us"] for o in park_pwm} == park_pwm
+    # Parking goes at the speed limit, a step once the one before is confirmed: with every
+    # ACK withheld it stops (no jump to park), says so, and the daemon exits within its bound.
+    assert "not parked" in daemon.log()
     assert "Traceback" not in daemon.log()
 
 

@@ -32,7 +32,7 @@ Each rule has one home:
 """
 
 from companion.daemon.core.actions import Action, Answer, ReadParam, SendCommand
-from companion.daemon.core.dispatcher import SHUTDOWN_RETRY_S, ControlCore, Solve
+from companion.daemon.core.dispatcher import ControlCore, Solve
 from companion.daemon.core.outputs import READBACK_SETTLE_S
 from companion.daemon.core.outputs_ardupilot import SYS_STATUS_SILENT_S, SYS_STATUS_WAIT_S
 from companion.daemon.core.outputs_px4 import MARKER_OFFSET_US
@@ -55,7 +55,6 @@ __all__ = [
     "READBACK_INTERVAL_S",
     "READBACK_SETTLE_S",
     "SAFETY_STEPS_AHEAD",
-    "SHUTDOWN_RETRY_S",
     "SLOW_LINK_BAUD",
     "STOP_STREAM",
     "SYS_STATUS_SILENT_S",

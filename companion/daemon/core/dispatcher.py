@@ -34,8 +34,6 @@ from firmware_interface.link import is_autopilot_heartbeat
 #: (pose, q_start_deg or None for a cold start, mode, budget_ms or None for the configured
 #: one, seed= keyword: None for the configured one) → ik.IKResult
 Solve = Callable[..., Any]
-#: At shutdown, the park update's commands are sent again after this long without an ACK.
-SHUTDOWN_RETRY_S = 0.1
 
 
 def outputs_truth_for(settings: CoreSettings, core: ControlCore) -> OutputsTruth:
@@ -227,17 +225,25 @@ class ControlCore:
         return any(f.waiting or f.pending or f.attempt for f in flights)
 
     def shutdown(self, *, park: bool) -> list[Action]:
-        """Stop: answer everything waiting, and send the park pose directly if asked."""
+        """Stop: answer everything waiting; with ``park``, the park pose becomes the goal, and
+        the arm goes there at the speed limit as long as the driver ticks (see
+        ``service.PARK_STOP_S``: what it does not reach by then, it holds)."""
         actions: list[Action] = []
         self.motion.stop(actions, Reply(Outcome.CANCELLED, "daemon stopping"))
         if park and self.config.park_deg is not None and self.state.link_up:
-            # Little time is left: a lost frame is sent again after SHUTDOWN_RETRY_S, not
-            # after command_timeout_s.
-            timeout_s = min(self.config.link.command_timeout_s, SHUTDOWN_RETRY_S)
-            self.updates.send_direct(
-                actions, tuple(self.config.park_deg), force=True, timeout_s=timeout_s
-            )
+            self.motion.goal = tuple(float(a) for a in self.config.park_deg)
+            self.motion.next_step(actions, immediate=False)
         return actions
+
+    def parking(self) -> bool:
+        """At shutdown: the park pose is the goal, not reached yet, and the arm can move
+        towards it (the link up, the outputs live)."""
+        return (
+            self.motion.goal is not None
+            and not self.parked()
+            and self.state.link_up
+            and not self.outputs.dead()
+        )
 
     def finish(self) -> list[Action]:
         """The daemon exits now: whatever still waits on an update is answered."""

@@ -173,3 +173,25 @@ def test_after_a_reload_the_arm_keeps_moving_at_the_new_speed_limit(dialect, spe
     # ... and each step follows the new limit (the last one may stop short, at the goal).
     assert max(steps) == pytest.approx(new_step_deg)
     assert all(step <= new_step_deg + 1e-9 for step in steps)
+
+
+@pytest.mark.parametrize("dialect", ["ardupilot", "px4"])
+@pytest.mark.parametrize(
+    "sections",
+    [
+        {"solver": {"budget_ms": 5.0}},
+        {"solver": {"budget_ms": 50.0}},
+        {"arm": {"park_deg": [10.0, 80.0, 0, 0, 0, 0]}},
+        {"safety": {"keepout_margin_cm": 3.0}},
+        {"control": {"resume_after_reboot": True}},
+    ],
+    ids=["budget-down", "budget-up", "park", "margin", "resume"],
+)
+def test_after_a_reload_of_any_other_field_the_arm_keeps_moving(dialect, sections):
+    rig, px4 = _moving_rig(dialect)
+    before = rig.core.status()["current_deg"][0]
+    tables = {"arm": {"park_deg": list(PARK), "joint_speed_deg_s": SPEED_DEG_S}, **sections}
+    tables["arm"] = {"joint_speed_deg_s": SPEED_DEG_S, "park_deg": list(PARK), **tables["arm"]}
+    rig.core.reconfigure(Rig(dialect, sections=tables).config)
+    angles = _drive(rig, px4, 0.5)
+    assert angles[-1] - before >= 0.5 * SPEED_DEG_S * 0.5
