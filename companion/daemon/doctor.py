@@ -8,10 +8,15 @@ the instance lock tells), waits for the autopilot, then:
   ArduPilot ``SERVOn_FUNCTION`` must be 0 (DO_SET_SERVO is refused on any other function but RC
   pass-through, 1 and 51–66, which the RC input then fights); PX4 ``PWM_MAIN_FUNCn`` (or
   ``PWM_AUX_FUNCn`` on boards with an IO processor) must be 301–306 "Peripheral via Actuator Set
-  k" in joint order. The PWM limits against the calibration: PX4 maps −1…1 onto
-  ``PWM_MAIN_MINn``…``PWM_MAIN_MAXn``, so they must equal the joint's ``pwm_min_us``/``pwm_max_us``;
-  ArduPilot does not clamp DO_SET_SERVO, but its own outputs (trim at boot, failsafe) use
-  ``SERVOn_MIN``/``MAX``, so the calibration should lie within them (a warning).
+  k" in joint order. On PX4 only a disabled output (0) or one of the actuator-set functions gets
+  its function set; any other (a motor 101–112, a servo 201+, landing gear, a constant output,
+  ...) is the vehicle's: the joint moves to a free output, one of those read as 0 (every
+  output's function is read for that), and the vehicle's function stays.
+* **limits**: the PWM limits against the calibration: PX4 maps −1…1 onto
+  ``PWM_MAIN_MINn``…``PWM_MAIN_MAXn``, so they must equal the joint's
+  ``pwm_min_us``/``pwm_max_us``; ArduPilot does not clamp DO_SET_SERVO, but its own outputs
+  (trim at boot, failsafe) use ``SERVOn_MIN``/``MAX``, so the calibration should lie within
+  them (a warning).
 * **readback**: SERVO_OUTPUT_RAW (and PX4's ACTUATOR_OUTPUT_STATUS) can be streamed: asked with
   MAV_CMD_SET_MESSAGE_INTERVAL, acknowledged, and seen; set back to the default rate after.
 * **signing**: off (a warning: anyone on the link may move the arm), or on and the autopilot's
@@ -51,6 +56,40 @@ __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report"
 ARDUPILOT_SERVO_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
 PX4_FIRST_ACTUATOR_FUNCTION = 301
 PX4_ACTUATOR_SET_SIZE = 6
+PX4_ACTUATOR_FUNCTIONS = range(
+    PX4_FIRST_ACTUATOR_FUNCTION, PX4_FIRST_ACTUATOR_FUNCTION + PX4_ACTUATOR_SET_SIZE
+)
+#: PX4 output functions (``PWM_MAIN_FUNCn``; src/lib/mixer_module/output_functions.yaml).
+PX4_FUNCTION_NAMES = {
+    0: "Disabled",
+    1: "Constant Min",
+    2: "Constant Max",
+    400: "Landing Gear",
+    401: "Parachute",
+    402: "RC Roll",
+    403: "RC Pitch",
+    404: "RC Throttle",
+    405: "RC Yaw",
+    406: "RC Flaps",
+    420: "Gimbal Roll",
+    421: "Gimbal Pitch",
+    422: "Gimbal Yaw",
+    430: "Gripper",
+    440: "Landing Gear Wheel",
+}
+#: Numbered PX4 functions: (first, last, name); the number is the function's minus first, plus 1.
+PX4_FUNCTION_RANGES = (
+    (101, 112, "Motor"),
+    (201, 215, "Servo"),
+    (301, 306, "Peripheral via Actuator Set"),
+    (407, 412, "RC AUX"),
+    (2000, 2031, "Camera Trigger"),
+    (2032, 2063, "Camera Capture"),
+    (2064, 2095, "PPS Input"),
+)
+#: The outputs whose function doctor reads on PX4 (SITL and FMU boards: PWM_MAIN_FUNC1..16;
+#: boards with an IO processor: PWM_MAIN_FUNC1..8 and PWM_AUX_FUNC1..8).
+PX4_SCANNED_OUTPUTS = 16
 #: Readback streams doctor asks for, per autopilot.
 READBACK = {
     "ardupilot": ("SERVO_OUTPUT_RAW",),
@@ -133,14 +172,12 @@ def param_names(config: DaemonConfig, autopilot: str) -> list[str]:
             names += [f"SERVO{n}_FUNCTION", f"SERVO{n}_MIN", f"SERVO{n}_MAX"]
         else:
             for prefix in _px4_prefixes(n):
-                names += [
-                    f"{prefix}_FUNC{_px4_index(prefix, n)}",
-                    f"{prefix}_MIN{_px4_index(prefix, n)}",
-                ]
-                names += [
-                    f"{prefix}_MAX{_px4_index(prefix, n)}",
-                    f"{prefix}_DIS{_px4_index(prefix, n)}",
-                ]
+                i = _px4_index(prefix, n)
+                names += [f"{prefix}_{p}{i}" for p in ("FUNC", "MIN", "MAX", "DIS")]
+    if autopilot == "px4":
+        # Every output's function: where a joint sits on the vehicle's, the free ones to offer.
+        for n in range(1, PX4_SCANNED_OUTPUTS + 1):
+            names += [f"{prefix}_FUNC{_px4_index(prefix, n)}" for prefix in _px4_prefixes(n)]
     names += _VEHICLE_PARAMS[autopilot]
     return names
 
@@ -328,27 +365,77 @@ def _ardupilot_outputs(config: DaemonConfig, params: dict[str, float | None]) ->
     return checks
 
 
+def _px4_function_name(function: int) -> str:
+    """PX4's name for an output function: "Motor 1", "Servo 3", "Landing Gear"."""
+    name = PX4_FUNCTION_NAMES.get(function)
+    if name is not None:
+        return name
+    for first, last, stem in PX4_FUNCTION_RANGES:
+        if first <= function <= last:
+            return f"{stem} {function - first + 1}"
+    return "unknown to doctor"
+
+
+def _px4_prefix(params: dict[str, float | None], output: int) -> str | None:
+    """The prefix of the output's parameters, the one whose function was answered: PWM_MAIN,
+    or for outputs 9-16 on a board with an IO processor PWM_AUX; None: neither was."""
+    for prefix in _px4_prefixes(output):
+        if _value(params, f"{prefix}_FUNC{_px4_index(prefix, output)}") is not None:
+            return prefix
+    return None
+
+
+def _px4_param(prefix: str, kind: str, output: int) -> str:
+    """``_px4_param("PWM_AUX", "DIS", 9)`` → PWM_AUX_DIS1."""
+    return f"{prefix}_{kind}{_px4_index(prefix, output)}"
+
+
+def _px4_vehicles(params: dict[str, float | None], output: int) -> bool:
+    """Whether the output's function was read and is neither 0 nor an actuator-set function:
+    the vehicle's (a motor, a control surface, ...), whose limits and disarmed PWM are its own."""
+    prefix = _px4_prefix(params, output)
+    if prefix is None:
+        return False
+    function = _value(params, _px4_param(prefix, "FUNC", output))
+    return function not in (0, *PX4_ACTUATOR_FUNCTIONS)
+
+
+def _px4_free_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[int]:
+    """Outputs no joint uses whose function was read as 0 (Disabled), lowest first."""
+    used = set(config.calibration.outputs)
+    free = []
+    for n in range(1, max(PX4_SCANNED_OUTPUTS, *used) + 1):
+        prefix = _px4_prefix(params, n)
+        if (
+            n not in used
+            and prefix is not None
+            and _value(params, _px4_param(prefix, "FUNC", n)) == 0
+        ):
+            free.append(n)
+    return free
+
+
 def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
+    """Joint k must sit on an output of function 300 + k ("Peripheral via Actuator Set k").
+    A disabled output (0), or one of the actuator-set functions (the daemon's: it sends all six
+    slots in each update), gets the function set. Any other function is the vehicle's (a motor,
+    a control surface, landing gear, a constant output, ...): the joint moves to a free output
+    (function 0, named when doctor read one), the output's function is never changed."""
     checks = []
+    free = _px4_free_outputs(config, params)
     for index, joint in enumerate(config.calibration.joints):
         n = joint.output
         label = _joint_label(index, joint.name, n)
-        prefix = next(
-            (
-                p
-                for p in _px4_prefixes(n)
-                if _value(params, f"{p}_FUNC{_px4_index(p, n)}") is not None
-            ),
-            None,
-        )
+        prefix = _px4_prefix(params, n)
         if prefix is None:
-            names = " or ".join(f"{p}_FUNC{_px4_index(p, n)}" for p in _px4_prefixes(n))
+            names = " or ".join(_px4_param(p, "FUNC", n) for p in _px4_prefixes(n))
             checks.append(
                 Check(label, Verdict.FAIL, f"{names} not answered", "check the output number")
             )
             continue
         i = _px4_index(prefix, n)
-        function = _value(params, f"{prefix}_FUNC{i}")
+        func_name = _px4_param(prefix, "FUNC", n)
+        function = _value(params, func_name)
         want = PX4_FIRST_ACTUATOR_FUNCTION + index
         if index >= PX4_ACTUATOR_SET_SIZE:
             checks.append(
@@ -364,7 +451,18 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 Check(
                     label,
                     Verdict.PASS,
-                    f"{prefix}_FUNC{i} = {want} (Peripheral via Actuator Set {index + 1})",
+                    f"{func_name} = {want} (Peripheral via Actuator Set {index + 1})",
+                )
+            )
+        elif function == 0 or function in PX4_ACTUATOR_FUNCTIONS:
+            checks.append(
+                Check(
+                    label,
+                    Verdict.FAIL,
+                    f"{func_name} = {function} ({_px4_function_name(function or 0)}): joint "
+                    f"{index + 1} is sent as actuator set slot {index + 1}, which drives only an "
+                    f"output of function {want}",
+                    f"param set {func_name} {want}",
                 )
             )
         else:
@@ -372,11 +470,13 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 Check(
                     label,
                     Verdict.FAIL,
-                    f"{prefix}_FUNC{i} = {function}: joint {index + 1} is sent as actuator set "
-                    f"slot {index + 1}, which drives only an output of function {want}",
-                    f"param set {prefix}_FUNC{i} {want}",
+                    f"{func_name} = {function} ({_px4_function_name(function or 0)}): the "
+                    f"output is the vehicle's; joint {index + 1} drives only an output of "
+                    f"function {want}",
+                    _px4_move_fix(index, want, free, params),
                 )
             )
+            continue  # its limits are the vehicle's, not to be set to the arm's
         low, high = _value(params, f"{prefix}_MIN{i}"), _value(params, f"{prefix}_MAX{i}")
         if low is None or high is None:
             continue  # SITL has no per-output limits: 1000-2000 fixed
@@ -401,6 +501,24 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 )
             )
     return checks
+
+
+def _px4_move_fix(index: int, want: int, free: list[int], params: dict[str, float | None]) -> str:
+    """Move joint ``index`` to the first of ``free`` (taken from it) and give it its function;
+    the output it leaves keeps its own."""
+    if not free:
+        return (
+            f"map joint {index + 1} to an output whose function is 0 (Disabled) (joint.output), "
+            f"then param set PWM_MAIN_FUNCn {want} there; leave this output's function as it is"
+        )
+    offered = ", ".join(map(str, free))
+    target = free.pop(0)
+    name = _px4_param(_px4_prefix(params, target) or "PWM_MAIN", "FUNC", target)
+    return (
+        f"map joint {index + 1} to a free output, e.g. joint.output = {target}, then param set "
+        f"{name} {want}; leave this output's function as it is "
+        f"(free (function 0): {offered})"
+    )
 
 
 def _ardupilot_safety(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
@@ -451,6 +569,8 @@ def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[
     )
     for index, joint in enumerate(config.calibration.joints):
         n = joint.output
+        if _px4_vehicles(params, n):
+            continue  # the joint must move (an output item says so): its disarmed PWM is not ours
         prefix = next(
             (
                 p

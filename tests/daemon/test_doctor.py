@@ -171,3 +171,59 @@ def test_a_link_that_cannot_be_opened_is_a_finding_with_its_fix(
         assert fix in check["fix"]
     else:
         assert "FAIL  link: cannot" in out and fix in out
+
+
+def px4_params(functions=None, **extra):
+    """A PX4 answer: PWM_MAIN_FUNC1..16 (motors 1-4, the arm's actuator set on 9-14, the rest
+    disabled, as ``functions`` overrides; None: not answered), the arm's limits 1000-2000 and
+    disarmed 1500, prearm and forwarding on."""
+    params: dict[str, float | None] = {"COM_PREARM_MODE": 2.0, "MAV_0_FORWARD": 1.0}
+    params["MAV_1_FORWARD"] = 1.0
+    defaults = {**{n: 100 + n for n in range(1, 5)}, **{n: 292 + n for n in range(9, 15)}}
+    for n in range(1, 17):
+        function = {**defaults, **(functions or {})}.get(n, 0)
+        params[f"PWM_MAIN_FUNC{n}"] = None if function is None else float(function)
+    for n in range(9, 15):
+        params[f"PWM_MAIN_MIN{n}"], params[f"PWM_MAIN_MAX{n}"] = 1000.0, 2000.0
+        params[f"PWM_MAIN_DIS{n}"] = 1500.0
+    params.update(extra)
+    return params
+
+
+def test_px4_a_joint_on_a_motor_or_another_function_is_moved_never_the_function_changed():
+    """Only a disabled output (or one of the arm's own actuator-set outputs) gets its function
+    set; a motor, a control surface, landing gear or a constant output is the vehicle's: the
+    joint moves to a free output, named with its parameter."""
+    cfg = config("px4", outputs=(1, 10, 11, 12, 13, 14))
+    params = px4_params({9: 0, 11: 304, 12: 400, 15: 0})
+    found = Findings("u", autopilot=PX4, params=params, streams=STREAMING)
+    failed = {c.item: c for c in by_verdict(evaluate(cfg, found), Verdict.FAIL)}
+    motor = failed["joint 1 (q1) on output 1"]
+    assert "PWM_MAIN_FUNC1 = 101 (Motor 1)" in motor.detail
+    assert motor.fix is not None and "PWM_MAIN_FUNC1 " not in motor.fix
+    assert "joint.output = 5" in motor.fix and "param set PWM_MAIN_FUNC5 301" in motor.fix
+    assert "free (function 0): 5, 6, 7, 8, 9, 15, 16" in motor.fix
+    # Another of the arm's actuator-set functions: ours, set to this joint's.
+    assert failed["joint 3 (q3) on output 11"].fix == "param set PWM_MAIN_FUNC11 303"
+    gear = failed["joint 4 (q4) on output 12"]
+    assert "PWM_MAIN_FUNC12 = 400 (Landing Gear)" in gear.detail
+    assert gear.fix is not None and "PWM_MAIN_FUNC12 " not in gear.fix
+    # The next free output, not the one offered to joint 1.
+    assert "joint.output = 6" in gear.fix and "param set PWM_MAIN_FUNC6 304" in gear.fix
+    assert len(failed) == 3
+    # A board with an IO processor: output 9 is PWM_AUX_FUNC1, a control surface there.
+    aux = {f"PWM_MAIN_FUNC{n}": None for n in range(9, 17)}
+    functions = [201, 302, 303, 304, 305, 306, 0, 0]
+    aux |= {f"PWM_AUX_FUNC{k}": float(f) for k, f in enumerate(functions, 1)}
+    io = Findings("u", autopilot=PX4, params=px4_params(**aux), streams=STREAMING)
+    servo = {c.item: c for c in evaluate(config("px4"), io)}
+    surface = servo["joint 1 (q1) on output 9"]
+    assert surface.verdict is Verdict.FAIL and "PWM_AUX_FUNC1 = 201 (Servo 1)" in surface.detail
+    assert surface.fix is not None and "PWM_AUX_FUNC1 " not in surface.fix
+    assert "joint.output = 5" in surface.fix and "8, 15, 16" in surface.fix
+    # Nothing free that doctor read: the fix says what to look for.
+    busy = px4_params({n: 1 for n in (5, 6, 7, 8, 9, 15, 16)})
+    full = Findings("u", autopilot=PX4, params=busy, streams=STREAMING)
+    none_free = {c.item: c for c in evaluate(cfg, full)}
+    fix = none_free["joint 1 (q1) on output 1"].fix
+    assert fix is not None and "PWM_MAIN_FUNC1 " not in fix and "function is 0" in fix
