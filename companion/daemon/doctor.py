@@ -17,6 +17,12 @@ the instance lock tells), waits for the autopilot, then:
   ``pwm_min_us``/``pwm_max_us``; ArduPilot does not clamp DO_SET_SERVO, but its own outputs
   (trim at boot, failsafe) use ``SERVOn_MIN``/``MAX``, so the calibration should lie within
   them (a warning).
+* **forwarding** (PX4): a frame passes only from an instance that forwards to one that forwards
+  (``MAV_n_FORWARD``). Doctor cannot tell which instance its link is (a serial port is named on
+  the autopilot's side; SITL starts its instances with forwarding whatever the parameters say),
+  so a HEARTBEAT of another system heard here shows forwarding works and the parameters are not
+  doubted; without one, the ones that are off are named in the routing item's fix, never a
+  warning of their own.
 * **readback**: SERVO_OUTPUT_RAW (and PX4's ACTUATOR_OUTPUT_STATUS) can be streamed: asked with
   MAV_CMD_SET_MESSAGE_INTERVAL, acknowledged, and seen; set back to the default rate after.
 * **signing**: off (a warning: anyone on the link may move the arm), or on and the autopilot's
@@ -141,6 +147,9 @@ class Findings:
     streams: dict[str, tuple[int | None, bool]] = field(default_factory=dict)
     #: ``(system, component)`` of ground stations heard through the autopilot.
     ground_stations: set[tuple[int, int]] = field(default_factory=set)
+    #: ``(system, component)`` of HEARTBEATs of other systems than the autopilot's (and ours)
+    #: heard here: frames the autopilot forwarded to this link (or a router in between sent).
+    others: set[tuple[int, int]] = field(default_factory=set)
     #: ardupilot-lua: the MAV_RESULT the bridge script's probe got (None: no answer).
     lua_probe: int | None = None
     signing_on: bool = False
@@ -182,11 +191,12 @@ def param_names(config: DaemonConfig, autopilot: str) -> list[str]:
     return names
 
 
-#: The vehicle-wide parameters read: ArduPilot's safety switch; PX4's prearm mode and
-#: MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is one of them).
+#: PX4's MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is likely one of them).
+_PX4_FORWARD_PARAMS = ("MAV_0_FORWARD", "MAV_1_FORWARD")
+#: The vehicle-wide parameters read: ArduPilot's safety switch; PX4's prearm mode and forwarding.
 _VEHICLE_PARAMS = {
     "ardupilot": ["BRD_SAFETY_DEFLT", "BRD_SAFETY_MASK"],
-    "px4": ["COM_PREARM_MODE", "MAV_0_FORWARD", "MAV_1_FORWARD"],
+    "px4": ["COM_PREARM_MODE", *_PX4_FORWARD_PARAMS],
 }
 
 
@@ -255,6 +265,7 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     else:
         checks += _px4_outputs(config, findings.params)
         checks += _px4_vehicle(config, findings.params)
+        checks += _px4_forwarding(findings)
     checks += _streams(findings, kind or "ardupilot")
     if dialect == "ardupilot-lua":
         checks.append(_lua_script(findings))
@@ -262,7 +273,7 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     if budget is not None:
         checks.append(budget)
     checks.append(_signing(config, findings))
-    checks.append(_routing(findings))
+    checks.append(_routing(findings, kind))
     return checks
 
 
@@ -545,8 +556,7 @@ def _ardupilot_safety(config: DaemonConfig, params: dict[str, float | None]) -> 
 
 def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
     """PX4: outputs dead until armed unless prearmed (COM_PREARM_MODE 2); the disarmed PWM is
-    where a joint goes at boot, disarm and kill (the park PWM is the safe choice); forwarding
-    must be on for a ground station's targets to reach us."""
+    where a joint goes at boot, disarm and kill (the park PWM is the safe choice)."""
     checks = []
     prearm = _value(params, "COM_PREARM_MODE")
     if prearm is not None:
@@ -599,20 +609,43 @@ def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[
                     f"param set {name} {want if want is not None else joint.pwm_min_us}",
                 )
             )
-    off = [f for f in ("MAV_0_FORWARD", "MAV_1_FORWARD") if _value(params, f) == 0]
-    if off:
-        checks.append(
+    return checks
+
+
+def _px4_forwarding_off(params: dict[str, float | None]) -> list[str]:
+    return [name for name in _PX4_FORWARD_PARAMS if _value(params, name) == 0]
+
+
+def _px4_forwarding(findings: Findings) -> list[Check]:
+    """PX4 forwards a frame only from an instance that forwards to one that forwards
+    (``MAV_n_FORWARD``, read at boot). Which instance this link is doctor cannot tell: a serial
+    port is named on the autopilot's side, and SITL starts its instances with forwarding
+    (``mavlink start -f``) whatever the parameters say. So what was heard decides: a HEARTBEAT of
+    another system here (a ground station, another vehicle) came through forwarding on this
+    link's instance, and the parameters are not doubted then. Without one the parameters alone
+    are no finding of their own: the routing item's fix names those that are off."""
+    params = findings.params
+    off = _px4_forwarding_off(params)
+    heard = sorted(findings.ground_stations | findings.others)
+    if heard:
+        who = ", ".join(f"{s}/{c}" for s, c in heard)
+        note = (
+            f" ({', '.join(off)} = 0: not this link's instance, set since boot (it takes effect "
+            "at a reboot), or an instance started with forwarding, as SITL's are)"
+            if off
+            else ""
+        )
+        return [
             Check(
                 "forwarding",
-                Verdict.WARN,
-                f"{', '.join(off)} = 0: PX4 forwards a ground station's targets only between "
-                "instances that both forward",
-                "; ".join(f"param set {f} 1" for f in off),
+                Verdict.PASS,
+                f"works: HEARTBEATs of {who} reach this link through the autopilot{note}",
             )
-        )
-    elif _value(params, "MAV_0_FORWARD") is not None:
-        checks.append(Check("forwarding", Verdict.PASS, "on for TELEM1 and TELEM2"))
-    return checks
+        ]
+    if not off and any(_value(params, name) is not None for name in _PX4_FORWARD_PARAMS):
+        on = ", ".join(name for name in _PX4_FORWARD_PARAMS if _value(params, name) is not None)
+        return [Check("forwarding", Verdict.PASS, f"{on} = 1")]
+    return []
 
 
 def _streams(findings: Findings, kind: str) -> list[Check]:
@@ -694,16 +727,29 @@ def _signing(config: DaemonConfig, findings: Findings) -> Check:
     return Check("signing", Verdict.PASS, "on; the autopilot's frames verify and it answers ours")
 
 
-def _routing(findings: Findings) -> Check:
+def _routing(findings: Findings, kind: str | None) -> Check:
     if findings.ground_stations:
         who = ", ".join(f"{s}/{c}" for s, c in sorted(findings.ground_stations))
         return Check("routing", Verdict.PASS, f"ground station {who} heard through the autopilot")
+    off = _px4_forwarding_off(findings.params) if kind == "px4" else []
+    forwarding = (
+        f"; PX4 forwards only between instances that both forward, and {', '.join(off)} = 0: "
+        + ", ".join(f"param set {name} 1" for name in off)
+        + (
+            " if that is its instance (ours forwards: others are heard), then reboot"
+            if findings.others
+            else " if that is its instance or ours, then reboot"
+        )
+        if off
+        else ""
+    )
     return Check(
         "routing",
         Verdict.WARN,
         f"no ground station heard through the autopilot in {findings.listened_s:.0f} s",
         "if one is connected, its USER_1 targets will not reach us: connect it to another "
-        "autopilot port, not behind the same MAVProxy as us (README: Where the daemon sits)",
+        "autopilot port, not behind the same MAVProxy as us (README: Where the daemon sits)"
+        + forwarding,
     )
 
 
@@ -789,6 +835,7 @@ def gather(
                 if config.link.dialect == "ardupilot-lua":
                     findings.lua_probe = _probe_lua(link, inbox, config, findings, clock)
             _drain_until(inbox, started + max(listen_s, 0.0), findings, clock)
+            findings.others.discard((s.system_id or 0, s.component_id))  # our own, if echoed
             findings.listened_s = clock() - started
             stats = link.stats
             findings.signing_rejections = (
@@ -800,9 +847,15 @@ def gather(
 
 
 def _note(msg: Any, findings: Findings) -> None:
-    """What every incoming frame may tell, whatever we wait for: a ground station."""
-    if msg.get_type() == "HEARTBEAT" and msg.type == mavlink.MAV_TYPE_GCS:
-        findings.ground_stations.add((msg.get_srcSystem(), msg.get_srcComponent()))
+    """What every incoming frame may tell, whatever we wait for: a ground station, another
+    system (either came through the autopilot's forwarding)."""
+    if msg.get_type() != "HEARTBEAT":
+        return
+    source = (msg.get_srcSystem(), msg.get_srcComponent())
+    if msg.type == mavlink.MAV_TYPE_GCS:
+        findings.ground_stations.add(source)
+    if findings.autopilot is not None and source[0] != findings.autopilot[0]:
+        findings.others.add(source)
 
 
 def _drain_until(

@@ -227,3 +227,46 @@ def test_px4_a_joint_on_a_motor_or_another_function_is_moved_never_the_function_
     none_free = {c.item: c for c in evaluate(cfg, full)}
     fix = none_free["joint 1 (q1) on output 1"].fix
     assert fix is not None and "PWM_MAIN_FUNC1 " not in fix and "function is 0" in fix
+
+
+def test_px4_forwarding_seen_working_is_not_doubted_from_its_parameters():
+    """SITL starts its MAVLink instances with forwarding (``-f``) whatever MAV_n_FORWARD say,
+    and doctor cannot tell which instance its link is: frames of another system heard here show
+    forwarding works; without them the parameters are only a hint in the routing item."""
+    cfg = config("px4")
+    params = px4_params(MAV_1_FORWARD=0.0)
+    for heard in ({"ground_stations": {(255, 190)}}, {"others": {(2, 1)}}):
+        found = Findings("u", autopilot=PX4, params=params, streams=STREAMING, **heard)
+        checks = {c.item: c for c in evaluate(cfg, found)}
+        assert checks["forwarding"].verdict is Verdict.PASS, checks["forwarding"]
+        assert "MAV_1_FORWARD = 0" in checks["forwarding"].detail
+    silent = Findings("u", autopilot=PX4, params=params, streams=STREAMING, listened_s=3.0)
+    checks = evaluate(cfg, silent)
+    assert "forwarding" not in {c.item for c in checks}
+    routing = {c.item: c for c in checks}["routing"]
+    assert routing.verdict is Verdict.WARN
+    assert routing.fix is not None and "param set MAV_1_FORWARD 1" in routing.fix
+    assert "reboot" in routing.fix
+
+
+def test_heartbeats_of_other_systems_are_noted_as_forwarded_to_us():
+    from companion.daemon.doctor import _note
+
+    encoder = mavlink.MAVLink(None)
+
+    def heartbeat(system, component, kind=mavlink.MAV_TYPE_ONBOARD_CONTROLLER):
+        encoder.srcSystem, encoder.srcComponent = system, component
+        msg = encoder.heartbeat_encode(kind, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        msg.pack(encoder)
+        return mavlink.MAVLink(None).decode(msg.get_msgbuf())
+
+    found = Findings("u", autopilot=PX4)
+    for msg in (
+        heartbeat(255, 190, mavlink.MAV_TYPE_GCS),
+        heartbeat(2, 1, mavlink.MAV_TYPE_QUADROTOR),
+        heartbeat(1, 100),  # a camera of the autopilot's own system: not evidence
+        heartbeat(1, 1, mavlink.MAV_TYPE_QUADROTOR),
+    ):
+        _note(msg, found)
+    assert found.ground_stations == {(255, 190)}
+    assert found.others == {(255, 190), (2, 1)}
