@@ -16,7 +16,11 @@ the instance lock tells), waits for the autopilot, then:
   ``PWM_MAIN_MINn``…``PWM_MAIN_MAXn``, so they must equal the joint's
   ``pwm_min_us``/``pwm_max_us``; ArduPilot does not clamp DO_SET_SERVO, but its own outputs
   (trim at boot, failsafe) use ``SERVOn_MIN``/``MAX``, so the calibration should lie within
-  them (a warning).
+  them (a warning). PX4's ``PWM_MAIN_DISn`` is where a joint goes whenever the outputs are not
+  live (boot, disarm, kill): the park PWM, or at least within the calibration. A build without
+  these parameters for an output (some SITL builds: never answered) uses its output driver's
+  own, 1000–2000 µs and disarmed 900 µs on PX4 SITL: doctor names the missing ones and judges
+  those values instead.
 * **forwarding** (PX4): a frame passes only from an instance that forwards to one that forwards
   (``MAV_n_FORWARD``). Doctor cannot tell which instance its link is (a serial port is named on
   the autopilot's side; SITL starts its instances with forwarding whatever the parameters say),
@@ -50,7 +54,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig, link_budget_of, link_config
-from firmware_interface import LinkConfig, LinkError, MavlinkLink
+from firmware_interface import JointCalibration, LinkConfig, LinkError, MavlinkLink
 from firmware_interface.errors import InvalidUrl
 from firmware_interface.link import MessageQueue
 from firmware_interface.lua_bridge import MAV_CMD_USER_2
@@ -93,6 +97,11 @@ PX4_FUNCTION_RANGES = (
     (2032, 2063, "Camera Capture"),
     (2064, 2095, "PPS Input"),
 )
+#: PX4's output driver's own range and disarmed PWM (µs), for a build without
+#: ``PWM_MAIN_MINn``/``MAXn``/``DISn``: PX4 SITL's (pwm_out_sim: 1000–2000, disarmed 900,
+#: as measured on SITL).
+PX4_BUILTIN_PWM_US = (1000, 2000)
+PX4_BUILTIN_DISARMED_US = 900
 #: The outputs whose function doctor reads on PX4 (SITL and FMU boards: PWM_MAIN_FUNC1..16;
 #: boards with an IO processor: PWM_MAIN_FUNC1..8 and PWM_AUX_FUNC1..8).
 PX4_SCANNED_OUTPUTS = 16
@@ -444,7 +453,6 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 Check(label, Verdict.FAIL, f"{names} not answered", "check the output number")
             )
             continue
-        i = _px4_index(prefix, n)
         func_name = _px4_param(prefix, "FUNC", n)
         function = _value(params, func_name)
         want = PX4_FIRST_ACTUATOR_FUNCTION + index
@@ -488,30 +496,53 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 )
             )
             continue  # its limits are the vehicle's, not to be set to the arm's
-        low, high = _value(params, f"{prefix}_MIN{i}"), _value(params, f"{prefix}_MAX{i}")
-        if low is None or high is None:
-            continue  # SITL has no per-output limits: 1000-2000 fixed
-        pwm = (joint.pwm_min_us, joint.pwm_max_us)
-        if (low, high) == (min(pwm), max(pwm)):
-            checks.append(
-                Check(
-                    f"{label} range",
-                    Verdict.PASS,
-                    f"{prefix}_MIN/MAX{i} = {low}/{high} = the calibration",
-                )
-            )
-        else:
-            checks.append(
-                Check(
-                    f"{label} range",
-                    Verdict.FAIL,
-                    f"{prefix}_MIN/MAX{i} = {low}/{high} but the calibration is "
-                    f"{min(pwm)}-{max(pwm)} us: PX4 maps -1..1 onto MIN..MAX, so every angle "
-                    "would land elsewhere",
-                    f"param set {prefix}_MIN{i} {min(pwm)}; param set {prefix}_MAX{i} {max(pwm)}",
-                )
-            )
+        checks.append(_px4_range(index, joint, prefix, params))
     return checks
+
+
+def _px4_range(
+    index: int, joint: JointCalibration, prefix: str, params: dict[str, float | None]
+) -> Check:
+    """PX4 maps −1…1 onto the output's MIN…MAX; a build without them (some SITL builds) uses
+    its output driver's own, 1000–2000 µs."""
+    n = joint.output
+    i = _px4_index(prefix, n)
+    label = f"{_joint_label(index, joint.name, n)} range"
+    names = (_px4_param(prefix, "MIN", n), _px4_param(prefix, "MAX", n))
+    read = [_value(params, name) for name in names]
+    missing = [name for name, value in zip(names, read, strict=True) if value is None]
+    low, high = (PX4_BUILTIN_PWM_US[k] if value is None else value for k, value in enumerate(read))
+    pwm = (min(joint.pwm_min_us, joint.pwm_max_us), max(joint.pwm_min_us, joint.pwm_max_us))
+    if missing:
+        own = [
+            f"{what} ({PX4_BUILTIN_PWM_US[k]} us on SITL)"
+            for k, what in enumerate(("minimum", "maximum"))
+            if read[k] is None
+        ]
+        found = (
+            f"{', '.join(missing)} not answered (no such parameter in this build): PX4 uses its "
+            f"output driver's own {' and '.join(own)} and maps -1..1 onto {low}-{high} us"
+        )
+    else:
+        found = f"{prefix}_MIN/MAX{i} = {low}/{high}"
+    if (low, high) == pwm:
+        return Check(label, Verdict.PASS, f"{found} = the calibration")
+    if missing:
+        fix = (
+            f"calibrate joint {index + 1} over {low}-{high} us (pwm_min_us, pwm_max_us, with "
+            f"angle_min_deg/angle_max_deg widened to match), or use a PX4 build that has "
+            f"{' and '.join(missing)}"
+        )
+    else:
+        fix = f"param set {names[0]} {pwm[0]}; param set {names[1]} {pwm[1]}"
+    return Check(
+        label,
+        Verdict.FAIL,
+        f"{found}, but the calibration is {pwm[0]}-{pwm[1]} us: "
+        + ("" if missing else "PX4 maps -1..1 onto MIN..MAX, so ")
+        + "every angle would land elsewhere",
+        fix,
+    )
 
 
 def _px4_move_fix(index: int, want: int, free: list[int], params: dict[str, float | None]) -> str:
@@ -581,35 +612,57 @@ def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[
         n = joint.output
         if _px4_vehicles(params, n):
             continue  # the joint must move (an output item says so): its disarmed PWM is not ours
-        prefix = next(
-            (
-                p
-                for p in _px4_prefixes(n)
-                if _value(params, f"{p}_DIS{_px4_index(p, n)}") is not None
-            ),
+        # The output's prefix is the one its function was read with (else its DIS, if any).
+        prefix = _px4_prefix(params, n) or next(
+            (p for p in _px4_prefixes(n) if _value(params, _px4_param(p, "DIS", n)) is not None),
             None,
         )
         if prefix is None:
-            continue
-        name = f"{prefix}_DIS{_px4_index(prefix, n)}"
-        dis = _value(params, name)
-        want = park_pwm.get(n)
-        label = f"{_joint_label(index, joint.name, n)} disarmed"
-        if want is not None and dis == want:
-            checks.append(Check(label, Verdict.PASS, f"{name} = {dis} = the park PWM"))
-        elif dis is not None and joint.pwm_min_us <= dis <= joint.pwm_max_us and want is None:
-            checks.append(Check(label, Verdict.PASS, f"{name} = {dis}, within the calibration"))
-        else:
-            checks.append(
-                Check(
-                    label,
-                    Verdict.WARN,
-                    f"{name} = {dis}: at boot, disarm and kill the joint jumps there"
-                    + ("" if want is None else f" (park is {want} us)"),
-                    f"param set {name} {want if want is not None else joint.pwm_min_us}",
-                )
-            )
+            continue  # no such output (the output item says so)
+        checks.append(_px4_disarmed(index, joint, prefix, params, park_pwm.get(n)))
     return checks
+
+
+def _px4_disarmed(
+    index: int,
+    joint: JointCalibration,
+    prefix: str,
+    params: dict[str, float | None],
+    park: int | None,
+) -> Check:
+    """Where the joint goes whenever the outputs are not live: ``PWM_MAIN_DISn``, or in a build
+    without it the output driver's own disarmed PWM (900 µs on PX4 SITL). Outside the
+    calibration, or not the park PWM, it is a jump at boot, disarm and kill."""
+    n = joint.output
+    name = _px4_param(prefix, "DIS", n)
+    read = _value(params, name)
+    dis = PX4_BUILTIN_DISARMED_US if read is None else read
+    found = (
+        f"{name} not answered (no such parameter in this build): the output driver's own "
+        f"disarmed PWM applies, {dis} us on PX4 SITL"
+        if read is None
+        else f"{name} = {dis}"
+    )
+    label = f"{_joint_label(index, joint.name, n)} disarmed"
+    low, high = sorted((joint.pwm_min_us, joint.pwm_max_us))
+    inside = low <= dis <= high
+    if park is not None and dis == park:
+        return Check(label, Verdict.PASS, f"{found} = the park PWM")
+    if park is None and inside:
+        return Check(label, Verdict.PASS, f"{found}, within the calibration")
+    target = park if park is not None else joint.pwm_min_us
+    where = "" if inside else f", outside the calibration {low}-{high} us"
+    fix = f"param set {name} {target}"
+    return Check(
+        label,
+        Verdict.WARN,
+        f"{found}{where}: at boot, disarm and kill the joint jumps there"
+        + ("" if park is None else f" (park is {park} us)"),
+        fix
+        if read is not None
+        else f"{fix} on a PX4 build that has it; this one has no disarmed PWM to set for the "
+        "output",
+    )
 
 
 def _px4_forwarding_off(params: dict[str, float | None]) -> list[str]:

@@ -249,6 +249,43 @@ def test_px4_forwarding_seen_working_is_not_doubted_from_its_parameters():
     assert "reboot" in routing.fix
 
 
+def test_px4_limits_that_do_not_exist_are_named_with_what_the_outputs_do_instead():
+    """A build without per-output limits: PX4 uses its built-in 1000-2000 us and a disarmed
+    900 us (SITL's), which is outside a 1000-2000 calibration: the joint goes there."""
+    missing = {f"PWM_MAIN_{p}{n}": None for p in ("MIN", "MAX", "DIS") for n in range(9, 15)}
+    found = Findings("u", autopilot=PX4, params=px4_params(**missing), streams=STREAMING)
+    checks = {c.item: c for c in evaluate(config("px4"), found)}
+    limits = checks["joint 1 (q1) on output 9 range"]
+    assert limits.verdict is Verdict.PASS
+    assert "PWM_MAIN_MIN9, PWM_MAIN_MAX9 not answered" in limits.detail
+    assert "1000-2000" in limits.detail
+    disarmed = checks["joint 1 (q1) on output 9 disarmed"]
+    assert disarmed.verdict is Verdict.WARN
+    assert "PWM_MAIN_DIS9 not answered" in disarmed.detail and "900 us" in disarmed.detail
+    assert disarmed.fix is not None and "param set PWM_MAIN_DIS9 1000" in disarmed.fix
+    narrow = parse_config(
+        {
+            "link": {**URL, "dialect": "px4"},
+            "arm": {"park_deg": [0, 90, 0, 0, 0, 0]},
+            "control": {"socket": ""},
+            "joint": [{"output": o, "pwm_min_us": 1100, "pwm_max_us": 1900} for o in range(9, 15)],
+        }
+    )
+    park = narrow.calibration.angles_to_pwm_us(narrow.park_deg)
+    checks = {c.item: c for c in evaluate(narrow, found)}
+    assert checks["joint 2 (q2) on output 10 range"].verdict is Verdict.FAIL
+    assert "1000-2000" in checks["joint 2 (q2) on output 10 range"].detail
+    assert f"param set PWM_MAIN_DIS10 {park[10]}" in (
+        checks["joint 2 (q2) on output 10 disarmed"].fix or ""
+    )
+    # Newer PX4 SITL has the parameters, and PWM_MAIN_DISn is 900 there: the same finding.
+    sitl = px4_params(**{f"PWM_MAIN_DIS{n}": 900.0 for n in range(9, 15)})
+    found = Findings("u", autopilot=PX4, params=sitl, streams=STREAMING)
+    disarmed = {c.item: c for c in evaluate(narrow, found)}["joint 3 (q3) on output 11 disarmed"]
+    assert disarmed.verdict is Verdict.WARN and "900" in disarmed.detail
+    assert disarmed.fix == f"param set PWM_MAIN_DIS11 {park[11]}"
+
+
 def test_heartbeats_of_other_systems_are_noted_as_forwarded_to_us():
     from companion.daemon.doctor import _note
 
