@@ -675,8 +675,9 @@ def _px4_forwarding(findings: Findings) -> list[Check]:
     port is named on the autopilot's side, and SITL starts its instances with forwarding
     (``mavlink start -f``) whatever the parameters say. So what was heard decides: a HEARTBEAT of
     another system here (a ground station, another vehicle) came through forwarding on this
-    link's instance, and the parameters are not doubted then. Without one the parameters alone
-    are no finding of their own: the routing item's fix names those that are off."""
+    link's instance (or a router between doctor and the autopilot sent it, which routes as
+    well), and the parameters are not doubted then. Without one the parameters alone are no
+    finding of their own: the routing item's fix names those that are off."""
     params = findings.params
     off = _px4_forwarding_off(params)
     heard = sorted(findings.ground_stations | findings.others)
