@@ -8,10 +8,25 @@ the instance lock tells), waits for the autopilot, then:
   ArduPilot ``SERVOn_FUNCTION`` must be 0 (DO_SET_SERVO is refused on any other function but RC
   pass-through, 1 and 51–66, which the RC input then fights); PX4 ``PWM_MAIN_FUNCn`` (or
   ``PWM_AUX_FUNCn`` on boards with an IO processor) must be 301–306 "Peripheral via Actuator Set
-  k" in joint order. The PWM limits against the calibration: PX4 maps −1…1 onto
-  ``PWM_MAIN_MINn``…``PWM_MAIN_MAXn``, so they must equal the joint's ``pwm_min_us``/``pwm_max_us``;
-  ArduPilot does not clamp DO_SET_SERVO, but its own outputs (trim at boot, failsafe) use
-  ``SERVOn_MIN``/``MAX``, so the calibration should lie within them (a warning).
+  k" in joint order. On PX4 only a disabled output (0) or one of the actuator-set functions gets
+  its function set; any other (a motor 101–112, a servo 201+, landing gear, a constant output,
+  ...) is the vehicle's: the joint moves to a free output, one of those read as 0 (every
+  output's function is read for that), and the vehicle's function stays.
+* **limits**: the PWM limits against the calibration: PX4 maps −1…1 onto
+  ``PWM_MAIN_MINn``…``PWM_MAIN_MAXn``, so they must equal the joint's
+  ``pwm_min_us``/``pwm_max_us``; ArduPilot does not clamp DO_SET_SERVO, but its own outputs
+  (trim at boot, failsafe) use ``SERVOn_MIN``/``MAX``, so the calibration should lie within
+  them (a warning). PX4's ``PWM_MAIN_DISn`` is where a joint goes whenever the outputs are not
+  live (boot, disarm, kill): the park PWM, or at least within the calibration. A build without
+  these parameters for an output (some SITL builds: never answered) uses its output driver's
+  own, 1000–2000 µs and disarmed 900 µs on PX4 SITL: doctor names the missing ones and judges
+  those values instead.
+* **forwarding** (PX4): a frame passes only from an instance that forwards to one that forwards
+  (``MAV_n_FORWARD``). Doctor cannot tell which instance its link is (a serial port is named on
+  the autopilot's side; SITL starts its instances with forwarding whatever the parameters say),
+  so a HEARTBEAT of another system heard here shows forwarding works and the parameters are not
+  doubted; without one, the ones that are off are named in the routing item's fix, never a
+  warning of their own.
 * **readback**: SERVO_OUTPUT_RAW (and PX4's ACTUATOR_OUTPUT_STATUS) can be streamed: asked with
   MAV_CMD_SET_MESSAGE_INTERVAL, acknowledged, and seen; set back to the default rate after.
 * **signing**: off (a warning: anyone on the link may move the arm), or on and the autopilot's
@@ -39,7 +54,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig, link_budget_of, link_config
-from firmware_interface import LinkConfig, LinkError, MavlinkLink
+from firmware_interface import JointCalibration, LinkConfig, LinkError, MavlinkLink
 from firmware_interface.errors import InvalidUrl
 from firmware_interface.link import MessageQueue
 from firmware_interface.lua_bridge import MAV_CMD_USER_2
@@ -51,6 +66,45 @@ __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report"
 ARDUPILOT_SERVO_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
 PX4_FIRST_ACTUATOR_FUNCTION = 301
 PX4_ACTUATOR_SET_SIZE = 6
+PX4_ACTUATOR_FUNCTIONS = range(
+    PX4_FIRST_ACTUATOR_FUNCTION, PX4_FIRST_ACTUATOR_FUNCTION + PX4_ACTUATOR_SET_SIZE
+)
+#: PX4 output functions (``PWM_MAIN_FUNCn``; src/lib/mixer_module/output_functions.yaml).
+PX4_FUNCTION_NAMES = {
+    0: "Disabled",
+    1: "Constant Min",
+    2: "Constant Max",
+    400: "Landing Gear",
+    401: "Parachute",
+    402: "RC Roll",
+    403: "RC Pitch",
+    404: "RC Throttle",
+    405: "RC Yaw",
+    406: "RC Flaps",
+    420: "Gimbal Roll",
+    421: "Gimbal Pitch",
+    422: "Gimbal Yaw",
+    430: "Gripper",
+    440: "Landing Gear Wheel",
+}
+#: Numbered PX4 functions: (first, last, name); the number is the function's minus first, plus 1.
+PX4_FUNCTION_RANGES = (
+    (101, 112, "Motor"),
+    (201, 215, "Servo"),
+    (301, 306, "Peripheral via Actuator Set"),
+    (407, 412, "RC AUX"),
+    (2000, 2031, "Camera Trigger"),
+    (2032, 2063, "Camera Capture"),
+    (2064, 2095, "PPS Input"),
+)
+#: PX4's output driver's own range and disarmed PWM (µs), for a build without
+#: ``PWM_MAIN_MINn``/``MAXn``/``DISn``: PX4 SITL's (pwm_out_sim: 1000–2000, disarmed 900,
+#: as measured on SITL).
+PX4_BUILTIN_PWM_US = (1000, 2000)
+PX4_BUILTIN_DISARMED_US = 900
+#: The outputs whose function doctor reads on PX4 (SITL and FMU boards: PWM_MAIN_FUNC1..16;
+#: boards with an IO processor: PWM_MAIN_FUNC1..8 and PWM_AUX_FUNC1..8).
+PX4_SCANNED_OUTPUTS = 16
 #: Readback streams doctor asks for, per autopilot.
 READBACK = {
     "ardupilot": ("SERVO_OUTPUT_RAW",),
@@ -102,6 +156,9 @@ class Findings:
     streams: dict[str, tuple[int | None, bool]] = field(default_factory=dict)
     #: ``(system, component)`` of ground stations heard through the autopilot.
     ground_stations: set[tuple[int, int]] = field(default_factory=set)
+    #: ``(system, component)`` of HEARTBEATs of other systems than the autopilot's (and ours)
+    #: heard here: frames the autopilot forwarded to this link (or a router in between sent).
+    others: set[tuple[int, int]] = field(default_factory=set)
     #: ardupilot-lua: the MAV_RESULT the bridge script's probe got (None: no answer).
     lua_probe: int | None = None
     signing_on: bool = False
@@ -133,23 +190,22 @@ def param_names(config: DaemonConfig, autopilot: str) -> list[str]:
             names += [f"SERVO{n}_FUNCTION", f"SERVO{n}_MIN", f"SERVO{n}_MAX"]
         else:
             for prefix in _px4_prefixes(n):
-                names += [
-                    f"{prefix}_FUNC{_px4_index(prefix, n)}",
-                    f"{prefix}_MIN{_px4_index(prefix, n)}",
-                ]
-                names += [
-                    f"{prefix}_MAX{_px4_index(prefix, n)}",
-                    f"{prefix}_DIS{_px4_index(prefix, n)}",
-                ]
+                i = _px4_index(prefix, n)
+                names += [f"{prefix}_{p}{i}" for p in ("FUNC", "MIN", "MAX", "DIS")]
+    if autopilot == "px4":
+        # Every output's function: where a joint sits on the vehicle's, the free ones to offer.
+        for n in range(1, PX4_SCANNED_OUTPUTS + 1):
+            names += [f"{prefix}_FUNC{_px4_index(prefix, n)}" for prefix in _px4_prefixes(n)]
     names += _VEHICLE_PARAMS[autopilot]
     return names
 
 
-#: The vehicle-wide parameters read: ArduPilot's safety switch; PX4's prearm mode and
-#: MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is one of them).
+#: PX4's MAVLink forwarding on the first instances (TELEM1, TELEM2: ours is likely one of them).
+_PX4_FORWARD_PARAMS = ("MAV_0_FORWARD", "MAV_1_FORWARD")
+#: The vehicle-wide parameters read: ArduPilot's safety switch; PX4's prearm mode and forwarding.
 _VEHICLE_PARAMS = {
     "ardupilot": ["BRD_SAFETY_DEFLT", "BRD_SAFETY_MASK"],
-    "px4": ["COM_PREARM_MODE", "MAV_0_FORWARD", "MAV_1_FORWARD"],
+    "px4": ["COM_PREARM_MODE", *_PX4_FORWARD_PARAMS],
 }
 
 
@@ -218,6 +274,7 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     else:
         checks += _px4_outputs(config, findings.params)
         checks += _px4_vehicle(config, findings.params)
+        checks += _px4_forwarding(findings)
     checks += _streams(findings, kind or "ardupilot")
     if dialect == "ardupilot-lua":
         checks.append(_lua_script(findings))
@@ -225,7 +282,7 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     if budget is not None:
         checks.append(budget)
     checks.append(_signing(config, findings))
-    checks.append(_routing(findings))
+    checks.append(_routing(findings, kind))
     return checks
 
 
@@ -328,27 +385,76 @@ def _ardupilot_outputs(config: DaemonConfig, params: dict[str, float | None]) ->
     return checks
 
 
+def _px4_function_name(function: int) -> str:
+    """PX4's name for an output function: "Motor 1", "Servo 3", "Landing Gear"."""
+    name = PX4_FUNCTION_NAMES.get(function)
+    if name is not None:
+        return name
+    for first, last, stem in PX4_FUNCTION_RANGES:
+        if first <= function <= last:
+            return f"{stem} {function - first + 1}"
+    return "unknown to doctor"
+
+
+def _px4_prefix(params: dict[str, float | None], output: int) -> str | None:
+    """The prefix of the output's parameters, the one whose function was answered: PWM_MAIN,
+    or for outputs 9-16 on a board with an IO processor PWM_AUX; None: neither was."""
+    for prefix in _px4_prefixes(output):
+        if _value(params, f"{prefix}_FUNC{_px4_index(prefix, output)}") is not None:
+            return prefix
+    return None
+
+
+def _px4_param(prefix: str, kind: str, output: int) -> str:
+    """``_px4_param("PWM_AUX", "DIS", 9)`` → PWM_AUX_DIS1."""
+    return f"{prefix}_{kind}{_px4_index(prefix, output)}"
+
+
+def _px4_vehicles(params: dict[str, float | None], output: int) -> bool:
+    """Whether the output's function was read and is neither 0 nor an actuator-set function:
+    the vehicle's (a motor, a control surface, ...), whose limits and disarmed PWM are its own."""
+    prefix = _px4_prefix(params, output)
+    if prefix is None:
+        return False
+    function = _value(params, _px4_param(prefix, "FUNC", output))
+    return function not in (0, *PX4_ACTUATOR_FUNCTIONS)
+
+
+def _px4_free_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[int]:
+    """Outputs no joint uses whose function was read as 0 (Disabled), lowest first."""
+    used = set(config.calibration.outputs)
+    free = []
+    for n in range(1, max(PX4_SCANNED_OUTPUTS, *used) + 1):
+        prefix = _px4_prefix(params, n)
+        if (
+            n not in used
+            and prefix is not None
+            and _value(params, _px4_param(prefix, "FUNC", n)) == 0
+        ):
+            free.append(n)
+    return free
+
+
 def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
+    """Joint k must sit on an output of function 300 + k ("Peripheral via Actuator Set k").
+    A disabled output (0), or one of the actuator-set functions (the daemon's: it sends all six
+    slots in each update), gets the function set. Any other function is the vehicle's (a motor,
+    a control surface, landing gear, a constant output, ...): the joint moves to a free output
+    (function 0, named when doctor read one), the output's function is never changed."""
     checks = []
+    free = _px4_free_outputs(config, params)
     for index, joint in enumerate(config.calibration.joints):
         n = joint.output
         label = _joint_label(index, joint.name, n)
-        prefix = next(
-            (
-                p
-                for p in _px4_prefixes(n)
-                if _value(params, f"{p}_FUNC{_px4_index(p, n)}") is not None
-            ),
-            None,
-        )
+        prefix = _px4_prefix(params, n)
         if prefix is None:
-            names = " or ".join(f"{p}_FUNC{_px4_index(p, n)}" for p in _px4_prefixes(n))
+            names = " or ".join(_px4_param(p, "FUNC", n) for p in _px4_prefixes(n))
             checks.append(
                 Check(label, Verdict.FAIL, f"{names} not answered", "check the output number")
             )
             continue
-        i = _px4_index(prefix, n)
-        function = _value(params, f"{prefix}_FUNC{i}")
+        func_name = _px4_param(prefix, "FUNC", n)
+        function = _value(params, func_name)
         want = PX4_FIRST_ACTUATOR_FUNCTION + index
         if index >= PX4_ACTUATOR_SET_SIZE:
             checks.append(
@@ -364,7 +470,18 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 Check(
                     label,
                     Verdict.PASS,
-                    f"{prefix}_FUNC{i} = {want} (Peripheral via Actuator Set {index + 1})",
+                    f"{func_name} = {want} (Peripheral via Actuator Set {index + 1})",
+                )
+            )
+        elif function == 0 or function in PX4_ACTUATOR_FUNCTIONS:
+            checks.append(
+                Check(
+                    label,
+                    Verdict.FAIL,
+                    f"{func_name} = {function} ({_px4_function_name(function or 0)}): joint "
+                    f"{index + 1} is sent as actuator set slot {index + 1}, which drives only an "
+                    f"output of function {want}",
+                    f"param set {func_name} {want}",
                 )
             )
         else:
@@ -372,35 +489,78 @@ def _px4_outputs(config: DaemonConfig, params: dict[str, float | None]) -> list[
                 Check(
                     label,
                     Verdict.FAIL,
-                    f"{prefix}_FUNC{i} = {function}: joint {index + 1} is sent as actuator set "
-                    f"slot {index + 1}, which drives only an output of function {want}",
-                    f"param set {prefix}_FUNC{i} {want}",
+                    f"{func_name} = {function} ({_px4_function_name(function or 0)}): the "
+                    f"output is the vehicle's; joint {index + 1} drives only an output of "
+                    f"function {want}",
+                    _px4_move_fix(index, want, free, params),
                 )
             )
-        low, high = _value(params, f"{prefix}_MIN{i}"), _value(params, f"{prefix}_MAX{i}")
-        if low is None or high is None:
-            continue  # SITL has no per-output limits: 1000-2000 fixed
-        pwm = (joint.pwm_min_us, joint.pwm_max_us)
-        if (low, high) == (min(pwm), max(pwm)):
-            checks.append(
-                Check(
-                    f"{label} range",
-                    Verdict.PASS,
-                    f"{prefix}_MIN/MAX{i} = {low}/{high} = the calibration",
-                )
-            )
-        else:
-            checks.append(
-                Check(
-                    f"{label} range",
-                    Verdict.FAIL,
-                    f"{prefix}_MIN/MAX{i} = {low}/{high} but the calibration is "
-                    f"{min(pwm)}-{max(pwm)} us: PX4 maps -1..1 onto MIN..MAX, so every angle "
-                    "would land elsewhere",
-                    f"param set {prefix}_MIN{i} {min(pwm)}; param set {prefix}_MAX{i} {max(pwm)}",
-                )
-            )
+            continue  # its limits are the vehicle's, not to be set to the arm's
+        checks.append(_px4_range(index, joint, prefix, params))
     return checks
+
+
+def _px4_range(
+    index: int, joint: JointCalibration, prefix: str, params: dict[str, float | None]
+) -> Check:
+    """PX4 maps −1…1 onto the output's MIN…MAX; a build without them (some SITL builds) uses
+    its output driver's own, 1000–2000 µs."""
+    n = joint.output
+    i = _px4_index(prefix, n)
+    label = f"{_joint_label(index, joint.name, n)} range"
+    names = (_px4_param(prefix, "MIN", n), _px4_param(prefix, "MAX", n))
+    read = [_value(params, name) for name in names]
+    missing = [name for name, value in zip(names, read, strict=True) if value is None]
+    low, high = (PX4_BUILTIN_PWM_US[k] if value is None else value for k, value in enumerate(read))
+    pwm = (min(joint.pwm_min_us, joint.pwm_max_us), max(joint.pwm_min_us, joint.pwm_max_us))
+    if missing:
+        own = [
+            f"{what} ({PX4_BUILTIN_PWM_US[k]} us on SITL)"
+            for k, what in enumerate(("minimum", "maximum"))
+            if read[k] is None
+        ]
+        found = (
+            f"{', '.join(missing)} not answered (no such parameter in this build): PX4 uses its "
+            f"output driver's own {' and '.join(own)} and maps -1..1 onto {low}-{high} us"
+        )
+    else:
+        found = f"{prefix}_MIN/MAX{i} = {low}/{high}"
+    if (low, high) == pwm:
+        return Check(label, Verdict.PASS, f"{found} = the calibration")
+    if missing:
+        fix = (
+            f"calibrate joint {index + 1} over {low}-{high} us (pwm_min_us, pwm_max_us, with "
+            f"angle_min_deg/angle_max_deg widened to match), or use a PX4 build that has "
+            f"{' and '.join(missing)}"
+        )
+    else:
+        fix = f"param set {names[0]} {pwm[0]}; param set {names[1]} {pwm[1]}"
+    return Check(
+        label,
+        Verdict.FAIL,
+        f"{found}, but the calibration is {pwm[0]}-{pwm[1]} us: "
+        + ("" if missing else "PX4 maps -1..1 onto MIN..MAX, so ")
+        + "every angle would land elsewhere",
+        fix,
+    )
+
+
+def _px4_move_fix(index: int, want: int, free: list[int], params: dict[str, float | None]) -> str:
+    """Move joint ``index`` to the first of ``free`` (taken from it) and give it its function;
+    the output it leaves keeps its own."""
+    if not free:
+        return (
+            f"map joint {index + 1} to an output whose function is 0 (Disabled) (joint.output), "
+            f"then param set PWM_MAIN_FUNCn {want} there; leave this output's function as it is"
+        )
+    offered = ", ".join(map(str, free))
+    target = free.pop(0)
+    name = _px4_param(_px4_prefix(params, target) or "PWM_MAIN", "FUNC", target)
+    return (
+        f"map joint {index + 1} to a free output, e.g. joint.output = {target}, then param set "
+        f"{name} {want}; leave this output's function as it is "
+        f"(free (function 0): {offered})"
+    )
 
 
 def _ardupilot_safety(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
@@ -427,8 +587,7 @@ def _ardupilot_safety(config: DaemonConfig, params: dict[str, float | None]) -> 
 
 def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[Check]:
     """PX4: outputs dead until armed unless prearmed (COM_PREARM_MODE 2); the disarmed PWM is
-    where a joint goes at boot, disarm and kill (the park PWM is the safe choice); forwarding
-    must be on for a ground station's targets to reach us."""
+    where a joint goes at boot, disarm and kill (the park PWM is the safe choice)."""
     checks = []
     prearm = _value(params, "COM_PREARM_MODE")
     if prearm is not None:
@@ -451,48 +610,96 @@ def _px4_vehicle(config: DaemonConfig, params: dict[str, float | None]) -> list[
     )
     for index, joint in enumerate(config.calibration.joints):
         n = joint.output
-        prefix = next(
-            (
-                p
-                for p in _px4_prefixes(n)
-                if _value(params, f"{p}_DIS{_px4_index(p, n)}") is not None
-            ),
+        if _px4_vehicles(params, n):
+            continue  # the joint must move (an output item says so): its disarmed PWM is not ours
+        # The output's prefix is the one its function was read with (else its DIS, if any).
+        prefix = _px4_prefix(params, n) or next(
+            (p for p in _px4_prefixes(n) if _value(params, _px4_param(p, "DIS", n)) is not None),
             None,
         )
         if prefix is None:
-            continue
-        name = f"{prefix}_DIS{_px4_index(prefix, n)}"
-        dis = _value(params, name)
-        want = park_pwm.get(n)
-        label = f"{_joint_label(index, joint.name, n)} disarmed"
-        if want is not None and dis == want:
-            checks.append(Check(label, Verdict.PASS, f"{name} = {dis} = the park PWM"))
-        elif dis is not None and joint.pwm_min_us <= dis <= joint.pwm_max_us and want is None:
-            checks.append(Check(label, Verdict.PASS, f"{name} = {dis}, within the calibration"))
-        else:
-            checks.append(
-                Check(
-                    label,
-                    Verdict.WARN,
-                    f"{name} = {dis}: at boot, disarm and kill the joint jumps there"
-                    + ("" if want is None else f" (park is {want} us)"),
-                    f"param set {name} {want if want is not None else joint.pwm_min_us}",
-                )
-            )
-    off = [f for f in ("MAV_0_FORWARD", "MAV_1_FORWARD") if _value(params, f) == 0]
-    if off:
-        checks.append(
+            continue  # no such output (the output item says so)
+        checks.append(_px4_disarmed(index, joint, prefix, params, park_pwm.get(n)))
+    return checks
+
+
+def _px4_disarmed(
+    index: int,
+    joint: JointCalibration,
+    prefix: str,
+    params: dict[str, float | None],
+    park: int | None,
+) -> Check:
+    """Where the joint goes whenever the outputs are not live: ``PWM_MAIN_DISn``, or in a build
+    without it the output driver's own disarmed PWM (900 µs on PX4 SITL). Outside the
+    calibration, or not the park PWM, it is a jump at boot, disarm and kill."""
+    n = joint.output
+    name = _px4_param(prefix, "DIS", n)
+    read = _value(params, name)
+    dis = PX4_BUILTIN_DISARMED_US if read is None else read
+    found = (
+        f"{name} not answered (no such parameter in this build): the output driver's own "
+        f"disarmed PWM applies, {dis} us on PX4 SITL"
+        if read is None
+        else f"{name} = {dis}"
+    )
+    label = f"{_joint_label(index, joint.name, n)} disarmed"
+    low, high = sorted((joint.pwm_min_us, joint.pwm_max_us))
+    inside = low <= dis <= high
+    if park is not None and dis == park:
+        return Check(label, Verdict.PASS, f"{found} = the park PWM")
+    if park is None and inside:
+        return Check(label, Verdict.PASS, f"{found}, within the calibration")
+    target = park if park is not None else joint.pwm_min_us
+    where = "" if inside else f", outside the calibration {low}-{high} us"
+    fix = f"param set {name} {target}"
+    return Check(
+        label,
+        Verdict.WARN,
+        f"{found}{where}: at boot, disarm and kill the joint jumps there"
+        + ("" if park is None else f" (park is {park} us)"),
+        fix
+        if read is not None
+        else f"{fix} on a PX4 build that has it; this one has no disarmed PWM to set for the "
+        "output",
+    )
+
+
+def _px4_forwarding_off(params: dict[str, float | None]) -> list[str]:
+    return [name for name in _PX4_FORWARD_PARAMS if _value(params, name) == 0]
+
+
+def _px4_forwarding(findings: Findings) -> list[Check]:
+    """PX4 forwards a frame only from an instance that forwards to one that forwards
+    (``MAV_n_FORWARD``, read at boot). Which instance this link is doctor cannot tell: a serial
+    port is named on the autopilot's side, and SITL starts its instances with forwarding
+    (``mavlink start -f``) whatever the parameters say. So what was heard decides: a HEARTBEAT of
+    another system here (a ground station, another vehicle) came through forwarding on this
+    link's instance (or a router between doctor and the autopilot sent it, which routes as
+    well), and the parameters are not doubted then. Without one the parameters alone are no
+    finding of their own: the routing item's fix names those that are off."""
+    params = findings.params
+    off = _px4_forwarding_off(params)
+    heard = sorted(findings.ground_stations | findings.others)
+    if heard:
+        who = ", ".join(f"{s}/{c}" for s, c in heard)
+        note = (
+            f" ({', '.join(off)} = 0: not this link's instance, set since boot (it takes effect "
+            "at a reboot), or an instance started with forwarding, as SITL's are)"
+            if off
+            else ""
+        )
+        return [
             Check(
                 "forwarding",
-                Verdict.WARN,
-                f"{', '.join(off)} = 0: PX4 forwards a ground station's targets only between "
-                "instances that both forward",
-                "; ".join(f"param set {f} 1" for f in off),
+                Verdict.PASS,
+                f"works: HEARTBEATs of {who} reach this link through the autopilot{note}",
             )
-        )
-    elif _value(params, "MAV_0_FORWARD") is not None:
-        checks.append(Check("forwarding", Verdict.PASS, "on for TELEM1 and TELEM2"))
-    return checks
+        ]
+    if not off and any(_value(params, name) is not None for name in _PX4_FORWARD_PARAMS):
+        on = ", ".join(name for name in _PX4_FORWARD_PARAMS if _value(params, name) is not None)
+        return [Check("forwarding", Verdict.PASS, f"{on} = 1")]
+    return []
 
 
 def _streams(findings: Findings, kind: str) -> list[Check]:
@@ -574,16 +781,29 @@ def _signing(config: DaemonConfig, findings: Findings) -> Check:
     return Check("signing", Verdict.PASS, "on; the autopilot's frames verify and it answers ours")
 
 
-def _routing(findings: Findings) -> Check:
+def _routing(findings: Findings, kind: str | None) -> Check:
     if findings.ground_stations:
         who = ", ".join(f"{s}/{c}" for s, c in sorted(findings.ground_stations))
         return Check("routing", Verdict.PASS, f"ground station {who} heard through the autopilot")
+    off = _px4_forwarding_off(findings.params) if kind == "px4" else []
+    forwarding = (
+        f"; PX4 forwards only between instances that both forward, and {', '.join(off)} = 0: "
+        + ", ".join(f"param set {name} 1" for name in off)
+        + (
+            " if that is its instance (ours forwards: others are heard), then reboot"
+            if findings.others
+            else " if that is its instance or ours, then reboot"
+        )
+        if off
+        else ""
+    )
     return Check(
         "routing",
         Verdict.WARN,
         f"no ground station heard through the autopilot in {findings.listened_s:.0f} s",
         "if one is connected, its USER_1 targets will not reach us: connect it to another "
-        "autopilot port, not behind the same MAVProxy as us (README: Where the daemon sits)",
+        "autopilot port, not behind the same MAVProxy as us (README: Where the daemon sits)"
+        + forwarding,
     )
 
 
@@ -669,6 +889,7 @@ def gather(
                 if config.link.dialect == "ardupilot-lua":
                     findings.lua_probe = _probe_lua(link, inbox, config, findings, clock)
             _drain_until(inbox, started + max(listen_s, 0.0), findings, clock)
+            findings.others.discard((s.system_id or 0, s.component_id))  # our own, if echoed
             findings.listened_s = clock() - started
             stats = link.stats
             findings.signing_rejections = (
@@ -680,9 +901,15 @@ def gather(
 
 
 def _note(msg: Any, findings: Findings) -> None:
-    """What every incoming frame may tell, whatever we wait for: a ground station."""
-    if msg.get_type() == "HEARTBEAT" and msg.type == mavlink.MAV_TYPE_GCS:
-        findings.ground_stations.add((msg.get_srcSystem(), msg.get_srcComponent()))
+    """What every incoming frame may tell, whatever we wait for: a ground station, another
+    system (either came through the autopilot's forwarding)."""
+    if msg.get_type() != "HEARTBEAT":
+        return
+    source = (msg.get_srcSystem(), msg.get_srcComponent())
+    if msg.type == mavlink.MAV_TYPE_GCS:
+        findings.ground_stations.add(source)
+    if findings.autopilot is not None and source[0] != findings.autopilot[0]:
+        findings.others.add(source)
 
 
 def _drain_until(

@@ -171,3 +171,139 @@ def test_a_link_that_cannot_be_opened_is_a_finding_with_its_fix(
         assert fix in check["fix"]
     else:
         assert "FAIL  link: cannot" in out and fix in out
+
+
+def px4_params(functions=None, **extra):
+    """A PX4 answer: PWM_MAIN_FUNC1..16 (motors 1-4, the arm's actuator set on 9-14, the rest
+    disabled, as ``functions`` overrides; None: not answered), the arm's limits 1000-2000 and
+    disarmed 1500, prearm and forwarding on."""
+    params: dict[str, float | None] = {"COM_PREARM_MODE": 2.0, "MAV_0_FORWARD": 1.0}
+    params["MAV_1_FORWARD"] = 1.0
+    defaults = {**{n: 100 + n for n in range(1, 5)}, **{n: 292 + n for n in range(9, 15)}}
+    for n in range(1, 17):
+        function = {**defaults, **(functions or {})}.get(n, 0)
+        params[f"PWM_MAIN_FUNC{n}"] = None if function is None else float(function)
+    for n in range(9, 15):
+        params[f"PWM_MAIN_MIN{n}"], params[f"PWM_MAIN_MAX{n}"] = 1000.0, 2000.0
+        params[f"PWM_MAIN_DIS{n}"] = 1500.0
+    params.update(extra)
+    return params
+
+
+def test_px4_a_joint_on_a_motor_or_another_function_is_moved_never_the_function_changed():
+    """Only a disabled output (or one of the arm's own actuator-set outputs) gets its function
+    set; a motor, a control surface, landing gear or a constant output is the vehicle's: the
+    joint moves to a free output, named with its parameter."""
+    cfg = config("px4", outputs=(1, 10, 11, 12, 13, 14))
+    params = px4_params({9: 0, 11: 304, 12: 400, 15: 0})
+    found = Findings("u", autopilot=PX4, params=params, streams=STREAMING)
+    failed = {c.item: c for c in by_verdict(evaluate(cfg, found), Verdict.FAIL)}
+    motor = failed["joint 1 (q1) on output 1"]
+    assert "PWM_MAIN_FUNC1 = 101 (Motor 1)" in motor.detail
+    assert motor.fix is not None and "PWM_MAIN_FUNC1 " not in motor.fix
+    assert "joint.output = 5" in motor.fix and "param set PWM_MAIN_FUNC5 301" in motor.fix
+    assert "free (function 0): 5, 6, 7, 8, 9, 15, 16" in motor.fix
+    # Another of the arm's actuator-set functions: ours, set to this joint's.
+    assert failed["joint 3 (q3) on output 11"].fix == "param set PWM_MAIN_FUNC11 303"
+    gear = failed["joint 4 (q4) on output 12"]
+    assert "PWM_MAIN_FUNC12 = 400 (Landing Gear)" in gear.detail
+    assert gear.fix is not None and "PWM_MAIN_FUNC12 " not in gear.fix
+    # The next free output, not the one offered to joint 1.
+    assert "joint.output = 6" in gear.fix and "param set PWM_MAIN_FUNC6 304" in gear.fix
+    assert len(failed) == 3
+    # A board with an IO processor: output 9 is PWM_AUX_FUNC1, a control surface there.
+    aux = {f"PWM_MAIN_FUNC{n}": None for n in range(9, 17)}
+    functions = [201, 302, 303, 304, 305, 306, 0, 0]
+    aux |= {f"PWM_AUX_FUNC{k}": float(f) for k, f in enumerate(functions, 1)}
+    io = Findings("u", autopilot=PX4, params=px4_params(**aux), streams=STREAMING)
+    servo = {c.item: c for c in evaluate(config("px4"), io)}
+    surface = servo["joint 1 (q1) on output 9"]
+    assert surface.verdict is Verdict.FAIL and "PWM_AUX_FUNC1 = 201 (Servo 1)" in surface.detail
+    assert surface.fix is not None and "PWM_AUX_FUNC1 " not in surface.fix
+    assert "joint.output = 5" in surface.fix and "8, 15, 16" in surface.fix
+    # Nothing free that doctor read: the fix says what to look for.
+    busy = px4_params({n: 1 for n in (5, 6, 7, 8, 9, 15, 16)})
+    full = Findings("u", autopilot=PX4, params=busy, streams=STREAMING)
+    none_free = {c.item: c for c in evaluate(cfg, full)}
+    fix = none_free["joint 1 (q1) on output 1"].fix
+    assert fix is not None and "PWM_MAIN_FUNC1 " not in fix and "function is 0" in fix
+
+
+def test_px4_forwarding_seen_working_is_not_doubted_from_its_parameters():
+    """SITL starts its MAVLink instances with forwarding (``-f``) whatever MAV_n_FORWARD say,
+    and doctor cannot tell which instance its link is: frames of another system heard here show
+    forwarding works; without them the parameters are only a hint in the routing item."""
+    cfg = config("px4")
+    params = px4_params(MAV_1_FORWARD=0.0)
+    for heard in ({"ground_stations": {(255, 190)}}, {"others": {(2, 1)}}):
+        found = Findings("u", autopilot=PX4, params=params, streams=STREAMING, **heard)
+        checks = {c.item: c for c in evaluate(cfg, found)}
+        assert checks["forwarding"].verdict is Verdict.PASS, checks["forwarding"]
+        assert "MAV_1_FORWARD = 0" in checks["forwarding"].detail
+    silent = Findings("u", autopilot=PX4, params=params, streams=STREAMING, listened_s=3.0)
+    checks = evaluate(cfg, silent)
+    assert "forwarding" not in {c.item for c in checks}
+    routing = {c.item: c for c in checks}["routing"]
+    assert routing.verdict is Verdict.WARN
+    assert routing.fix is not None and "param set MAV_1_FORWARD 1" in routing.fix
+    assert "reboot" in routing.fix
+
+
+def test_px4_limits_that_do_not_exist_are_named_with_what_the_outputs_do_instead():
+    """A build without per-output limits: PX4 uses its built-in 1000-2000 us and a disarmed
+    900 us (SITL's), which is outside a 1000-2000 calibration: the joint goes there."""
+    missing = {f"PWM_MAIN_{p}{n}": None for p in ("MIN", "MAX", "DIS") for n in range(9, 15)}
+    found = Findings("u", autopilot=PX4, params=px4_params(**missing), streams=STREAMING)
+    checks = {c.item: c for c in evaluate(config("px4"), found)}
+    limits = checks["joint 1 (q1) on output 9 range"]
+    assert limits.verdict is Verdict.PASS
+    assert "PWM_MAIN_MIN9, PWM_MAIN_MAX9 not answered" in limits.detail
+    assert "1000-2000" in limits.detail
+    disarmed = checks["joint 1 (q1) on output 9 disarmed"]
+    assert disarmed.verdict is Verdict.WARN
+    assert "PWM_MAIN_DIS9 not answered" in disarmed.detail and "900 us" in disarmed.detail
+    assert disarmed.fix is not None and "param set PWM_MAIN_DIS9 1000" in disarmed.fix
+    narrow = parse_config(
+        {
+            "link": {**URL, "dialect": "px4"},
+            "arm": {"park_deg": [0, 90, 0, 0, 0, 0]},
+            "control": {"socket": ""},
+            "joint": [{"output": o, "pwm_min_us": 1100, "pwm_max_us": 1900} for o in range(9, 15)],
+        }
+    )
+    park = narrow.calibration.angles_to_pwm_us(narrow.park_deg)
+    checks = {c.item: c for c in evaluate(narrow, found)}
+    assert checks["joint 2 (q2) on output 10 range"].verdict is Verdict.FAIL
+    assert "1000-2000" in checks["joint 2 (q2) on output 10 range"].detail
+    assert f"param set PWM_MAIN_DIS10 {park[10]}" in (
+        checks["joint 2 (q2) on output 10 disarmed"].fix or ""
+    )
+    # Newer PX4 SITL has the parameters, and PWM_MAIN_DISn is 900 there: the same finding.
+    sitl = px4_params(**{f"PWM_MAIN_DIS{n}": 900.0 for n in range(9, 15)})
+    found = Findings("u", autopilot=PX4, params=sitl, streams=STREAMING)
+    disarmed = {c.item: c for c in evaluate(narrow, found)}["joint 3 (q3) on output 11 disarmed"]
+    assert disarmed.verdict is Verdict.WARN and "900" in disarmed.detail
+    assert disarmed.fix == f"param set PWM_MAIN_DIS11 {park[11]}"
+
+
+def test_heartbeats_of_other_systems_are_noted_as_forwarded_to_us():
+    from companion.daemon.doctor import _note
+
+    encoder = mavlink.MAVLink(None)
+
+    def heartbeat(system, component, kind=mavlink.MAV_TYPE_ONBOARD_CONTROLLER):
+        encoder.srcSystem, encoder.srcComponent = system, component
+        msg = encoder.heartbeat_encode(kind, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        msg.pack(encoder)
+        return mavlink.MAVLink(None).decode(msg.get_msgbuf())
+
+    found = Findings("u", autopilot=PX4)
+    for msg in (
+        heartbeat(255, 190, mavlink.MAV_TYPE_GCS),
+        heartbeat(2, 1, mavlink.MAV_TYPE_QUADROTOR),
+        heartbeat(1, 100),  # a camera of the autopilot's own system: not evidence
+        heartbeat(1, 1, mavlink.MAV_TYPE_QUADROTOR),
+    ):
+        _note(msg, found)
+    assert found.ground_stations == {(255, 190)}
+    assert found.others == {(255, 190), (2, 1)}
