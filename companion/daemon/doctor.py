@@ -356,8 +356,13 @@ def _ardupilot_outputs(config: DaemonConfig, params: dict[str, float | None]) ->
                     Verdict.FAIL,
                     f"SERVO{n}_FUNCTION = {function}{what}: ArduPilot refuses DO_SET_SERVO on it "
                     f'("ServoRelayEvent: Channel {n} is already in use")',
-                    f"param set SERVO{n}_FUNCTION 0, or map joint {index + 1} to a free output "
-                    "(joint.output)",
+                    f"map joint {index + 1} to a free output (joint.output = an output whose "
+                    "SERVOn_FUNCTION is 0); leave this output's function as it is"
+                    + (
+                        ""
+                        if what
+                        else f" unless nothing on the vehicle uses it (then SERVO{n}_FUNCTION 0)"
+                    ),
                 )
             )
         low, high = _value(params, f"SERVO{n}_MIN"), _value(params, f"SERVO{n}_MAX")

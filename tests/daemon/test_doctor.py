@@ -50,7 +50,9 @@ def test_a_joint_on_a_motor_output_fails_naming_the_parameter_and_the_fix():
     failed = by_verdict(evaluate(cfg, found), Verdict.FAIL)
     assert [c.item for c in failed] == ["joint 1 (q1) on output 1"]
     assert "SERVO1_FUNCTION = 33 (a motor)" in failed[0].detail
-    assert failed[0].fix is not None and failed[0].fix.startswith("param set SERVO1_FUNCTION 0")
+    # Never "disable the motor": the joint moves to a free output.
+    assert failed[0].fix is not None and failed[0].fix.startswith("map joint 1 to a free output")
+    assert "SERVO1_FUNCTION 0" not in failed[0].fix
 
 
 def test_ardupilot_rc_passthrough_and_a_narrow_range_are_warnings():

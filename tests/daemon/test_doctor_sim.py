@@ -65,7 +65,7 @@ def test_doctor_against_the_simulator(tmp_path, sims, capsys):
         assert main(["doctor", "--config", str(motor), "--timeout-s", "5", "--listen-s", "1"]) == 1
         out = capsys.readouterr().out
         assert "FAIL  joint 1 (q1) on output 1: SERVO1_FUNCTION = 33 (a motor)" in out, out
-        assert "fix: param set SERVO1_FUNCTION 0" in out
+        assert "fix: map joint 1 to a free output" in out
 
         # ArduPilot's SERVOn_MIN/MAX defaults are 1100/1900: a calibration within them.
         joints = [{"output": o, "pwm_min_us": 1100, "pwm_max_us": 1900} for o in range(9, 15)]

@@ -352,12 +352,17 @@ class ArduPilotOutputs(OutputsTruth):
         return True
 
     def refusal_advice(self, refused: dict[int, str]) -> tuple[str, str]:
+        # The output belongs to something else (a motor, a gimbal): never advise taking it
+        # away; the joint moves to a free output (doctor names them).
         hint = " ".join(
-            f"Set SERVO{o}_FUNCTION = 0 on the flight controller." for o in sorted(refused)
+            f"SERVO{o}_FUNCTION is not 0 on the flight controller: map the joint to a free "
+            f"output (joint.output; armbridge doctor names them), or set SERVO{o}_FUNCTION = 0 "
+            "only if nothing on the vehicle uses that output."
+            for o in sorted(refused)
         )
         first = min(refused)
         more = f"+{len(refused) - 1}" if len(refused) > 1 else ""
-        return hint, f"Arm: set SERVO{first}_FUNCTION=0{more} (output in use)"
+        return hint, f"Arm: output {first}{more} in use (SERVO{first}_FUNCTION)"
 
     # -- helpers ----------------------------------------------------------------------------
 
