@@ -24,8 +24,10 @@
   up to six consecutive outputs, params 1–6 = PWM µs (NaN: leave that output alone), param7 =
   the first output; the script checks every output's SERVOn_FUNCTION (must be 0) and
   SERVOn_MIN/MAX before it sets any and answers one COMMAND_ACK: ACCEPTED, or FAILED with
-  nothing set. One 44-byte frame per update instead of six (264 B): the choice on 57 600 /
-  115 200 baud links, where the bytes, not the round trips, set the latency. Outputs are
+  nothing set; it obeys only the companion's ids (its ``ARMB_SYSID`` / ``ARMB_COMPID``
+  parameters) and answers anyone else DENIED, raised naming what to set. One 44-byte frame per
+  update instead of six (264 B): the choice on 57 600 / 115 200 baud links, where the bytes,
+  not the round trips, set the latency. Outputs are
   grouped in windows of six from the lowest (the default 9–14 is one frame); outputs further
   apart cost one frame per window, one ACK each. A window whose outputs all hold their value
   already is left out of an update.
@@ -43,7 +45,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from firmware_interface.calibration import ArmCalibration
 from firmware_interface.commands import CommandSender
 from firmware_interface.errors import CommandRejected, ConfigurationError, ServoOutputUnavailable
-from firmware_interface.lua_bridge import LUA_SLOTS, MAV_CMD_USER_2
+from firmware_interface.lua_bridge import LUA_SLOTS, MAV_CMD_USER_2, sender_fix
 from firmware_interface.updates import ServoCommand
 
 PX4_ACTUATOR_SLOTS = 6
@@ -245,6 +247,18 @@ class ArduPilotLuaServoDialect(ServoDialect):
             try:
                 self._sender().command_long(command.command, command.params)
             except CommandRejected as exc:
+                if exc.result == mavlink.MAV_RESULT_DENIED:
+                    link = self._sender().link
+                    raise CommandRejected(
+                        f"servo outputs {list(command.outputs)}: the Lua bridge refused our "
+                        f"commands ({exc.result_name}, none set) as from "
+                        f"{link.system_id}/{link.config.component_id}; "
+                        f"{sender_fix(link.config.system_id, link.config.component_id)}",
+                        command=exc.command,
+                        result=exc.result,
+                        result_name=exc.result_name,
+                        statustext=exc.statustext,
+                    ) from exc
                 if exc.result != mavlink.MAV_RESULT_FAILED:
                     raise
                 named = _CHANNEL_IN_USE.search(exc.statustext or "")

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from firmware_interface.commands import result_name
+from firmware_interface.lua_bridge import MAV_CMD_USER_2, SENDER_DENIED
 
 #: "ServoRelayEvent: Channel 14 is already in use" (AP_ServoRelayEvents.cpp).
 _CHANNEL_IN_USE = re.compile(r"Channel\s+(\d+)\s+is already in use")
@@ -172,6 +173,10 @@ class UpdateTracker:
                             f"the autopilot refused output {output} but its ACK said ACCEPTED"
                         )
                     accepted[output] = pwm
+                elif command.command == MAV_CMD_USER_2 and result == mavlink.MAV_RESULT_DENIED:
+                    # The Lua bridge's answer to a sender it does not obey: not the output's
+                    # fault, nor fixed on the output.
+                    refused[output] = f"{result_name(result)} ({SENDER_DENIED})"
                 elif result in _REFUSALS:
                     said = self._named.get(output)
                     refused[output] = result_name(result) + (f" ({said!r})" if said else "")

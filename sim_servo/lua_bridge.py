@@ -6,6 +6,10 @@ the PWM of outputs ``param7`` … ``param7 + 5`` (NaN: leave that output alone);
 checked before any is set (``SERVOn_FUNCTION`` must be 0, the PWM an integer within
 ``SERVOn_MIN`` … ``SERVOn_MAX``); one COMMAND_ACK, ACCEPTED, or FAILED with nothing set,
 ``result_param2`` the first refused output (0: the command itself) and a STATUSTEXT saying why.
+Only the companion is obeyed: a command whose sender ids are not ``ARMB_SYSID`` /
+``ARMB_COMPID`` (the script's own parameters, :data:`SCRIPT_PARAMS`; ``ARMB_SYSID`` 0: the
+autopilot's system id) is answered DENIED before anything is checked, and the STATUSTEXT naming
+the sender is sent at most once every :data:`DENIED_TEXT_S` (:class:`DeniedTexts`).
 The simulator re-implements the rules from the script's description (it may not import
 ``firmware_interface``); ``tests/sim_servo/test_lua_bridge.py`` runs both on the same cases.
 
@@ -34,16 +38,27 @@ SLOTS = 6
 MAX_OUTPUT = 32
 STATUSTEXT_PREFIX = "armbridge: "
 STATUSTEXT_MAX = 50
+#: The companion's ids, the only sender obeyed: the parameters the script adds
+#: (``param:add_table``, prefix ``ARMB_``) with their defaults, which also apply where the
+#: parameters are missing. ``ARMB_SYSID`` 0: the autopilot's own system id; 191:
+#: MAV_COMP_ID_ONBOARD_COMPUTER (armbridge's defaults).
+SYSID_PARAM = "ARMB_SYSID"
+COMPID_PARAM = "ARMB_COMPID"
+SCRIPT_PARAMS = {SYSID_PARAM: 0, COMPID_PARAM: 191}
+#: A refused sender is said at most this often.
+DENIED_TEXT_S = 5.0
 
 
 @dataclass(frozen=True)
 class Verdict:
     """What the script does with one command: ``settings`` (output → PWM) to apply, or a
-    refusal naming ``refused_output`` (0: the command itself) and the ``reason``."""
+    refusal naming ``refused_output`` (0: the command itself) and the ``reason``; ``denied``:
+    refused for its sender (DENIED), not for its outputs (FAILED)."""
 
     settings: dict[int, int]
     refused_output: int = 0
     reason: str = ""
+    denied: bool = False
 
     @property
     def accepted(self) -> bool:
@@ -54,9 +69,29 @@ def _is_integer(x: float) -> bool:
     return math.isfinite(x) and float(x).is_integer()
 
 
-def check_user2(params: Sequence[float], param: Callable[[str], float | None]) -> Verdict:
-    """The script's checks on one MAV_CMD_USER_2 (``params``: its seven params); ``param``
-    reads a parameter by name (None: no such parameter), as ``param:get`` does."""
+def companion_ids(param: Callable[[str], float | None], own_system: int) -> tuple[float, float]:
+    """The (system, component) ids the script obeys, read from its parameters (``param``: by
+    name, None where missing); ``own_system``: the autopilot's system id."""
+    sysid = param(SYSID_PARAM)
+    compid = param(COMPID_PARAM)
+    sysid = SCRIPT_PARAMS[SYSID_PARAM] if sysid is None else sysid
+    compid = SCRIPT_PARAMS[COMPID_PARAM] if compid is None else compid
+    return (own_system if sysid == 0 else sysid), compid
+
+
+def check_user2(
+    params: Sequence[float],
+    param: Callable[[str], float | None],
+    *,
+    sender: tuple[int, int],
+    own_system: int,
+) -> Verdict:
+    """The script's checks on one MAV_CMD_USER_2 (``params``: its seven params) from
+    ``sender`` (system, component) to the autopilot ``own_system``; ``param`` reads a
+    parameter by name (None: no such parameter), as ``param:get`` does."""
+    if tuple(sender) != companion_ids(param, own_system):
+        reason = f"denied {sender[0]}/{sender[1]}: not {SYSID_PARAM}/COMPID"
+        return Verdict({}, 0, reason, denied=True)
     first = params[6]
     if not _is_integer(first) or not 1 <= first <= MAX_OUTPUT:
         return Verdict({}, 0, f"param7 first output {first} not 1-{MAX_OUTPUT}")
@@ -86,7 +121,28 @@ def check_user2(params: Sequence[float], param: Callable[[str], float | None]) -
 
 def refusal_text(verdict: Verdict) -> str:
     """The STATUSTEXT the script sends with a refusal (at most 50 characters)."""
-    return (STATUSTEXT_PREFIX + verdict.reason + "; none set")[:STATUSTEXT_MAX]
+    said = verdict.reason if verdict.denied else verdict.reason + "; none set"
+    return (STATUSTEXT_PREFIX + said)[:STATUSTEXT_MAX]
+
+
+class DeniedTexts:
+    """When the script says a denied sender: at the first denial, then only once
+    ``every_s`` has passed since it last said one (every denial is answered all the same)."""
+
+    def __init__(self, every_s: float = DENIED_TEXT_S) -> None:
+        self._every_s = every_s
+        self._said_s: float | None = None
+
+    def due(self, now_s: float) -> bool:
+        """Whether a denial at ``now_s`` is said (and if so, it counts as said)."""
+        if self._said_s is not None and now_s - self._said_s < self._every_s:
+            return False
+        self._said_s = now_s
+        return True
+
+    def reset(self) -> None:
+        """The script restarted (a reboot): the next denial is said."""
+        self._said_s = None
 
 
 class LuaScriptTiming:

@@ -57,7 +57,7 @@ from companion.daemon.config import DaemonConfig, link_budget_of, link_config
 from firmware_interface import JointCalibration, LinkConfig, LinkError, MavlinkLink
 from firmware_interface.errors import InvalidUrl
 from firmware_interface.link import MessageQueue
-from firmware_interface.lua_bridge import MAV_CMD_USER_2
+from firmware_interface.lua_bridge import MAV_CMD_USER_2, sender_fix
 from firmware_interface.transport import parse_url
 
 __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report", "param_names"]
@@ -277,7 +277,7 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
         checks += _px4_forwarding(findings)
     checks += _streams(findings, kind or "ardupilot")
     if dialect == "ardupilot-lua":
-        checks.append(_lua_script(findings))
+        checks.append(_lua_script(config, findings))
     budget = _link_budget(config)
     if budget is not None:
         checks.append(budget)
@@ -735,10 +735,22 @@ def _streams(findings: Findings, kind: str) -> list[Check]:
     return checks
 
 
-def _lua_script(findings: Findings) -> Check:
+def _lua_script(config: DaemonConfig, findings: Findings) -> Check:
     result = findings.lua_probe
-    if result == mavlink.MAV_RESULT_ACCEPTED:
+    # The probe carries no PWM: the script refuses it (FAILED, nothing set); ArduPilot without
+    # the script answers UNSUPPORTED.
+    if result in (mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_FAILED):
         return Check("lua bridge", Verdict.PASS, "the script answers MAV_CMD_USER_2")
+    if result == mavlink.MAV_RESULT_DENIED:
+        s = config.link
+        system = s.system_id or (findings.autopilot[0] if findings.autopilot else "?")
+        return Check(
+            "lua bridge",
+            Verdict.FAIL,
+            f"the script answers MAV_CMD_USER_2 but refuses our ids {system}/{s.component_id} "
+            "(DENIED): it obeys another sender",
+            sender_fix(s.system_id, s.component_id),
+        )
     where = (
         "copy the script (python -c 'import firmware_interface.lua_bridge as m; "
         "print(m.script_path())') to APM/scripts on the SD card, set SCR_ENABLE = 1, reboot"
@@ -1028,8 +1040,10 @@ def _probe_lua(
     findings: Findings,
     clock: Callable[[], float],
 ) -> int | None:
-    """MAV_CMD_USER_2 with every PWM NaN ("leave that output alone"): the bridge script answers
-    ACCEPTED and sets nothing; without it ArduPilot answers UNSUPPORTED itself."""
+    """MAV_CMD_USER_2 with every PWM NaN ("leave that output alone"), sent with the daemon's
+    own ids (the link is opened as ``run`` opens it): the bridge script refuses it, FAILED
+    ("no PWM"), setting nothing, or answers DENIED if it obeys another sender; without the
+    script ArduPilot answers UNSUPPORTED itself."""
     system, component = link.target
     first = min(config.calibration.outputs)
     nan = math.nan

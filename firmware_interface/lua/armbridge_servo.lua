@@ -4,7 +4,9 @@ armbridge_servo.lua: sets up to six servo outputs from one MAVLink COMMAND_LONG,
 joint, which matters on 57 600 / 115 200 baud telemetry links).
 
 Install: copy this file to the flight controller's SD card in APM/scripts/, set SCR_ENABLE = 1,
-reboot. On start it says "armbridge_servo v1 ready" (or why it cannot run) on the ground station.
+reboot. On start it says "armbridge_servo v2 ready" (or why it cannot run) on the ground station.
+If armbridge's link.system_id / link.component_id are not its defaults, set ARMB_SYSID /
+ARMB_COMPID (below) to them.
 
 The command: COMMAND_LONG, command = MAV_CMD_USER_2 (31011), addressed to this autopilot
 (target_system = MAV_SYSID / SYSID_THISMAV, target_component 0 or 1).
@@ -12,9 +14,28 @@ The command: COMMAND_LONG, command = MAV_CMD_USER_2 (31011), addressed to this a
   param7          first output, 1-based (SERVOn numbering)
 Answer: one COMMAND_ACK (command 31011) to the sender on the link the command came from:
   MAV_RESULT_ACCEPTED (0): every output given was set;
+  MAV_RESULT_DENIED   (2): the sender is not the companion (below): nothing was set, nothing
+                           was checked; a STATUSTEXT "denied SYS/COMP: not ARMB_SYSID/COMPID"
+                           names the sender, at most once every 5 s however many come;
   MAV_RESULT_FAILED   (4): nothing was set (all-or-nothing: every output is checked before any
                            is set); result_param2 = the first output refused (0: the command's
                            own parameters), and a STATUSTEXT says why.
+
+Who may send it: only the companion, by the sender ids in the frame's header (checked after
+the target: a command for another vehicle or component is passed over, not answered). The
+script adds two parameters of its own (a table with the prefix ARMB_, key PARAM_TABLE_KEY
+below); they show in the ground station's parameter list after its first start, keep their
+values through reboots, and a change applies to the next command:
+  ARMB_SYSID   the companion's system id; 0 (the default): the autopilot's own, MAV_SYSID, as
+               armbridge uses unless its link.system_id says otherwise;
+  ARMB_COMPID  the companion's component id; default 191 (MAV_COMP_ID_ONBOARD_COMPUTER),
+               armbridge's link.component_id default.
+Their defaults are COMPANION_SYSID / COMPANION_COMPID below; if the table cannot be added (its
+key taken by another script: change PARAM_TABLE_KEY) the script says so and uses those.
+The ids are what the frame says: a device on the same network can write any ids into a frame.
+The check keeps a ground station, a second companion or a stray script's USER_2 off the arm; to
+keep out someone who forges ids, sign the link (MAVLink 2 signing).
+
 An output is refused unless SERVOn_FUNCTION = 0 (Disabled: nothing else drives it; every other
 value, including RC pass-through, motors and GPIO (-1), belongs to something else) and
 SERVOn_MIN <= PWM <= SERVOn_MAX with an integer PWM. armbridge's calibration gate is the first
@@ -30,19 +51,31 @@ which armbridge's `doctor` reports as "the script does not answer"). MAVLink 2 d
 zero bytes of a payload; they are restored from `len`, never read from beyond it.
 
 Versions: the bindings used (mavlink:init / register_rx_msgid / receive_chan / send_chan /
-block_command with ':' calls, param:get, SRV_Channels:set_output_pwm_chan) are in ArduPilot 4.5
-and later; the send-to-ACK figures armbridge quotes (median 8.9 ms, max 11.5 ms) were measured on
-ArduCopter 4.7.0-dev SITL. The script checks the bindings it needs at start and stops with a
+block_command with ':' calls, param:get / add_table / add_param, millis,
+SRV_Channels:set_output_pwm_chan) are in ArduPilot 4.5 and later; the send-to-ACK figures
+armbridge quotes (median 8.9 ms, max 11.5 ms) were measured on ArduCopter 4.7.0-dev SITL. The script checks the bindings it needs at start and stops with a
 STATUSTEXT if one is missing.
 ]]
 
 local SCRIPT_NAME = "armbridge_servo"
-local SCRIPT_VERSION = 1
+local SCRIPT_VERSION = 2
+
+-- The companion, the only sender obeyed: the defaults of ARMB_SYSID / ARMB_COMPID, and what is
+-- used if the parameters cannot be added. 0: the autopilot's own system id (MAV_SYSID).
+local COMPANION_SYSID = 0
+local COMPANION_COMPID = 191 -- MAV_COMP_ID_ONBOARD_COMPUTER, armbridge's link.component_id
+-- The script's parameter table: a key no other script on this flight controller uses (0-200).
+local PARAM_TABLE_KEY = 143
+local PARAM_TABLE_PREFIX = "ARMB_"
+-- A refused sender is said on the ground station at most this often (a flood of commands is
+-- each answered DENIED, but not each said).
+local DENIED_TEXT_MS = 5000
 
 local MAV_CMD_USER_2 = 31011
 local COMMAND_LONG_ID = 76
 local COMMAND_ACK_ID = 77
 local MAV_RESULT_ACCEPTED = 0
+local MAV_RESULT_DENIED = 2
 local MAV_RESULT_FAILED = 4
 local MAV_SEVERITY_WARNING = 4
 local MAV_SEVERITY_INFO = 6
@@ -63,17 +96,26 @@ local function say(severity, text)
 end
 
 local function bindings_missing()
-  for name, binding in pairs({ mavlink = mavlink, param = param, SRV_Channels = SRV_Channels }) do
-    if binding == nil then
-      return name
+  -- (name, binding) pairs: a table keyed by name would drop a nil binding from its own pairs()
+  local globals = { { "mavlink", mavlink }, { "param", param }, { "SRV_Channels", SRV_Channels }, { "millis", millis } }
+  for _, entry in ipairs(globals) do
+    if entry[2] == nil then
+      return entry[1]
     end
   end
-  for _, name in ipairs({ "init", "register_rx_msgid", "receive_chan", "send_chan", "block_command" }) do
-    local ok, binding = pcall(function()
-      return mavlink[name]
-    end)
-    if not ok or binding == nil then
-      return "mavlink:" .. name
+  local needed = {
+    { "mavlink", mavlink, { "init", "register_rx_msgid", "receive_chan", "send_chan", "block_command" } },
+    { "param", param, { "get", "add_table", "add_param" } },
+  }
+  for _, entry in ipairs(needed) do
+    local object_name, object, names = entry[1], entry[2], entry[3]
+    for _, name in ipairs(names) do
+      local ok, binding = pcall(function()
+        return object[name]
+      end)
+      if not ok or binding == nil then
+        return object_name .. ":" .. name
+      end
     end
   end
   return nil
@@ -82,6 +124,26 @@ end
 local function our_sysid()
   -- Renamed from SYSID_THISMAV to MAV_SYSID in 4.7.
   return param:get("MAV_SYSID") or param:get("SYSID_THISMAV")
+end
+
+-- ARMB_SYSID / ARMB_COMPID (true), or false with the script's own ids used instead.
+local function add_params()
+  if not param:add_table(PARAM_TABLE_KEY, PARAM_TABLE_PREFIX, 2) then
+    return false
+  end
+  return param:add_param(PARAM_TABLE_KEY, 1, "SYSID", COMPANION_SYSID)
+    and param:add_param(PARAM_TABLE_KEY, 2, "COMPID", COMPANION_COMPID)
+end
+
+-- The (system id, component id) the command must come from; read on every command, so a
+-- parameter set applies at once.
+local function companion_ids()
+  local sysid = param:get(PARAM_TABLE_PREFIX .. "SYSID") or COMPANION_SYSID
+  local compid = param:get(PARAM_TABLE_PREFIX .. "COMPID") or COMPANION_COMPID
+  if sysid == 0 then
+    sysid = our_sysid()
+  end
+  return sysid, compid
 end
 
 local layout_reported = false
@@ -176,6 +238,19 @@ local function send_ack(chan, cmd, result, result_param2)
   return mavlink:send_chan(chan, COMMAND_ACK_ID, payload)
 end
 
+local denied_said_ms = nil -- when a refused sender was last said (nil: never)
+
+-- A sender other than the companion: DENIED, nothing checked or set; said at most every
+-- DENIED_TEXT_MS (millis() wraps after 49 days: the difference is taken modulo 2^32).
+local function deny(chan, cmd)
+  local now = millis():toint()
+  if denied_said_ms == nil or ((now - denied_said_ms) & 0xFFFFFFFF) >= DENIED_TEXT_MS then
+    denied_said_ms = now
+    say(MAV_SEVERITY_WARNING, string.format("denied %d/%d: not ARMB_SYSID/COMPID", cmd.sysid, cmd.compid))
+  end
+  send_ack(chan, cmd, MAV_RESULT_DENIED, 0)
+end
+
 -- One received frame; returns true if it was our command (answered).
 local function handle(msg, chan)
   local cmd = parse_command_long(msg)
@@ -184,6 +259,11 @@ local function handle(msg, chan)
   end
   if cmd.target_system ~= our_sysid() or (cmd.target_component ~= 0 and cmd.target_component ~= 1) then
     return false -- for another vehicle or component: ArduPilot's routing forwards it
+  end
+  local sysid, compid = companion_ids()
+  if cmd.sysid ~= sysid or cmd.compid ~= compid then
+    deny(chan, cmd)
+    return true
   end
   local settings, refused, reason = check_outputs(cmd)
   if settings == nil then
@@ -223,6 +303,9 @@ mavlink:init(8, 8)
 mavlink:register_rx_msgid(COMMAND_LONG_ID)
 -- Without this ArduPilot answers MAV_CMD_USER_2 itself with UNSUPPORTED.
 mavlink:block_command(MAV_CMD_USER_2)
+if not add_params() then
+  say(MAV_SEVERITY_WARNING, string.format("no ARMB_ params (key %d taken?)", PARAM_TABLE_KEY))
+end
 say(MAV_SEVERITY_INFO, string.format("%s v%d ready", SCRIPT_NAME, SCRIPT_VERSION))
 
 return update, LOOP_MS

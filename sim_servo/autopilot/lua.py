@@ -1,6 +1,8 @@
 """armbridge's Lua bridge script on ArduPilot (``lua_script``): MAV_CMD_USER_2 is answered as
 the script answers it, after the script's own delay (:mod:`sim_servo.lua_bridge`); the arm's
 outputs get ``SERVOn_MIN`` / ``MAX`` = the arm's PWM range, as the script's install notes ask.
+The script's own parameters (``ARMB_SYSID`` / ``ARMB_COMPID``: who is obeyed) are in the
+parameter table whenever the script is on (:class:`~sim_servo.autopilot.params.ParamTable`).
 """
 
 from __future__ import annotations
@@ -12,7 +14,13 @@ from sim_servo.autopilot.outputs import Outputs
 from sim_servo.autopilot.params import ParamTable
 from sim_servo.autopilot.state import AutopilotState
 from sim_servo.autopilot.wire import Wire
-from sim_servo.lua_bridge import MAV_CMD_USER_2, LuaScriptTiming, check_user2, refusal_text
+from sim_servo.lua_bridge import (
+    MAV_CMD_USER_2,
+    DeniedTexts,
+    LuaScriptTiming,
+    check_user2,
+    refusal_text,
+)
 
 
 class LuaScript:
@@ -35,6 +43,7 @@ class LuaScript:
         self._wire = wire
         self._timing = LuaScriptTiming(now_s)
         self._pending: list[tuple[float, Command]] = []
+        self._denied_texts = DeniedTexts()
         arm = state.config.arm
         for output in arm.outputs:
             params[f"SERVO{output}_MIN"].value = arm.pwm_min_us
@@ -57,11 +66,22 @@ class LuaScript:
         due = [command for at, command in self._pending if at <= now_s]
         self._pending = [entry for entry in self._pending if entry[0] > now_s]
         for command in due:
-            verdict = check_user2(command.params, self._param)
+            verdict = check_user2(
+                command.params,
+                self._param,
+                sender=command.source,
+                own_system=self._state.config.system_id,
+            )
             if verdict.accepted:
                 for output, pwm in verdict.settings.items():
                     self._outputs.apply(output, pwm, now_s)
                 result = mavlink.MAV_RESULT_ACCEPTED
+            elif verdict.denied:
+                if self._denied_texts.due(now_s):
+                    self._wire.statustext(
+                        mavlink.MAV_SEVERITY_WARNING, refusal_text(verdict), now_s
+                    )
+                result = mavlink.MAV_RESULT_DENIED
             else:
                 # The script sends its text at once (gcs:send_text), before its ACK.
                 self._wire.statustext(mavlink.MAV_SEVERITY_WARNING, refusal_text(verdict), now_s)
@@ -82,3 +102,4 @@ class LuaScript:
 
     def halt(self, now_s: float) -> None:
         self._pending.clear()
+        self._denied_texts.reset()

@@ -19,9 +19,14 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 from sim_servo.autopilot.messages import param_id
 from sim_servo.autopilot.state import AutopilotState
 from sim_servo.errors import SimConfigError
+from sim_servo.lua_bridge import SCRIPT_PARAMS
 
 if TYPE_CHECKING:
     from sim_servo.autopilot.wire import Wire
+
+
+#: The integers a float32 holds exactly: the range given to a script's float parameters.
+FLOAT_INTS = (-(2**24), 2**24)
 
 
 @dataclass
@@ -41,6 +46,11 @@ class ParamTable(Mapping[str, Param]):
         self._flavour = state.flavour
         config = state.config
         params = self._flavour.default_params(config)
+        if config.lua_script:
+            # The Lua bridge script's own (param:add_table): a script's parameters are floats
+            # (REAL32 on the wire), held here as integers like every parameter.
+            for name, default in SCRIPT_PARAMS.items():
+                params[name] = Param(name, default, mavlink.MAV_PARAM_TYPE_REAL32, *FLOAT_INTS)
         for name, value in config.params.items():
             param = params.get(name)
             if param is None:

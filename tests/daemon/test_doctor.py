@@ -115,6 +115,29 @@ def test_the_lua_bridge_and_a_serial_links_budget_are_checked():
     assert "link budget" not in udp and "lua bridge" not in udp
 
 
+def lua_check(cfg, result):
+    found = Findings(
+        "u", autopilot=(7, 1, ARDUPILOT[2]), params=ardupilot_params(), lua_probe=result
+    )
+    return {c.item: c for c in evaluate(cfg, found)}["lua bridge"]
+
+
+def test_the_lua_bridges_answers_to_the_probe():
+    cfg = config("ardupilot-lua")
+    # The probe has no PWM: the script refuses it (FAILED), which proves it runs.
+    assert lua_check(cfg, mavlink.MAV_RESULT_FAILED).verdict is Verdict.PASS
+    denied = lua_check(cfg, mavlink.MAV_RESULT_DENIED)
+    assert denied.verdict is Verdict.FAIL
+    assert "refuses our ids 7/191" in denied.detail  # the vehicle's system id, learned
+    assert denied.fix is not None
+    assert "set ARMB_SYSID = 0 (the vehicle's own system id) and ARMB_COMPID = 191" in denied.fix
+    own = lua_check(
+        config("ardupilot-lua", system_id=200, component_id=42), mavlink.MAV_RESULT_DENIED
+    )
+    assert "refuses our ids 200/42" in own.detail
+    assert own.fix is not None and "set ARMB_SYSID = 200 and ARMB_COMPID = 42" in own.fix
+
+
 def test_a_correct_px4_setup_passes_the_vehicle_checks():
     cfg = parse_config(
         {

@@ -1,7 +1,7 @@
 """The shipped Lua bridge script, run by a real Lua 5.3 interpreter (ArduPilot's version, from
 lupa) against COMMAND_LONG frames encoded by pymavlink and laid out as ``mavlink_message_t``,
 the way ``mavlink:receive_chan()`` returns them, with stand-ins for the bindings it uses
-(``mavlink``, ``param``, ``SRV_Channels``, ``gcs``)."""
+(``mavlink``, ``param``, ``SRV_Channels``, ``gcs``, ``millis``)."""
 
 from __future__ import annotations
 
@@ -25,12 +25,14 @@ except ImportError:  # pragma: no cover - a lupa build without 5.3
 MSG_T_PAYLOAD_BYTES = 264  # uint64_t payload64[33]
 SIGNATURE_BYTES = 13
 AUTOPILOT = (1, 1)
-COMPANION = (255, 190)
+#: armbridge's default ids: the vehicle's system id, MAV_COMP_ID_ONBOARD_COMPUTER.
+COMPANION = (1, 191)
+GCS = (255, 190)
 
 # The bindings as ArduPilot offers them to a script, recording what the script did.
 STAND_INS = b"""
 local env = {queue = {}, sent = {}, texts = {}, set = {}, params = {}, registered = {},
-             blocked = {}, init = nil}
+             blocked = {}, init = nil, tables = {}, add_table_ok = true, now_ms = 0}
 mavlink = {}
 function mavlink:init(a, b) env.init = {a, b} end
 function mavlink:register_rx_msgid(id) env.registered[#env.registered + 1] = id; return true end
@@ -46,6 +48,24 @@ function mavlink:send_chan(chan, msgid, payload)
 end
 param = {}
 function param:get(name) return env.params[name] end
+function param:add_table(key, prefix, count)
+  assert(math.type(key) == "integer" and key >= 0 and key <= 200, "key")
+  assert(math.type(count) == "integer" and count >= 1 and count <= 63, "count")
+  if not env.add_table_ok then return false end
+  env.tables[key] = {prefix = prefix, count = count}
+  return true
+end
+function param:add_param(key, index, name, default)
+  local t = env.tables[key]
+  if t == nil or index < 1 or index > t.count then return false end
+  local full = t.prefix .. name
+  assert(#full <= 16, "name")
+  -- a value stored before (a set, an earlier start) is kept; else the default
+  if env.params[full] == nil then env.params[full] = default + 0.0 end
+  return true
+end
+-- millis() is a uint32_t userdata; the script reads it with :toint()
+function millis() return {toint = function(self) return env.now_ms end} end
 SRV_Channels = {}
 function SRV_Channels:set_output_pwm_chan(chan, pwm)
   -- the binding takes integers (get_uint8_t / get_uint16_t)
@@ -91,11 +111,21 @@ def user2(pwms: list[float], first: int, **kw: Any) -> bytes:
 class Bridge:
     """The script loaded once, as ArduPilot runs it: its top level, then ``update`` per loop."""
 
-    def __init__(self, functions: dict[int, int] | None = None, sysid: int = 1) -> None:
+    def __init__(
+        self,
+        functions: dict[int, int] | None = None,
+        sysid: int = 1,
+        *,
+        stored: dict[str, float] | None = None,
+        add_table_ok: bool = True,
+    ) -> None:
         self.lua = lua_impl.LuaRuntime(encoding=None, unpack_returned_tuples=True)
         self.env = self.lua.execute(STAND_INS)
+        self.env.add_table_ok = add_table_ok
         params = self.env.params
         params[b"MAV_SYSID"] = float(sysid)
+        for name, value in (stored or {}).items():  # kept in storage from before this start
+            params[name.encode()] = float(value)
         for output in range(1, 17):
             params[f"SERVO{output}_FUNCTION".encode()] = float((functions or {}).get(output, 0))
             params[f"SERVO{output}_MIN".encode()] = 1000.0
@@ -112,6 +142,10 @@ class Bridge:
         result = self.update()
         assert result[1] == 5  # the script asks to run again (every LOOP_MS)
         self.update = result[0]
+
+    def param(self, name: str, value: float) -> None:
+        """A parameter set (by a ground station) while the script runs."""
+        self.env.params[name.encode()] = float(value)
 
     @property
     def set(self) -> list[tuple[int, int]]:
@@ -140,7 +174,7 @@ def test_start_registers_for_command_long_and_blocks_user_2():
     bridge = Bridge()
     assert list(bridge.env.registered.values()) == [mavlink.MAVLINK_MSG_ID_COMMAND_LONG]
     assert list(bridge.env.blocked.values()) == [MAV_CMD_USER_2]
-    assert any("v1 ready" in t for t in bridge.texts)
+    assert any("v2 ready" in t for t in bridge.texts)
 
 
 def test_good_update_sets_six_outputs_and_answers_one_accepted_ack():
@@ -253,13 +287,116 @@ def test_other_commands_and_other_targets_passed_over():
     assert bridge.set == [] and bridge.acks() == []
 
 
-def test_missing_binding_stops_the_script_with_a_message():
+DENIED_TEXT = "armbridge: denied 255/190: not ARMB_SYSID/COMPID"
+
+
+def test_start_adds_the_companion_parameters_at_armbridges_defaults():
+    bridge = Bridge()
+    table = bridge.env.tables[143]
+    assert (table.prefix, table.count) == (b"ARMB_", 2)
+    assert bridge.env.params[b"ARMB_SYSID"] == 0.0  # 0: the autopilot's own system id
+    assert bridge.env.params[b"ARMB_COMPID"] == 191.0
+    kept = Bridge(stored={"ARMB_SYSID": 42, "ARMB_COMPID": 200})  # set before a reboot
+    assert (kept.env.params[b"ARMB_SYSID"], kept.env.params[b"ARMB_COMPID"]) == (42.0, 200.0)
+
+
+@pytest.mark.parametrize("sender", [GCS, (1, 190), (2, 191), (1, 1)])
+def test_a_foreign_sender_is_denied_and_nothing_is_set(sender):
+    bridge = Bridge()
+    bridge.feed(user2([1100, 1200, 1300, 1400, 1500, 1600], first=9, sender=sender))
+    assert bridge.set == []
+    [(chan, ack)] = bridge.acks()
+    assert chan == 1
+    assert (ack["command"], ack["result"], ack["result_param2"]) == (
+        MAV_CMD_USER_2,
+        mavlink.MAV_RESULT_DENIED,
+        0,
+    )
+    assert (ack["target_system"], ack["target_component"]) == sender
+    said = f"armbridge: denied {sender[0]}/{sender[1]}: not ARMB_SYSID/COMPID"
+    assert bridge.texts[-1] == said
+
+
+def test_a_foreign_sender_is_denied_before_its_outputs_are_looked_at():
+    bridge = Bridge(functions={9: 33})  # a motor: the companion would get FAILED naming 9
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    [(_, ack)] = bridge.acks()
+    assert (ack["result"], ack["result_param2"]) == (mavlink.MAV_RESULT_DENIED, 0)
+    assert not any("Channel" in t for t in bridge.texts)
+
+
+def test_the_parameters_choose_who_is_obeyed():
+    bridge = Bridge()
+    bridge.param("ARMB_SYSID", 255)
+    bridge.param("ARMB_COMPID", 190)  # the ground station is now the one obeyed
+    bridge.feed(user2([1100], first=9, sender=GCS), user2([1200], first=9, sender=COMPANION))
+    assert bridge.set == [(8, 1100)]
+    results = [ack["result"] for _, ack in bridge.acks()]
+    assert results == [mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED]
+    assert bridge.texts[-1] == "armbridge: denied 1/191: not ARMB_SYSID/COMPID"
+
+
+def test_sysid_0_follows_the_vehicles_own_system_id():
+    bridge = Bridge(sysid=7)
+    bridge.feed(
+        user2([1100], first=9, target=(7, 1), sender=(7, 191)),
+        user2([1200], first=9, target=(7, 1), sender=(1, 191)),
+    )
+    assert bridge.set == [(8, 1100)]
+    results = [ack["result"] for _, ack in bridge.acks()]
+    assert results == [mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED]
+
+
+def test_a_flood_of_foreign_commands_is_each_denied_but_said_once_per_5_s():
+    bridge = Bridge()
+    bridge.env.now_ms = 1000
+    for _ in range(5):  # 40 frames, eight a run
+        bridge.feed(*[user2([1500], first=9, sender=GCS)] * 8)
+    acks = bridge.acks()
+    assert len(acks) == 40 and {a["result"] for _, a in acks} == {mavlink.MAV_RESULT_DENIED}
+    assert bridge.texts.count(DENIED_TEXT) == 1
+    bridge.env.now_ms = 5999
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    assert bridge.texts.count(DENIED_TEXT) == 1
+    bridge.env.now_ms = 6000
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    assert bridge.texts.count(DENIED_TEXT) == 2
+    assert bridge.set == []
+
+
+def test_the_denial_text_interval_survives_the_millisecond_counter_wrapping():
+    bridge = Bridge()
+    bridge.env.now_ms = 2**32 - 1000
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    bridge.env.now_ms = 3999  # 4 999 ms later, past the wrap
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    assert bridge.texts.count(DENIED_TEXT) == 1
+    bridge.env.now_ms = 4000
+    bridge.feed(user2([1500], first=9, sender=GCS))
+    assert bridge.texts.count(DENIED_TEXT) == 2
+
+
+def test_without_its_parameter_table_the_script_obeys_its_own_defaults():
+    bridge = Bridge(add_table_ok=False)  # the key taken by another script
+    assert any("no ARMB_ params (key 143 taken?)" in t for t in bridge.texts)
+    assert b"ARMB_SYSID" not in list(bridge.env.params)
+    bridge.feed(user2([1100], first=9, sender=COMPANION), user2([1200], first=9, sender=GCS))
+    assert bridge.set == [(8, 1100)]
+    results = [ack["result"] for _, ack in bridge.acks()]
+    assert results == [mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED]
+
+
+@pytest.mark.parametrize(
+    "binding", ["mavlink.block_command", "param.add_table", "millis", "SRV_Channels"]
+)
+def test_missing_binding_stops_the_script_naming_it(binding):
     lua = lua_impl.LuaRuntime(encoding=None, unpack_returned_tuples=True)
     env = lua.execute(STAND_INS)
-    lua.execute(b"mavlink.block_command = nil")
+    lua.execute(f"{binding} = nil".encode())
     chunk = lua.eval("function(src) return assert(load(src)) end")(script_text().encode())
     assert chunk() is None  # no update function: ArduPilot stops running it
-    assert any(b"block_command" in t for t in env.texts.values())
+    name = binding.split(".")[-1].encode()
+    assert any(name in t and b"need 4.5+" in t for t in env.texts.values())
 
 
 @settings(max_examples=40)

@@ -225,3 +225,30 @@ def test_lua_send_pwm_one_command_long_then_refusal_names_the_output(udp):
         dialect.send_pwm(dict.fromkeys(range(9, 15), 1600))
     assert (info.value.output, info.value.statustext) == (12, text)
     assert "none set" in str(info.value)
+
+
+def test_lua_denied_ack_refuses_every_output_naming_the_parameters_not_the_output():
+    dialect = ArduPilotLuaServoDialect(None, default_calibration())
+    commands = dialect.plan(dict.fromkeys(range(9, 15), 1500))
+    tracker = UpdateTracker(commands, sent_s=0.0, timeout_s=0.1, grace_s=0.01)
+    tracker.on_ack(MAV_CMD_USER_2, mavlink.MAV_RESULT_DENIED, 0.009)
+    tracker.on_statustext("armbridge: denied 1/191: not ARMB_SYSID/COMPID")
+    outcome = tracker.poll(0.02)
+    assert outcome is not None and outcome.state is UpdateState.DONE
+    assert sorted(outcome.refused) == list(range(9, 15)) and not outcome.accepted
+    for reason in outcome.refused.values():
+        assert reason.startswith("MAV_RESULT_DENIED (")
+        assert "ARMB_SYSID / ARMB_COMPID" in reason and "link.component_id" in reason
+
+
+def test_lua_send_pwm_denied_says_which_parameters_to_set_to_our_ids(udp):
+    peer, sender = udp
+    dialect = make_servo_dialect("ardupilot-lua", sender, default_calibration())
+    peer.ack_result = mavlink.MAV_RESULT_DENIED
+    with pytest.raises(CommandRejected) as info:
+        dialect.send_pwm(dict.fromkeys(range(9, 15), 1600))
+    assert not isinstance(info.value, ServoOutputUnavailable)
+    assert info.value.result == mavlink.MAV_RESULT_DENIED
+    message = str(info.value)
+    assert "as from 42/191" in message  # the vehicle's system id, learned; our component id
+    assert "set ARMB_SYSID = 0 (the vehicle's own system id) and ARMB_COMPID = 191" in message

@@ -20,6 +20,10 @@ from sim_servo.faults import FaultInjector
 from sim_servo.lua_bridge import MAV_CMD_USER_2, SCRIPT_ANSWER_MS
 from tests.sim_servo.autopilot.conftest import START_S, WALL_S, part_state
 
+#: armbridge's default ids on the default vehicle (system 1); a ground station's.
+COMPANION = (1, 191)
+GCS = (255, 190)
+
 
 def script(config: SimConfig, events: list) -> tuple[LuaScript, Outputs, Wire, ParamTable]:
     state = part_state(config, events)
@@ -48,9 +52,9 @@ def test_the_script_needs_ardupilot():
 def test_user_2_waits_for_the_script_then_sets_the_outputs_and_answers():
     events: list = []
     lua, outputs, wire, _ = script(SimConfig(), events)
-    other = Command(mavlink.MAV_CMD_DO_SET_SERVO, (9.0, 1500.0, *[0.0] * 5), (255, 190))
+    other = Command(mavlink.MAV_CMD_DO_SET_SERVO, (9.0, 1500.0, *[0.0] * 5), COMPANION)
     assert not lua.takes(other)
-    command = Command(MAV_CMD_USER_2, (1100, 1200, 1300, 1400, 1500, 1600, 9), (255, 190))
+    command = Command(MAV_CMD_USER_2, (1100, 1200, 1300, 1400, 1500, 1600, 9), COMPANION)
     assert lua.takes(command)
     lua.queue(command, START_S)
     (due_s,) = lua.next_events_s()
@@ -70,6 +74,37 @@ def test_user_2_waits_for_the_script_then_sets_the_outputs_and_answers():
 
 def test_a_reboot_drops_the_commands_waiting():
     lua, _, _, _ = script(SimConfig(), [])
-    lua.queue(Command(MAV_CMD_USER_2, (1500, *[math.nan] * 5, 9), (255, 190)), START_S)
+    lua.queue(Command(MAV_CMD_USER_2, (1500, *[math.nan] * 5, 9), COMPANION), START_S)
     lua.halt(START_S)
     assert lua.next_events_s() == []
+
+
+def denied_texts(events: list) -> list[str]:
+    return [e["text"] for e in events if e["event"] == "statustext"]
+
+
+def test_another_senders_user_2_is_denied_and_said_once_a_5_s_until_a_reboot():
+    events: list = []
+    lua, outputs, _, _ = script(SimConfig(lua_script=True), events)
+    command = Command(MAV_CMD_USER_2, (1500, *[math.nan] * 5, 9), GCS)
+    for at in (START_S, START_S + 1.0):
+        lua.queue(command, at)
+        lua.run(max(lua.next_events_s()))
+    assert outputs.pwm_us[9] == 0
+    results = [(e["result"], e["refused_output"]) for e in events if e["event"] == "ack"]
+    assert results == [(mavlink.MAV_RESULT_DENIED, 0)] * 2
+    said = ["armbridge: denied 255/190: not ARMB_SYSID/COMPID"]
+    assert denied_texts(events) == said
+    lua.halt(START_S + 2.0)  # a reboot restarts the script
+    lua.queue(command, START_S + 2.0)
+    lua.run(max(lua.next_events_s()))
+    assert denied_texts(events) == said * 2
+
+
+def test_the_script_parameters_are_read_at_each_command():
+    events: list = []
+    lua, outputs, _, params = script(SimConfig(lua_script=True), events)
+    params["ARMB_SYSID"].value, params["ARMB_COMPID"].value = GCS
+    lua.queue(Command(MAV_CMD_USER_2, (1500, *[math.nan] * 5, 9), GCS), START_S)
+    lua.run(max(lua.next_events_s()))
+    assert outputs.pwm_us[9] == 1500
