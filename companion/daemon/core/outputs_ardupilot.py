@@ -354,11 +354,15 @@ class ArduPilotOutputs(OutputsTruth):
     def refusal_advice(self, refused: dict[int, str]) -> tuple[str, str]:
         # The output belongs to something else (a motor, a gimbal): never advise taking it
         # away; the joint moves to a free output (doctor names them).
+        if all("ARMB_" in why for why in refused.values()):
+            # The Lua bridge refused our ids, not an output: its reason says what to set.
+            return "", "Arm: Lua bridge refused our ids (ARMB_SYSID)"
         hint = " ".join(
             f"SERVO{o}_FUNCTION is not 0 on the flight controller: map the joint to a free "
             f"output (joint.output; armbridge doctor names them), or set SERVO{o}_FUNCTION = 0 "
             "only if nothing on the vehicle uses that output."
-            for o in sorted(refused)
+            for o, why in sorted(refused.items())
+            if "ARMB_" not in why
         )
         first = min(refused)
         more = f"+{len(refused) - 1}" if len(refused) > 1 else ""
