@@ -301,3 +301,24 @@ def test_an_output_showing_a_pwm_outside_its_range_gets_no_marker_and_holds_the_
     moves = [(o, b, a) for o, b, a in px4.physical_moves if b != 900]
     px4.physical_moves[:] = moves
     assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_a_forged_readback_between_the_autopilots_own_never_sends_a_marker():
+    # A forged SERVO_OUTPUT_RAW made the daemon itself command a 120 deg "marker" step on PX4:
+    # the live outputs went where the forged frame said they were.
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 1.0)
+    assert rig.core.status()["outputs_live"] is True
+    forged = {o: 1000 for o in px4.shown}
+    rig.sent.clear()
+    for _ in range(25):  # at the readback's own rate, between its frames
+        rig.clock.advance(0.01)
+        rig.readback(forged)
+        rig.clock.advance(0.01)
+        px4.readback()
+        px4.handle()
+    assert rig.core.status()["outputs_live"] is True
+    assert max_physical_step_us(px4) <= 1.0
