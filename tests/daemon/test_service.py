@@ -25,6 +25,7 @@ from devkit.timing import wait_until
 from tests.daemon.core.rig import PARK, RATE_HZ, Rig, near, telemetry, world_goto, world_rig
 
 WAIT_S = 10.0
+SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
 URL = "udpout:127.0.0.1:14550"
 
@@ -107,6 +108,48 @@ def test_mavlink_target_for_another_component_is_ignored(autopilot):
         gcs_command(endpoint, (45.0, 10.0, 20.0, 0.0, 45.0, 0.0), target=(1, 100))
         assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1, WAIT_S)
         assert acks_to_gcs(peer) == []
+    finally:
+        daemon.close()
+
+
+def gcs_pause(endpoint, param1):
+    """A ground station's MAV_CMD_DO_PAUSE_CONTINUE to us: 0 stop, 1 resume."""
+    gcs = mavlink.MAVLink(None, 255, 190)
+    msg = gcs.command_long_encode(
+        1, 191, mavlink.MAV_CMD_DO_PAUSE_CONTINUE, 0, param1, 0, 0, 0, 0, 0, 0
+    )
+    endpoint.write(msg.pack(gcs))
+
+
+def test_a_stop_over_mavlink_holds_the_arm_until_a_resume(autopilot):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}"}}))
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        pose = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+
+        def answer(count):
+            assert peer.wait_for(lambda: len(acks_to_gcs(peer)) >= count)
+            ack = acks_to_gcs(peer)[count - 1]
+            return ack.command, ack.result
+
+        gcs_pause(endpoint, 0)
+        assert answer(1) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_ACCEPTED)
+        assert daemon.status()["stopped_by"] == "mavlink 255/190"
+        gcs_command(endpoint, pose)
+        assert answer(2) == (mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_DENIED)
+        assert "stopped: send resume" in [m.text for m in peer.messages("STATUSTEXT")]
+        gcs_pause(endpoint, 7)
+        assert answer(3) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_DENIED)
+        assert not [m for m in peer.messages("COMMAND_LONG") if m.command == SERVO]
+        gcs_pause(endpoint, 1)
+        assert answer(4) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_ACCEPTED)
+        assert daemon.status()["stopped"] is False
+        gcs_command(endpoint, pose)
+        assert answer(5) == (mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_ACCEPTED)
     finally:
         daemon.close()
 
