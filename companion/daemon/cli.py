@@ -268,6 +268,8 @@ def format_status(status: dict[str, Any]) -> str:
         + (f" (up {boot_ms / 1000:.1f} s)" if boot_ms is not None else "")
         + f"  {' '.join(flags)}",
     ]
+    if status.get("link_signing_problem"):
+        lines.append(f"  signing: {status['link_signing_problem']}")
     if not autopilot:
         lines.append(
             "  no autopilot heard yet: targets are refused until it is "

@@ -73,6 +73,7 @@ from companion.daemon.requests import (
 )
 from companion.kinematics.arm import Pose
 from firmware_interface import LinkError, LinkState, MavlinkLink
+from firmware_interface.signing import lockout_message
 
 __all__ = ["ArmDaemon", "Outcome", "Reply"]
 
@@ -394,6 +395,9 @@ class ArmDaemon:
         status["link_fault"] = link.fault if link is not None else None
         # The serial device the link waits for (not plugged in yet), or None.
         status["link_waiting_for"] = link.waiting_for_device if link is not None else None
+        # The autopilot signs far ahead of our clock (each side refuses the other), with the fix.
+        problem = link.signing_problem if link is not None else None
+        status["link_signing_problem"] = lockout_message(problem) if problem else None
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 

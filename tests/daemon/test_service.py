@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 from importlib import resources
 
 import numpy as np
@@ -483,3 +484,43 @@ def test_a_reload_says_what_it_applied(caplog):
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("reloaded")]
     assert said[0].endswith(": budget_ms 20.0 → 5.0, joint_speed_deg_s 60.0 → 120.0 applied")
     assert said[1].endswith(": nothing to apply")
+
+
+def test_status_names_an_autopilot_signing_far_ahead_of_us_with_the_fix(tmp_path):
+    from companion.daemon.cli import format_status
+    from firmware_interface.signing import TICKS_PER_S, wall_to_ticks
+
+    key = bytes(range(32))
+    (tmp_path / "signing.key").write_bytes(key)
+    (tmp_path / "signing.key").chmod(0o600)
+    endpoint = UdpEndpoint()
+    peer = ScriptedPeer(endpoint, signing_key=key)
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {
+                    "url": f"udpout:127.0.0.1:{endpoint.port}",
+                    "signing_key": "signing.key",
+                    "signing_state": "signing.state",
+                }
+            },
+            source=str(tmp_path / "armbridge.toml"),
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        assert daemon.status()["link_signing_problem"] is None
+        # The autopilot took the timestamp of a key holder whose clock is a week ahead.
+        peer.mav.signing.timestamp = wall_to_ticks(time.time()) + 7 * 86_400 * TICKS_PER_S
+        peer.send_heartbeat()
+        assert wait_until(lambda: daemon.status()["link_signing_problem"] is not None, WAIT_S)
+        status = daemon.status()
+        problem = status["link_signing_problem"]
+        assert problem.startswith("the autopilot 1/1 signs 7.0 days ahead of our clock")
+        assert "Fix: " in problem and "SETUP_SIGNING" in problem
+        assert status["autopilot"] is None and status["link_counters"]["rejected_future"] >= 1
+        assert f"  signing: {problem}" in format_status(status).splitlines()
+    finally:
+        daemon.close()
+        peer.close()
