@@ -67,7 +67,9 @@ from firmware_interface.signing import (
     NEW_STREAM_WINDOW_TICKS,
     TICKS_PER_S,
     SigningConfig,
+    SigningLockout,
     TimestampKeeper,
+    lockout_message,
 )
 from firmware_interface.transport import (
     Address,
@@ -80,6 +82,9 @@ from firmware_interface.transport import (
 log = logging.getLogger(__name__)
 
 Clock = Callable[[], float]
+#: Frames refused as from the future kept between two reads (the latest matter; a flood of
+#: them is counted, not kept).
+FUTURE_KEPT = 64
 
 
 class MavMessage(Protocol):
@@ -284,6 +289,8 @@ class _Codec(mavlink.MAVLink):
         self.last_future: tuple[int, int, float] | None = None  # system, component, s ahead
         #: Sources of frames refused *only* for being older than our start (see take_stale).
         self._stale: list[tuple[int, int]] = []
+        #: Frames refused as from the future: (system, component, timestamp, our local clock).
+        self._future: list[tuple[int, int, int, int]] = []
 
     def check_signature(self, msgbuf: bytearray, srcSystem: int, srcComponent: int) -> bool:
         signing = self.signing
@@ -295,10 +302,13 @@ class _Codec(mavlink.MAVLink):
         timestamp = int.from_bytes(msgbuf[-12:-6], "little")
         keeper = self.keeper
         if keeper is not None:
-            ahead = timestamp - keeper.local_ticks()
+            local = keeper.local_ticks()
+            ahead = timestamp - local
             if ahead > FUTURE_LIMIT_S * TICKS_PER_S:
                 self.rejections["future"] += 1
                 self.last_future = (srcSystem, srcComponent, ahead / TICKS_PER_S)
+                if len(self._future) < FUTURE_KEPT:
+                    self._future.append((srcSystem, srcComponent, timestamp, local))
                 return False
         stream = (link_id, srcSystem, srcComponent)
         last = signing.stream_timestamps.get(stream)
@@ -324,6 +334,12 @@ class _Codec(mavlink.MAVLink):
         the peer hears our timestamp (``MavlinkLink._receive``)."""
         stale, self._stale = self._stale, []
         return stale
+
+    def take_future(self) -> list[tuple[int, int, int, int]]:
+        """The frames refused as from the future since the last call (at most
+        :data:`FUTURE_KEPT`): ``(system, component, their timestamp, our local clock)``."""
+        future, self._future = self._future, []
+        return future
 
     def parse_datagram(self, data: bytes) -> list[Any]:
         """The frames of one datagram, each standing alone (any partial frame before it is
@@ -389,6 +405,7 @@ class MavlinkLink:
         self._decoder.robust_parsing = True  # garbage on a serial line is counted, not fatal
         self._keeper: TimestampKeeper | None = None
         self._fault_logged = False
+        self._lockout = SigningLockout()
         self._peer_heard_at = -float("inf")  # udpin: when the peer last sent an autopilot frame
         self._foreign_datagrams_closed = 0  # of transports already dropped
         if self.config.signing is not None:
@@ -583,6 +600,15 @@ class MavlinkLink:
         """Why the link cannot send safely now (the signing state cannot be stored), or None.
         The state is FAULT meanwhile; it clears by itself once the state can be stored."""
         return self._keeper.fault if self._keeper is not None else None
+
+    @property
+    def signing_problem(self) -> str | None:
+        """Why the autopilot and we cannot agree on signing timestamps (its frames come signed
+        far ahead of our clock: ``signing`` module docstring, "The autopilot ahead of us"), or
+        None. The fix: :data:`~firmware_interface.signing.LOCKOUT_FIX`."""
+        if self._keeper is None:
+            return None
+        return self._lockout.problem(self.clock())
 
     @property
     def stats(self) -> LinkStats:
@@ -796,6 +822,9 @@ class MavlinkLink:
         else:
             msgs = self._decoder.parse_buffer(data) or []
         stale = self._decoder.take_stale()
+        future = self._decoder.take_future()
+        if future or self._lockout.seen:
+            self._watch_lockout(future, msgs)
         if not isinstance(transport, UdpInTransport) or sender is None:
             for msg in msgs:
                 self._handle(msg)
@@ -830,6 +859,34 @@ class MavlinkLink:
             if sender != transport.peer:
                 self._set_peer(transport, sender, "autopilot frame")
             self._peer_heard_at = self.clock()
+
+    def _watch_lockout(self, future: list[tuple[int, int, int, int]], msgs: list[Any]) -> None:
+        """The autopilot's frames refused as from the future begin its signing problem (logged
+        once, with the fix); one of its frames accepted ends it."""
+        now = self.clock()
+        began = False
+        for system, component, timestamp, local in future:
+            if self._looks_like_autopilot((system, component)):
+                began |= self._lockout.refused((system, component), timestamp, local, now)
+        if began:
+            problem = self._lockout.problem(now)
+            assert problem is not None
+            log.error("%s: signing: %s", self.description, lockout_message(problem))
+        elif not future and any(self._is_autopilot_frame(m) for m in msgs):
+            if self._lockout.clear():
+                log.warning(
+                    "%s: signing: the autopilot's frames are accepted again", self.description
+                )
+
+    def _looks_like_autopilot(self, source: tuple[int, int]) -> bool:
+        """``source`` is the pinned autopilot, or (none pinned yet: its HEARTBEAT may be what
+        is refused) the configured target ids, the component defaulting to the autopilot's
+        (1, MAV_COMP_ID_AUTOPILOT1: a ground station's frames are not the autopilot's)."""
+        if self._autopilot is not None:
+            return source == (self._autopilot.system_id, self._autopilot.component_id)
+        system = self.config.target_system
+        component = self.config.target_component or mavlink.MAV_COMP_ID_AUTOPILOT1
+        return system in (None, source[0]) and component == source[1]
 
     def _handle_heartbeat(self, msg: MavMessage) -> None:
         if not is_autopilot_heartbeat(msg):

@@ -39,17 +39,37 @@ Incoming frames (checked in ``link._Codec``), two rules beyond the spec's:
   moved the arm was followed by our signed servo commands, so its replay is refused. A peer
   following the spec adopts our (newer) timestamp from our first signed frame after the
   restart, and is accepted from then on; until then its frames are refused and counted.
+
+**The autopilot ahead of us** (:class:`SigningLockout`). An autopilot follows the spec: it
+adopts a correctly signed incoming timestamp greater than its own, and stores it (ArduPilot with
+its key, at least every 30 s, and starts a minute past it; PX4 at SETUP_SIGNING and at a
+graceful shutdown). One frame from a key holder whose clock is a day ahead moves the autopilot
+a day on. From then on its frames are from the future for us (refused by the first rule), and
+once it restarts it refuses ours as more than a minute behind its own: the link is dead both
+ways, for good (ArduPilot only ever moves its timestamp up, GPS time included). The same is
+seen when *our* clock is behind (a board without RTC or NTP). Frames refused as from the future
+that come from the autopilot's ids are therefore reported as a problem of their own, with both
+clocks and the fix (:data:`LOCKOUT_FIX`): the link's ``signing_problem``, the daemon's status
+and log, ``armbridge doctor``.
+
+We do not follow the autopilot ahead. Its frame proves a key holder signed it, but not when: a
+far-future frame recorded once and replayed after the autopilot was reset would carry us, and
+through our frames the autopilot again, back into the future, and our stored reservation with
+it. The future rule is what keeps a key holder's wrong clock from spreading; the fix belongs
+where the wrong timestamp is (the autopilot's stored one: SETUP_SIGNING resets it).
 """
 
 from __future__ import annotations
 
 import errno
 import logging
+import math
 import os
 import stat
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 from firmware_interface.errors import ConfigurationError, SigningStateError
@@ -69,6 +89,17 @@ NEW_STREAM_WINDOW_TICKS = 60 * TICKS_PER_S
 RETRY_S = 1.0
 #: ArduPilot accepts these unsigned even with signing on (GCS_Signing.cpp accept_list).
 MAVLINK_MSG_ID_RADIO_STATUS = 109
+#: The autopilot's signing problem stands this long after its last frame refused as from the
+#: future (it sends a HEARTBEAT every second).
+LOCKOUT_HOLD_S = 5.0
+#: What to do when the autopilot signs from the future (:class:`SigningLockout`).
+LOCKOUT_FIX = (
+    "if this computer's clock is wrong (a board without RTC or NTP), set it; otherwise a "
+    "signing-key holder's clock was ahead and the autopilot took its timestamp: correct that "
+    "clock, then reset the autopilot's timestamp: disarmed, send it the same key again with "
+    "SETUP_SIGNING from a ground station (MAVProxy: signing setup with the same passphrase; "
+    "Mission Planner: MAVLink Signing), which stores the current time (README: Signing)"
+)
 
 
 #: Key file permissions refused: anything for others, and writing for the group (reading for
@@ -111,6 +142,79 @@ def load_key(path: str | os.PathLike[str]) -> bytes:
 def wall_to_ticks(unix_s: float) -> int:
     """Unix time in seconds → signing timestamp ticks (0 for clocks before 2015)."""
     return max(0, int((unix_s - SIGNING_EPOCH_UNIX_S) * TICKS_PER_S))
+
+
+def ticks_to_utc(ticks: int) -> str:
+    """Signing timestamp ticks → ``2026-12-03 04:00:00 UTC``."""
+    unix_s = SIGNING_EPOCH_UNIX_S + ticks / TICKS_PER_S
+    try:
+        return datetime.fromtimestamp(unix_s, UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    except (OverflowError, OSError, ValueError):  # past the year 9999 (48-bit ticks reach 2104)
+        return f"{ticks} ticks"
+
+
+def duration_text(seconds: float) -> str:
+    """``75 s``, ``42 min``, ``5.3 h``, ``3.0 days``, ``1.0 years``."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86_400:
+        return f"{seconds / 3600:.1f} h"
+    if seconds < 730 * 86_400:
+        return f"{seconds / 86_400:.1f} days"
+    return f"{seconds / (365.25 * 86_400):.1f} years"
+
+
+class SigningLockout:
+    """Whether the autopilot signs from the future (module docstring, "The autopilot ahead of
+    us"): fed the autopilot's frames refused as more than ``FUTURE_LIMIT_S`` ahead of our local
+    clock, it reports the problem for ``hold_s`` after the latest one. Pure; ``now_s`` is the
+    caller's monotonic clock."""
+
+    def __init__(self, hold_s: float = LOCKOUT_HOLD_S) -> None:
+        self.hold_s = hold_s
+        #: (system, component, its timestamp, our local clock), ticks, of the latest one.
+        self.latest: tuple[int, int, int, int] | None = None
+        self._at_s = -math.inf
+
+    def refused(
+        self, source: tuple[int, int], timestamp: int, local_ticks: int, now_s: float
+    ) -> bool:
+        """The autopilot's frame, correctly signed at ``timestamp``, refused as from the future
+        at our ``local_ticks``. True if this begins the problem (say so once)."""
+        began = self.problem(now_s) is None
+        self.latest = (source[0], source[1], timestamp, local_ticks)
+        self._at_s = now_s
+        return began
+
+    def clear(self) -> bool:
+        """The autopilot's frames are accepted again; True if a problem was standing."""
+        stood, self._at_s = self._at_s > -math.inf, -math.inf
+        return stood
+
+    @property
+    def seen(self) -> bool:
+        """A refused frame was noted since the last :meth:`clear`."""
+        return self._at_s > -math.inf
+
+    def problem(self, now_s: float) -> str | None:
+        """What is wrong, with both clocks, or None (the fix: :data:`LOCKOUT_FIX`)."""
+        if self.latest is None or now_s - self._at_s > self.hold_s:
+            return None
+        system, component, timestamp, local = self.latest
+        ahead = duration_text((timestamp - local) / TICKS_PER_S)
+        return (
+            f"the autopilot {system}/{component} signs {ahead} ahead of our clock "
+            f"(its {ticks_to_utc(timestamp)}, ours {ticks_to_utc(local)}): "
+            "we refuse its frames as from the future, and once it restarts it refuses ours as "
+            "too old"
+        )
+
+
+def lockout_message(problem: str) -> str:
+    """:meth:`SigningLockout.problem` with the fix, for the log and the status."""
+    return f"{problem}. Fix: {LOCKOUT_FIX}"
 
 
 def write_state_file(path: Path, reserved_until: int) -> None:

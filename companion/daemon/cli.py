@@ -7,7 +7,8 @@
   With matplotlib installed it also writes a PNG (``--plot PATH``, default
   ``armbridge-demo.png`` in the current directory): targets against the simulator's hand.
 * ``goto X Y Z ROLL PITCH YAW [--wait]``, ``trajectory FILE [--wait]``, ``status [--json]
-  [--watch [S]]``, ``park``, ``stop``: clients of a running daemon's control socket.
+  [--watch [S]]``, ``park``, ``stop``, ``resume``: clients of a running daemon's control
+  socket.
 * ``solve X Y Z ROLL PITCH YAW``: one-off IK, no daemon.
 * ``check-config FILE``: validate a daemon config and exit.
 * ``doctor --config FILE``: check the flight controller's setup against the config, item by item
@@ -260,13 +261,15 @@ def format_status(status: dict[str, Any]) -> str:
     goal, output, acknowledged PWM and state, the last target and the counters."""
     autopilot = status.get("autopilot")
     boot_ms = status.get("autopilot_boot_ms")
-    flags = [name for name in ("moving", "holding") if status.get(name)] or ["still"]
+    flags = [name for name in ("moving", "holding", "stopped") if status.get(name)] or ["still"]
     lines = [
         f"link {status.get('link', '?')}  autopilot "
         + (f"{autopilot[0]}/{autopilot[1]}" if autopilot else "none yet")
         + (f" (up {boot_ms / 1000:.1f} s)" if boot_ms is not None else "")
         + f"  {' '.join(flags)}",
     ]
+    if status.get("link_signing_problem"):
+        lines.append(f"  signing: {status['link_signing_problem']}")
     if not autopilot:
         lines.append(
             "  no autopilot heard yet: targets are refused until it is "
@@ -274,6 +277,11 @@ def format_status(status: dict[str, Any]) -> str:
         )
     elif status.get("link") == "up" and status.get("autopilot_heard_us") is False:
         lines.append("  the autopilot has not answered us yet: it may not route targets to us")
+    if status.get("stopped"):
+        lines.append(
+            f"  stopped by {status.get('stopped_by') or '?'}: the arm holds until "
+            "`armbridge resume` (or a goto, trajectory or park from here)"
+        )
     lines += [
         f"hand  {_fmt_hand(status.get('hand'))}",
         "joint  angle_deg   goal_deg  output  pwm_us  state",
@@ -586,7 +594,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, help_text in (
         ("park", "move the arm to its park pose (running daemon)"),
-        ("stop", "halt the arm where it is (running daemon; the daemon keeps running)"),
+        (
+            "stop",
+            "halt the arm and hold it until `resume` (running daemon; the daemon keeps "
+            "running; a goto, trajectory or park from here also resumes)",
+        ),
+        ("resume", "let the arm move again after a stop (running daemon)"),
     ):
         p = verb(name, help_text)
         client_args(p)

@@ -1,6 +1,6 @@
 """Client side of a JSON-lines Unix socket: one request out, one reply back.
 
-Standard library only, so that ``armbridge status | goto | park | stop`` start at once (the
+Standard library only, so that ``armbridge status | goto | park | stop | resume`` start at once (the
 solver and pymavlink are never imported for them). The server side is
 :mod:`companion.daemon.control_socket`.
 """

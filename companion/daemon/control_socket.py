@@ -12,7 +12,8 @@ Requests::
     {"cmd": "trajectory", "points": [[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg], ...]}
     {"cmd": "status"}
     {"cmd": "park"}
-    {"cmd": "stop"}
+    {"cmd": "stop"}      (the arm holds until a resume, or a goto, trajectory or park here)
+    {"cmd": "resume"}
 
 Replies: ``{"ok": true, "outcome": "accepted", "message": ..., "solve": {...}}``. ``ok`` is
 false for any outcome other than accepted, and for a malformed or refused request:
@@ -113,7 +114,7 @@ _SUN_PATH_MAX = 107  # bytes of a Unix socket path (sockaddr_un.sun_path, less i
 #: SO_PEERGROUPS (Linux 4.13): the peer's supplementary groups; Python has no name for it.
 _SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)
 
-_COMMANDS = "goto | trajectory | status | park | stop"
+_COMMANDS = "goto | trajectory | status | park | stop | resume"
 
 
 class ControlSocketError(OSError):
@@ -720,11 +721,11 @@ def parse_request_line(line: bytes) -> dict[str, Any] | tuple[str, Any]:
                 "[t_s, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg]",
             }
         return cmd, [(p[0], p[1:]) for p in points]
-    if cmd in ("status", "park", "stop"):
+    if cmd in ("status", "park", "stop", "resume"):
         return cmd, None
     return {
         "ok": False,
-        "error": f"unknown cmd {cmd!r}; valid: goto, trajectory, status, park, stop",
+        "error": f"unknown cmd {cmd!r}; valid: goto, trajectory, status, park, stop, resume",
     }
 
 

@@ -58,6 +58,7 @@ from firmware_interface import JointCalibration, LinkConfig, LinkError, MavlinkL
 from firmware_interface.errors import InvalidUrl
 from firmware_interface.link import MessageQueue
 from firmware_interface.lua_bridge import MAV_CMD_USER_2, sender_fix
+from firmware_interface.signing import LOCKOUT_FIX
 from firmware_interface.transport import parse_url
 
 __all__ = ["Check", "Findings", "Verdict", "evaluate", "gather", "format_report", "param_names"]
@@ -165,6 +166,8 @@ class Findings:
     #: Signed frames refused (bad signature, replayed, future): from anyone, the autopilot or
     #: others routed through it.
     signing_rejections: int = 0
+    #: The autopilot signs far ahead of our clock (``MavlinkLink.signing_problem``), or None.
+    signing_problem: str | None = None
     listened_s: float = 0.0
     #: Why the link could not be opened (None: it was): nothing else was read.
     open_error: str | None = None
@@ -225,6 +228,9 @@ def evaluate(config: DaemonConfig, findings: Findings) -> list[Check]:
     kind = flavour(findings)
     if findings.open_error is not None:
         checks.append(Check("link", Verdict.FAIL, findings.open_error, _open_fix(findings.url)))
+        return checks
+    if findings.autopilot is None and findings.signing_problem is not None:
+        checks.append(_signing_clock(findings.signing_problem))
         return checks
     if findings.autopilot is None:
         refused = (
@@ -798,6 +804,12 @@ def _signing(config: DaemonConfig, findings: Findings) -> Check:
     return Check("signing", Verdict.PASS, "on; the autopilot's frames verify and it answers ours")
 
 
+def _signing_clock(problem: str) -> Check:
+    """The autopilot's frames are signed far ahead of our clock: its HEARTBEAT is refused (so
+    no autopilot is heard), and after its restart it refuses ours."""
+    return Check("signing", Verdict.FAIL, problem, LOCKOUT_FIX)
+
+
 def _routing(findings: Findings, kind: str | None) -> Check:
     if findings.ground_stations:
         who = ", ".join(f"{s}/{c}" for s, c in sorted(findings.ground_stations))
@@ -885,6 +897,7 @@ def gather(
                 findings.signing_rejections = (
                     stats.rejected_bad_signature + stats.rejected_replay + stats.rejected_future
                 )
+                findings.signing_problem = link.signing_problem
                 return findings
             findings.autopilot = (info.system_id, info.component_id, info.autopilot)
             findings.heard_after_s = clock() - started

@@ -6,13 +6,15 @@ Every input thread (the MAVLink reader, the control socket) hands its requests t
 * **one motion slot** (``goto``, ``trajectory``): a new target replaces a waiting one, and the
   replaced one is answered CANCELLED at once ("superseded"). A flood of targets therefore costs
   one slot and one answer each, never a queue of work;
-* **stop and park** wait in a short queue of their own and are taken before any target. A stop
-  or park also cancels a waiting target (it was asked for later than the target). The same kind
-  asked again while one is waiting joins it and gets the same answer;
+* **stop, park and resume** wait in a short queue of their own and are taken before any
+  target. A stop or park also cancels a waiting target (it was asked for later than the
+  target), and a stop a waiting park or resume (the same reason: the last word is the stop).
+  The same kind from the same input (a source's first element) asked again while one is
+  waiting joins it and gets the same answer;
 * **per-source rate limits** (a token bucket per source, ``rate_hz`` with ``burst``): a target
-  over the limit is answered TEMPORARILY_REJECTED at once. ``stop`` and ``park`` are never
-  rate limited (they coalesce instead). At most ``max_sources`` buckets are kept (the least
-  recently used one goes);
+  over the limit is answered TEMPORARILY_REJECTED at once. ``stop``, ``park`` and ``resume``
+  are never rate limited (they coalesce instead). At most ``max_sources`` buckets are kept
+  (the least recently used one goes);
 * **per-input rate limits**: all the sources of one input (``INPUTS``: MAVLink, the control
   socket; a source's first element) share a bucket ``LINK_SHARE`` times as large, so that a sender
   rotating its system ids (unsigned MAVLink ids prove nothing) or opening connection after
@@ -164,16 +166,20 @@ class Intake:
                         )
                     self._motion = request
             else:
-                if self._motion is not None:
+                if self._motion is not None and request.kind != "resume":
                     answers.append(
                         (self._motion, Reply(Outcome.CANCELLED, f"{request.kind} asked after it"))
                     )
                     self._motion = None
+                if request.kind == "stop":
+                    answers += self._cancel_commands(("park", "resume"))
                 same = next(
                     (
                         w
                         for w in self._commands
-                        if w.request.kind == request.kind and w.request.direct == request.direct
+                        if w.request.kind == request.kind
+                        and w.request.direct == request.direct
+                        and w.request.origin == request.origin
                     ),
                     None,
                 )
@@ -230,6 +236,17 @@ class Intake:
             self._motion = None
         self._answer([(r, waiting) for r in queued])
         self.wake.set()
+
+    def _cancel_commands(self, kinds: tuple[str, ...]) -> list[tuple[Request, Reply]]:
+        """Take the waiting commands of ``kinds`` out (a stop asked after them): their
+        answers (call with the lock held)."""
+        cancelled = [w for w in self._commands if w.request.kind in kinds]
+        answers = []
+        for waiting in cancelled:
+            self._commands.remove(waiting)
+            reply = Reply(Outcome.CANCELLED, "stop asked after it")
+            answers += [(r, reply) for r in (waiting.request, *waiting.followers)]
+        return answers
 
     def _allow(self, source: Hashable) -> str | None:
         """None if a target from ``source`` may go on, else which limit it is over."""

@@ -1,7 +1,8 @@
 """What the daemon is asked and what it answers: requests, outcomes, replies, and the parsing
 of their payloads (a pose, a trajectory). No I/O and no state: :mod:`companion.daemon.service`
-queues :class:`Request` objects from every input (MAVLink ``MAV_CMD_USER_1``, the control socket,
-the CLI) and answers each with exactly one :class:`Reply`.
+queues :class:`Request` objects from every input (MAVLink ``MAV_CMD_USER_1`` and
+``MAV_CMD_DO_PAUSE_CONTINUE``, the control socket, the CLI) and answers each with exactly one
+:class:`Reply`.
 """
 
 from __future__ import annotations
@@ -22,6 +23,11 @@ if TYPE_CHECKING:  # the solver (numba) is not needed to parse or answer a reque
     from companion import ik
 
 MAV_CMD_USER_1 = mavlink.MAV_CMD_USER_1  # 31010: our "move the hand to" command
+#: 193: ``stop`` (param1 = 0, "pause") and ``resume`` (param1 = 1, "continue") over MAVLink,
+#: addressed to our component (a ground station's pause button addresses the autopilot's).
+MAV_CMD_DO_PAUSE_CONTINUE = mavlink.MAV_CMD_DO_PAUSE_CONTINUE
+#: MAV_CMD_DO_PAUSE_CONTINUE's param1 → the request kind.
+MAVLINK_PAUSE_KINDS = {0.0: "stop", 1.0: "resume"}
 STATUSTEXT_MAX = 50  # characters in a MAVLink STATUSTEXT
 #: common.xml's MAV_RESULT_CANCELLED (6); the pymavlink release we pin predates it.
 MAV_RESULT_CANCELLED = getattr(mavlink, "MAV_RESULT_CANCELLED", 6)
@@ -45,8 +51,14 @@ MAV_RESULT = {
     Outcome.CANCELLED: MAV_RESULT_CANCELLED,
 }
 #: The request kinds; ``goto`` and ``trajectory`` are motion targets (the newest one wins).
-KINDS = ("goto", "trajectory", "park", "stop")
+#: ``stop`` holds the arm until a ``resume`` (or, from the operator's own inputs, a new target
+#: or park): see :attr:`Request.local`.
+KINDS = ("goto", "trajectory", "park", "stop", "resume")
 MOTION_KINDS = frozenset({"goto", "trajectory"})
+#: The inputs anyone on the vehicle's link reaches (:attr:`Request.local`).
+REMOTE_ORIGINS = frozenset({"mavlink", "unknown"})
+#: The kinds that say whether the arm may move at all: not targets, not counted as such.
+LATCH_KINDS = frozenset({"stop", "resume"})
 
 
 @dataclass(frozen=True)
@@ -98,7 +110,7 @@ class Reply:
 class Request:
     """One request, with the future its :class:`Reply` is set on (exactly once)."""
 
-    kind: str  # goto | trajectory | park | stop
+    kind: str  # goto | trajectory | park | stop | resume
     payload: Any
     direct: bool = False
     received_s: float = 0.0  # daemon clock when submitted
@@ -111,6 +123,18 @@ class Request:
     def answered(self) -> bool:
         return self.future.done()
 
+    @property
+    def origin(self) -> str:
+        """The input it came from: ``mavlink``, ``socket``, ``local`` (in-process) ..."""
+        return str(self.source[0]) if self.source else "unknown"
+
+    @property
+    def local(self) -> bool:
+        """From the operator's side of the daemon (the control socket, whose permissions say
+        who may connect, or in-process), not from the MAVLink link, where a system id proves
+        nothing unless the link is signed."""
+        return local_source(self.source)
+
     def answer(self, reply: Reply) -> bool:
         """Set the reply unless one was set already (from any thread); True if this one was."""
         try:
@@ -118,6 +142,38 @@ class Request:
         except InvalidStateError:
             return False
         return True
+
+
+def local_source(source: tuple[Any, ...] | None) -> bool:
+    """Whether a request's ``source`` is on the operator's side (:attr:`Request.local`)."""
+    return source is not None and len(source) > 0 and str(source[0]) not in REMOTE_ORIGINS
+
+
+def source_name(source: tuple[Any, ...] | None) -> str:
+    """Who asked, for people: ``mavlink 255/190``, ``socket 3``."""
+    kind, *ids = source or ("unknown",)
+    return f"{kind} {'/'.join(str(i) for i in ids)}".strip()
+
+
+def stopped_reply(stopped_by: tuple[Any, ...]) -> Reply:
+    """The answer to a target from the link while a ``stop`` from ``stopped_by`` holds the arm.
+
+    A stop from the link is released by a ``resume`` from the link; one from the companion (the
+    control socket, the CLI) only from the companion: a ground station that keeps retrying, or
+    anyone sending from forged system ids, cannot move the arm the operator stopped there."""
+    if local_source(stopped_by):
+        return Reply(
+            Outcome.DENIED,
+            f"stopped from the companion ({source_name(stopped_by)}): it resumes there "
+            "(armbridge resume, or a new target on its control socket)",
+            brief="stopped on the companion: resume there",
+        )
+    return Reply(
+        Outcome.DENIED,
+        f"stopped by {source_name(stopped_by)}: send resume "
+        "(MAV_CMD_DO_PAUSE_CONTINUE, param1 = 1)",
+        brief="stopped: send resume",
+    )
 
 
 def as_pose(value: Any) -> Pose:

@@ -4,7 +4,7 @@ This module is the edge around :class:`~companion.daemon.core.ControlCore` (the 
 there): it owns the threads, the link and the clock.
 
 * the link's **reader thread** (firmware_interface) never waits on anything: a MAVLink
-  COMMAND_LONG ``MAV_CMD_USER_1`` addressed to us goes to the
+  COMMAND_LONG ``MAV_CMD_USER_1`` or ``MAV_CMD_DO_PAUSE_CONTINUE`` addressed to us goes to the
   :class:`~companion.daemon.intake.Intake` (bounded, newest target wins, per-source rate
   limits), and the frames the core needs
   (HEARTBEAT, COMMAND_ACK, STATUSTEXT, SYSTEM_TIME) into a bounded queue;
@@ -26,6 +26,14 @@ stop replaced it before it moved. With ``link.allowed_senders`` set, a target fr
 component) not in it is answered ``DENIED`` (with a STATUSTEXT naming the sender and the
 setting), counted in ``not_allowed``, never queued; those answers share the flood limit of
 rate-limited refusals (beyond it: unanswered, counted in ``flood_unanswered``).
+
+MAVLink stop and resume: COMMAND_LONG ``MAV_CMD_DO_PAUSE_CONTINUE`` (193) to our system /
+component id, param1 = 0 ``stop``, 1 ``resume`` (anything else ``DENIED``); answered with a
+COMMAND_ACK of that command. After a stop the arm holds until a resume: every ``USER_1`` is
+answered ``DENIED`` ("stopped: send resume") meanwhile. A stop from the companion (the control
+socket) is released only from there; a resume from the link is then ``DENIED`` too. Stops and
+resumes are never rate limited (the intake coalesces them); their answers share the flood
+limit above. ``link.allowed_senders`` applies to them as to targets.
 
 Shutdown (:meth:`ArmDaemon.close`): the intake refuses new requests and answers the waiting ones,
 the core answers its own, parks if asked (at the speed limit, as any motion, for at most
@@ -53,8 +61,10 @@ from companion.daemon.core import Action, Answer, ControlCore, ReadParam, SendCo
 from companion.daemon.intake import RATE_LIMITED, Intake, RefusalLog, TokenBucket
 from companion.daemon.requests import (
     KINDS,
+    MAV_CMD_DO_PAUSE_CONTINUE,
     MAV_CMD_USER_1,
     MAV_RESULT,
+    MAVLINK_PAUSE_KINDS,
     Outcome,
     Reply,
     Request,
@@ -64,6 +74,7 @@ from companion.daemon.requests import (
 )
 from companion.kinematics.arm import Pose
 from firmware_interface import LinkError, LinkState, MavlinkLink
+from firmware_interface.signing import lockout_message
 
 __all__ = ["ArmDaemon", "Outcome", "Reply"]
 
@@ -316,7 +327,8 @@ class ArmDaemon:
         once).
 
         ``goto``: a Pose or 6 numbers. ``trajectory``: ``[(t_s, pose), ...]`` relative to now.
-        ``park``, ``stop``: no payload. ``direct`` (park only) skips the speed limit.
+        ``park``, ``stop``, ``resume``: no payload. ``direct`` (park only) skips the speed
+        limit.
         ``source`` identifies the sender for the rate limits.
         """
         return self.submit_request(self.new_request(kind, payload, direct=direct, source=source))
@@ -390,6 +402,9 @@ class ArmDaemon:
         status["link_fault"] = link.fault if link is not None else None
         # The serial device the link waits for (not plugged in yet), or None.
         status["link_waiting_for"] = link.waiting_for_device if link is not None else None
+        # The autopilot signs far ahead of our clock (each side refuses the other), with the fix.
+        problem = link.signing_problem if link is not None else None
+        status["link_signing_problem"] = lockout_message(problem) if problem else None
         status["link_counters"] = dataclasses.asdict(link.stats) if link is not None else None
         return status
 
@@ -426,7 +441,8 @@ class ArmDaemon:
     # -- link input (reader thread: never waits) ----------------------------------------------
 
     def _on_command_long(self, msg: Any) -> None:
-        if msg.command != MAV_CMD_USER_1:
+        command = msg.command
+        if command != MAV_CMD_USER_1 and command != MAV_CMD_DO_PAUSE_CONTINUE:
             return
         link = self.link
         assert link is not None
@@ -445,15 +461,43 @@ class ArmDaemon:
             )
             self.intake.refusals.note("goto", Outcome.DENIED, reply.message)
             if self._flood_answer_allowed(source):
-                self._answer_mavlink(source, reply)
+                self._answer_mavlink(source, reply, command)
             else:
                 with self._counts_lock:
                     self._counts["flood_unanswered"] += 1
+            return
+        if command == MAV_CMD_DO_PAUSE_CONTINUE:
+            self._on_pause_continue(msg, source)
             return
         params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6)
         payload = mavlink_target_payload(params, msg.param7)
         request = self.new_request("goto", payload, source=("mavlink", *source))
         request.future.add_done_callback(lambda f: self._answer_mavlink(source, f.result()))
+        self.intake.submit(request)
+
+    def _on_pause_continue(self, msg: Any, source: tuple[int, int]) -> None:
+        """MAV_CMD_DO_PAUSE_CONTINUE to us: param1 0 ``stop``, 1 ``resume``. Never rate
+        limited (the intake coalesces them); each is carried out, and answered within the
+        flood limit of answers."""
+        kind = MAVLINK_PAUSE_KINDS.get(msg.param1)
+        answered = self._flood_answer_allowed(source)
+        if not answered:
+            with self._counts_lock:
+                self._counts["flood_unanswered"] += 1
+        if kind is None:
+            reply = Reply(
+                Outcome.DENIED,
+                f"MAV_CMD_DO_PAUSE_CONTINUE param1 = {msg.param1:g}: 0 stops, 1 resumes",
+            )
+            self.intake.refusals.note("stop", Outcome.DENIED, reply.message)
+            if answered:
+                self._answer_mavlink(source, reply, MAV_CMD_DO_PAUSE_CONTINUE)
+            return
+        request = self.new_request(kind, source=("mavlink", *source))
+        if answered:
+            request.future.add_done_callback(
+                lambda f: self._answer_mavlink(source, f.result(), MAV_CMD_DO_PAUSE_CONTINUE)
+            )
         self.intake.submit(request)
 
     def _on_frame(self, msg: Any) -> None:
@@ -480,7 +524,9 @@ class ArmDaemon:
         if wake:
             self._wake.set()
 
-    def _answer_mavlink(self, source: tuple[int, int], reply: Reply) -> None:
+    def _answer_mavlink(
+        self, source: tuple[int, int], reply: Reply, command: int = MAV_CMD_USER_1
+    ) -> None:
         link = self.link
         if link is None:
             return
@@ -500,7 +546,7 @@ class ArmDaemon:
                 link.send(link.mav.statustext_encode(severity, reply.statustext().encode()))
             link.send(
                 link.mav.command_ack_encode(
-                    MAV_CMD_USER_1, MAV_RESULT[reply.outcome], 0, 0, source[0], source[1]
+                    command, MAV_RESULT[reply.outcome], 0, 0, source[0], source[1]
                 )
             )
         except LinkError as exc:

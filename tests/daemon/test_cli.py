@@ -154,7 +154,18 @@ def test_check_config_and_run_refuse_the_same_out_of_bounds_values(tmp_path, cap
         listener.close()
 
 
-VERBS = ("run", "demo", "check-config", "solve", "goto", "trajectory", "status", "park", "stop")
+VERBS = (
+    "run",
+    "demo",
+    "check-config",
+    "solve",
+    "goto",
+    "trajectory",
+    "status",
+    "park",
+    "stop",
+    "resume",
+)
 
 
 @pytest.mark.parametrize(
@@ -243,6 +254,36 @@ def test_status_for_people_names_a_refused_output():
     assert "    1      10.00          -       9    1500  acknowledged" in text
     assert "refused (Set SERVO1_FUNCTION = 0)" in text
     assert text.endswith("counters  targets 2")
+
+
+def test_stop_holds_the_arm_until_resume(tmp_path, capsys):
+    from companion.daemon.config import parse_config
+    from companion.daemon.control_socket import ControlServer
+    from companion.daemon.service import ArmDaemon
+
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # an autopilot that never talks
+    silent.bind(("127.0.0.1", 0))
+    daemon = ArmDaemon(
+        parse_config({"link": {"url": f"udpout:127.0.0.1:{silent.getsockname()[1]}"}})
+    )
+    daemon.start()
+    server = ControlServer(tmp_path / "control.sock", daemon)
+    sock = ["--socket", str(server.path)]
+    try:
+        assert main(["stop", *sock]) == 0
+        assert json.loads(capsys.readouterr().out)["message"] == "holding until resume"
+        assert main(["status", *sock]) == 0
+        out = capsys.readouterr().out
+        assert "stopped" in out.splitlines()[0]
+        assert "the arm holds until `armbridge resume`" in out
+        assert main(["resume", *sock]) == 0
+        assert json.loads(capsys.readouterr().out)["message"] == "resumed"
+        assert main(["status", "--json", *sock]) == 0
+        assert json.loads(capsys.readouterr().out)["status"]["stopped"] is False
+    finally:
+        server.close()
+        daemon.close()
+        silent.close()
 
 
 def test_status_for_people_says_when_no_autopilot_was_heard():

@@ -12,7 +12,18 @@ from hypothesis import strategies as st
 
 from companion.daemon.cli import main
 
-VERBS = ["run", "check-config", "doctor", "solve", "goto", "trajectory", "status", "park", "stop"]
+VERBS = [
+    "run",
+    "check-config",
+    "doctor",
+    "solve",
+    "goto",
+    "trajectory",
+    "status",
+    "park",
+    "stop",
+    "resume",
+]
 FLAGS = [
     "--config", "--socket", "--timeout-s", "--wait", "--json", "--watch", "--arm", "--tip-link",
     "--budget-ms", "--tol-pos-cm", "--tol-ori-deg", "--seed", "--listen-s", "-v", "-q",
@@ -64,7 +75,7 @@ def test_every_verb_with_random_arguments_exits_with_a_message(data, files, tmp_
     if verb == "run" and "--help" not in argv:
         # Only configs that cannot start: run must refuse them as check-config does.
         argv = ["run", "--config", data.draw(st.sampled_from(files))]
-    if verb in ("goto", "trajectory", "status", "park", "stop"):
+    if verb in ("goto", "trajectory", "status", "park", "stop", "resume"):
         argv += ["--socket", os.path.join(tmp_path_factory.getbasetemp(), "none.sock")]
         argv += ["--timeout-s", "1"]
     if verb == "doctor":

@@ -95,6 +95,19 @@ def test_status_and_several_requests_on_one_connection(server):
     assert replies[1]["outcome"] == "accepted"
 
 
+def test_a_stop_holds_until_a_resume_and_a_goto_the_link_refuses_keeps_it(server):
+    assert request(server.path, {"cmd": "stop"})["message"] == "holding until resume"
+    status = request(server.path, {"cmd": "status"})["status"]
+    assert status["stopped"] is True and status["stopped_by"].startswith("socket ")
+    # The autopilot is silent: this goto is not carried out, so the arm stays stopped.
+    reply = request(server.path, {"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]})
+    assert reply["outcome"] == "temporarily_rejected"
+    assert request(server.path, {"cmd": "status"})["status"]["stopped"] is True
+    assert request(server.path, {"cmd": "resume"})["message"] == "resumed"
+    status = request(server.path, {"cmd": "status"})["status"]
+    assert (status["stopped"], status["stopped_by"]) == (False, None)
+
+
 @pytest.mark.parametrize(
     ("line", "words"),
     [

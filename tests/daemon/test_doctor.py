@@ -92,6 +92,15 @@ def test_no_autopilot_and_a_wrong_dialect_fail_first():
     assert wrong[-1].item == "dialect" and wrong[-1].fix == 'set link.dialect = "ardupilot"'
 
 
+def test_an_autopilot_signing_from_the_future_fails_signing_with_the_fix_not_the_link():
+    # Its HEARTBEAT is refused, so no autopilot is heard: the cause is the clock, not the cable.
+    problem = "the autopilot 1/1 signs 7.0 days ahead of our clock (...)"
+    found = Findings("u", listened_s=10.0, signing_rejections=12, signing_problem=problem)
+    [check] = evaluate(config(), found)
+    assert (check.item, check.verdict, check.detail) == ("signing", Verdict.FAIL, problem)
+    assert check.fix is not None and "SETUP_SIGNING" in check.fix and "set it" in check.fix
+
+
 def test_the_lua_bridge_and_a_serial_links_budget_are_checked():
     cfg = config("ardupilot-lua", url="/dev/ttyAMA0,57600")
     params = ardupilot_params()

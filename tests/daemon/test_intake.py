@@ -153,3 +153,25 @@ def test_refusals_are_logged_as_a_summary(caplog):
     lines = [r.getMessage() for r in caplog.records]
     assert len(lines) == 2
     assert "5000 requests refused" in lines[1] and "4999 goto temporarily_rejected" in lines[1]
+
+
+def test_a_stop_cancels_a_park_or_resume_asked_before_it():
+    # The last word is the stop's: a resume taken after it would move the arm it stopped.
+    intake = Intake(clock=FakeClock())
+    park, resume, stop = req("park", ("socket", 1)), req("resume", ("socket", 1)), req("stop")
+    for request in (park, resume, stop):
+        intake.submit(request)
+    assert outcome(park) is outcome(resume) is Outcome.CANCELLED
+    later = req("resume", ("socket", 1))
+    intake.submit(later)
+    assert intake.take() == [stop, later]
+
+
+def test_a_resume_joins_only_one_from_the_same_input():
+    # A resume from the link may be refused where one from the companion is not.
+    intake = Intake(clock=FakeClock())
+    link = [req("resume") for _ in range(3)]
+    socket = req("resume", ("socket", 2))
+    for request in (*link, socket):
+        intake.submit(request)
+    assert intake.take() == [link[0], socket]

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import threading
+import time
 from importlib import resources
 
 import numpy as np
@@ -25,6 +26,7 @@ from devkit.timing import wait_until
 from tests.daemon.core.rig import PARK, RATE_HZ, Rig, near, telemetry, world_goto, world_rig
 
 WAIT_S = 10.0
+SERVO = mavlink.MAV_CMD_DO_SET_SERVO
 G = (-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
 URL = "udpout:127.0.0.1:14550"
 
@@ -107,6 +109,48 @@ def test_mavlink_target_for_another_component_is_ignored(autopilot):
         gcs_command(endpoint, (45.0, 10.0, 20.0, 0.0, 45.0, 0.0), target=(1, 100))
         assert wait_until(lambda: daemon.status()["counters"]["not_for_us"] == 1, WAIT_S)
         assert acks_to_gcs(peer) == []
+    finally:
+        daemon.close()
+
+
+def gcs_pause(endpoint, param1):
+    """A ground station's MAV_CMD_DO_PAUSE_CONTINUE to us: 0 stop, 1 resume."""
+    gcs = mavlink.MAVLink(None, 255, 190)
+    msg = gcs.command_long_encode(
+        1, 191, mavlink.MAV_CMD_DO_PAUSE_CONTINUE, 0, param1, 0, 0, 0, 0, 0, 0
+    )
+    endpoint.write(msg.pack(gcs))
+
+
+def test_a_stop_over_mavlink_holds_the_arm_until_a_resume(autopilot):
+    endpoint, peer = autopilot
+    daemon = ArmDaemon(parse_config({"link": {"url": f"udpout:127.0.0.1:{endpoint.port}"}}))
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        peer.send_heartbeat()
+        assert daemon.wait_for_autopilot(WAIT_S)
+        pose = daemon.config.arm.fk([20, 70, 50, 20, 30, 10]).as_tuple()
+
+        def answer(count):
+            assert peer.wait_for(lambda: len(acks_to_gcs(peer)) >= count)
+            ack = acks_to_gcs(peer)[count - 1]
+            return ack.command, ack.result
+
+        gcs_pause(endpoint, 0)
+        assert answer(1) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_ACCEPTED)
+        assert daemon.status()["stopped_by"] == "mavlink 255/190"
+        gcs_command(endpoint, pose)
+        assert answer(2) == (mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_DENIED)
+        assert "stopped: send resume" in [m.text for m in peer.messages("STATUSTEXT")]
+        gcs_pause(endpoint, 7)
+        assert answer(3) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_DENIED)
+        assert not [m for m in peer.messages("COMMAND_LONG") if m.command == SERVO]
+        gcs_pause(endpoint, 1)
+        assert answer(4) == (mavlink.MAV_CMD_DO_PAUSE_CONTINUE, mavlink.MAV_RESULT_ACCEPTED)
+        assert daemon.status()["stopped"] is False
+        gcs_command(endpoint, pose)
+        assert answer(5) == (mavlink.MAV_CMD_USER_1, mavlink.MAV_RESULT_ACCEPTED)
     finally:
         daemon.close()
 
@@ -440,3 +484,43 @@ def test_a_reload_says_what_it_applied(caplog):
     said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("reloaded")]
     assert said[0].endswith(": budget_ms 20.0 → 5.0, joint_speed_deg_s 60.0 → 120.0 applied")
     assert said[1].endswith(": nothing to apply")
+
+
+def test_status_names_an_autopilot_signing_far_ahead_of_us_with_the_fix(tmp_path):
+    from companion.daemon.cli import format_status
+    from firmware_interface.signing import TICKS_PER_S, wall_to_ticks
+
+    key = bytes(range(32))
+    (tmp_path / "signing.key").write_bytes(key)
+    (tmp_path / "signing.key").chmod(0o600)
+    endpoint = UdpEndpoint()
+    peer = ScriptedPeer(endpoint, signing_key=key)
+    daemon = ArmDaemon(
+        parse_config(
+            {
+                "link": {
+                    "url": f"udpout:127.0.0.1:{endpoint.port}",
+                    "signing_key": "signing.key",
+                    "signing_state": "signing.state",
+                }
+            },
+            source=str(tmp_path / "armbridge.toml"),
+        )
+    )
+    daemon.start()
+    try:
+        assert peer.wait_for(lambda: endpoint.peer is not None)
+        assert daemon.status()["link_signing_problem"] is None
+        # The autopilot took the timestamp of a key holder whose clock is a week ahead.
+        peer.mav.signing.timestamp = wall_to_ticks(time.time()) + 7 * 86_400 * TICKS_PER_S
+        peer.send_heartbeat()
+        assert wait_until(lambda: daemon.status()["link_signing_problem"] is not None, WAIT_S)
+        status = daemon.status()
+        problem = status["link_signing_problem"]
+        assert problem.startswith("the autopilot 1/1 signs 7.0 days ahead of our clock")
+        assert "Fix: " in problem and "SETUP_SIGNING" in problem
+        assert status["autopilot"] is None and status["link_counters"]["rejected_future"] >= 1
+        assert f"  signing: {problem}" in format_status(status).splitlines()
+    finally:
+        daemon.close()
+        peer.close()

@@ -6,11 +6,15 @@ from devkit.timing import wait_until
 from firmware_interface.errors import ConfigurationError, SigningStateError
 from firmware_interface.link import LinkConfig, MavlinkLink
 from firmware_interface.signing import (
+    LOCKOUT_HOLD_S,
     SIGNING_EPOCH_UNIX_S,
     TICKS_PER_S,
     SigningConfig,
+    SigningLockout,
     TimestampKeeper,
+    duration_text,
     load_key,
+    lockout_message,
     wall_to_ticks,
 )
 
@@ -56,6 +60,43 @@ def test_load_key_refuses_wrong_sizes_and_missing_files(tmp_path):
 def test_wall_clock_ticks_from_2015():
     assert wall_to_ticks(SIGNING_EPOCH_UNIX_S + 1.5) == 150_000
     assert wall_to_ticks(0.0) == 0  # a companion without RTC booting in 1970
+
+
+def test_an_autopilot_signing_a_year_ahead_is_a_problem_with_both_clocks_and_the_fix():
+    ours = wall_to_ticks(NOW_UNIX_S)  # 2026-09-21 14:13:20 UTC
+    lockout = SigningLockout()
+    assert lockout.problem(0.0) is None and not lockout.seen
+    year = 365 * 86_400 * TICKS_PER_S
+    assert lockout.refused((1, 1), ours + year, ours, now_s=10.0)  # it begins: say so
+    assert not lockout.refused((1, 1), ours + year + 100, ours + 100, now_s=11.0)  # once
+    problem = lockout.problem(12.0)
+    assert problem == (
+        "the autopilot 1/1 signs 365.0 days ahead of our clock (its 2027-09-21 14:13:20 UTC, "
+        "ours 2026-09-21 14:13:20 UTC): we refuse its frames as from the future, and once it "
+        "restarts it refuses ours as too old"
+    )
+    message = lockout_message(problem)
+    assert "set it" in message and "SETUP_SIGNING" in message and "disarmed" in message
+    # It stands while the autopilot's frames keep coming from the future, then lapses ...
+    assert lockout.problem(11.0 + LOCKOUT_HOLD_S) is not None
+    assert lockout.problem(11.1 + LOCKOUT_HOLD_S) is None
+    # ... or ends at once when one of its frames is accepted (its timestamp was reset).
+    assert lockout.refused((1, 1), ours + year, ours, now_s=30.0)
+    assert lockout.clear() and lockout.problem(30.0) is None and not lockout.clear()
+
+
+@pytest.mark.parametrize(
+    ("seconds", "text"),
+    [
+        (75, "75 s"),
+        (2520, "42 min"),
+        (19_080, "5.3 h"),
+        (259_200, "3.0 days"),
+        (3 * 31_557_600, "3.0 years"),
+    ],  # fmt: skip
+)
+def test_how_far_ahead_reads_for_people(seconds, text):
+    assert duration_text(seconds) == text
 
 
 def test_timestamps_stay_monotonic_across_restart_when_the_wall_clock_goes_back(tmp_path):

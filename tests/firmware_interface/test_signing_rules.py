@@ -214,3 +214,39 @@ def test_the_keeper_moves_its_reservation_only_once_stored(tmp_path):
     with pytest.raises(SigningStateError):
         keeper.next_timestamp(0)
     assert len(writer.stored) == 1
+
+
+DAY_TICKS = 86_400 * TICKS_PER_S
+
+
+def test_an_autopilot_that_took_a_far_future_timestamp_is_named_with_the_fix(
+    peer, tmp_path, caplog
+):
+    link = open_signed(peer, tmp_path)
+    try:
+        peer.wait_for_messages("HEARTBEAT")
+        # A ground station's clock a year ahead: refused, but not the autopilot's problem.
+        peer.endpoint.write(gcs_target(NOW_TICKS + YEAR_TICKS))
+        assert wait_until(lambda: link.stats.rejected_future == 1)
+        assert link.signing_problem is None
+        # The autopilot (42/1) took a key holder's timestamp a day ahead of ours.
+        peer.mav.signing.timestamp = NOW_TICKS + DAY_TICKS
+        with caplog.at_level("ERROR", logger="firmware_interface.link"):
+            for _ in range(3):
+                peer.send_heartbeat()
+            assert wait_until(lambda: link.stats.rejected_future == 4)
+        problem = link.signing_problem
+        assert problem is not None and problem.startswith("the autopilot 42/1 signs 24.0 h ahead")
+        assert link.autopilot is None  # its HEARTBEAT is what is refused
+        [error] = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
+        assert problem in error and "SETUP_SIGNING" in error
+        # Its timestamp reset (SETUP_SIGNING): its frames are accepted, the problem ends.
+        peer.mav.signing.timestamp = NOW_TICKS + TICKS_PER_S
+        peer.send_heartbeat()
+        link.wait_for_autopilot(5.0)
+        with caplog.at_level("WARNING", logger="firmware_interface.link"):
+            peer.send_heartbeat()
+            assert wait_until(lambda: link.signing_problem is None)
+        assert any("accepted again" in r.getMessage() for r in caplog.records)
+    finally:
+        link.close()

@@ -8,6 +8,7 @@ the parts share an :class:`~companion.daemon.core.state.ArmState` and the
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -28,8 +29,20 @@ from companion.daemon.core.status import StatusAndAnswers
 from companion.daemon.core.updates import UpdatePipeline
 from companion.daemon.core.watch import AutopilotWatch
 from companion.daemon.core.world import WorldTargets
-from companion.daemon.requests import Outcome, Reply, Request, as_target, parse_trajectory
+from companion.daemon.requests import (
+    LATCH_KINDS,
+    Outcome,
+    Reply,
+    Request,
+    as_target,
+    local_source,
+    parse_trajectory,
+    source_name,
+    stopped_reply,
+)
 from firmware_interface.link import is_autopilot_heartbeat
+
+log = logging.getLogger("armbridge")
 
 #: (pose, q_start_deg or None for a cold start, mode, budget_ms or None for the configured
 #: one, seed= keyword: None for the configured one) → ik.IKResult
@@ -90,17 +103,23 @@ class ControlCore:
     # -- events -----------------------------------------------------------------------------
 
     def request(self, request: Request) -> list[Action]:
-        """A request taken from the intake (``goto``, ``trajectory``, ``park``, ``stop``)."""
+        """A request taken from the intake (``goto``, ``trajectory``, ``park``, ``stop``,
+        ``resume``). A ``stop`` holds the arm until a ``resume`` (:meth:`_stop_or_resume`);
+        meanwhile the link's targets are DENIED, and one from the companion (the operator's
+        own: the control socket, in-process) releases it once carried out."""
         actions: list[Action] = []
         answers, motion = self.answers, self.motion
         if request.answered:  # withdrawn or answered meanwhile: never carried out
             return actions
-        if request.kind == "stop":
-            motion.stop(actions, Reply(Outcome.CANCELLED, "stopped before it moved"))
-            answers.answer(actions, request, Reply(Outcome.ACCEPTED, "holding"))
+        if request.kind in LATCH_KINDS:
+            answers.answer(actions, request, self._stop_or_resume(actions, request))
             return actions
         if request.kind == "goto":
             self.state.counters["targets"] += 1
+        stopped_by = self.state.stopped_by
+        if stopped_by is not None and not request.local:
+            answers.answer(actions, request, stopped_reply(stopped_by))
+            return actions
         try:
             parsed = self._parse(request)
         except (TypeError, ValueError, OverflowError) as exc:
@@ -111,6 +130,7 @@ class ControlCore:
                 actions, request, Reply(Outcome.TEMPORARILY_REJECTED, "autopilot link down")
             )
             return actions
+        carried_out = True
         if request.kind == "park":
             motion.stop(actions, Reply(Outcome.CANCELLED, f"superseded by a {request.kind}"))
             if request.direct and not self.state.refused:  # FAILED by accept, unsent
@@ -119,9 +139,30 @@ class ControlCore:
         elif request.kind == "trajectory":
             motion.start_trajectory(actions, request, parsed)
         else:
-            motion.goto(actions, request, parsed)
+            carried_out = motion.goto(actions, request, parsed)
+        if stopped_by is not None and carried_out:
+            self.state.stopped_by = None
+            log.info("stop released by the %s from %s", request.kind, source_name(request.source))
         motion.next_step(actions, immediate=True)
         return actions
+
+    def _stop_or_resume(self, actions: list[Action], request: Request) -> Reply:
+        """``stop``: forget the goal and hold until a ``resume``. ``resume``: release a stop,
+        unless it came from the companion and the resume from the link (``stopped_reply``)."""
+        state = self.state
+        stopped_by = state.stopped_by
+        if request.kind == "stop":
+            self.motion.stop(actions, Reply(Outcome.CANCELLED, "stopped before it moved"))
+            if stopped_by is None or (request.local and not local_source(stopped_by)):
+                state.stopped_by = request.source  # the companion's stop outranks the link's
+            return Reply(Outcome.ACCEPTED, "holding until resume")
+        if stopped_by is None:
+            return Reply(Outcome.ACCEPTED, "not stopped")
+        if local_source(stopped_by) and not request.local:
+            return stopped_reply(stopped_by)
+        state.stopped_by = None
+        log.info("stop released by a resume from %s", source_name(request.source))
+        return Reply(Outcome.ACCEPTED, "resumed")
 
     def frame(self, msg: Any, received_s: float | None = None) -> list[Action]:
         """A frame from the link (see ``service.CORE_FRAMES``), received at ``received_s``
@@ -301,7 +342,12 @@ class ControlCore:
 
     def status(self) -> dict[str, Any]:
         """A JSON-ready snapshot (build it on the driving thread)."""
-        return self.answers.snapshot()
+        snapshot = self.answers.snapshot()
+        # Held by a stop until a resume, and who stopped it (``mavlink 255/190``, ``socket 3``).
+        stopped_by = self.state.stopped_by
+        snapshot["stopped"] = stopped_by is not None
+        snapshot["stopped_by"] = source_name(stopped_by) if stopped_by is not None else None
+        return snapshot
 
     def parked(self) -> bool:
         """Every output acknowledged at the park pose."""

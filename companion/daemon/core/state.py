@@ -10,6 +10,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 from companion.daemon.requests import Reply, Request
 from firmware_interface.updates import ServoCommand, UpdateTracker
@@ -96,6 +97,9 @@ class ArmState:
     updates_sent: int = 0
     #: The link to the pinned autopilot is up (watch).
     link_up: bool = False
+    #: The source of the ``stop`` the arm holds for until a ``resume`` (None: not stopped).
+    #: The dispatcher sets and clears it; a reload keeps it, a restart starts without.
+    stopped_by: tuple[Any, ...] | None = None
     counters: dict[str, int] = field(default_factory=lambda: dict.fromkeys(COUNTER_NAMES, 0))
 
     def settled(self) -> bool:

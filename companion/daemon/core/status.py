@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from companion.daemon.core.actions import Action, Answer
 from companion.daemon.core.world import POSE_KEYS
-from companion.daemon.requests import MOTION_KINDS, Outcome, Reply, Request
+from companion.daemon.requests import LATCH_KINDS, MOTION_KINDS, Outcome, Reply, Request
 
 if TYPE_CHECKING:
     from companion.daemon.core.dispatcher import ControlCore
@@ -46,7 +46,7 @@ class StatusAndAnswers:
             }
         if reply.outcome is Outcome.ACCEPTED:
             self._log_accepted(request, reply)
-        if request.kind != "stop":
+        if request.kind not in LATCH_KINDS:
             self._core.state.counters[reply.outcome.value] += 1
 
     def record_first_out(self, timing: dict[str, float]) -> None:
