@@ -901,6 +901,7 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "control.socket_group": ("string", ("no-such-group-armbridge",)),
     "control.max_connections": ("integer", (0, -1, 257, 2**40)),
     "control.idle_timeout_s": ("number", (0, -1.0, 0.09, 3600.5, 1e300)),
+    "control.resume_after_reboot": ("bool", ()),
     "joint.name": ("string", ()),
     "joint.output": ("integer", (0, 17, -9)),
     "joint.pwm_min_us": ("integer", (499, 2501, 2000, 2**40)),
