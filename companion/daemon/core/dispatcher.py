@@ -188,7 +188,7 @@ class ControlCore:
             if msg.target_component in (0, self.config.link.component_id):
                 watch.heard_us()
                 self.updates.on_ack(msg.command, msg.result, at_s)
-                self.updates.poll(actions)
+                self.updates.poll(actions, at_s)
         elif kind == "STATUSTEXT":
             text = msg.text
             if isinstance(text, bytes | bytearray):

@@ -174,10 +174,13 @@ class UpdatePipeline:
 
     # -- resolving --------------------------------------------------------------------------
 
-    def poll(self, actions: list[Action]) -> None:
-        """Resolve the updates in flight whose outcome is in, oldest first."""
+    def poll(self, actions: list[Action], at_s: float | None = None) -> None:
+        """Resolve the updates in flight whose outcome is in, oldest first, as of ``at_s``
+        (default: now). An ACK's handler passes its arrival: a control thread that stalled
+        takes the queued frames late, and judged at its own late time an update whose other
+        ACKs wait in the queue behind this one would be taken as unanswered."""
         state = self._core.state
-        now = self._core.clock()
+        now = self._core.clock() if at_s is None else at_s
         while state.flights:
             inflight = state.flights[0]
             outcome = inflight.tracker.poll(now)

@@ -10,7 +10,7 @@ from companion.daemon.core import (
     UPDATE_ATTEMPTS,
 )
 from companion.daemon.requests import Outcome, Request
-from tests.daemon.core.rig import FAILED, PARK, RATE_HZ, SERVO, STEP_DEG, Rig, near
+from tests.daemon.core.rig import ACCEPTED, FAILED, PARK, RATE_HZ, SERVO, STEP_DEG, Rig, near
 
 
 def test_an_update_goes_out_back_to_back_and_is_answered_once_every_ack_is_in(rig):
@@ -262,3 +262,18 @@ def test_px4_sends_one_frame_for_every_joint():
     rig.ack(command=mavlink.MAV_CMD_DO_SET_ACTUATOR)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
     assert frame.params[6] == 0.0
+
+
+def test_acks_taken_late_by_a_stalled_control_thread_are_judged_at_their_arrival(rig):
+    # Under a stall the first ACK was judged at the thread's late time: its update seemed
+    # unanswered while its other ACKs waited in the queue (a false servo error).
+    request = rig.goto(near(PARK))
+    sent = [c for c in rig.sent if c.command == SERVO]
+    arrived_s = rig.clock() + 0.01
+    rig.clock.advance(2 * rig.config.link.command_timeout_s)  # the thread stalled meanwhile
+    for _ in sent:
+        rig.frame(
+            lambda c: c.command_ack_encode(SERVO, ACCEPTED, 0, 0, 1, 191), received_s=arrived_s
+        )
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    assert rig.core.status()["counters"]["servo_errors"] == 0
