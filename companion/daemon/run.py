@@ -11,12 +11,13 @@ re-reads the config.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
+import select
 import signal
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 
@@ -71,6 +72,48 @@ class HeartbeatWait:
                 waited_s,
             )
             self._next_log_s = now_s + min(max(waited_s, WAIT_LOG_FIRST_S), WAIT_LOG_MAX_S)
+
+
+class SignalFlags:
+    """SIGTERM / SIGINT and SIGHUP for the main loop, without a lock in the handler.
+
+    A handler runs on the main thread between two of its bytecodes: ``threading.Event.set()``
+    there takes the event's lock, which the main thread may hold inside ``Event.wait()`` at
+    that moment (a daemon once did not exit within 10 s of SIGTERM). The handlers only set a
+    flag; the wake-up comes from the interpreter itself, which writes the signal's number to
+    a pipe (``signal.set_wakeup_fd``) that :meth:`wait` selects on."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        self.reload = False
+        self._read_fd, self._write_fd = os.pipe()
+        os.set_blocking(self._read_fd, False)
+        os.set_blocking(self._write_fd, False)
+        self._previous_fd = signal.set_wakeup_fd(self._write_fd, warn_on_full_buffer=False)
+
+    def on_stop(self, signum: int, frame: object) -> None:
+        self.stop = True
+
+    def on_reload(self, signum: int, frame: object) -> None:
+        self.reload = True
+
+    def wait(self, timeout_s: float) -> None:
+        """Until a signal came or ``timeout_s`` passed."""
+        self._drain()  # the wake-ups of signals already seen
+        if self.stop or self.reload:
+            return
+        ready, _, _ = select.select([self._read_fd], [], [], timeout_s)
+        if ready:
+            self._drain()
+
+    def _drain(self) -> None:
+        with contextlib.suppress(BlockingIOError):
+            os.read(self._read_fd, 4096)
+
+    def close(self) -> None:
+        signal.set_wakeup_fd(self._previous_fd)
+        os.close(self._read_fd)
+        os.close(self._write_fd)
 
 
 def reload_config(daemon: ArmDaemon, config_path: str, server: ControlServer | None = None) -> bool:
@@ -153,11 +196,10 @@ def _run(config: DaemonConfig, config_path: str) -> int:
     # would keep a `stop` on the control socket waiting in 5 ms slices. 1 ms costs nothing
     # while only one thread has work (measured: python -m bench.flood).
     sys.setswitchinterval(0.001)
-    stop = threading.Event()
-    reload = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGHUP, lambda *_: reload.set())
+    signals = SignalFlags()
+    signal.signal(signal.SIGTERM, signals.on_stop)
+    signal.signal(signal.SIGINT, signals.on_stop)
+    signal.signal(signal.SIGHUP, signals.on_reload)
 
     daemon = ArmDaemon(config)
     server = None
@@ -204,13 +246,13 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         )
         waiting = HeartbeatWait(config.link.url, time.monotonic())
         ping_s = notifier.watchdog_period_s / 2 if notifier.watchdog_period_s else 1.0
-        while not stop.is_set():
+        while not signals.stop:
             # Not status(): a snapshot built on the control thread twice a second for this.
             s = daemon.brief()
             # Up for targets once the autopilot has answered us, so knows our route.
             waiting.update(s["link"] == "up" and s["autopilot_heard_us"], time.monotonic())
-            if reload.is_set():
-                reload.clear()
+            if signals.reload:
+                signals.reload = False
                 notifier.reloading()
                 reload_config(daemon, config_path, server)
                 notifier.ready()
@@ -226,8 +268,9 @@ def _run(config: DaemonConfig, config_path: str) -> int:
                 if device is not None
                 else f"waiting for the autopilot heartbeat on {config.link.url}"
             )
-            stop.wait(min(ping_s, 0.5))
+            signals.wait(min(ping_s, 0.5))
     finally:
+        signals.close()
         notifier.stopping()
         log.info("stopping%s", " (parking)" if config.park_on_stop else "")
         # The daemon first: it refuses new requests and answers every waiting one (its socket

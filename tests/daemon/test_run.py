@@ -4,12 +4,15 @@ bounds before ``ArmDaemon.reload`` ever sees it."""
 from __future__ import annotations
 
 import logging
+import os
+import signal
+import time
 
 import pytest
 
 from companion.daemon.config import load_config
 from companion.daemon.control_socket import ControlServer
-from companion.daemon.run import HeartbeatWait, reload_config
+from companion.daemon.run import HeartbeatWait, SignalFlags, reload_config
 from companion.daemon.service import ArmDaemon
 
 GOOD = '[link]\nurl = "udpout:127.0.0.1:14550"\n[control]\nrate_hz = 20.0\n'
@@ -112,3 +115,22 @@ def test_sighup_applies_the_sockets_limits_and_keeps_its_path(tmp_path, caplog):
         assert "control.socket changed: restart the daemon to apply it" in caplog.text
     finally:
         server.close()
+
+
+def test_signal_flags_wake_the_main_loop_without_a_lock_in_the_handler():
+
+    flags = SignalFlags()
+    previous = signal.signal(signal.SIGHUP, flags.on_reload)
+    try:
+        t0 = time.monotonic()
+        os.kill(os.getpid(), signal.SIGHUP)
+        flags.wait(5.0)  # returns at once: the flag is set, or the pipe woke it
+        assert flags.reload and not flags.stop
+        assert time.monotonic() - t0 < 4.0
+        flags.reload = False
+        t0 = time.monotonic()
+        flags.wait(0.05)  # nothing came: the timeout
+        assert time.monotonic() - t0 >= 0.04
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+        flags.close()
