@@ -23,7 +23,8 @@ autopilot, are routed back to it and counted per MAV_RESULT.
 Measured, with the same probes before the flood (the baseline, ``--baseline-s``) and during it:
 
 * a control-socket ``stop`` every ``--stop-every-s``, each on a new connection as
-  ``armbridge stop`` makes: its answer latency (target during the flood: max and p99 ≤ 50 ms);
+  ``armbridge stop`` makes, and a ``resume`` after it (a stop holds the arm until one): its
+  answer latency (target during the flood: max and p99 ≤ 50 ms);
 * the daemon's RSS (VmRSS, every 50 ms): before the flood, peak, at its end, and after the
   drain (target: growth < 5 MB);
 * a ``goto`` on the control socket before the flood and at once after its last frame: time to
@@ -101,6 +102,9 @@ def probe_until(
             next_rss += RSS_EVERY_S
         if now >= next_stop:
             stops.append(timed_request(stack.control_path, {"cmd": "stop"}))
+            # A stop holds the arm until a resume: the flood's targets are carried out again
+            # (else they would be refused unsolved, a lighter load than the bench means).
+            timed_request(stack.control_path, {"cmd": "resume"})
             next_stop += every_s
         time.sleep(max(0.0, min(next_rss, next_stop) - time.monotonic()))
     return stops
