@@ -560,7 +560,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)
     p.add_argument("--arm", help="arm file, TOML or .urdf (default: the papers' arm)")
-    p.add_argument("--tip-link", help="URDF: the link the chain ends at (default: its one tip)")
+    p.add_argument(
+        "--tip-link",
+        help="URDF: the link the chain ends at (default: the end of its longest moving chain)",
+    )
     p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--budget-ms", type=float, default=20.0, help="default %(default)s")
