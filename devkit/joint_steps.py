@@ -22,9 +22,11 @@ rate_hz)`` (a jump spread over the time since the previous change), is also give
 
 **No pulses** (PWM 0: an ArduPilot output held by its safety switch, any output during a
 reboot): the servo holds where it was, so a change to 0 is no step, and the next pulse is
-compared with the last pulse before the gap. The first pulse an output ever gets has nothing to
-compare with (ArduPilot outputs start without pulses, the servo wherever it was left): it is
-returned apart, never counted as fast.
+compared with the last pulse before the gap. **Changes at the same instant** (two commands
+carried out in one pass of the autopilot, e.g. PX4's commander cycle): only the last went out,
+the ones before it lasted no time at all and are no step. The first pulse an output ever gets
+has nothing to compare with (ArduPilot outputs start without pulses, the servo wherever it was
+left): it is returned apart, never counted as fast.
 
 **Whose step** (:func:`step_kind`). The daemon's: its own commands, and the outputs coming alive
 (arm, prearm, the safety switch released, a mask or a boot) with a value the daemon stored. A
@@ -143,7 +145,10 @@ def joint_steps(
     first: list[Change] = []
     pulse: int | None = None  # the last pulse (> 0): where the servo holds
     previous_s: float | None = None
-    for change in changes:
+    ordered = list(changes)
+    for k, change in enumerate(ordered):
+        if k + 1 < len(ordered) and ordered[k + 1].t_s == change.t_s:
+            continue  # another change at the same instant: this one never went out
         dt_s = change.t_s - previous_s if previous_s is not None else float("inf")
         previous_s = change.t_s
         if change.pwm_us == 0:

@@ -149,3 +149,19 @@ def test_a_reload_window_is_judged_against_both_limits():
     assert verdict(1.1, 3.0) == (False, True)  # within 60 °/s, over 20 °/s: apart
     assert verdict(2.0, 3.0) == (True, True)  # 20 °/s in force: 1° + quantum a tick
     assert verdict(9.0, 6.0) == (False, False)
+
+
+def test_changes_at_the_same_instant_are_one_step_to_the_last():
+    # Two commands in one commander cycle: 1241 → 1612 → 1243 at once is 1241 → 1243.
+    changes = [
+        Change(0.0, 1241, "start"),
+        Change(1.0, 1612, "command"),
+        Change(1.0, 1243, "command"),
+        Change(2.0, 1300, "command", (255, 190)),
+        Change(2.0, 1250, "command"),
+    ]
+    found, _ = steps(changes)
+    assert [(s.from_us, s.to_us, s.source) for s in found] == [
+        (1241, 1243, None),
+        (1243, 1250, None),
+    ]
