@@ -3,7 +3,8 @@ forged frames, among the autopilot's arming and safety events, against moving ta
 
     python -m bench.state_cycles [--cycles 150] [--flavour px4|ardupilot|both] [--seed 0]
                                  [--events NAME,...] [--px4-disarmed-us 1000]
-                                 [--answer-bound-s 5] [--min-dwell-s 0.03] [--max-dwell-s 1.0]
+                                 [--answer-bound-s 5] [--daemon-root DIR]
+                                 [--min-dwell-s 0.03] [--max-dwell-s 1.0]
                                  [--markdown bench/results/state_cycles.md] [--keep-logs DIR]
 
 The stack and the method are those of ``bench/output_cycles.py`` (read its docstring): the
@@ -272,10 +273,10 @@ class GotoPool:
             self._drop(client)
 
 
-def git(*args: str) -> str:
+def git(*args: str, cwd: Path = ROOT) -> str:
     try:
         out = subprocess.run(
-            ["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10, check=True
+            ["git", *args], cwd=cwd, capture_output=True, text=True, timeout=10, check=True
         )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -322,7 +323,12 @@ class Cycles:
             "control": {"rate_hz": RATE_HZ},
             "arm": {"joint_speed_deg_s": JOINT_SPEED_DEG_S},
         }
-        with Stack(dialect=self.flavour, daemon=daemon, sim_args=self.sim_args()) as stack:
+        with Stack(
+            dialect=self.flavour,
+            daemon=daemon,
+            sim_args=self.sim_args(),
+            daemon_root=args.daemon_root,
+        ) as stack:
             assert stack.sim is not None
             self.stack, self.sim = stack, stack.sim
             self.gotos = GotoPool(stack.control_path, run.gotos)
@@ -669,7 +675,14 @@ def _ms(values: list[float], q: float) -> float:
 def header(args: argparse.Namespace, runs: list[Run]) -> list[str]:
     dirty = git("status", "--porcelain")
     commit = git("rev-parse", "--short", "HEAD") + (" (with uncommitted changes)" if dirty else "")
-    daemon_commit = git("log", "-1", "--format=%h %cs", "--", "companion")
+    if args.daemon_root is None:
+        last = git("log", "-1", "--format=%h %cs", "--", "companion")
+        daemon = f"the daemon, `companion/`, as of {last}"
+    else:
+        found = git("log", "-1", "--format=%h %cs", cwd=args.daemon_root)
+        daemon = f"the daemon from `{args.daemon_root}`" + (
+            f", commit {found}" if found != "unknown" else " (not a git checkout)"
+        )
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     loads = "; ".join(f"{r.flavour} {r.load_before}" for r in runs)
     return [
@@ -677,7 +690,7 @@ def header(args: argparse.Namespace, runs: list[Run]) -> list[str]:
         "",
         f"`{' '.join(['python -m bench.state_cycles', *sys.argv[1:]])}`",
         "",
-        f"Commit {commit} (the daemon, `companion/`, as of {daemon_commit}); {now}; "
+        f"Commit {commit} ({daemon}); {now}; "
         f"{machine()} ({platform.node() or 'unknown host'}, pid {os.getpid()}); load average "
         f"before each flavour: {loads}.",
         "",
@@ -930,6 +943,11 @@ def main() -> int:
         default=PX4_DISARMED_PWM_US,
         help=f"PX4's PWM_MAIN_DISn on the arm's outputs (default {PX4_DISARMED_PWM_US}; "
         "PX4 SITL's is 900)",
+    )
+    parser.add_argument(
+        "--daemon-root",
+        type=Path,
+        help="run the daemon from this checkout (another version of it; default this one)",
     )
     parser.add_argument("--answer-bound-s", type=float, default=5.0)
     parser.add_argument("--min-dwell-s", type=float, default=0.03)
