@@ -33,12 +33,16 @@ READBACK_TOLERANCE_US = 1
 #: interval, see :meth:`OutputsTruth.settle_s`).
 READBACK_SETTLE_S = 0.15
 #: An output's readback disagrees with what it acknowledged only after this many readbacks in
-#: a row show something else, spanning at least READBACK_SPAN_INTERVALS of the stream's
-#: interval (by arrival) with none showing it between: a frame forged as the autopilot's (an
-#: unsigned link) is contradicted by the autopilot's own next readback, and never makes the
-#: daemon command the outputs somewhere on its word alone.
+#: a row show something else, spanning more than the stream's interval (by arrival) with none
+#: showing it between: the autopilot's own readback falls inside that span, so frames forged
+#: as the autopilot's (an unsigned link), however many, are contradicted by it and never make
+#: the daemon command the outputs somewhere on their word alone.
 READBACK_MISMATCHES = 2
-READBACK_SPAN_INTERVALS = 0.9
+READBACK_SPAN_INTERVALS = 1.25
+#: Meanwhile (one settled readback disagreed, not believed yet) the motion holds: no step goes
+#: out on a belief the next readbacks may overturn; for at most this many intervals if the
+#: readback then falls silent.
+READBACK_DOUBT_INTERVALS = 3.0
 
 #: A band of poses: per joint, the lowest and the highest angle.
 Band = tuple[list[float], list[float]]
@@ -126,6 +130,14 @@ class OutputsTruth(abc.ABC):
         since_s = self._mismatch_since_s.setdefault(output, at_s)
         span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
         return count >= READBACK_MISMATCHES and at_s - since_s >= span_s
+
+    def in_doubt(self, now: float) -> bool:
+        """A settled readback disagreed with what an output acknowledged, and the readbacks
+        have not said yet whether to believe it (the motion holds meanwhile)."""
+        if not self._mismatch_since_s:
+            return False
+        limit_s = READBACK_DOUBT_INTERVALS * self._core.settings.readback_interval_s
+        return any(now - since_s < limit_s for since_s in self._mismatch_since_s.values())
 
     def _agrees(self, output: int) -> None:
         """A readback showed what ``output`` acknowledged (or a step on its way)."""

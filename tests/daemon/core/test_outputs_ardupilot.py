@@ -380,3 +380,38 @@ def test_ardupilot_a_forged_safety_off_between_the_autopilots_own_is_not_believe
         rig.tick()
     assert not rig.servo()
     assert rig.core.status()["outputs_live"] is False
+
+
+def test_ardupilot_forged_readbacks_faster_than_the_autopilots_own_are_not_believed(rig):
+    # Forged frames four times as often as the autopilot's readback: two of them always fall
+    # between two of its own, so "two in a row" alone would believe them.
+    _settle(rig, near(PARK))
+    real = dict(rig.core.status()["last_pwm_us"])
+    forged = {o: 2000 for o in real}
+    for _ in range(20):
+        rig.readback(real)
+        for _ in range(4):
+            rig.clock.advance(0.005)
+            rig.readback(forged)
+    status = rig.core.status()
+    assert status["foreign_command"] is None
+    assert status["last_pwm_us"] == real
+
+
+def test_ardupilot_a_disagreeing_readback_holds_the_motion_until_the_next_ones_say(rig):
+    rig.goto(near(PARK, 20.0))
+    done = 0
+    for _ in range(4):
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+    rig.ack_all(rig.sent[done:])
+    rig.clock.advance(0.2)  # settled
+    shown = dict(rig.core.status()["last_pwm_us"])
+    output = rig.calibration.outputs[0]
+    rig.readback({**shown, output: 2000})  # one disagrees: not believed, not ignored
+    rig.sent.clear()
+    assert not rig.servo(rig.advance(0.01))
+    rig.readback(shown)  # the next agrees: the motion goes on
+    rig.sys_status(safety_on=False)  # (the streams were asked again after the quiet 0.2 s)
+    assert rig.servo(rig.advance(0.05))
