@@ -48,18 +48,20 @@ simulator's event log is the physical truth.
 arm's range is 1000–2000): the disarmed PWM lies outside the joints' range.
 
 **Joint steps faster than the limit**: every physical change of the six arm outputs in the
-simulator's log, through the daemon's calibration (extended beyond the range, as
-output_cycles), by :mod:`devkit.joint_steps`: fast when more than ``joint_speed_deg_s /
-rate_hz`` plus one PWM quantum. Whose step (:func:`devkit.joint_steps.step_kind`): the
-**daemon**'s — its commands, and outputs coming alive with values it stored — or **foreign** —
-a ground station's command (the simulator tags its events with the sender), outputs coming
-alive with a value such a command stored, and PX4 itself driving its outputs to the disarmed
-PWM. The daemon's next command after a foreign one (jumping back from the foreign PWM) is the
-daemon's. The target is 0 daemon steps. **The limit around a reload**: in force from the moment
-the daemon applied it, which lies between the SIGHUP and the ``reloaded`` line seen in its log
-plus two control periods (the command in flight); in that window a step is judged against the
-higher of the old and new limits, and the steps over the lower one only are counted apart
-("reload window"). A killed or restarted daemon's successor reads the config in force.
+simulator's log, through the daemon's calibration (extended beyond the range, as output_cycles),
+by :mod:`devkit.joint_steps`: fast when more than ``joint_speed_deg_s / rate_hz`` plus one PWM
+quantum. Whose step (:func:`devkit.joint_steps.step_kind`): the **daemon**'s — its commands, and
+outputs coming alive with values it stored — or **foreign** — a ground station's command (the
+simulator tags its events with the sender), outputs coming alive with a value such a command
+stored, and PX4 itself driving its outputs to the disarmed PWM. The daemon's next command after
+a foreign one (jumping back from the foreign PWM) is the daemon's, unless it went out less than
+``RACE_WINDOW_S`` (a readback interval and a hop) after the foreign command: then no readback
+could have shown it to the daemon yet, and it is counted apart as a **race**. The target is 0
+daemon steps. **The limit around a reload**: in force from the moment the daemon applied it,
+which lies between the SIGHUP and the ``reloaded`` line seen in its log plus two control periods
+(the command in flight); in that window a step is judged against the higher of the old and new
+limits, and the steps over the lower one only are counted apart ("reload window"). A killed or
+restarted daemon's successor reads the config in force.
 
 **Gotos answered**: each ``goto`` goes on a control connection of its own (a pool: a connection
 answers one request at a time, so a goto never waits behind another's answer); answered within
@@ -124,6 +126,7 @@ from devkit.joint_steps import (
     JointStep,
     Reload,
     SpeedLimits,
+    foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
@@ -155,6 +158,9 @@ EVENTS = {
 RELOAD_SPEEDS = tuple(range(20, 121, 10))
 #: A forger's frame interval.
 FORGE_INTERVAL_S = 0.01
+#: A daemon command from a PWM a foreign command set less than this before is a race
+#: (``devkit.joint_steps.RACE``): the readback's interval on loopback UDP (50 Hz) and a hop.
+RACE_WINDOW_S = 0.02 + 0.01
 #: The window after the ``reloaded`` log line in which the old limit may still be in force.
 RELOAD_MARGIN_PERIODS = 2
 #: At most this many control connections for gotos at once (each answers one at a time).
@@ -628,6 +634,8 @@ class Cycles:
                         step,
                         disarmed_us=run.disarmed_us,
                         stored_foreign=foreign_stored_at(stored.get(output, []), step.t_s),
+                        foreign_before_s=foreign_command_before(stored.get(output, []), step.t_s),
+                        race_window_s=RACE_WINDOW_S,
                     )
                 )
                 run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))

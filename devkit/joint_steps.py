@@ -33,7 +33,11 @@ left): it is returned apart, never counted as fast.
 foreign sender's: a command from another link than the companion's (the simulator tags it with
 ``src``), or coming alive with a value such a command stored (the last ``servo`` event of the
 output before the step was tagged). The autopilot's own: PX4 driving an output to its disarmed
-PWM (disarm, kill, prearm off, reboot).
+PWM (disarm, kill, prearm off, reboot). **A race** (counted apart from both): the daemon's
+command from a PWM a foreign command set less than ``race_window_s`` before (a readback interval
+and a hop): no readback could have shown the daemon that command yet, so its step was computed
+from the PWM before it; later ones are the daemon's (a readback showing a foreign PWM holds the
+motion until it is believed, and the joint is then taken where it shows).
 
 **A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
 instant known only within a window (the signal sent … the daemon said it applied it): a step in
@@ -54,6 +58,7 @@ DAEMON_ALIVE = "daemon: coming alive"
 FOREIGN_COMMAND = "foreign: command"
 FOREIGN_ALIVE = "foreign: coming alive"
 AUTOPILOT = "foreign: autopilot to its disarmed PWM"
+RACE = "race: the daemon's command before a readback could show a foreign one"
 DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
 FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
 #: Causes of an output change that bring stored values out (the outputs coming alive).
@@ -192,12 +197,34 @@ def foreign_stored_at(stored: Sequence[tuple[float, bool]], t_s: float) -> bool:
     return k > 0 and stored[k - 1][1]
 
 
-def step_kind(step: JointStep, *, disarmed_us: int | None, stored_foreign: bool) -> str:
-    """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS` or
-    :data:`FOREIGN_KINDS`. ``disarmed_us``: PX4's disarmed PWM (None on ArduPilot);
-    ``stored_foreign``: the output's stored value came from a foreign command."""
+def foreign_command_before(stored: Sequence[tuple[float, bool]], t_s: float) -> float | None:
+    """How long before ``t_s`` the last command strictly before it was given, if a foreign
+    sender gave it (from :func:`stored_by_foreign`; None: the daemon's, or none)."""
+    k = bisect.bisect_left([t for t, _ in stored], t_s)
+    if k == 0 or not stored[k - 1][1]:
+        return None
+    return t_s - stored[k - 1][0]
+
+
+def step_kind(
+    step: JointStep,
+    *,
+    disarmed_us: int | None,
+    stored_foreign: bool,
+    foreign_before_s: float | None = None,
+    race_window_s: float = 0.0,
+) -> str:
+    """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
+    :data:`FOREIGN_KINDS` or :data:`RACE`. ``disarmed_us``: PX4's disarmed PWM (None on
+    ArduPilot); ``stored_foreign``: the output's stored value came from a foreign command;
+    ``foreign_before_s``: the command before this one was a foreign sender's, this long before
+    (:func:`foreign_command_before`)."""
     if step.cause == "command":
-        return FOREIGN_COMMAND if step.source is not None else DAEMON_COMMAND
+        if step.source is not None:
+            return FOREIGN_COMMAND
+        if foreign_before_s is not None and foreign_before_s <= race_window_s:
+            return RACE
+        return DAEMON_COMMAND
     if disarmed_us is not None and step.to_us == disarmed_us:
         return AUTOPILOT
     if step.cause in ALIVE_CAUSES:

@@ -10,10 +10,12 @@ from devkit.joint_steps import (
     DAEMON_COMMAND,
     FOREIGN_ALIVE,
     FOREIGN_COMMAND,
+    RACE,
     Change,
     JointStep,
     Reload,
     SpeedLimits,
+    foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
@@ -165,3 +167,16 @@ def test_changes_at_the_same_instant_are_one_step_to_the_last():
         (1241, 1243, None),
         (1243, 1250, None),
     ]
+
+
+def test_the_daemons_command_right_after_a_foreign_one_is_a_race_later_its_own():
+    stored = [(1.0, False), (2.0, True), (2.02, False), (3.0, True), (3.5, False)]
+    assert foreign_command_before(stored, 2.02) == pytest.approx(0.02)
+    assert foreign_command_before(stored, 3.5) == pytest.approx(0.5)
+    assert foreign_command_before(stored, 1.0) is None  # nothing before
+    assert foreign_command_before(stored, 2.0) is None  # the daemon's before it
+    step = JointStep(9, 2.02, 2000, 1500, 50.0, 0.02, 3.1, "command")
+    kind = {"disarmed_us": None, "stored_foreign": True, "race_window_s": 0.03}
+    assert step_kind(step, foreign_before_s=0.02, **kind) == RACE
+    assert step_kind(step, foreign_before_s=0.5, **kind) == DAEMON_COMMAND
+    assert step_kind(step, foreign_before_s=None, **kind) == DAEMON_COMMAND
