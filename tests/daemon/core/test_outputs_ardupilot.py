@@ -415,3 +415,23 @@ def test_ardupilot_a_disagreeing_readback_holds_the_motion_until_the_next_ones_s
     rig.readback(shown)  # the next agrees: the motion goes on
     rig.sys_status(safety_on=False)  # (the streams were asked again after the quiet 0.2 s)
     assert rig.servo(rig.advance(0.05))
+
+
+def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_it_shows(rig):
+    # Rebooted, then a ground station set output 9 to 2000 us before our outputs went out
+    # again: the re-send of the pose from before the reboot jumped it back 100 deg.
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    output = rig.calibration.outputs[0]
+    rig.sent.clear()
+    rig.readback({output: 2000})  # the other outputs: no pulses since the boot
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.sys_status(safety_on=False)
+    rig.advance(0.05)
+    assert rig.servo()[output] == 2000
