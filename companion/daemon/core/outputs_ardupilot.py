@@ -210,8 +210,19 @@ class ArduPilotOutputs(OutputsTruth):
                 unconfirmed = list(state.unconfirmed)
                 unconfirmed[i] = angle
                 state.unconfirmed = tuple(unconfirmed)
-            if self._held_since_off is not None:
-                widen(self._held_since_off, state.position)
+            self._held_at(i, angle)
+
+    def _held_at(self, i: int, angle: float) -> None:
+        """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): with
+        the switch off that is where it is, whatever the bands said; otherwise the bands take
+        it in beside what they held."""
+        for band in (self._held_before_loss, self._held_since_off):
+            if band is None:
+                continue
+            if self.safety_on is False:
+                band[0][i] = band[1][i] = angle
+            else:
+                band[0][i], band[1][i] = min(band[0][i], angle), max(band[1][i], angle)
 
     def _shown_steadily(self, output: int, shown: int) -> bool:
         """Readbacks show ``output`` at ``shown`` (within the tolerance) twice in a row over
@@ -241,9 +252,7 @@ class ArduPilotOutputs(OutputsTruth):
             unconfirmed = list(state.unconfirmed)
             unconfirmed[i] = angle
             state.unconfirmed = tuple(unconfirmed)
-        for band in (self._held_before_loss, self._held_since_off):
-            if band is not None:
-                widen(band, state.position)
+        self._held_at(i, angle)
 
     def on_param(self, name: str, value: float) -> None:
         if name == SAFETY_MASK_PARAM:
