@@ -155,7 +155,10 @@ class ArduPilotOutputs(OutputsTruth):
         for i, output in enumerate(state.outputs):
             shown = self.shown.get(output)
             if shown is None or not self.in_range(output, shown):
-                continue  # no pulses (an output nothing set since boot), or not a joint's PWM
+                # No pulses (an output nothing set since boot), or not a joint's PWM: that
+                # contradicts frames that showed one (forged, after a reboot).
+                self._unacked_seen.pop(output, None)
+                continue
             acked = state.acked_pwm.get(output)
             if acked is None:
                 if not state.ever_sent:

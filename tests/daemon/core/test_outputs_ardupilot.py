@@ -435,3 +435,21 @@ def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_i
     rig.sys_status(safety_on=False)
     rig.advance(0.05)
     assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_after_a_reboot_forged_readbacks_among_its_own_no_pulses_are_not_believed(
+    rig,
+):
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    rig.advance(0.36)
+    rig.system_time(150)
+    output = rig.calibration.outputs[0]
+    for _ in range(10):  # the autopilot's own: no pulses since its boot; forged ones between
+        rig.readback({})
+        rig.clock.advance(0.01)
+        rig.readback({output: 2000})
+        rig.clock.advance(0.01)
+    rig.sys_status(safety_on=False)
+    rig.advance(0.05)
+    assert rig.servo().get(output) != 2000
