@@ -158,6 +158,9 @@ class DaemonConfig:
     joint_speed_deg_s: float = 60.0
     park_deg: tuple[float, ...] | None = None
     park_on_stop: bool = False
+    #: Where the daemon keeps the PWMs the outputs were left at, for its next start
+    #: (:mod:`companion.daemon.pose_file`); None: not kept.
+    pose_file: str | None = None
     #: The control socket's absolute path (a relative one in the file counts from the file's
     #: directory); None: no socket.
     control_socket: str | None = None
@@ -210,7 +213,7 @@ _LINK_KEYS = (
     "signing_state",
     "allowed_senders",
 )
-_ARM_KEYS = ("file", "tip_link", "park_deg", "park_on_stop", "joint_speed_deg_s")
+_ARM_KEYS = ("file", "tip_link", "park_deg", "park_on_stop", "joint_speed_deg_s", "pose_file")
 _SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed")
 _CONTROL_KEYS = (
     "rate_hz",
@@ -304,6 +307,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
         park_on_stop=arm_table.boolean("park_on_stop", False),
+        pose_file=_pose_file(arm_table, base),
         control_socket=socket_path,
         control_socket_group=_group(control, "socket_group") if "socket_group" in control else None,
         control_max_connections=control.integer(
@@ -462,6 +466,17 @@ SOCKET_PATH_MAX_BYTES = 107
 #: ``RuntimeDirectory=armbridge`` makes, and the CLI's default (``ARMBRIDGE_SOCKET`` overrides
 #: the CLI's side only).
 DEFAULT_CONTROL_SOCKET = "/run/armbridge/control.sock"
+
+
+def _pose_file(t: Table, base: Path) -> str | None:
+    """``arm.pose_file``, absolute (relative: from the config file's directory); its directory
+    must exist (systemd's ``StateDirectory=`` makes /var/lib/armbridge)."""
+    if "pose_file" not in t:
+        return None
+    path = os.path.abspath(base / t.string("pose_file"))
+    if not os.path.isdir(os.path.dirname(path)):
+        raise t.fail("pose_file", f"directory {os.path.dirname(path)} does not exist")
+    return path
 
 
 def _socket_path(t: Table, base: Path) -> str | None:

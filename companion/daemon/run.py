@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 
 from companion import ik
+from companion.daemon import pose_file
 from companion.daemon.config import DaemonConfig, load_config
 from companion.daemon.control_socket import ControlServer
 from companion.daemon.instance_lock import AlreadyRunning, InstanceLock, lock_path
@@ -202,6 +203,13 @@ def _run(config: DaemonConfig, config_path: str) -> int:
     signal.signal(signal.SIGHUP, signals.on_reload)
 
     daemon = ArmDaemon(config)
+    saver = None
+    if config.pose_file is not None:
+        saved = pose_file.load(config.pose_file, config.calibration)
+        if saved is not None:
+            daemon.restore_pose(saved)
+            log.info("outputs left at %s (%s): the joints are taken there", saved, config.pose_file)
+        saver = pose_file.PoseSaver(config.pose_file, time.monotonic())
     server = None
     try:
         if config.control_socket:
@@ -268,6 +276,8 @@ def _run(config: DaemonConfig, config_path: str) -> int:
                 if device is not None
                 else f"waiting for the autopilot heartbeat on {config.link.url}"
             )
+            if saver is not None:
+                saver.offer(daemon.rest_pwm, time.monotonic())
             signals.wait(min(ping_s, 0.5))
     finally:
         signals.close()
@@ -276,6 +286,8 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         # The daemon first: it refuses new requests and answers every waiting one (its socket
         # client is still connected to read the answer); then the socket closes.
         daemon.close(park=config.park_on_stop)
+        if saver is not None and daemon.rest_pwm is not None:
+            saver.save(daemon.rest_pwm, time.monotonic())
         if server is not None:
             server.close()
         notifier.close()

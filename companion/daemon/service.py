@@ -195,6 +195,9 @@ class ArmDaemon:
         # What the service's main loop reports to systemd twice a second (brief()), published
         # by the control thread after each step: that loop then never wakes it for a snapshot.
         self._brief = self._core.link_and_outcome_counts()
+        #: The outputs' PWMs as of the control thread's last step while the arm was at rest
+        #: (None: moving; read by ``run`` for the pose file).
+        self.rest_pwm: dict[int, int] | None = None
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
         self._thread: threading.Thread | None = None
@@ -203,6 +206,10 @@ class ArmDaemon:
         self._statustexts = TokenBucket(STATUSTEXT_RATE_HZ, 5.0, clock())
 
     # -- life cycle -------------------------------------------------------------------------
+
+    def restore_pose(self, pwm_by_output: dict[int, int]) -> None:
+        """Before :meth:`start`: where the outputs were left (see ``pose_file``)."""
+        self._core.restore_pose(pwm_by_output)
 
     def start(self) -> None:
         s = self.config.link
@@ -616,6 +623,7 @@ class ArmDaemon:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
         self._brief = core.link_and_outcome_counts()
+        self.rest_pwm = core.settled_pwm()
         # The snapshot other threads asked for (status()), once for all of them.
         with self._status_cond:
             asked = self._status_asked

@@ -516,7 +516,9 @@ def test_a_reboot_shorter_than_the_loss_timeout_is_seen_and_every_output_resent(
 
         def near_held() -> bool:
             shown = sim_pwm(sim.state(), calibration.outputs)
-            return shown.keys() == held.keys() and all(
+            if shown.keys() != held.keys() or 0 in shown.values():  # 0: no pulses yet
+                return False
+            return all(
                 abs(
                     calibration.for_output(o).pwm_us_to_angle_deg(shown[o])
                     - calibration.for_output(o).pwm_us_to_angle_deg(held[o])

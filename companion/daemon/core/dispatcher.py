@@ -314,6 +314,29 @@ class ControlCore:
         self.motion.stop(actions, reply)
         return actions
 
+    def restore_pose(self, pwm_by_output: dict[int, int]) -> None:
+        """Before anything is sent: the outputs were left at these PWMs (``pose_file``), so
+        the joints are taken there rather than at the park pose. A readback that shows an
+        output's PWM later still wins (the outputs' truth)."""
+        state = self.state
+        if state.ever_sent:
+            return
+        calibration = self.config.calibration
+        for i, output in enumerate(state.outputs):
+            if output in pwm_by_output:
+                joint = calibration.for_output(output)
+                state.position[i] = joint.pwm_us_to_angle_deg(pwm_by_output[output])
+
+    def settled_pwm(self) -> dict[int, int] | None:
+        """The outputs' acknowledged PWMs while the arm is at rest (every output acknowledged,
+        nothing on its way, no goal left), else None."""
+        state = self.state
+        if not state.settled() or self.motion.moving(tuple(state.position)):
+            return None
+        if not state.acked_pwm.keys() >= set(state.outputs):
+            return None
+        return {o: state.acked_pwm[o] for o in state.outputs}
+
     # -- reading ----------------------------------------------------------------------------
 
     @property
