@@ -250,6 +250,8 @@ class Stack:
     version of the code, as a peer in the same run). ``transport``: the simulator's link flags
     (default UDP loopback; e.g. ``--pty --pty-baud 115200`` for a modelled serial line). The
     ``ardupilot-lua`` dialect gets an ArduPilot simulator emulating the Lua bridge script.
+    ``keep_pose``: the daemon keeps a pose file (``arm.pose_file``) in the stack's directory,
+    shared by every daemon :meth:`restart_daemon` starts, as a board's /var/lib/armbridge is.
     """
 
     def __init__(
@@ -260,6 +262,7 @@ class Stack:
         sim_args: Sequence[str] = (),
         daemon_root: Path | None = None,
         transport: Sequence[str] = ("--udp", "127.0.0.1:0"),
+        keep_pose: bool = False,
     ) -> None:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-", dir=ram_dir())
@@ -285,6 +288,8 @@ class Stack:
                 "link": {"url": self.sim.url, "dialect": dialect},
                 "control": {"socket": str(tmp / "control.sock")},
             }
+            if keep_pose:
+                tables["arm"] = {"pose_file": str(tmp / "pose.json")}
             for name, values in (daemon or {}).items():
                 if isinstance(values, list):  # an array of tables: [[keepout]], [[joint]]
                     tables[name] = values

@@ -334,6 +334,9 @@ class Cycles:
             daemon=daemon,
             sim_args=self.sim_args(),
             daemon_root=args.daemon_root,
+            # A daemon of today keeps where the outputs were left, as on a board; an older one
+            # (--daemon-root) may not know the setting.
+            keep_pose=args.daemon_root is None,
         ) as stack:
             assert stack.sim is not None
             self.stack, self.sim = stack, stack.sim
