@@ -64,6 +64,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         arm,
         target,
         budget_ms=args.budget_ms,
+        ceiling_ms=args.ceiling_ms,
         seed=args.seed,
         tol_pos_cm=args.tol_pos_cm,
         tol_ori_deg=args.tol_ori_deg,
@@ -72,7 +73,8 @@ def _cmd_solve(args: argparse.Namespace) -> int:
     print(f"joints_deg  [{', '.join(f'{v:.3f}' for v in res.q_deg)}]")
     print(
         f"pos_err {res.pos_err_cm:.1e} cm  ori_err {res.ori_err_deg:.1e} deg  "
-        f"{res.elapsed_ms:.3f} ms  {'REACHED' if res.converged else 'NOT REACHED'}"
+        f"{res.elapsed_ms:.3f} ms  "
+        + ("REACHED" if res.converged else f"NOT REACHED ({res.stop_reason.value})")
     )
     return 0 if res.converged else 1
 
@@ -538,7 +540,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tip-link", help="URDF: the link the chain ends at (default: its one tip)")
     p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
-    p.add_argument("--budget-ms", type=float, default=20.0, help="default %(default)s")
+    p.add_argument(
+        "--budget-ms", type=float, default=20.0, help="CPU time of the search (default %(default)s)"
+    )
+    p.add_argument(
+        "--ceiling-ms",
+        type=float,
+        help="wall-clock bound of the solve, however busy the machine (default 4 x the budget)",
+    )
     p.add_argument("--seed", type=int, default=0, help="the solver's seed (default 0)")
     p.set_defaults(func=_cmd_solve)
 
