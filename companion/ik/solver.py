@@ -1,8 +1,24 @@
 """Deadline-bounded, warm-startable inverse kinematics: :func:`solve`.
 
-This is where the time budget is enforced. The search itself is memetic differential evolution,
-compiled (:mod:`companion.ik.kernels`): DE rand/1/bin is the global search, and
-damped-least-squares steps refine its best individual. This module runs it in chunks of
+This is where the time budget is enforced. The search itself is compiled
+(:mod:`companion.ik.kernels`): memetic differential evolution, DE rand/1/bin with
+damped-least-squares (Levenberg–Marquardt) steps refining its best individual, and restarts.
+Under the default settings (:data:`DEFAULT_SETTINGS`: NP 4, up to 30 LM steps, a restart
+after every generation that does not meet the tolerances) it is in effect LM from the best of
+4 random draws, again and again: on 3 × 300 random reachable poses of the default arm, cold,
+untimed, 69–77 % of solves ended in the LM of the first population (no generation at all),
+every other one ran exactly one DE generation, and every later generation was a restart
+(seeds 0, 1, 2 of the draw: 225, 232, 208 of 300; all converged; the tolerances 1e-3 cm and
+1e-3° or the daemon's 0.01 cm and 0.1° alike)::
+
+    python -c "import numpy as np; from companion.ik import solve; \
+    from companion.kinematics import Arm, Pose; a = Arm.default(); \
+    rs = [solve(a, Pose.from_matrix(a.fk_matrix(q)), seed=k, budget_ms=None) \
+    for k, q in enumerate(a.random_q_rad(np.random.default_rng(0), 300))]; \
+    print(sum(r.generations == 0 for r in rs), max(r.generations - r.restarts for r in rs))"
+
+The DE proper (several generations between restarts) is :data:`METHODS` ``"de"``: the same
+kernels without LM, with the papers' F and Cr. This module runs the search in chunks of
 generations (one compiled call each, :func:`kernels.search`), reading the clocks between
 chunks; the first call also initialises the population. Two limits bound it: the budget
 (``budget_ms``) counts this thread's CPU time, so time other processes hold the CPU is not
@@ -59,7 +75,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import Enum
 from typing import Any
 
@@ -169,6 +185,36 @@ class SolverSettings:
 
 
 DEFAULT_SETTINGS = SolverSettings()
+
+#: Search methods by name, each the settings it starts from (the daemon's ``solver.method``).
+#: "memetic": the tuned defaults (DE with least-squares refinement; see the module docstring
+#: for what they amount to). "de": the same compiled search without the least-squares steps:
+#: plain DE rand/1/bin with the papers' Table 4 settings (F = 0.9, Cr = 0.95) and the authors'
+#: pick of NP (Table 5, test 9: 12), plus a restart (the population drawn anew, the best kept
+#: aside) after 50 generations in a row that did not improve the best. Without the restarts
+#: 40 % of random reachable poses of the default arm stall short of the daemon's tolerances
+#: (0.01 cm, 0.1°) within 20 ms; with them none (200 poses: median 1.7 ms of CPU, p90 6.5 ms).
+METHODS: dict[str, SolverSettings] = {
+    "memetic": DEFAULT_SETTINGS,
+    "de": SolverSettings(
+        pop_size=12, F=0.9, Cr=0.95, lm_iterations=0, stall_generations=50, stall_gain=1.0
+    ),
+}
+
+
+def method_settings(method: str = "memetic", **changes: Any) -> SolverSettings:
+    """The settings of search ``method`` (a name in :data:`METHODS`) with ``changes``
+    (:class:`SolverSettings` fields) over its own. With no changes, the method's own object:
+    :func:`solve` keeps its arrays and estimates from call to call for one settings object.
+    ``"de"`` runs no least-squares steps: ``lm_iterations`` above 0 is refused with it."""
+    if method not in METHODS:
+        raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
+    if method == "de" and changes.get("lm_iterations", 0) != 0:
+        raise ValueError(
+            f"lm_iterations={changes['lm_iterations']!r} goes with method 'memetic': "
+            "'de' runs no least-squares steps"
+        )
+    return replace(METHODS[method], **changes) if changes else METHODS[method]
 
 
 @dataclass(frozen=True)

@@ -567,3 +567,32 @@ def test_without_a_budget_neither_clock_ends_the_search(monkeypatch):
     monkeypatch.undo()
     plain = solve(ARM, G, budget_ms=None, seed=1, settings=few)
     assert (res.q, res.evaluations) == (plain.q, plain.evaluations)
+
+
+# -- methods ---------------------------------------------------------------------------------------
+
+
+def test_methods_are_settings_by_name():
+    from companion.ik import DEFAULT_SETTINGS, METHODS, method_settings
+
+    assert method_settings() is DEFAULT_SETTINGS is METHODS["memetic"]
+    assert method_settings("de") is METHODS["de"]
+    assert method_settings("de", pop_size=20).pop_size == 20
+    with pytest.raises(ValueError, match="method='ga' must be one of memetic, de"):
+        method_settings("ga")
+    with pytest.raises(ValueError, match="lm_iterations=3 goes with method 'memetic'"):
+        method_settings("de", lm_iterations=3)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_de_reaches_the_daemons_tolerances_without_least_squares(seed):
+    from companion.ik import method_settings
+
+    target = reachable(200 + seed)
+    de = method_settings("de", max_generations=GENERATIONS)
+    res = solve(
+        ARM, target, seed=seed, budget_ms=None, settings=de, tol_pos_cm=0.01, tol_ori_deg=0.1
+    )
+    assert res.converged and res.lm_iterations == 0 and res.generations > 10
+    pos, ori = independent_errors(ARM, res.q_deg, target)
+    assert pos <= 0.01 and ori <= 0.1
