@@ -590,6 +590,7 @@ class ArmDaemon:
             tol_pos_cm=config.tol_pos_cm,
             tol_ori_deg=config.tol_ori_deg,
             mode=ik.TargetMode(mode),
+            settings=config.search_settings,
         )
 
     def _run(self) -> None:

@@ -545,3 +545,19 @@ def test_a_solve_is_bounded_by_the_control_period_in_wall_time(
     )
     ArmDaemon(config)._solve(config.arm.fk([0, 90, 0, 0, 0, 0]), None)
     assert calls[0]["budget_ms"] == budget_ms and calls[0]["ceiling_ms"] == ceiling_ms
+
+
+def test_a_solve_runs_the_configured_search(monkeypatch):
+    calls = []
+    monkeypatch.setattr("companion.ik.solve", lambda *args, **kwargs: calls.append(kwargs))
+    config = parse_config(
+        {
+            "link": {"url": URL},
+            "solver": {"method": "de", "pop_size": 16},
+            "control": {"socket": ""},
+        }
+    )
+    ArmDaemon(config)._solve(config.arm.fk([0, 90, 0, 0, 0, 0]), None)
+    settings = calls[0]["settings"]
+    assert settings is config.search_settings  # one object: the solver keeps its workspace
+    assert (settings.pop_size, settings.lm_iterations, settings.F) == (16, 0, 0.9)
