@@ -21,6 +21,7 @@ import argparse
 import math
 import os
 import select
+import signal
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -31,6 +32,7 @@ import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from bench.report import write_markdown
+from devkit.config import write_config
 from devkit.control_client import ControlConnection
 from devkit.daemon_process import DaemonProcess
 from devkit.sim_process import SimProcess
@@ -262,6 +264,9 @@ class Stack:
         self.dialect = dialect
         self._tmp = tempfile.TemporaryDirectory(prefix="armbridge-bench-", dir=ram_dir())
         tmp = Path(self._tmp.name)
+        self._daemon_root = daemon_root
+        #: The logs of the daemons stopped by :meth:`restart_daemon`, in order.
+        self.old_daemon_logs: list[Path] = []
         flavour = "px4" if dialect == "px4" else "ardupilot"
         if dialect == "ardupilot-lua":
             sim_args = ("--lua-script", *sim_args)
@@ -310,6 +315,51 @@ class Stack:
     def status(self) -> dict[str, Any]:
         assert self._status_client is not None
         return self._status_client.request({"cmd": "status"})["status"]
+
+    def stop_daemon(self, how: str) -> None:
+        """Stop the daemon as a crash does (``how`` ``kill``: SIGKILL, no clean-up at all) or
+        ``systemctl stop`` (``term``: SIGTERM, its exit waited for); its log is kept
+        (``old_daemon_logs``). :meth:`start_daemon` starts it again."""
+        if how not in ("kill", "term"):
+            raise ValueError(f"how={how!r}; valid: kill, term")
+        assert self.daemon is not None
+        if self._status_client is not None:
+            self._status_client.close()
+            self._status_client = None
+        if how == "kill":
+            self.daemon.kill()
+        else:
+            self.daemon.stop()
+        self.old_daemon_logs.append(self.daemon_log)
+
+    def start_daemon(self) -> float:
+        """Start the daemon stopped by :meth:`stop_daemon` again, on the config in force (its
+        control socket's path too); the monotonic time it answered and heard the autopilot.
+        Clients of the control socket must connect again."""
+        assert self.daemon is not None
+        directory = Path(self._tmp.name) / f"daemon-{len(self.old_daemon_logs)}"
+        self.daemon = DaemonProcess(
+            directory,
+            self.daemon.config,
+            ready_timeout_s=WAIT_S,
+            **({} if self._daemon_root is None else {"root": self._daemon_root}),
+        )
+        self.config_path = self.daemon.config_path
+        self.daemon_log = self.daemon.log_path
+        self._status_client = ControlConnection(self.control_path)
+        if not wait_until(lambda: self.status()["link"] == "up", WAIT_S):
+            raise TimeoutError(f"no autopilot link within {WAIT_S} s of the restart")
+        return time.monotonic()
+
+    def reload_daemon(self, tables: dict[str, dict[str, Any]]) -> None:
+        """Rewrite the daemon's config with ``tables`` merged in (e.g. ``{"arm":
+        {"joint_speed_deg_s": 30.0}}``) and send it SIGHUP, as ``systemctl reload`` does;
+        returns at once (the daemon logs ``reloaded`` once it applied it)."""
+        assert self.daemon is not None
+        for name, values in tables.items():
+            self.daemon.config.setdefault(name, {}).update(values)
+        write_config(self.daemon.config_path, self.daemon.config)
+        os.kill(self.daemon.pid, signal.SIGHUP)
 
     @property
     def daemon_pid(self) -> int:

@@ -199,15 +199,22 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
         gcs = GroundStation(stack.gcs_url)
 
         def set_param(name: str, value: int) -> None:
-            """PARAM_SET from the ground station; returns once the PARAM_VALUE says it is set
-            (sent again every 0.5 s: a rebooting autopilot is deaf)."""
+            """PARAM_SET from the ground station; returns once a PARAM_VALUE says it is set
+            (sent again every 0.5 s: a rebooting autopilot is deaf). Only one with the value
+            set will do: the autopilot sends PARAM_VALUE on every link, so the daemon's own
+            read of the parameter may have left an answer with the old value waiting here."""
             msg = gcs.mav.param_set_encode(
                 1, 1, name.encode(), param_value(flavour, value), mavlink.MAV_PARAM_TYPE_INT32
             )
             for _ in range(10):
                 gcs.send(msg)
                 answer = gcs.wait_for(
-                    lambda m: m.get_type() == "PARAM_VALUE" and _param_id(m.param_id) == name, 0.5
+                    lambda m: (
+                        m.get_type() == "PARAM_VALUE"
+                        and _param_id(m.param_id) == name
+                        and m.param_value == msg.param_value
+                    ),
+                    0.5,
                 )
                 if answer is not None:
                     return

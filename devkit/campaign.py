@@ -882,6 +882,7 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "link.signing_state": ("string", ()),
     "link.allowed_senders": ("pairs", ([[0, 190]], [[255, 0]], [[256, 190]], [[255, -1]])),
     "arm.file": ("string", ("no-such-arm.toml", "broken-arm.toml", ".")),
+    "arm.tip_link": ("string", ("no-such-link", "", "tool0")),
     "arm.park_deg": (
         "numbers",
         ([0, 90], [0, 90, 0, 0, 0, 0, 0], [], [0, -10, 0, 0, 0, 0], [0, 90, 0, 0, 0, 1e308]),

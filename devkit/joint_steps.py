@@ -1,7 +1,8 @@
 """Joint steps faster than the speed limit, from what the servos physically received.
 
-Pure functions over the simulator's event log (``start`` and ``output`` events, see
-:mod:`sim_servo.eventlog`), used by ``bench/output_cycles.py`` and tested on hand-made timelines.
+Pure functions over the simulator's event log (``start``, ``output`` and ``servo`` events, see
+:mod:`sim_servo.eventlog`), used by ``bench/output_cycles.py`` and ``bench/state_cycles.py`` and
+tested on hand-made timelines.
 
 **A fast step.** Per output, each change of the physical pulse is a step of the joint from the
 angle of the last pulse before it to the angle of the new one (angles through the joint's
@@ -21,16 +22,47 @@ rate_hz)`` (a jump spread over the time since the previous change), is also give
 
 **No pulses** (PWM 0: an ArduPilot output held by its safety switch, any output during a
 reboot): the servo holds where it was, so a change to 0 is no step, and the next pulse is
-compared with the last pulse before the gap. The first pulse an output ever gets has nothing to
-compare with (ArduPilot outputs start without pulses, the servo wherever it was left): it is
-returned apart, never counted as fast.
+compared with the last pulse before the gap. **Changes at the same instant** (two commands
+carried out in one pass of the autopilot, e.g. PX4's commander cycle): only the last went out,
+the ones before it lasted no time at all and are no step. The first pulse an output ever gets
+has nothing to compare with (ArduPilot outputs start without pulses, the servo wherever it was
+left): it is returned apart, never counted as fast.
+
+**Whose step** (:func:`step_kind`). The daemon's: its own commands, and the outputs coming alive
+(arm, prearm, the safety switch released, a mask or a boot) with a value the daemon stored. A
+foreign sender's: a command from another link than the companion's (the simulator tags it with
+``src``), or coming alive with a value such a command stored (the last ``servo`` event of the
+output before the step was tagged). The autopilot's own: PX4 driving an output to its disarmed
+PWM (disarm, kill, prearm off, reboot). **A race** (counted apart from both): the daemon's
+command from a PWM a foreign command set less than ``race_window_s`` before (a readback interval
+and a hop): no readback could have shown the daemon that command yet, so its step was computed
+from the PWM before it; later ones are the daemon's (a readback showing a foreign PWM holds the
+motion until it is believed, and the joint is then taken where it shows).
+
+**A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
+instant known only within a window (the signal sent … the daemon said it applied it): a step in
+the window is judged against the higher of the two limits (either may be in force) and, apart,
+against the lower; elsewhere against the limit in force.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass
+import bisect
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
+
+#: The kinds of :func:`step_kind`: the daemon's, a foreign sender's, the autopilot's own.
+DAEMON_COMMAND = "daemon: command"
+DAEMON_ALIVE = "daemon: coming alive"
+FOREIGN_COMMAND = "foreign: command"
+FOREIGN_ALIVE = "foreign: coming alive"
+AUTOPILOT = "foreign: autopilot to its disarmed PWM"
+RACE = "race: the daemon's command before a readback could show a foreign one"
+DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
+FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
+#: Causes of an output change that bring stored values out (the outputs coming alive).
+ALIVE_CAUSES = frozenset({"arm", "prearm", "param", "safety_off", "boot"})
 
 
 @dataclass(frozen=True)
@@ -40,6 +72,8 @@ class Change:
     t_s: float
     pwm_us: int
     cause: str
+    #: A command's sender when it came from another link than the companion's (``src``).
+    source: tuple[int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -54,6 +88,7 @@ class JointStep:
     dt_s: float  # since the output's previous physical change (a change to 0 included)
     allowed_deg: float  # joint_speed_deg_s / rate_hz + quantum_deg
     cause: str  # the simulator's cause of the change: command, arm, prearm, safety_off ...
+    source: tuple[int, int] | None = None  # a foreign command's sender
 
     @property
     def fast(self) -> bool:
@@ -81,7 +116,15 @@ def output_changes(events: Iterable[Mapping[str, Any]]) -> dict[int, list[Change
                     f"output {output}: event at t_s={event['t_s']} goes from "
                     f"{event['from_us']} µs but the log had it at {history[-1].pwm_us} µs"
                 )
-            history.append(Change(float(event["t_s"]), int(event["pwm_us"]), str(event["cause"])))
+            source = tuple(event["src"]) if event.get("src") else None
+            history.append(
+                Change(
+                    float(event["t_s"]),
+                    int(event["pwm_us"]),
+                    str(event["cause"]),
+                    (int(source[0]), int(source[1])) if source else None,
+                )
+            )
     return changes
 
 
@@ -107,7 +150,10 @@ def joint_steps(
     first: list[Change] = []
     pulse: int | None = None  # the last pulse (> 0): where the servo holds
     previous_s: float | None = None
-    for change in changes:
+    ordered = list(changes)
+    for k, change in enumerate(ordered):
+        if k + 1 < len(ordered) and ordered[k + 1].t_s == change.t_s:
+            continue  # another change at the same instant: this one never went out
         dt_s = change.t_s - previous_s if previous_s is not None else float("inf")
         previous_s = change.t_s
         if change.pwm_us == 0:
@@ -125,7 +171,105 @@ def joint_steps(
                     dt_s=dt_s,
                     allowed_deg=allowed_deg,
                     cause=change.cause,
+                    source=change.source,
                 )
             )
         pulse = change.pwm_us
     return steps, first
+
+
+def stored_by_foreign(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tuple[float, bool]]]:
+    """Per output, each command that gave it a PWM (``servo`` events) in log order:
+    ``(t_s, whether a foreign sender gave it)``."""
+    stored: dict[int, list[tuple[float, bool]]] = {}
+    for event in events:
+        if event["event"] == "servo":
+            stored.setdefault(int(event["output"]), []).append(
+                (float(event["t_s"]), bool(event.get("src")))
+            )
+    return stored
+
+
+def foreign_stored_at(stored: Sequence[tuple[float, bool]], t_s: float) -> bool:
+    """Whether the last command at or before ``t_s`` (from :func:`stored_by_foreign`) was a
+    foreign sender's."""
+    k = bisect.bisect_right([t for t, _ in stored], t_s)
+    return k > 0 and stored[k - 1][1]
+
+
+def foreign_command_before(stored: Sequence[tuple[float, bool]], t_s: float) -> float | None:
+    """How long before ``t_s`` the last command strictly before it was given, if a foreign
+    sender gave it (from :func:`stored_by_foreign`; None: the daemon's, or none)."""
+    k = bisect.bisect_left([t for t, _ in stored], t_s)
+    if k == 0 or not stored[k - 1][1]:
+        return None
+    return t_s - stored[k - 1][0]
+
+
+def step_kind(
+    step: JointStep,
+    *,
+    disarmed_us: int | None,
+    stored_foreign: bool,
+    foreign_before_s: float | None = None,
+    race_window_s: float = 0.0,
+) -> str:
+    """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
+    :data:`FOREIGN_KINDS` or :data:`RACE`. ``disarmed_us``: PX4's disarmed PWM (None on
+    ArduPilot); ``stored_foreign``: the output's stored value came from a foreign command;
+    ``foreign_before_s``: the command before this one was a foreign sender's, this long before
+    (:func:`foreign_command_before`)."""
+    if step.cause == "command":
+        if step.source is not None:
+            return FOREIGN_COMMAND
+        if foreign_before_s is not None and foreign_before_s <= race_window_s:
+            return RACE
+        return DAEMON_COMMAND
+    if disarmed_us is not None and step.to_us == disarmed_us:
+        return AUTOPILOT
+    if step.cause in ALIVE_CAUSES:
+        return FOREIGN_ALIVE if stored_foreign else DAEMON_ALIVE
+    return AUTOPILOT
+
+
+@dataclass(frozen=True)
+class Reload:
+    """A change of ``joint_speed_deg_s`` from ``old`` to ``new``, applied at some instant in
+    ``[start_s, end_s]``."""
+
+    start_s: float
+    end_s: float
+    old: float
+    new: float
+
+
+@dataclass
+class SpeedLimits:
+    """The joint speed limit over time: ``base`` until the first reload, each reload's ``new``
+    after its window (reloads in time order, windows not overlapping)."""
+
+    base: float
+    reloads: list[Reload] = field(default_factory=list)
+
+    def at(self, t_s: float) -> tuple[float, float]:
+        """(lower, higher) limit that may be in force at ``t_s``: equal outside a window."""
+        speed = self.base
+        for reload in self.reloads:
+            if t_s < reload.start_s:
+                break
+            if t_s <= reload.end_s:
+                return min(reload.old, reload.new), max(reload.old, reload.new)
+            speed = reload.new
+        return speed, speed
+
+
+def judge(
+    step: JointStep, limits: SpeedLimits, *, rate_hz: float, quantum_deg: float
+) -> tuple[bool, bool]:
+    """(fast against the limit that may be in force — the higher in a reload window —, fast
+    against the lower one): ``|Δangle| > speed / rate_hz + quantum_deg``."""
+    lower, higher = limits.at(step.t_s)
+    return (
+        step.step_deg > higher / rate_hz + quantum_deg,
+        step.step_deg > lower / rate_hz + quantum_deg,
+    )

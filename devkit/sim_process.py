@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import select
 import subprocess
@@ -122,6 +123,14 @@ class SimProcess:
     def safety(self, on: bool) -> bool:
         """ArduPilot: engage (``on``) or disengage the safety switch now; False on PX4."""
         return bool(query(self.query_path, "safety_on" if on else "safety_off").get("ok"))
+
+    def forge(self, msg: str, **fields: Any) -> None:
+        """A test fault: ``msg`` (SERVO_OUTPUT_RAW, SYS_STATUS, SYSTEM_TIME) forged as if from
+        the autopilot on the companion's link, once or every ``interval_s`` for ``for_s``
+        (see :mod:`sim_servo.autopilot.forge` for the fields); ``SimIOError`` if refused."""
+        reply = query(self.query_path, json.dumps({"query": "forge", "msg": msg, **fields}))
+        if not reply.get("ok"):
+            raise SimIOError(str(reply.get("error", reply)))
 
     def hangup(self) -> bool:
         """Close the port now (with ``--hangup-for``, a new pty comes back that much later);

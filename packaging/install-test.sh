@@ -202,12 +202,12 @@ t=$(date +%s)
 ct_sh "sudo /opt/armbridge/.venv/bin/pip install $CT_CHECKOUT"
 PIP_S=$(($(date +%s) - t))
 run_readme "sudo ln -s /opt/armbridge/.venv/bin/armbridge /usr/local/bin/"
-run_readme "sudo install -D -m 644 companion/daemon/examples/armbridge.toml /etc/armbridge/armbridge.toml"
+run_readme "/opt/armbridge/.venv/bin/armbridge shipped config | sudo install -D -m 644 /dev/stdin /etc/armbridge/armbridge.toml"
 readme "sudoedit /etc/armbridge/armbridge.toml" \
     "skipped (interactive): the example is used as is; its link.url udpout:127.0.0.1:14550 is where the simulator will listen"
 run_readme "sudo sh -c 'umask 077 && head -c 32 /dev/urandom > /etc/armbridge/signing.key'"
 run_readme "sudo CREDENTIALS_DIRECTORY=/etc/armbridge /opt/armbridge/.venv/bin/armbridge check-config /etc/armbridge/armbridge.toml"
-run_readme "sudo install -m 644 packaging/armbridge.service /etc/systemd/system/"
+run_readme "/opt/armbridge/.venv/bin/armbridge shipped unit | sudo tee /etc/systemd/system/armbridge.service >/dev/null"
 t=$(date +%s)
 run_readme "sudo NUMBA_CACHE_DIR=/var/cache/armbridge /opt/armbridge/.venv/bin/python -P -m companion.ik"
 COMPILE_S=$(($(date +%s) - t))

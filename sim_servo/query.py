@@ -21,7 +21,13 @@ same connection, as many times as it likes. A request is a bare word or a JSON o
   ``{"ok": true}``, or ``{"ok": false}`` on PX4 or while rebooting;
 * ``hangup`` – close the port now (with ``--hangup-for``, a new pty comes back that much later;
   ``--hangup-after`` schedules one instead); ``{"ok": true}``, or ``{"ok": false}`` while the
-  port is away.
+  port is away;
+* ``forge`` – a test fault, as a JSON object only: frames forged as if from the autopilot on
+  the companion's link, e.g. ``{"query": "forge", "msg": "SYS_STATUS", "safety_on": false,
+  "for_s": 1.0}`` (see :mod:`sim_servo.autopilot.forge` for the messages and their fields);
+  ``{"ok": true}``, or ``{"error": "..."}`` naming what it cannot carry out.
+
+A JSON object's other keys are the request's arguments (only ``forge`` takes any).
 
 An unknown request gets ``{"error": "..."}`` naming the valid ones.
 """
@@ -38,7 +44,9 @@ from typing import Any
 
 from sim_servo.errors import SimIOError
 
-Responder = Callable[[str], dict[str, Any]]
+#: Answers a request: its name and its arguments (a JSON object's other keys; empty for a bare
+#: word).
+Responder = Callable[[str, dict[str, Any]], dict[str, Any]]
 QUERIES = (
     "state",
     "events",
@@ -52,6 +60,7 @@ QUERIES = (
     "kill",
     "safety_on",
     "safety_off",
+    "forge",
 )
 _MAX_LINE = 65536
 
@@ -110,15 +119,16 @@ class QueryServer:
                 return
 
     def _answer(self, line: str) -> dict[str, Any]:
-        request = line
+        request, args = line, {}
         if line.startswith("{"):
             try:
-                request = str(json.loads(line).get("query", ""))
-            except (ValueError, AttributeError):
+                args = dict(json.loads(line))
+            except (ValueError, TypeError):
                 return {"error": f"request {line!r} is not a JSON object"}
+            request = str(args.pop("query", ""))
         if request not in QUERIES:
             return {"error": f"unknown query {request!r}; valid: {list(QUERIES)}"}
-        return self._respond(request)
+        return self._respond(request, args)
 
     def _drop(self, fd: int) -> None:
         client, _ = self._clients.pop(fd)

@@ -75,13 +75,13 @@ class SimServer:
         except OSError:
             pass
 
-    def _respond(self, request: str) -> dict[str, Any]:
+    def _respond(self, request: str, args: dict[str, Any]) -> dict[str, Any]:
         try:
-            return self._answer(request)
+            return self._answer(request, args)
         finally:
             self.events.flush()  # what the asker reads next includes what it just caused
 
-    def _answer(self, request: str) -> dict[str, Any]:
+    def _answer(self, request: str, args: dict[str, Any]) -> dict[str, Any]:
         if request == "state":
             state = self.autopilot.snapshot(self.clock())
             state["link"] = {
@@ -109,6 +109,11 @@ class SimServer:
             return {"ok": self.autopilot.set_armed(request == "arm", self.clock(), cause=cause)}
         if request in ("safety_on", "safety_off"):
             return {"ok": self.autopilot.set_safety(request == "safety_on", self.clock())}
+        if request == "forge":
+            try:
+                self.autopilot.forge(args, self.clock())
+            except ValueError as exc:
+                return {"error": f"forge: {exc}"}
         return {"ok": True}
 
     def run(self) -> int:

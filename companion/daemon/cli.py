@@ -342,6 +342,22 @@ def format_status(status: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: ``armbridge shipped NAME``: (package, resource) of each file shipped for the user to install.
+SHIPPED = {
+    "unit": ("companion.daemon", "examples/armbridge.service"),
+    "config": ("companion.daemon", "examples/armbridge.toml"),
+    "lua": ("firmware_interface", "lua/armbridge_servo.lua"),
+}
+
+
+def _cmd_shipped(args: argparse.Namespace) -> int:
+    import importlib.resources
+
+    package, resource = SHIPPED[args.name]
+    sys.stdout.write(importlib.resources.files(package).joinpath(resource).read_text("utf-8"))
+    return 0
+
+
 def _target_word(status: dict[str, Any], last: dict[str, Any]) -> str:
     """What became of the last target, as its answer and the outputs say: "reached" only for
     one accepted, with the arm no longer moving and its outputs live."""
@@ -538,6 +554,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(func=_cmd_demo)
 
+    p = verb("shipped", "print a file shipped in the package (the unit, the example config)")
+    p.add_argument(
+        "name",
+        choices=sorted(SHIPPED),
+        help="unit: the systemd unit; config: the example config, every field with its "
+        "default; lua: ArduPilot's Lua bridge script (for the SD card's APM/scripts/)",
+    )
+    p.set_defaults(func=_cmd_shipped)
+
     p = verb("check-config", "validate a daemon config as `run` would, then exit")
     p.add_argument("config", help="daemon config TOML")
     p.set_defaults(func=_cmd_check_config)
@@ -562,7 +587,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = verb("solve", "one-off IK for a target pose (no daemon)")
     pose_args(p)
     p.add_argument("--arm", help="arm file, TOML or .urdf (default: the papers' arm)")
-    p.add_argument("--tip-link", help="URDF: the link the chain ends at (default: its one tip)")
+    p.add_argument(
+        "--tip-link",
+        help="URDF: the link the chain ends at (default: the end of its longest moving chain)",
+    )
     p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
     p.add_argument(

@@ -248,7 +248,7 @@ _LINK_KEYS = (
     "signing_state",
     "allowed_senders",
 )
-_ARM_KEYS = ("file", "park_deg", "park_on_stop", "joint_speed_deg_s")
+_ARM_KEYS = ("file", "tip_link", "park_deg", "park_on_stop", "joint_speed_deg_s")
 #: ``[solver]``'s search settings: key → the SolverSettings field it sets.
 _SEARCH_FIELDS = {
     "pop_size": "pop_size",
@@ -290,11 +290,14 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
     link = _parse_link(root.table("link", allowed=_LINK_KEYS), base)
 
     arm_table = root.table("arm", allowed=_ARM_KEYS)
+    tip_link = arm_table.string("tip_link") if "tip_link" in arm_table else None
     if "file" in arm_table:
         arm_path = base / arm_table.string("file")
+        if tip_link is not None and arm_path.suffix.lower() != ".urdf":
+            raise arm_table.fail("tip_link", 'set only with a URDF arm file (file = "*.urdf")')
         try:
             if arm_path.suffix.lower() == ".urdf":
-                arm = Arm.from_urdf(arm_path)
+                arm = Arm.from_urdf(arm_path, tip_link=tip_link)
             else:
                 arm = Arm.from_toml(arm_path, dof=None)
         except ArmConfigError as exc:
@@ -309,6 +312,8 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
                 "(companion.ik.solve takes prismatic arms)",
             )
     else:
+        if tip_link is not None:
+            raise arm_table.fail("tip_link", 'set only with a URDF arm file (file = "*.urdf")')
         arm = Arm.default()
     park = None
     if "park_deg" in arm_table:

@@ -9,13 +9,35 @@ but it is still read as untrusted text: ElementTree expands no external entities
 
 What is taken (and ``<collision>`` shapes, below):
 
-* the chain from the root link (the one link that is no joint's child) to ``tip_link`` (default:
-  the end of the only path; a link with two child joints on the way is refused, naming them);
+* the chain from the root link (the one link that is no joint's child) to ``tip_link``; without
+  it, the tip is chosen as below (ROS-Industrial and full-robot URDFs hang fixed frames, sensors
+  and fingers beside the arm, so the tree seldom has one path);
 * ``revolute`` (``<limit lower upper>`` required, radians), ``continuous`` (limits [−π, π]: every
   orientation once) and ``prismatic`` (``<limit>`` required, metres) joints; ``fixed`` joints are
   folded into the transforms around them (or the base and tool at either end);
 * ``floating`` and ``planar`` joints, ``<mimic>``, a zero axis and unknown types are refused with
   an :class:`~companion.errors.ArmConfigError` naming the joint.
+
+The tip without ``tip_link``, in three rules:
+
+* the arm is the chain from the root with the most moving joints (every joint but ``fixed``
+  counts: a ``floating`` or mistyped joint is then on the chain and refused by name, not cut off
+  silently; a ``<mimic>`` finger counts like its leader). Branches of fixed joints only (a
+  ``base_link``→``base`` frame, sensor frames) and shorter moving branches (a camera's pan
+  joint) are left off; a tree without a moving joint is refused;
+* its tip is the link its last moving joint moves, followed on through fixed joints while the
+  link has exactly one child joint and that one is fixed: ``wrist_3_link``→``flange``→``tool0``
+  ends at ``tool0``, but a ``tool0`` beside a ``flange`` (or a sensor frame) stops at
+  ``wrist_3_link``;
+* chains tied for the most moving joints, each ending in a moving joint of its own, part at a
+  link (the deepest they all pass). When each has fewer moving joints after that link than
+  before it (a gripper's fingers, one or two joints each, after a 6- or 7-joint arm), the arm
+  ends at that link (the hand; its fixed tool frames are not followed: give ``tip_link`` for a
+  TCP frame). Otherwise (two arms from a torso) the URDF is refused, naming the candidate tip
+  links, each found by these rules within its branch (``left_tool0, right_tool0``).
+
+A gripper with a single moving joint (one finger moves, or a turning jaw) makes the longest chain
+on its own and is taken as the arm's last joint: give ``tip_link`` for the hand.
 
 Collision shapes (for the keep-out checks, :mod:`~companion.kinematics.collision`): the
 ``<collision>`` elements of each link the chain moves (a moving joint's child and the links fixed
@@ -167,6 +189,75 @@ def _link_capsules(source: str, link: ET.Element, attach: FloatArray) -> list[Li
     return out
 
 
+def _default_tip(
+    source: str,
+    root: str,
+    joints: list[ET.Element],
+    by_parent: dict[str, list[ET.Element]],
+    parent_of: dict[str, str],
+    child_of: dict[int, str],
+) -> str:
+    """The tip link when none is given: the rules in the module docstring."""
+    moving = {root: 0}  # link -> moving joints from the root to it, for links the root reaches
+    todo = [root]
+    while todo:
+        link = todo.pop()
+        for j in by_parent.get(link, []):
+            child = child_of[id(j)]
+            moving[child] = moving[link] + (j.get("type") != "fixed")
+            todo.append(child)
+    most = max(moving.values())
+    if most == 0:
+        raise ArmConfigError(
+            source, "<robot>", f"no moving joint: every joint from the root link {root!r} is fixed"
+        )
+    ends = [  # the links the last moving joint of each longest chain moves, in file order
+        child_of[id(j)]
+        for j in joints
+        if j.get("type") != "fixed" and moving.get(child_of[id(j)]) == most
+    ]
+
+    def from_root(link: str) -> list[str]:
+        out = [link]
+        while out[-1] != root:
+            out.append(parent_of[out[-1]])
+        return out[::-1]
+
+    def shared(paths: list[list[str]]) -> int:  # how many links the paths share from the root
+        n = 0
+        while all(len(p) > n and p[n] == paths[0][n] for p in paths):
+            n += 1
+        return n
+
+    def tips(ends: list[str]) -> list[str]:
+        if len(ends) == 1:
+            link = ends[0]
+            while len(by_parent.get(link, [])) == 1 and by_parent[link][0].get("type") == "fixed":
+                link = child_of[id(by_parent[link][0])]
+            return [link]
+        paths = [from_root(end) for end in ends]  # none holds another: each ends moving
+        n = shared(paths)
+        branch = paths[0][n - 1]
+        if most - moving[branch] < moving[branch]:
+            return [branch]  # fingers after a hand: the arm ends at the hand
+        groups: dict[str, list[str]] = {}
+        for end, p in zip(ends, paths, strict=True):
+            groups.setdefault(p[n], []).append(end)
+        return [tip for group in groups.values() for tip in tips(group)]
+
+    found = tips(ends)
+    if len(found) > 1:
+        paths = [from_root(end) for end in ends]
+        word = "joint" if most == 1 else "joints"
+        raise ArmConfigError(
+            source,
+            "tip_link",
+            f"the tree branches at link {paths[0][shared(paths) - 1]!r} into {len(found)} "
+            f"chains of {most} moving {word}: set tip_link to one of: {', '.join(found)}",
+        )
+    return found[0]
+
+
 def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None) -> Arm:
     """Build an :class:`Arm` from URDF text (see the module docstring for what is accepted)."""
     try:
@@ -204,39 +295,25 @@ def parse_urdf(text: str, *, source: str = "<urdf>", tip_link: str | None = None
     if len(roots) != 1:
         raise ArmConfigError(source, "<robot>", f"needs exactly one root link, found {roots}")
 
-    if tip_link is not None:
-        if tip_link not in links:
-            raise ArmConfigError(source, "tip_link", f"link {tip_link!r} is not defined")
-        path: list[ET.Element] = []
-        link = tip_link
-        seen = {link}
-        while link in by_child:
-            path.append(by_child[link])
-            link = parent_of[link]
-            if link in seen:  # every link has one parent: a loop never reaches the root
-                raise ArmConfigError(
-                    source,
-                    "tip_link",
-                    f"link {tip_link!r} hangs from a loop of joints through link {link!r}, "
-                    f"not from the root link {roots[0]!r}",
-                )
-            seen.add(link)
-        path.reverse()
-    else:
-        path = []
-        link = roots[0]
-        while link in by_parent:
-            children = by_parent[link]
-            if len(children) > 1:
-                names = ", ".join(c.get("name") or "?" for c in children)
-                raise ArmConfigError(
-                    source,
-                    f"joint {children[1].get('name')}",
-                    f"the chain branches at link {link!r} (joints {names}); only serial chains "
-                    "are taken (give tip_link to pick one branch)",
-                )
-            path.append(children[0])
-            link = child_of[id(children[0])]
+    if tip_link is None:
+        tip_link = _default_tip(source, roots[0], joints, by_parent, parent_of, child_of)
+    elif tip_link not in links:
+        raise ArmConfigError(source, "tip_link", f"link {tip_link!r} is not defined")
+    path: list[ET.Element] = []
+    link = tip_link
+    seen = {link}
+    while link in by_child:
+        path.append(by_child[link])
+        link = parent_of[link]
+        if link in seen:  # every link has one parent: a loop never reaches the root
+            raise ArmConfigError(
+                source,
+                "tip_link",
+                f"link {tip_link!r} hangs from a loop of joints through link {link!r}, "
+                f"not from the root link {roots[0]!r}",
+            )
+        seen.add(link)
+    path.reverse()
 
     arm_joints: list[Joint] = []
     before: list[FloatArray] = []

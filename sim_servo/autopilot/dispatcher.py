@@ -9,9 +9,9 @@ It composes the parts, each the one home of a behaviour: :mod:`~sim_servo.autopi
 (decoding, encoding, signing, each link's timing), :mod:`~sim_servo.autopilot.routing`,
 :mod:`~sim_servo.autopilot.params`, :mod:`~sim_servo.autopilot.outputs`,
 :mod:`~sim_servo.autopilot.streams`, :mod:`~sim_servo.autopilot.commands`,
-:mod:`~sim_servo.autopilot.lua`, :mod:`~sim_servo.autopilot.reboot` and
-:mod:`~sim_servo.autopilot.world`; what differs between ArduPilot and PX4 is in
-:mod:`~sim_servo.autopilot.flavour`.
+:mod:`~sim_servo.autopilot.lua`, :mod:`~sim_servo.autopilot.reboot`,
+:mod:`~sim_servo.autopilot.world` and a test fault, :mod:`~sim_servo.autopilot.forge`; what
+differs between ArduPilot and PX4 is in :mod:`~sim_servo.autopilot.flavour`.
 
 When frames are handled and leave:
 
@@ -28,7 +28,8 @@ When frames are handled and leave:
 * PX4 (:class:`~sim_servo.config.Px4TimingConfig`): frames handled on arrival, commander
   commands acted on and answered on the next 10 ms cycle, frames out on each link's 1.5 ms
   main-loop pass (:class:`~sim_servo.linktiming.LoopLinkOutput`), routed frames 2.5 ms later.
-* One pass of :meth:`SimAutopilot.poll`: the vehicle log, the reboot, then (unless rebooting)
+* One pass of :meth:`SimAutopilot.poll`: the vehicle log, the reboot, the forger's frame (a
+  forger goes on through a reboot), then (unless rebooting)
   prearm, the received frames, the Lua script, the commander, the deferred frames, the
   heartbeat and the other streams, in this order.
 """
@@ -44,6 +45,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from sim_servo.autopilot.commands import Commands
 from sim_servo.autopilot.flavour import flavour_for
+from sim_servo.autopilot.forge import Forger, Forgery
 from sim_servo.autopilot.lua import LuaScript
 from sim_servo.autopilot.messages import message_fields, message_name
 from sim_servo.autopilot.outputs import Outputs, make_servos
@@ -102,6 +104,7 @@ class SimAutopilot:
         )
         self._router = state.flavour.make_router(state, self._wire, self.params)
         self._streams = Streams(state, self._wire, self._outputs, self.vehicle, now_s=now_s)
+        self._forger = Forger(state, self._wire, lambda: self._outputs.pwm_us)
         params = ParamService(state, self.params, self._wire, self._outputs.on_param_change)
         self._lua = (
             LuaScript(state, self.params, self._outputs, self._wire, now_s=now_s)
@@ -210,6 +213,11 @@ class SimAutopilot:
         """ArduPilot: the safety switch on or off now; False on PX4 or while rebooting."""
         return self._outputs.set_safety(on, now_s, cause)
 
+    def forge(self, request: dict[str, Any], now_s: float) -> Forgery:
+        """A test fault: frames forged as if from us on the companion's link, from now (see
+        :mod:`sim_servo.autopilot.forge`); ``ValueError`` for a request it cannot carry out."""
+        return self._forger.start(request, now_s)
+
     def pause_heartbeat(self, paused: bool, now_s: float) -> None:
         """Stop or restart our HEARTBEAT now (see :meth:`Streams.pause_heartbeat`)."""
         self._streams.pause_heartbeat(paused, now_s)
@@ -247,6 +255,7 @@ class SimAutopilot:
         # First: the sample's horn positions are those before this pass's commands.
         self._world.run(now_s)
         self._reboot.run(now_s)
+        self._forger.run(now_s)
         if not self._state.rebooting:
             self._outputs.run_prearm(now_s)
             self._run_inbox(now_s)
@@ -265,7 +274,7 @@ class SimAutopilot:
 
     def next_event_s(self, now_s: float) -> float:
         """The earliest time at which :meth:`poll` has something to do (≥ ``now_s``)."""
-        candidates = self._reboot.next_events_s()
+        candidates = self._reboot.next_events_s() + self._forger.next_events_s()
         if not self._state.rebooting:
             candidates += self._streams.next_events_s()
             candidates += self._wire.deferred_due_s()

@@ -29,7 +29,10 @@ unchanged). PWM = 1500 + 500·v rounded half away from zero, clamped to ``PWM_MA
 
 The ``output`` event logs every change of what a servo physically receives (with its cause),
 ``arming`` / ``prearm`` / ``safety`` the state changes, so a bench can check from the log alone
-that no joint stepped faster than its limit.
+that no joint stepped faster than its limit. A command that came in on another link than the
+companion's (a ground station's DO_SET_SERVO or DO_SET_ACTUATOR) tags its ``output`` and
+``servo`` events with ``src`` (its sender's system and component) and ``link``: a bench tells
+the companion's steps from a foreign sender's.
 """
 
 from __future__ import annotations
@@ -59,6 +62,15 @@ STATUSTEXT_IN_USE = "ServoRelayEvent: Channel {output} is already in use"
 IDLE_ASSIGNED_PWM_US = 1000
 #: MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (PX4 skips its checks; here: a kill).
 PX4_FORCE_MAGIC = 21196
+
+
+def foreign_origin(command: Command) -> dict[str, Any]:
+    """The fields that tag the events of a command from another link than the companion's
+    (link 0): ``src`` (its sender's system and component) and ``link``; none for the
+    companion's own commands."""
+    if command.channel == 0:
+        return {}
+    return {"src": list(command.source), "link": command.channel}
 
 
 def make_servos(state: AutopilotState, hand: HandModel | None, now_s: float) -> dict[int, Servo]:
@@ -154,11 +166,18 @@ class Outputs:
                 physical[output] = 0
         return reported, physical
 
-    def refresh(self, now_s: float, cause: str, outputs: Iterable[int] | None = None) -> None:
+    def refresh(
+        self,
+        now_s: float,
+        cause: str,
+        outputs: Iterable[int] | None = None,
+        **origin: Any,
+    ) -> None:
         """Bring the reported and physical PWMs up to the current state; every physical change
         moves its servo and is logged as an ``output`` event (what the servo receives).
         ``outputs``: only those changed (a command to one output; the rest of the state is as
-        the last full refresh left it)."""
+        the last full refresh left it). ``origin``: fields every such event carries (a foreign
+        command's sender, see :func:`foreign_origin`)."""
         self._before_course_change(now_s)
         reported, physical = self._outputs_now(outputs)
         self.pwm_us = reported if outputs is None else {**self.pwm_us, **reported}
@@ -178,6 +197,7 @@ class Outputs:
                 from_us=before,
                 cause=cause,
                 position_us=round(servo.position_us(now_s), 3),
+                **origin,
             )
 
     def on_param_change(self, now_s: float) -> None:
@@ -242,15 +262,16 @@ class Outputs:
                 mavlink.MAV_SEVERITY_INFO, STATUSTEXT_IN_USE.format(output=output), now_s
             )
             return mavlink.MAV_RESULT_FAILED
-        self.apply(output, pwm, now_s)
+        self.apply(output, pwm, now_s, **foreign_origin(command))
         return mavlink.MAV_RESULT_ACCEPTED
 
-    def apply(self, output: int, pwm: int, now_s: float) -> None:
-        """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command)."""
+    def apply(self, output: int, pwm: int, now_s: float, **origin: Any) -> None:
+        """An ArduPilot output given ``pwm`` (DO_SET_SERVO, or the Lua bridge's command);
+        ``origin``: a foreign sender's fields for the events (:func:`foreign_origin`)."""
         self._before_course_change(now_s)
         self.commanded_us[output] = pwm
-        self.refresh(now_s, "command", (output,))
-        self._servo_event(output, pwm, now_s)
+        self.refresh(now_s, "command", (output,), **origin)
+        self._servo_event(output, pwm, now_s, **origin)
         if self.output_us[output] == pwm:
             # A command re-sends the pulse even when it is unchanged (the servo's own timing).
             self.servos[output].command(pwm, now_s)
@@ -272,17 +293,18 @@ class Outputs:
             if output in self._state.config.faults.nack_outputs:
                 self._state.emit(now_s, "fault", fault="nack_output", output=output)
                 return mavlink.MAV_RESULT_FAILED
-        for slot in range(PX4_ACTUATOR_SET_COUNT):
-            if not math.isnan(command.params[slot]):
-                self.actuator_values[slot] = command.params[slot]
-        self.refresh(now_s, "command")
+        origin = foreign_origin(command)
+        given = {s for s in range(PX4_ACTUATOR_SET_COUNT) if not math.isnan(command.params[s])}
+        for slot in given:
+            self.actuator_values[slot] = command.params[slot]
+        self.refresh(now_s, "command", **origin)
         for output, slot in mapped.items():
             value = self.actuator_values[slot]
-            if math.isnan(value):
-                continue
+            if math.isnan(value) or (origin and slot not in given):
+                continue  # a foreign command's events name only the slots it set
             low, high = self.params.pwm_limits(output)
             pwm = min(max(px4_actuator_pwm_us(value), low), high)
-            self._servo_event(output, pwm, now_s, value=value, live=self.live(output))
+            self._servo_event(output, pwm, now_s, value=value, live=self.live(output), **origin)
         return mavlink.MAV_RESULT_ACCEPTED
 
     def arm_disarm(self, command: Command, now_s: float) -> int:

@@ -34,6 +34,7 @@ STAT_NAMES = (
     "routed",
     "reboots",
     "ignored_rebooting",
+    "forged",
 )
 
 

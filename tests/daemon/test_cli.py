@@ -412,3 +412,11 @@ def test_status_for_people_never_says_reached_for_a_target_that_failed():
     assert "moving" in format_status({**base, "moving": True, "last_target": accepted})
     dead = {**base, "outputs_live": False, "last_target": accepted}
     assert "reached" not in format_status(dead)
+
+
+@pytest.mark.parametrize("name", ["unit", "config", "lua"])
+def test_shipped_prints_the_file_the_package_carries(name, capsys):
+    assert main(["shipped", name]) == 0
+    text = capsys.readouterr().out
+    first = {"unit": "[Unit]", "config": "[link]", "lua": "--[["}[name]
+    assert first in text

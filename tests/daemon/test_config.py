@@ -503,6 +503,25 @@ def test_keepout_needs_an_arm_with_shapes(tmp_path):
     assert parse_config(config(arm={"file": "bare.toml"}), source=str(tmp_path / "c.toml"))
 
 
+def test_arm_tip_link_chooses_where_a_urdf_arm_ends_and_is_refused_without_one(tmp_path):
+    from importlib import resources as res
+
+    urdf = tmp_path / "ur5.urdf"
+    urdf.write_text((res.files("companion.kinematics") / "arms" / "ur5.urdf").read_text())
+    head = '[link]\nurl = "udpout:127.0.0.1:14550"\n[arm]\n'
+    whole = load_config(write(tmp_path, head + 'file = "ur5.urdf"\n', "w.toml")).arm
+    cfg = load_config(write(tmp_path, head + 'file = "ur5.urdf"\ntip_link = "link6"\n'))
+    assert cfg.arm.dof == 6  # the same joints, without the flange's offset
+    zero = [0.0] * 6
+    assert cfg.arm.fk(zero).as_tuple() != whole.fk(zero).as_tuple()
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, head + 'file = "ur5.urdf"\ntip_link = "nowhere"\n', "a.toml"))
+    assert info.value.field == "arm.file" and "nowhere" in str(info.value)
+    with pytest.raises(ConfigError) as info:
+        load_config(write(tmp_path, head + 'tip_link = "link4"\n', "b.toml"))
+    assert info.value.field == "arm.tip_link"
+
+
 # -- the search: method and settings ---------------------------------------------------------------
 
 #: (key, the SolverSettings field, refused below, lowest accepted, highest accepted, refused

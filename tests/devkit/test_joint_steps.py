@@ -4,7 +4,25 @@ from __future__ import annotations
 
 import pytest
 
-from devkit.joint_steps import Change, JointStep, joint_steps, output_changes
+from devkit.joint_steps import (
+    AUTOPILOT,
+    DAEMON_ALIVE,
+    DAEMON_COMMAND,
+    FOREIGN_ALIVE,
+    FOREIGN_COMMAND,
+    RACE,
+    Change,
+    JointStep,
+    Reload,
+    SpeedLimits,
+    foreign_command_before,
+    foreign_stored_at,
+    joint_steps,
+    judge,
+    output_changes,
+    step_kind,
+    stored_by_foreign,
+)
 
 #: 0.1 ° per µs around 1500 µs (1000 µs ↔ −50°, 2000 µs ↔ 50°).
 DEG_PER_US = 0.1
@@ -70,3 +88,95 @@ def test_output_changes_from_the_log_and_a_gap_is_an_error():
         output_changes([*events, lost])
     with pytest.raises(ValueError, match="rate_hz"):
         steps([], rate=0.0)
+
+
+def test_whose_step_it_is():
+    events = [
+        {"event": "start", "t_s": 0.0, "outputs_us": {"9": 1500}},
+        {"event": "servo", "t_s": 0.5, "output": 9, "pwm_us": 1530},
+        {"event": "output", "t_s": 0.5, "output": 9, "pwm_us": 1530, "from_us": 1500,
+         "cause": "command"},
+        {"event": "servo", "t_s": 1.0, "output": 9, "pwm_us": 2000, "src": [255, 190]},
+        {"event": "output", "t_s": 1.0, "output": 9, "pwm_us": 2000, "from_us": 1530,
+         "cause": "command", "src": [255, 190], "link": 1},
+        {"event": "output", "t_s": 1.5, "output": 9, "pwm_us": 1000, "from_us": 2000,
+         "cause": "kill"},
+        {"event": "output", "t_s": 2.0, "output": 9, "pwm_us": 2000, "from_us": 1000,
+         "cause": "arm"},
+        {"event": "servo", "t_s": 2.5, "output": 9, "pwm_us": 1500},
+        {"event": "output", "t_s": 2.5, "output": 9, "pwm_us": 1500, "from_us": 2000,
+         "cause": "command"},
+        {"event": "output", "t_s": 3.0, "output": 9, "pwm_us": 1000, "from_us": 1500,
+         "cause": "query"},
+        {"event": "output", "t_s": 3.5, "output": 9, "pwm_us": 1500, "from_us": 1000,
+         "cause": "prearm"},
+    ]  # fmt: skip
+    changes = output_changes(events)[9]
+    assert changes[2].source == (255, 190) and changes[1].source is None
+    found, _ = steps(changes)
+    stored = stored_by_foreign(events)[9]
+    kinds = [
+        step_kind(s, disarmed_us=1000, stored_foreign=foreign_stored_at(stored, s.t_s))
+        for s in found
+    ]
+    assert kinds == [
+        DAEMON_COMMAND,  # 1500 → 1530
+        FOREIGN_COMMAND,  # 1530 → 2000 from 255/190
+        AUTOPILOT,  # kill: to the disarmed PWM
+        FOREIGN_ALIVE,  # arm: the foreign 2000 comes out
+        DAEMON_COMMAND,  # the daemon's next command jumps back: 50°, its own
+        AUTOPILOT,
+        DAEMON_ALIVE,
+    ]
+    # ArduPilot has no disarmed PWM: a change to 1000 is whatever its cause says.
+    arm = JointStep(9, 1.0, 1500, 1000, 50.0, 1.0, 3.1, "safety_off")
+    assert step_kind(arm, disarmed_us=None, stored_foreign=False) == DAEMON_ALIVE
+
+
+def test_a_reload_window_is_judged_against_both_limits():
+    limits = SpeedLimits(60.0, [Reload(1.0, 1.2, 60.0, 20.0), Reload(3.0, 3.1, 20.0, 120.0)])
+    assert limits.at(0.5) == (60.0, 60.0)
+    assert limits.at(1.1) == (20.0, 60.0)
+    assert limits.at(2.0) == (20.0, 20.0)
+    assert limits.at(3.05) == (20.0, 120.0)
+    assert limits.at(9.0) == (120.0, 120.0)
+
+    def step(t_s, deg):
+        return JointStep(9, t_s, 1500, 1600, deg, 0.05, 0.0, "command")
+
+    def verdict(t_s, deg):
+        return judge(step(t_s, deg), limits, rate_hz=20.0, quantum_deg=0.1)
+
+    assert verdict(0.5, 3.0) == (False, False)
+    assert verdict(1.1, 3.0) == (False, True)  # within 60 °/s, over 20 °/s: apart
+    assert verdict(2.0, 3.0) == (True, True)  # 20 °/s in force: 1° + quantum a tick
+    assert verdict(9.0, 6.0) == (False, False)
+
+
+def test_changes_at_the_same_instant_are_one_step_to_the_last():
+    # Two commands in one commander cycle: 1241 → 1612 → 1243 at once is 1241 → 1243.
+    changes = [
+        Change(0.0, 1241, "start"),
+        Change(1.0, 1612, "command"),
+        Change(1.0, 1243, "command"),
+        Change(2.0, 1300, "command", (255, 190)),
+        Change(2.0, 1250, "command"),
+    ]
+    found, _ = steps(changes)
+    assert [(s.from_us, s.to_us, s.source) for s in found] == [
+        (1241, 1243, None),
+        (1243, 1250, None),
+    ]
+
+
+def test_the_daemons_command_right_after_a_foreign_one_is_a_race_later_its_own():
+    stored = [(1.0, False), (2.0, True), (2.02, False), (3.0, True), (3.5, False)]
+    assert foreign_command_before(stored, 2.02) == pytest.approx(0.02)
+    assert foreign_command_before(stored, 3.5) == pytest.approx(0.5)
+    assert foreign_command_before(stored, 1.0) is None  # nothing before
+    assert foreign_command_before(stored, 2.0) is None  # the daemon's before it
+    step = JointStep(9, 2.02, 2000, 1500, 50.0, 0.02, 3.1, "command")
+    kind = {"disarmed_us": None, "stored_foreign": True, "race_window_s": 0.03}
+    assert step_kind(step, foreign_before_s=0.02, **kind) == RACE
+    assert step_kind(step, foreign_before_s=0.5, **kind) == DAEMON_COMMAND
+    assert step_kind(step, foreign_before_s=None, **kind) == DAEMON_COMMAND

@@ -13,7 +13,7 @@ from sim_servo.query import QueryServer, query
 @pytest.fixture
 def server(tmp_path):
     path = tmp_path / "q.sock"
-    srv = QueryServer(path, lambda request: {"answer": request})
+    srv = QueryServer(path, lambda request, args: {"answer": request})
     stop = threading.Event()
 
     def loop():
@@ -59,6 +59,6 @@ def test_no_server(tmp_path):
 def test_stale_socket_file_is_replaced(tmp_path):
     path = tmp_path / "q.sock"
     path.write_text("")
-    srv = QueryServer(path, lambda r: {})
+    srv = QueryServer(path, lambda r, args: {})
     srv.close()
     assert not path.exists()

@@ -106,3 +106,21 @@ def test_arming_and_safety_queries(tmp_path):
     assert query(path, "arm") == {"ok": False}
     server.stop()
     thread.join(5)
+
+
+def test_the_forge_query_sends_a_forged_frame_to_the_companion(tmp_path):
+    server, endpoint, _, thread, result = start(tmp_path)
+    path = tmp_path / "q.sock"
+    with MavPeer.connect(endpoint.url, system_id=1, component_id=191) as companion:
+        companion.send_heartbeat(8, 18)  # the UDP endpoint answers its last sender
+        companion.next_message(lambda m: m.get_type() == "HEARTBEAT")
+        request = '{"query": "forge", "msg": "SYSTEM_TIME", "time_boot_ms": 3}'
+        assert query(path, request) == {"ok": True}
+        got = companion.next_message(lambda m: m.get_type() == "SYSTEM_TIME")
+        assert got.time_boot_ms == 3 and (got.get_srcSystem(), got.get_srcComponent()) == (1, 1)
+    assert "msg='NOPE'" in query(path, '{"query": "forge", "msg": "NOPE"}')["error"]
+    assert "msg=None" in query(path, "forge")["error"]
+    assert query(path, "state")["stats"]["forged"] == 1
+    server.stop()
+    thread.join(5)
+    assert result["rc"] == 0

@@ -270,7 +270,7 @@ class Motion:
             self.step_behind(actions)
             return
         now = core.clock()
-        if not outputs.may_move(actions, now):
+        if not outputs.may_move(actions, now) or outputs.in_doubt(now):
             return
         if state.unconfirmed is not None:
             if not (state.resend_at_once or self.goal is not None or self._waiting):
@@ -315,7 +315,7 @@ class Motion:
         now = core.clock()
         if last.tracker.poll(now) is not None:
             return  # its verdict is in (or its time is up): resolved first, then we go on
-        if not outputs.may_pipeline():
+        if not outputs.may_pipeline() or outputs.in_doubt(now):
             return
         goal = self.goal
         if goal is None or goal == last.step_deg:

@@ -33,12 +33,17 @@ READBACK_TOLERANCE_US = 1
 #: interval, see :meth:`OutputsTruth.settle_s`).
 READBACK_SETTLE_S = 0.15
 #: An output's readback disagrees with what it acknowledged only after this many readbacks in
-#: a row show something else, spanning at least READBACK_SPAN_INTERVALS of the stream's
-#: interval (by arrival) with none showing it between: a frame forged as the autopilot's (an
-#: unsigned link) is contradicted by the autopilot's own next readback, and never makes the
-#: daemon command the outputs somewhere on its word alone.
+#: a row show something else, spanning more than the stream's interval (by arrival) with none
+#: showing it between: the autopilot's own readback falls inside that span, so frames forged
+#: as the autopilot's (an unsigned link), however many, are contradicted by it and never make
+#: the daemon command the outputs somewhere on their word alone.
 READBACK_MISMATCHES = 2
-READBACK_SPAN_INTERVALS = 0.9
+READBACK_SPAN_INTERVALS = 1.25
+#: Meanwhile (a settled readback disagreed, not believed yet) the motion holds: no step goes
+#: out on a belief the next readbacks may overturn; until this many intervals after the last
+#: readback that disagreed (frames that agree between do not end it: with a forger on the
+#: link, some of them are his).
+READBACK_DOUBT_INTERVALS = 2.0
 
 #: A band of poses: per joint, the lowest and the highest angle.
 Band = tuple[list[float], list[float]]
@@ -81,6 +86,9 @@ class OutputsTruth(abc.ABC):
         #: the first of them arrived.
         self._mismatches: dict[int, int] = {}
         self._mismatch_since_s: dict[int, float] = {}
+        #: Per output: the motion holds until then (a settled readback disagreed lately, see
+        #: READBACK_DOUBT_INTERVALS), unless the readbacks were believed first.
+        self._doubt_until_s: dict[int, float] = {}
         #: The last output found set by another sender, for status: output, PWM shown, PWM
         #: acknowledged before, when it was seen (None: none since the start).
         self.foreign_command: dict[str, float] | None = None
@@ -124,8 +132,20 @@ class OutputsTruth(abc.ABC):
         count = self._mismatches.get(output, 0) + 1
         self._mismatches[output] = count
         since_s = self._mismatch_since_s.setdefault(output, at_s)
-        span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
-        return count >= READBACK_MISMATCHES and at_s - since_s >= span_s
+        interval_s = self._core.settings.readback_interval_s
+        believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
+            READBACK_SPAN_INTERVALS * interval_s
+        )
+        if believed:
+            self._doubt_until_s.pop(output, None)
+        else:
+            self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
+        return believed
+
+    def in_doubt(self, now: float) -> bool:
+        """A settled readback disagreed with what an output acknowledged, and the readbacks
+        have not said yet whether to believe it (the motion holds meanwhile)."""
+        return any(now < until_s for until_s in self._doubt_until_s.values())
 
     def _agrees(self, output: int) -> None:
         """A readback showed what ``output`` acknowledged (or a step on its way)."""

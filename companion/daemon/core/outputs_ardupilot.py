@@ -21,6 +21,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from companion.daemon.core.outputs import (
+    READBACK_MISMATCHES,
+    READBACK_SPAN_INTERVALS,
     READBACK_TOLERANCE_US,
     Band,
     OutputsTruth,
@@ -96,6 +98,9 @@ class ArduPilotOutputs(OutputsTruth):
         self._rewind_to: tuple[float, ...] | None = None
         #: When a SYS_STATUS last said the switch is on (by arrival).
         self._safety_on_seen_s = -math.inf
+        #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
+        #: show, since when, how many in a row (see :meth:`_shown_steadily`).
+        self._unacked_seen: dict[int, tuple[int, float, int]] = {}
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -159,7 +164,15 @@ class ArduPilotOutputs(OutputsTruth):
                     state.position[i] = self.angle_shown(output, shown)
                     if self._held_since_off is not None:  # nothing sent: they hold that
                         self._held_since_off = band_of([tuple(state.position)])
+                elif self._shown_steadily(output, shown) and not any(
+                    output in f.pwm_by_output for f in state.flights
+                ):
+                    # After a loss or a reboot, before anything of ours is acknowledged: an
+                    # output that shows a PWM (another sender set it since the boot) is there;
+                    # the pose re-sent keeps it there.
+                    self._take_shown(i, output, shown)
                 continue
+            self._unacked_seen.pop(output, None)
             expected, settled = self._expected_pwms(output, now)
             on_its_way = {
                 f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
@@ -197,8 +210,49 @@ class ArduPilotOutputs(OutputsTruth):
                 unconfirmed = list(state.unconfirmed)
                 unconfirmed[i] = angle
                 state.unconfirmed = tuple(unconfirmed)
-            if self._held_since_off is not None:
-                widen(self._held_since_off, state.position)
+            self._held_at(i, angle)
+
+    def _held_at(self, i: int, angle: float) -> None:
+        """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): with
+        the switch off that is where it is, whatever the bands said; otherwise the bands take
+        it in beside what they held."""
+        for band in (self._held_before_loss, self._held_since_off):
+            if band is None:
+                continue
+            if self.safety_on is False:
+                band[0][i] = band[1][i] = angle
+            else:
+                band[0][i], band[1][i] = min(band[0][i], angle), max(band[1][i], angle)
+
+    def _shown_steadily(self, output: int, shown: int) -> bool:
+        """Readbacks show ``output`` at ``shown`` (within the tolerance) twice in a row over
+        more than the stream's interval (as :meth:`_disagrees`: a forged frame alone is never
+        believed)."""
+        at_s = self.shown_s
+        seen = self._unacked_seen.get(output)
+        if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
+            self._unacked_seen[output] = (shown, at_s, 1)
+            return False
+        pwm, since_s, count = seen
+        self._unacked_seen[output] = (pwm, since_s, count + 1)
+        span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
+        return count + 1 >= READBACK_MISMATCHES and at_s - since_s >= span_s
+
+    def _take_shown(self, i: int, output: int, shown: int) -> None:
+        """The joint of ``output`` (index ``i``) is where its readback shows."""
+        state = self._core.state
+        angle = self.angle_shown(output, shown)
+        if state.position[i] == angle and (
+            state.unconfirmed is None or state.unconfirmed[i] == angle
+        ):
+            return
+        log.info("output %d shows %d us: the joint is taken there (%.1f deg)", output, shown, angle)
+        state.position[i] = angle
+        if state.unconfirmed is not None:
+            unconfirmed = list(state.unconfirmed)
+            unconfirmed[i] = angle
+            state.unconfirmed = tuple(unconfirmed)
+        self._held_at(i, angle)
 
     def on_param(self, name: str, value: float) -> None:
         if name == SAFETY_MASK_PARAM:

@@ -26,7 +26,9 @@ SYSTEM_TIME_INTERVAL_S = 0.25
 #: The outputs' readback (SERVO_OUTPUT_RAW) is asked for at this interval: the truth of what the
 #: outputs do. ArduPilot streams it at most every 20 ms.
 READBACK_INTERVAL_S = 0.1
-#: PX4 on a link with room for it: a readback this often sees outputs go dead (disarm, kill)
+#: On a link with room for it: a readback this often sees PX4's outputs go dead (disarm, kill)
+#: and an ArduPilot output set by another sender (a ground station's servo test) before the
+#: next control step;
 #: sooner, so the hold at the disarmed PWM is stored before a quick re-arm would apply the
 #: pose stored before (bench.output_cycles: every fast PX4 step came from a re-arm inside the
 #: window in which the disarm was not seen yet), and sees them come alive within 20 ms (the
@@ -86,10 +88,12 @@ def stream_intervals_s(*, ardupilot: bool, url: str) -> tuple[float, float]:
     :data:`SLOW_LINK_BAUD`, where every byte up delays the ACKs behind it."""
     spec = parse_url(url)
     slow_serial = spec.kind == "serial" and (spec.baud or 0) < SLOW_LINK_BAUD
-    if ardupilot:
-        readback_s = READBACK_SLOW_LINK_INTERVAL_S if slow_serial else READBACK_INTERVAL_S
+    if slow_serial:
+        readback_s = READBACK_SLOW_LINK_INTERVAL_S if ardupilot else READBACK_INTERVAL_S
     else:
-        readback_s = READBACK_INTERVAL_S if slow_serial else READBACK_FAST_INTERVAL_S
+        # Both firmwares: an output set by another sender (ArduPilot) or gone dead (PX4) is
+        # seen within a readback, before the next control step goes out.
+        readback_s = READBACK_FAST_INTERVAL_S
     sys_status_s = SYS_STATUS_SLOW_LINK_INTERVAL_S if slow_serial else SYS_STATUS_INTERVAL_S
     return readback_s, sys_status_s
 

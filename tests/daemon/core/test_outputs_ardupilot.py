@@ -380,3 +380,58 @@ def test_ardupilot_a_forged_safety_off_between_the_autopilots_own_is_not_believe
         rig.tick()
     assert not rig.servo()
     assert rig.core.status()["outputs_live"] is False
+
+
+def test_ardupilot_forged_readbacks_faster_than_the_autopilots_own_are_not_believed(rig):
+    # Forged frames four times as often as the autopilot's readback: two of them always fall
+    # between two of its own, so "two in a row" alone would believe them.
+    _settle(rig, near(PARK))
+    real = dict(rig.core.status()["last_pwm_us"])
+    forged = {o: 2000 for o in real}
+    for _ in range(20):
+        rig.readback(real)
+        for _ in range(4):
+            rig.clock.advance(0.005)
+            rig.readback(forged)
+    status = rig.core.status()
+    assert status["foreign_command"] is None
+    assert status["last_pwm_us"] == real
+
+
+def test_ardupilot_a_disagreeing_readback_holds_the_motion_until_the_next_ones_say(rig):
+    rig.goto(near(PARK, 20.0))
+    done = 0
+    for _ in range(4):
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+    rig.ack_all(rig.sent[done:])
+    rig.clock.advance(0.2)  # settled
+    shown = dict(rig.core.status()["last_pwm_us"])
+    output = rig.calibration.outputs[0]
+    rig.readback({**shown, output: 2000})  # one disagrees: not believed, not ignored
+    rig.sent.clear()
+    assert not rig.servo(rig.advance(0.01))
+    rig.readback(shown)  # the next agrees: the motion goes on
+    rig.sys_status(safety_on=False)  # (the streams were asked again after the quiet 0.2 s)
+    assert rig.servo(rig.advance(0.05))
+
+
+def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_it_shows(rig):
+    # Rebooted, then a ground station set output 9 to 2000 us before our outputs went out
+    # again: the re-send of the pose from before the reboot jumped it back 100 deg.
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    output = rig.calibration.outputs[0]
+    rig.sent.clear()
+    rig.readback({output: 2000})  # the other outputs: no pulses since the boot
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.sys_status(safety_on=False)
+    rig.advance(0.05)
+    assert rig.servo()[output] == 2000

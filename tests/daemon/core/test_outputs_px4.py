@@ -122,7 +122,10 @@ def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_read
     px4.readback()  # one readback alone is not believed (a forged one would do that)
     assert rig.core.status()["outputs_live"] is True
     rig.clock.advance(0.02)
-    px4.readback()  # the next one, a readback interval later, tells
+    px4.readback()  # nor two an interval apart (a forger's may fall between two of PX4's)
+    assert rig.core.status()["outputs_live"] is True
+    rig.clock.advance(0.02)
+    px4.readback()  # the next: longer than an interval, none showing the stored PWM
     assert rig.core.status()["outputs_live"] is False
     # The markers go out at once (not at the next tick), 2 us from the disarmed PWM.
     sent = [c for c in rig.sent if c.command == ACTUATOR]
@@ -156,9 +159,10 @@ def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_ho
     on_its_way = px4.apply()
     assert on_its_way
     px4.set_live(False)
-    px4.readback()  # ...the outputs are found dead before its ACK (two readbacks)
-    rig.clock.advance(0.02)
-    px4.readback()
+    px4.readback()  # ...the outputs are found dead before its ACK (three readbacks)
+    for _ in range(2):
+        rig.clock.advance(0.02)
+        px4.readback()
     for _ in on_its_way:
         rig.ack(command=ACTUATOR)
     rig.advance(1.0 / RATE_HZ)

@@ -17,6 +17,7 @@ from sim_servo.config import SimConfig
 from sim_servo.eventlog import physical_pwm_timeline
 from tests.sim_servo.autopilot.conftest import (
     ARM_OUTPUTS,
+    READY_PX4,
     SERVO_OUTPUT_RAW,
     SET_ACTUATOR,
     START_S,
@@ -26,6 +27,7 @@ from tests.sim_servo.autopilot.conftest import (
     faulty,
     mapped,
     px4,
+    routing_harness,
 )
 
 
@@ -371,3 +373,48 @@ def test_output_events_replay_every_physical_pwm(flavour):
     start = {"t_s": 0.0, "event": "start", "outputs_us": {str(o): p for o, p in first.items()}}
     timeline = physical_pwm_timeline([start, *h.events])
     assert {o: history[-1][1] for o, history in timeline.items()} == h.ap.output_us
+
+
+def test_a_ground_station_s_servo_command_is_tagged_with_its_sender():
+    h, companion = routing_harness()
+    h.ap.receive(
+        companion.command_long_encode(
+            1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 9, 1200, 0, 0, 0, 0, 0
+        ).pack(companion),
+        h.now,
+        0,
+    )
+    h.run_for(0.01)
+    h.send(
+        h.gcs.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 9, 2000, 0, 0, 0, 0, 0),
+        channel=1,
+    )
+    h.run_for(0.01)
+    outputs = [e for e in h.events if e["event"] == "output" and e["output"] == 9]
+    servos = [e for e in h.events if e["event"] == "servo" and e["output"] == 9]
+    assert [e["pwm_us"] for e in outputs] == [1200, 2000]
+    assert "src" not in outputs[0] and "src" not in servos[0]
+    assert outputs[1]["src"] == [255, 190] and outputs[1]["link"] == 1
+    assert servos[1]["src"] == [255, 190] and h.ap.output_us[9] == 2000
+
+
+def test_px4_refuses_a_ground_station_s_servo_command_and_tags_its_actuator_command():
+    h = Harness(READY_PX4, links=2)
+    h.command(SET_ACTUATOR, *[0.0] * 6, 0)
+    h.run_for(0.05)
+    h.send(
+        h.gcs.command_long_encode(1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 9, 2000, 0, 0, 0, 0, 0),
+        channel=1,
+    )
+    nan = math.nan
+    h.send(
+        h.gcs.command_long_encode(1, 1, SET_ACTUATOR, 0, nan, 1.0, nan, nan, nan, nan, 0),
+        channel=1,
+    )
+    h.run_for(0.05)
+    results = [e["result_name"] for e in h.events if e["event"] == "ack"]
+    assert results[-2:] == ["MAV_RESULT_UNSUPPORTED", "MAV_RESULT_ACCEPTED"]
+    changed = [e for e in h.events if e["event"] == "output" and e.get("src")]
+    assert [(e["output"], e["pwm_us"], e["src"]) for e in changed] == [(10, 2000, [255, 190])]
+    tagged = [e["output"] for e in h.events if e["event"] == "servo" and e.get("src")]
+    assert tagged == [10] and h.ap.output_us[9] == 1500
