@@ -894,6 +894,13 @@ FIELD_KINDS: dict[str, tuple[str, tuple[Any, ...]]] = {
     "solver.tol_pos_cm": ("number", (0, -0.01, 9e-7, 10.5)),
     "solver.tol_ori_deg": ("number", (0, -0.1, 9e-7, 180.5)),
     "solver.seed": ("integer", (-1,)),
+    "solver.method": ("string", ("DE", "genetic", "memetic ")),
+    "solver.pop_size": ("integer", (3, 0, -4, 101, 2**40)),
+    "solver.mutation_f": ("number", (0, -0.7, 2.001, 1e300)),
+    "solver.crossover_cr": ("number", (-0.1, 1.001, 1e300)),
+    "solver.lm_iterations": ("integer", (-1, 101, 2**40)),
+    "solver.stall_generations": ("integer", (0, -1, 10_001)),
+    "solver.stall_gain": ("number", (-0.5, 1.5, 1e300)),
     "control.rate_hz": ("number", (0, -20, 1e-10, 0.999, 400.5, 1e9)),
     "control.socket": (
         "path_or_empty",

@@ -48,10 +48,34 @@ DEFAULT_SOCKET = os.environ.get("ARMBRIDGE_SOCKET", "/run/armbridge/control.sock
 # -- solve ----------------------------------------------------------------------------------------
 
 
+#: ``solve``'s search flags: the ``[solver]`` keys of the daemon config, checked alike.
+SEARCH_FLAGS = (
+    "method",
+    "pop_size",
+    "mutation_f",
+    "crossover_cr",
+    "lm_iterations",
+    "stall_generations",
+    "stall_gain",
+)
+
+
 def _cmd_solve(args: argparse.Namespace) -> int:
     from companion import ik
+    from companion.daemon.config import search_changes
     from companion.daemon.demo import _fmt_pose
     from companion.kinematics import Arm, Pose
+    from tomlfields import FieldError, Table
+
+    class FlagError(FieldError):
+        """A search flag out of range, named as typed (``--pop-size``)."""
+
+        def __init__(self, source: str, field: str, problem: str) -> None:
+            super().__init__(source, "--" + field.replace("_", "-"), problem)
+
+    flags = {key: getattr(args, key) for key in SEARCH_FLAGS if getattr(args, key) is not None}
+    changes = search_changes(Table(flags, "", error=FlagError))
+    settings = ik.method_settings(flags.get("method", "memetic"), **dict(changes))
 
     if args.arm and args.arm.lower().endswith(".urdf"):
         arm = Arm.from_urdf(args.arm, tip_link=args.tip_link)
@@ -64,15 +88,18 @@ def _cmd_solve(args: argparse.Namespace) -> int:
         arm,
         target,
         budget_ms=args.budget_ms,
+        ceiling_ms=args.ceiling_ms,
         seed=args.seed,
         tol_pos_cm=args.tol_pos_cm,
         tol_ori_deg=args.tol_ori_deg,
+        settings=settings,
     )
     print(f"target      {_fmt_pose(target)}")
     print(f"joints_deg  [{', '.join(f'{v:.3f}' for v in res.q_deg)}]")
     print(
         f"pos_err {res.pos_err_cm:.1e} cm  ori_err {res.ori_err_deg:.1e} deg  "
-        f"{res.elapsed_ms:.3f} ms  {'REACHED' if res.converged else 'NOT REACHED'}"
+        f"{res.elapsed_ms:.3f} ms  "
+        + ("REACHED" if res.converged else f"NOT REACHED ({res.stop_reason.value})")
     )
     return 0 if res.converged else 1
 
@@ -566,8 +593,38 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--tol-pos-cm", type=float, default=1e-3, help="default %(default)s")
     p.add_argument("--tol-ori-deg", type=float, default=1e-3, help="default %(default)s")
-    p.add_argument("--budget-ms", type=float, default=20.0, help="default %(default)s")
+    p.add_argument(
+        "--budget-ms", type=float, default=20.0, help="CPU time of the search (default %(default)s)"
+    )
+    p.add_argument(
+        "--ceiling-ms",
+        type=float,
+        help="wall-clock bound of the solve, however busy the machine (default 4 x the budget)",
+    )
     p.add_argument("--seed", type=int, default=0, help="the solver's seed (default 0)")
+    search = p.add_argument_group(
+        "search", "as the daemon config's [solver] keys; absent, the method's own settings"
+    )
+    search.add_argument(
+        "--method",
+        help="memetic (default: DE with least-squares steps) or de (plain DE, no least squares)",
+    )
+    search.add_argument("--pop-size", type=int, help="DE population NP [4, 100]")
+    search.add_argument("--mutation-f", type=float, help="DE scale factor F (0, 2]")
+    search.add_argument("--crossover-cr", type=float, help="DE crossover probability Cr [0, 1]")
+    search.add_argument(
+        "--lm-iterations", type=int, help="least-squares steps per refinement [0, 100] (memetic)"
+    )
+    search.add_argument(
+        "--stall-generations",
+        type=int,
+        help="generations without progress before a restart [1, 10000]",
+    )
+    search.add_argument(
+        "--stall-gain",
+        type=float,
+        help="progress: the best cost cut below this times what it was [0, 1]",
+    )
     p.set_defaults(func=_cmd_solve)
 
     p = verb("goto", "send the hand to a pose (running daemon)")

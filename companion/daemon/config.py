@@ -9,12 +9,14 @@ example ``companion/daemon/examples/armbridge.toml``.
 
 from __future__ import annotations
 
+import functools
 import grp
 import math
 import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from companion.errors import ArmConfigError, ConfigError, JointLimitError
 from companion.kinematics.arm import Arm
@@ -40,6 +42,9 @@ from firmware_interface.calibration import (
 from firmware_interface.errors import CalibrationError, PwmOutOfRange, SettingError
 from firmware_interface.link_budget import LinkBudget, link_budget
 from tomlfields import Table, load_toml
+
+if TYPE_CHECKING:
+    from companion.ik import SolverSettings
 
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
 
@@ -71,6 +76,26 @@ BUDGET_MS = (None, 1000.0)
 #: is not at the target; 180 deg is the largest orientation error there is (position only).
 TOL_POS_CM = (1e-6, 10.0)
 TOL_ORI_DEG = (1e-6, 180.0)
+#: The solver's search methods: the names of companion.ik.METHODS (a test keeps the two equal;
+#: named here so that check-config starts without the solver).
+SOLVER_METHODS = ("memetic", "de")
+#: The search's settings (``solver.method`` and the rest; the defaults are the method's own,
+#: companion.ik.METHODS). DE rand/1 draws three others besides each individual: 4 at
+#: least. The papers' populations went to 30; at 100 one generation is ~30 µs of evaluations.
+POP_SIZE = (4, 100)
+#: DE's scale factor F: 0 would not move; past 2 a difference vector overshoots the joint box.
+MUTATION_F = (None, 2.0)
+#: DE's crossover probability Cr (binomial; one coordinate always comes from the donor).
+CROSSOVER_CR = (0.0, 1.0)
+#: Least-squares steps per refinement ("memetic" only; 0: none). LM hands back to DE when a
+#: few steps did not cut the cost; 100 steps from one start is past converging.
+LM_ITERATIONS = (0, 100)
+#: Generations in a row without progress before the population is drawn anew (a restart);
+#: 10 000 generations are past any budget (~1 µs each at the least).
+STALL_GENERATIONS = (1, 10_000)
+#: A generation makes progress when it brings the best cost below this times what it was:
+#: 0 counts none (restart after every ``stall_generations``), 1 counts any improvement.
+STALL_GAIN = (0.0, 1.0)
 #: Fast hobby servos turn 60 deg in 0.06 s (1000 deg/s); a higher limit limits nothing. Below
 #: 1 deg/s a joint takes three minutes to cross a 180 deg range: the arm would hang mid-motion
 #: long after its target went stale (and 1e-300 is a typo, not a speed).
@@ -154,6 +179,10 @@ class DaemonConfig:
     tol_pos_cm: float = 0.01
     tol_ori_deg: float = 0.1
     seed: int | None = None
+    #: ``solver.method``, and the search settings the file sets over the method's own, as
+    #: sorted (SolverSettings field, value) pairs (see :attr:`search_settings`).
+    solver_method: str = "memetic"
+    solver_settings: tuple[tuple[str, float], ...] = ()
     rate_hz: float = 20.0
     joint_speed_deg_s: float = 60.0
     park_deg: tuple[float, ...] | None = None
@@ -181,6 +210,15 @@ class DaemonConfig:
 
     #: World-frame targets (``[world]``): the hand held in LOCAL_NED while the vehicle moves.
     world: WorldSettings = WorldSettings()
+
+    @functools.cached_property
+    def search_settings(self) -> SolverSettings:
+        """The solver's settings: one object per config, built at first use (the solver keeps
+        its arrays and estimates from call to call for one object; check-config never loads
+        the solver)."""
+        from companion.ik import method_settings
+
+        return method_settings(self.solver_method, **dict(self.solver_settings))
 
     def keepout_check(self) -> KeepOut:
         """The arm, mount, volumes and margin, prepared for the keep-out checks."""
@@ -214,7 +252,16 @@ _LINK_KEYS = (
     "allowed_senders",
 )
 _ARM_KEYS = ("file", "tip_link", "park_deg", "park_on_stop", "joint_speed_deg_s", "pose_file")
-_SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed")
+#: ``[solver]``'s search settings: key → the SolverSettings field it sets.
+_SEARCH_FIELDS = {
+    "pop_size": "pop_size",
+    "mutation_f": "F",
+    "crossover_cr": "Cr",
+    "lm_iterations": "lm_iterations",
+    "stall_generations": "stall_generations",
+    "stall_gain": "stall_gain",
+}
+_SOLVER_KEYS = ("budget_ms", "tol_pos_cm", "tol_ori_deg", "seed", "method", *_SEARCH_FIELDS)
 _CONTROL_KEYS = (
     "rate_hz",
     "socket",
@@ -303,6 +350,8 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         tol_pos_cm=_bounded(solver, "tol_pos_cm", 0.01, TOL_POS_CM),
         tol_ori_deg=_bounded(solver, "tol_ori_deg", 0.1, TOL_ORI_DEG),
         seed=solver.integer("seed", min_value=0) if "seed" in solver else None,
+        solver_method=solver.string("method", "memetic", choices=SOLVER_METHODS),
+        solver_settings=search_changes(solver),
         rate_hz=_bounded(control, "rate_hz", 20.0, RATE_HZ),
         joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
         park_deg=park,
@@ -451,6 +500,34 @@ def _check_rest_pose_clear(
         f"keepout[{index}]",
         f"{what} is not clear: {hit.reason}",
     )
+
+
+def search_changes(t: Table) -> tuple[tuple[str, float], ...]:
+    """``[solver]``'s search settings, each checked against its bounds, as sorted
+    (SolverSettings field, value) pairs over the method's own (``companion.ik.method_settings``
+    takes them). ``armbridge solve`` checks its flags with this too (a table of them, its
+    errors naming the flag)."""
+    method = t.string("method", "memetic", choices=SOLVER_METHODS)
+    if method == "de" and "lm_iterations" in t:
+        raise t.fail(
+            "lm_iterations", 'goes with method = "memetic" ("de" runs no least-squares steps)'
+        )
+    changes: dict[str, float] = {}
+    for key, (low, high) in (
+        ("pop_size", POP_SIZE),
+        ("lm_iterations", LM_ITERATIONS),
+        ("stall_generations", STALL_GENERATIONS),
+    ):
+        if key in t:
+            changes[_SEARCH_FIELDS[key]] = t.integer(key, min_value=low, max_value=high)
+    for key, bounds in (
+        ("mutation_f", MUTATION_F),
+        ("crossover_cr", CROSSOVER_CR),
+        ("stall_gain", STALL_GAIN),
+    ):
+        if key in t:
+            changes[_SEARCH_FIELDS[key]] = _bounded(t, key, 0.0, bounds)
+    return tuple(sorted(changes.items()))
 
 
 def _bounded(t: Table, key: str, default: float, bounds: tuple[float | None, float]) -> float:

@@ -584,15 +584,20 @@ class ArmDaemon:
         seed: int | None = None,
     ) -> ik.IKResult:
         config = self.config
+        budget_ms = config.budget_ms if budget_ms is None else budget_ms
         return ik.solve(
             config.arm,
             pose,
-            budget_ms=config.budget_ms if budget_ms is None else budget_ms,
+            budget_ms=budget_ms,
+            # The budget is CPU time; however busy the board, a solve ends within the control
+            # period (or the budget, if that is longer).
+            ceiling_ms=max(budget_ms, 1000.0 / config.rate_hz),
             seed=config.seed if seed is None else seed,
             q_start_deg=q_start_deg,
             tol_pos_cm=config.tol_pos_cm,
             tol_ori_deg=config.tol_ori_deg,
             mode=ik.TargetMode(mode),
+            settings=config.search_settings,
         )
 
     def _run(self) -> None:

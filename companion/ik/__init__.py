@@ -8,12 +8,14 @@ the ahead-of-time module is there: :mod:`companion.ik.aot`).
 
 from companion.ik.solver import (
     DEFAULT_SETTINGS,
+    METHODS,
     IKResult,
     SolverSettings,
     StopReason,
     TargetMode,
     kernel_arrays,
     kernels_origin,
+    method_settings,
     solve,
     warm_up,
 )
@@ -21,11 +23,13 @@ from companion.ik.solver import (
 __all__ = [
     "DEFAULT_SETTINGS",
     "IKResult",
+    "METHODS",
     "SolverSettings",
     "StopReason",
     "TargetMode",
     "kernel_arrays",
     "kernels_origin",
+    "method_settings",
     "solve",
     "warm_up",
 ]

@@ -20,8 +20,42 @@ def test_solve_reachable_and_unreachable(capsys):
     # on a loaded machine would stop short of the target.
     assert main(["solve", "71", "0", "-2", "0", "0", "0", "--budget-ms", "1000"]) == 0
     assert "REACHED" in capsys.readouterr().out
-    assert main(["solve", "-20", "3", "40", "0", "10", "15", "--budget-ms", "5"]) == 1
-    assert "NOT REACHED" in capsys.readouterr().out
+    # Its 5 ms of CPU spent (the ceiling far off, however busy the machine): DEADLINE.
+    argv = ["solve", "-20", "3", "40", "0", "10", "15", "--budget-ms", "5", "--ceiling-ms", "1000"]
+    assert main(argv) == 1
+    assert "NOT REACHED (deadline)" in capsys.readouterr().out
+
+
+def test_solve_takes_a_wall_clock_ceiling(capsys):
+    # A ceiling below the budget ends the search first (CPU time never runs ahead of it).
+    argv = ["solve", "-20", "3", "40", "0", "10", "15", "--budget-ms", "50", "--ceiling-ms", "2"]
+    assert main(argv) == 1
+    assert "NOT REACHED (ceiling)" in capsys.readouterr().out
+    assert main([*argv[:-1], "0"]) == 2
+    assert "ceiling_ms=0.0 must be a finite number > 0" in capsys.readouterr().err
+
+
+def test_solve_takes_the_search_settings_of_the_daemon_config(capsys, monkeypatch):
+    from companion import ik
+
+    seen = []
+    real = ik.solve
+    monkeypatch.setattr(ik, "solve", lambda *a, **kw: seen.append(kw["settings"]) or real(*a, **kw))
+    reach = ["solve", "71", "0", "-2", "0", "0", "0", "--budget-ms", "1000"]
+    assert main([*reach, "--method", "de", "--pop-size", "16", "--mutation-f", "0.8"]) == 0
+    assert "REACHED" in capsys.readouterr().out
+    assert (seen[0].pop_size, seen[0].F, seen[0].Cr, seen[0].lm_iterations) == (16, 0.8, 0.95, 0)
+    for flags, words in (
+        (["--pop-size", "3"], "--pop-size: 3 outside [4, 100]"),
+        (["--crossover-cr", "1.5"], "--crossover-cr: 1.5 outside [0, 1]"),
+        (["--method", "ga"], "--method: 'ga' is not one of memetic, de"),
+        (
+            ["--method", "de", "--lm-iterations", "5"],
+            '--lm-iterations: goes with method = "memetic"',
+        ),
+    ):
+        assert main([*reach, *flags]) == 2
+        assert words in capsys.readouterr().err
 
 
 def test_solve_takes_a_urdf_arm_and_its_tip_link(capsys):

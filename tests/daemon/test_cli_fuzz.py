@@ -27,7 +27,8 @@ VERBS = [
 FLAGS = [
     "--config", "--socket", "--timeout-s", "--wait", "--json", "--watch", "--arm", "--tip-link",
     "--budget-ms", "--tol-pos-cm", "--tol-ori-deg", "--seed", "--listen-s", "-v", "-q",
-    "--log-level", "--help",
+    "--log-level", "--help", "--ceiling-ms", "--method", "--pop-size", "--mutation-f",
+    "--crossover-cr", "--lm-iterations", "--stall-generations", "--stall-gain",
 ]  # fmt: skip
 NUMBERS = ["0", "-1", "1e308", "-1e308", "nan", "inf", "-inf", "1e-300", "45", "3.5", "0x10", ""]
 TEXTS = ["", "[", "{}", "[[0,1,2,3,4,5,6]]", '{"points": 3}', "[" * 5000, "\0\1\2", "é",

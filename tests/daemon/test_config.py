@@ -520,3 +520,62 @@ def test_arm_tip_link_chooses_where_a_urdf_arm_ends_and_is_refused_without_one(t
     with pytest.raises(ConfigError) as info:
         load_config(write(tmp_path, head + 'tip_link = "link4"\n', "b.toml"))
     assert info.value.field == "arm.tip_link"
+
+
+# -- the search: method and settings ---------------------------------------------------------------
+
+#: (key, the SolverSettings field, refused below, lowest accepted, highest accepted, refused
+#: above, range text)
+SEARCH_BOUNDS = [
+    ("pop_size", "pop_size", 3, 4, 100, 101, "[4, 100]"),
+    ("mutation_f", "F", 0, 1e-3, 2, 2.001, "(0, 2]"),
+    ("crossover_cr", "Cr", -0.001, 0, 1, 1.001, "[0, 1]"),
+    ("lm_iterations", "lm_iterations", -1, 0, 100, 101, "[0, 100]"),
+    ("stall_generations", "stall_generations", 0, 1, 10_000, 10_001, "[1, 10000]"),
+    ("stall_gain", "stall_gain", -0.001, 0, 1, 1.001, "[0, 1]"),
+]
+
+
+@pytest.mark.parametrize("bound", SEARCH_BOUNDS, ids=[b[0] for b in SEARCH_BOUNDS])
+def test_every_search_setting_accepts_its_ends_and_refuses_past_them(bound):
+    key, field, below, lowest, highest, above, range_text = bound
+    for value in (lowest, highest):
+        settings = parse_config(config(solver={key: value})).search_settings
+        assert getattr(settings, field) == value
+    for value in (below, above):
+        with pytest.raises(ConfigError) as info:
+            parse_config(config(solver={key: value}))
+        assert info.value.field == f"solver.{key}", str(info.value)
+        assert f"{value!r} outside {range_text}" in str(info.value)
+
+
+def test_the_search_defaults_to_the_methods_own_settings():
+    from companion.daemon.config import SOLVER_METHODS
+    from companion.ik import DEFAULT_SETTINGS, METHODS
+
+    assert SOLVER_METHODS == tuple(METHODS)
+    memetic = parse_config(config())
+    assert memetic.solver_method == "memetic" and memetic.search_settings is DEFAULT_SETTINGS
+    de = parse_config(config(solver={"method": "de"}))
+    assert de.solver_method == "de" and de.search_settings is METHODS["de"]
+    s = de.search_settings
+    assert (s.pop_size, s.F, s.Cr, s.lm_iterations) == (12, 0.9, 0.95, 0)  # Table 4, test 9
+    tuned = parse_config(config(solver={"method": "de", "pop_size": 20, "crossover_cr": 0.5}))
+    assert (tuned.search_settings.pop_size, tuned.search_settings.Cr) == (20, 0.5)
+    assert tuned.search_settings.F == 0.9 and tuned.search_settings.lm_iterations == 0
+
+
+@pytest.mark.parametrize(
+    ("solver", "field", "words"),
+    [
+        ({"method": "ga"}, "solver.method", "'ga' is not one of memetic, de"),
+        ({"method": "de", "lm_iterations": 5}, "solver.lm_iterations", '"de" runs no least-'),
+        ({"method": "de", "lm_iterations": 0}, "solver.lm_iterations", 'with method = "memetic"'),
+        ({"pop_size": 8.0}, "solver.pop_size", "must be an integer"),
+    ],
+)
+def test_a_bad_search_setting_is_named(solver, field, words):
+    with pytest.raises(ConfigError) as info:
+        parse_config(config(solver=solver))
+    assert info.value.field == field, str(info.value)
+    assert words in str(info.value)

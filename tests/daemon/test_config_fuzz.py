@@ -41,7 +41,7 @@ SEED = 8
 
 def test_every_config_field_has_fuzz_values_and_is_in_the_example():
     fields = schema_fields()
-    assert len(fields) == len(set(fields)) == 37
+    assert len(fields) == len(set(fields)) == 44
     assert set(fields) == set(FIELD_KINDS)
     # The README promises the example lists every field with its default.
     for dotted in fields:

@@ -524,3 +524,40 @@ def test_status_names_an_autopilot_signing_far_ahead_of_us_with_the_fix(tmp_path
     finally:
         daemon.close()
         peer.close()
+
+
+@pytest.mark.parametrize(
+    ("rate_hz", "budget_ms", "ceiling_ms"), [(20.0, 20.0, 50.0), (100.0, 20.0, 20.0)]
+)
+def test_a_solve_is_bounded_by_the_control_period_in_wall_time(
+    monkeypatch, rate_hz, budget_ms, ceiling_ms
+):
+    # The budget is the solver's CPU time; the wall-clock ceiling is the control period, or
+    # the budget where that is longer.
+    calls = []
+    monkeypatch.setattr("companion.ik.solve", lambda *args, **kwargs: calls.append(kwargs))
+    config = parse_config(
+        {
+            "link": {"url": URL},
+            "solver": {"budget_ms": budget_ms},
+            "control": {"rate_hz": rate_hz, "socket": ""},
+        }
+    )
+    ArmDaemon(config)._solve(config.arm.fk([0, 90, 0, 0, 0, 0]), None)
+    assert calls[0]["budget_ms"] == budget_ms and calls[0]["ceiling_ms"] == ceiling_ms
+
+
+def test_a_solve_runs_the_configured_search(monkeypatch):
+    calls = []
+    monkeypatch.setattr("companion.ik.solve", lambda *args, **kwargs: calls.append(kwargs))
+    config = parse_config(
+        {
+            "link": {"url": URL},
+            "solver": {"method": "de", "pop_size": 16},
+            "control": {"socket": ""},
+        }
+    )
+    ArmDaemon(config)._solve(config.arm.fk([0, 90, 0, 0, 0, 0]), None)
+    settings = calls[0]["settings"]
+    assert settings is config.search_settings  # one object: the solver keeps its workspace
+    assert (settings.pop_size, settings.lm_iterations, settings.F) == (16, 0, 0.9)

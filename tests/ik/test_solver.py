@@ -36,10 +36,20 @@ def independent_errors(arm: Arm, q_deg, target: Pose) -> tuple[float, float]:
     return float(e.pos_err_cm[0]), float(e.ori_err_deg[0])
 
 
-def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, init_cpu_s=0.0):
+def _charged_run(
+    monkeypatch,
+    clock,
+    init_s,
+    per_generation_s,
+    cpu_clock=None,
+    init_cpu_s=0.0,
+    cpu_per_generation_s=None,
+):
     """The kernel advances ``clock`` as if initialising took ``init_s`` and each generation
     took ``per_generation_s`` (a callable of the generation's index); ``cpu_clock``, if given,
-    advances by ``init_cpu_s`` for the initialisation and like ``clock`` for generations."""
+    advances by ``init_cpu_s`` for the initialisation and by ``cpu_per_generation_s`` (a
+    callable likewise; default: like ``clock``) for generations."""
+    cpu_step = per_generation_s if cpu_per_generation_s is None else cpu_per_generation_s
     warm_up()  # the kernels loaded, so solve() calls the patched entry point
     real_search = solver._search
     count = [0]
@@ -52,10 +62,9 @@ def _charged_run(monkeypatch, clock, init_s, per_generation_s, cpu_clock=None, i
             if cpu_clock is not None:
                 cpu_clock.advance(init_cpu_s)
         for _ in range(args[-1]):
-            step = per_generation_s(count[0])
-            clock.advance(step)
+            clock.advance(per_generation_s(count[0]))
             if cpu_clock is not None:
-                cpu_clock.advance(step)
+                cpu_clock.advance(cpu_step(count[0]))
             count[0] += 1
         return done
 
@@ -121,7 +130,8 @@ def test_modified_convention_arm_solves_too():
 
 
 def test_unreachable_target_is_reported_not_converged_with_both_errors():
-    res = solve(ARM, G, seed=0, budget_ms=5.0)
+    # The ceiling far off: on however busy a machine, the 5 ms of CPU run out first.
+    res = solve(ARM, G, seed=0, budget_ms=5.0, ceiling_ms=1000.0)
     assert not res.converged and res.stop_reason is StopReason.DEADLINE
     pos, ori = independent_errors(ARM, res.q_deg, G)
     assert pos == pytest.approx(res.pos_err_cm, abs=1e-9)
@@ -231,6 +241,8 @@ def test_cold_solves_along_the_same_path_do_jump_branches():
         ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": 0.0}, "budget_ms"),
         ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": math.nan}, "budget_ms"),
         ({"target": Pose(0, 0, 50, 0, 0, 0), "budget_ms": -5}, "budget_ms"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "ceiling_ms": 0.0}, "ceiling_ms"),
+        ({"target": Pose(0, 0, 50, 0, 0, 0), "ceiling_ms": math.inf}, "ceiling_ms"),
         ({"target": Pose(0, 0, 50, 0, 0, 0), "tol_pos_cm": 0}, "tol_pos_cm"),
         ({"target": Pose(0, 0, 50, 0, 0, 0), "tol_ori_deg": math.inf}, "tol_ori_deg"),
         ({"target": [1, 2, 3, 4, 5]}, "6 values"),
@@ -287,7 +299,7 @@ def test_target_beyond_float_range_reports_infinite_errors_and_an_in_limit_start
     solve(ARM, G, budget_ms=1.0, seed=0)  # leave a finished solve's arrays behind
     start = (10.0, 80.0, 20.0, 10.0, 20.0, 30.0)
     far = Pose(1e308, -1e308, 1e200, 0, 0, 0)
-    res = solve(ARM, far, budget_ms=1.0, seed=0, q_start_deg=start)
+    res = solve(ARM, far, budget_ms=1.0, ceiling_ms=1000.0, seed=0, q_start_deg=start)
     assert not res.converged and res.stop_reason is StopReason.DEADLINE
     assert res.pos_err_cm == math.inf and res.ori_err_deg == math.inf
     assert res.q_deg == pytest.approx(start)
@@ -443,14 +455,14 @@ def test_property_no_false_convergence_and_never_outside_limits(name, mode, u, s
 
 def test_initialisation_preempted_for_half_the_budget_does_not_end_the_search(monkeypatch):
     # Another process held the CPU for 11 ms of the initialisation, which itself used 0.1 ms of
-    # CPU. In wall time alone one generation would look like 11 ms and none would fit in the
-    # 9 ms left; the CPU time says 0.1 ms, and the search runs on until the budget.
+    # CPU. In wall time alone one generation would look like 11 ms; the CPU time says 0.1 ms,
+    # and the search runs on until it has had its 20 ms of CPU (11 ms of wall time later).
     wall, cpu = FakeClock(0.0), FakeClock(0.0)
     _charged_run(monkeypatch, wall, 11e-3, lambda i: 1e-4, cpu_clock=cpu, init_cpu_s=1e-4)
     res = solve(ARM, G, budget_ms=20.0, seed=1, clock=wall, cpu_clock=cpu)
     assert res.stop_reason is StopReason.DEADLINE
     assert res.generations > 40
-    assert 19.0 <= res.elapsed_ms <= 20.0
+    assert 19.0 <= res.elapsed_ms - 11.0 <= 20.0
 
 
 def test_the_estimate_carries_over_to_the_next_call_on_the_same_clock(monkeypatch):
@@ -473,3 +485,114 @@ def test_the_estimate_carries_over_to_the_next_call_on_the_same_clock(monkeypatc
     assert calls[0] == 4  # the initialisation plus 4 generations in the first call
     assert clock() - started <= 10.5e-3
     assert res.generations >= 7
+
+
+# -- the budget is CPU time, the ceiling wall time -----------------------------------------------
+
+#: A reachable pose that seed 13 solves in 6 generations after the initialisation (untimed).
+SLOW = reachable(13)
+
+
+def test_a_preempted_solve_is_not_ended_by_its_budget(monkeypatch):
+    # Other processes hold the CPU: every step takes 5 ms of wall time for 0.05 ms of the
+    # solver's CPU. Past the 10 ms budget in wall time, the search has used 0.1 ms of CPU and
+    # goes on to the answer an untimed solve gives.
+    untimed = solve(ARM, SLOW, seed=13, budget_ms=None, settings=UNTIMED)
+    assert untimed.converged and untimed.generations == 6
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 5e-3, lambda i: 5e-3, cpu, 5e-5, lambda i: 5e-5)
+    res = solve(ARM, SLOW, seed=13, budget_ms=10.0, ceiling_ms=100.0, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.CONVERGED
+    assert (res.q, res.generations) == (untimed.q, untimed.generations)
+    assert res.elapsed_ms == pytest.approx(40.0)  # init, chunks of 1, 2 and 4 generations
+
+
+def test_a_wall_clock_budget_gave_the_preempted_solve_up(monkeypatch):
+    # The same solve with the budget counted in wall time (the CPU clock is the wall clock, and
+    # the ceiling the budget): the initialisation took half of it, and no generation is started.
+    clock = FakeClock(0.0)
+    _charged_run(monkeypatch, clock, 5e-3, lambda i: 5e-3)
+    res = solve(ARM, SLOW, seed=13, budget_ms=10.0, ceiling_ms=10.0, clock=clock, cpu_clock=clock)
+    assert res.stop_reason is StopReason.DEADLINE and not res.converged
+    assert res.generations == 0
+
+
+def test_the_ceiling_ends_a_search_starved_of_cpu(monkeypatch):
+    # 1 ms of wall time a generation for 0.01 ms of CPU: the 10 ms budget is never spent; the
+    # 30 ms ceiling ends the search, and nothing is started that would end past it.
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 1e-3, lambda i: 1e-3, cpu, 1e-5, lambda i: 1e-5)
+    res = solve(ARM, G, seed=1, budget_ms=10.0, ceiling_ms=30.0, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.CEILING and not res.converged
+    assert 27.0 <= res.elapsed_ms <= 30.0
+
+
+def test_without_a_ceiling_it_is_a_multiple_of_the_budget(monkeypatch):
+    # The CPU clock does not move at all; the default ceiling, 4 x the 5 ms budget, ends it.
+    assert solver.CEILING_PER_BUDGET == 4.0
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 1e-3, lambda i: 1e-3, cpu, 0.0, lambda i: 0.0)
+    res = solve(ARM, G, seed=1, budget_ms=5.0, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.CEILING
+    assert 17.0 <= res.elapsed_ms <= 20.0
+
+
+def test_a_cpu_heavy_solve_stops_on_its_budget(monkeypatch):
+    # Half a core: 2 ms of wall time for each 1 ms of CPU. The 10 ms of CPU run out at about
+    # 20 ms of wall time, well inside the 100 ms ceiling: DEADLINE, the budget kept.
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 2e-3, lambda i: 2e-3, cpu, 1e-3, lambda i: 1e-3)
+    res = solve(ARM, G, seed=1, budget_ms=10.0, ceiling_ms=100.0, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.DEADLINE and not res.converged
+    assert res.generations == 8  # as on one clock (test_deadline_on_a_fake_clock)
+    assert res.elapsed_ms == pytest.approx(18.0)
+
+
+def test_a_ceiling_below_the_budget_ends_the_search_first(monkeypatch):
+    clock = FakeClock(0.0)
+    _charged_run(monkeypatch, clock, 1e-3, lambda i: 1e-3)
+    res = solve(ARM, G, seed=1, budget_ms=20.0, ceiling_ms=10.5, clock=clock, cpu_clock=clock)
+    assert res.stop_reason is StopReason.CEILING
+    assert res.generations == 8 and res.elapsed_ms == pytest.approx(9.0)
+
+
+def test_without_a_budget_neither_clock_ends_the_search(monkeypatch):
+    # A second of wall time and of CPU a generation: only the generation limit ends it, with
+    # the answer of a search that never reads a clock.
+    wall, cpu = FakeClock(0.0), FakeClock(0.0)
+    _charged_run(monkeypatch, wall, 1.0, lambda i: 1.0, cpu, 1.0, lambda i: 1.0)
+    few = SolverSettings(max_generations=7)
+    res = solve(ARM, G, budget_ms=None, seed=1, settings=few, clock=wall, cpu_clock=cpu)
+    assert res.stop_reason is StopReason.ITERATION_LIMIT and res.generations == 7
+    monkeypatch.undo()
+    plain = solve(ARM, G, budget_ms=None, seed=1, settings=few)
+    assert (res.q, res.evaluations) == (plain.q, plain.evaluations)
+
+
+# -- methods ---------------------------------------------------------------------------------------
+
+
+def test_methods_are_settings_by_name():
+    from companion.ik import DEFAULT_SETTINGS, METHODS, method_settings
+
+    assert method_settings() is DEFAULT_SETTINGS is METHODS["memetic"]
+    assert method_settings("de") is METHODS["de"]
+    assert method_settings("de", pop_size=20).pop_size == 20
+    with pytest.raises(ValueError, match="method='ga' must be one of memetic, de"):
+        method_settings("ga")
+    with pytest.raises(ValueError, match="lm_iterations=3 goes with method 'memetic'"):
+        method_settings("de", lm_iterations=3)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_de_reaches_the_daemons_tolerances_without_least_squares(seed):
+    from companion.ik import method_settings
+
+    target = reachable(200 + seed)
+    de = method_settings("de", max_generations=GENERATIONS)
+    res = solve(
+        ARM, target, seed=seed, budget_ms=None, settings=de, tol_pos_cm=0.01, tol_ori_deg=0.1
+    )
+    assert res.converged and res.lm_iterations == 0 and res.generations > 10
+    pos, ori = independent_errors(ARM, res.q_deg, target)
+    assert pos <= 0.01 and ori <= 0.1
