@@ -133,6 +133,7 @@ from devkit.joint_steps import (
     output_changes,
     step_kind,
     stored_by_foreign,
+    undriven_outside,
 )
 from firmware_interface.calibration import default_calibration
 from sim_servo.config import PX4_DISARMED_PWM_US
@@ -623,7 +624,7 @@ class Cycles:
             quantum = quantum_deg(joint)
             steps, first = joint_steps(
                 output,
-                changes.get(output, []),
+                undriven_outside(changes.get(output, []), joint.pwm_min_us, joint.pwm_max_us),
                 functools.partial(joint_angle, joint),
                 joint_speed_deg_s=JOINT_SPEED_DEG_S,
                 rate_hz=RATE_HZ,

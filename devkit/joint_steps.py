@@ -24,9 +24,10 @@ rate_hz)`` (a jump spread over the time since the previous change), is also give
 reboot): the servo holds where it was, so a change to 0 is no step, and the next pulse is
 compared with the last pulse before the gap. **Changes at the same instant** (two commands
 carried out in one pass of the autopilot, e.g. PX4's commander cycle): only the last went out,
-the ones before it lasted no time at all and are no step. The first pulse an output ever gets
-has nothing to compare with (ArduPilot outputs start without pulses, the servo wherever it was
-left): it is returned apart, never counted as fast.
+the ones before it lasted no time at all and are no step. **A pulse outside the servo's
+calibrated range** (:func:`undriven_outside`: PX4 SITL's disarmed 900 µs) counts as no pulses.
+The first pulse an output ever gets has nothing to compare with (ArduPilot outputs start
+without pulses, the servo wherever it was left): it is returned apart, never counted as fast.
 
 **Whose step** (:func:`step_kind`). The daemon's: its own commands, and the outputs coming alive
 (arm, prearm, the safety switch released, a mask or a boot) with a value the daemon stored. A
@@ -48,6 +49,7 @@ against the lower; elsewhere against the limit in force.
 from __future__ import annotations
 
 import bisect
+import dataclasses
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -97,6 +99,20 @@ class JointStep:
     def loose(self, joint_speed_deg_s: float, rate_hz: float, quantum_deg: float) -> bool:
         """Fast even against ``joint_speed_deg_s × max(Δt, 1 / rate_hz) + quantum_deg``."""
         return self.step_deg > joint_speed_deg_s * max(self.dt_s, 1.0 / rate_hz) + quantum_deg
+
+
+def undriven_outside(changes: Sequence[Change], low_us: int, high_us: int) -> list[Change]:
+    """``changes`` with every pulse outside ``[low_us, high_us]`` (the servo's calibrated
+    range) taken as no pulses (0): such a PWM (PX4 SITL's disarmed 900 µs below 1000–2000)
+    says nothing of where the joint is, so it is compared as a gap: the next pulse in the range
+    with the last one before it."""
+    out: list[Change] = []
+    for change in changes:
+        pwm = change.pwm_us if low_us <= change.pwm_us <= high_us else 0
+        if out and out[-1].pwm_us == pwm:
+            continue  # 900 → 0 after 0: no change at all
+        out.append(dataclasses.replace(change, pwm_us=pwm))
+    return out
 
 
 def output_changes(events: Iterable[Mapping[str, Any]]) -> dict[int, list[Change]]:

@@ -22,6 +22,7 @@ from devkit.joint_steps import (
     output_changes,
     step_kind,
     stored_by_foreign,
+    undriven_outside,
 )
 
 #: 0.1 ° per µs around 1500 µs (1000 µs ↔ −50°, 2000 µs ↔ 50°).
@@ -180,3 +181,15 @@ def test_the_daemons_command_right_after_a_foreign_one_is_a_race_later_its_own()
     assert step_kind(step, foreign_before_s=0.02, **kind) == RACE
     assert step_kind(step, foreign_before_s=0.5, **kind) == DAEMON_COMMAND
     assert step_kind(step, foreign_before_s=None, **kind) == DAEMON_COMMAND
+
+
+def test_a_pulse_outside_the_servos_range_is_taken_as_no_pulses():
+    changes = [
+        Change(0.0, 1500, "start"),
+        Change(1.0, 900, "disarm"),
+        Change(2.0, 1510, "arm"),
+        Change(3.0, 0, "reboot"),
+        Change(4.0, 900, "boot"),
+    ]
+    out = undriven_outside(changes, 1000, 2000)
+    assert [c.pwm_us for c in out] == [1500, 0, 1510, 0]
