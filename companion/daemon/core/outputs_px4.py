@@ -210,7 +210,7 @@ class Px4Outputs(OutputsTruth):
         return self._store_hold_now
 
     def may_move(self, actions: list[Action], now: float) -> bool:
-        if not self._readback_seen(now):
+        if not self._readback_seen(now) or self._disarmed_out_of_range():
             return False
         state = self._core.state
         if self._confirmed.issuperset(state.outputs):
@@ -247,7 +247,34 @@ class Px4Outputs(OutputsTruth):
         }
 
     def dead(self) -> dict[int, str]:
-        return dict(self._not_live)
+        dead = dict(self._not_live)
+        for output in self._disarmed_out_of_range():
+            dead[output] = (
+                f"output {output} shows {self.shown[output]} us, outside its range, and nothing "
+                "of ours is stored since the start (disarmed: the arm moves once armed, from "
+                "where the outputs then show)"
+            )
+        return dead
+
+    def _disarmed_out_of_range(self) -> list[int]:
+        """Outputs showing a PWM outside their servo's range (PX4 SITL's disarmed 900 us) with
+        nothing of ours acknowledged since the start, a loss or a reboot, while the vehicle is
+        not armed: where the joint is is unknown, and PX4 shows what it stores (an earlier
+        daemon's pose) once armed. Nothing is sent meanwhile: a step stored now would come out
+        in one move at arming, from wherever the joint is."""
+        if self._core.watch.armed:
+            return []
+        state = self._core.state
+        ahead = {o for f in state.flights for o in f.sent_outputs}
+        return [
+            o
+            for o in state.outputs
+            if o in self.shown
+            and not self.in_range(o, self.shown[o])
+            and o not in self._ack_history
+            and o not in ahead
+            and o not in self._not_live
+        ]
 
     def unknown(self, now: float) -> dict[int, str]:
         """While the readback is silent for READBACK_STALE_INTERVALS, and each output until a

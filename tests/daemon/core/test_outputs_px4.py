@@ -283,25 +283,37 @@ def test_the_marker_is_tried_towards_the_middle_of_the_range_first():
     assert marker_pwm_candidates(2000, 1500.0, 2000) == [2000 - MARKER_OFFSET_US, 2002, 2000]
 
 
-def test_an_output_showing_a_pwm_outside_its_range_gets_no_marker_and_holds_the_last_pwm():
+def test_an_output_showing_a_pwm_outside_its_range_waits_for_arming_and_holds_the_last_pwm():
     # PX4 SITL's disarmed PWM, 900 us, lies below every servo's range and says nothing of where
-    # a joint is: nothing is sent before a target (a marker at the range's end sent every joint
-    # to its minimum angle in one step when the outputs came alive), and a joint found dead
+    # a joint is: nothing is sent before arming (a marker at the range's end sent every joint
+    # to its minimum angle in one step when the outputs came alive; a restarted daemon's first
+    # step, stored while disarmed, came out in one move at arming). A target is answered at
+    # once (outputs not live); once armed the motion starts, and a joint found dead again
     # holds the last PWM known, not the range's end.
     rig, px4 = px4_rig(disarmed_us=900)
     px4.readback()
     run(rig, px4, 0.5)
-    assert not [c for c in rig.sent if c.command == ACTUATOR]
+    request = rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    assert rig.core.counters["servo_updates"] == 0
+    assert set(px4.stored.values()) == {None}  # nothing stored
+    reply = rig.reply(request)
+    assert reply.outcome is Outcome.ACCEPTED and "outside its range" in reply.message
     assert rig.core.status()["outputs_live"] is False
-    rig.goto(near(PARK))
-    run(rig, px4, 1.0)  # one step stored; the outputs still show 900: not live, held
-    stored = dict(px4.stored)
-    output = rig.calibration.outputs[0]
-    assert stored[output] != rig.calibration.for_output(output).pwm_min_us
-    assert rig.core.status()["outputs_live"] is False
-    px4.set_live(True)  # armed: the stored step comes out, and the motion goes on
+    armed = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    rig.frame(
+        lambda c: c.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, armed, 0, 3
+        )
+    )
+    px4.set_live(True)
     run(rig, px4, 1.0)
+    assert rig.core.counters["servo_updates"] > 0
     assert rig.core.status()["outputs_live"] is True
+    output = rig.calibration.outputs[0]
+    px4.set_live(False)  # disarmed again: 900 everywhere; the joint holds the last PWM
+    run(rig, px4, 0.5)
+    assert px4.stored[output] != rig.calibration.for_output(output).pwm_min_us
     moves = [(o, b, a) for o, b, a in px4.physical_moves if b != 900]
     px4.physical_moves[:] = moves
     assert max_physical_step_us(px4) <= 1.0
