@@ -205,20 +205,22 @@ class ArduPilotOutputs(OutputsTruth):
                 "acknowledged_us": acked,
                 "at_s": self.shown_s,
             }
-            state.position[i] = angle
             state.acked_pwm[output] = shown
             self._ack_history.pop(output, None)
             self.acknowledged(output, shown, now)
-            if state.unconfirmed is not None:
-                unconfirmed = list(state.unconfirmed)
-                unconfirmed[i] = angle
-                state.unconfirmed = tuple(unconfirmed)
-            self._held_at(i, angle)
+            self._joint_at(i, angle)
 
-    def _held_at(self, i: int, angle: float) -> None:
-        """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): with
-        the switch off that is where it is, whatever the bands said; otherwise the bands take
-        it in beside what they held."""
+    def _joint_at(self, i: int, angle: float) -> None:
+        """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
+        joint is there, a pose still to re-send keeps it there, and with the switch off that is
+        where the output is, whatever the bands said (otherwise the bands take it in beside
+        what they held)."""
+        state = self._core.state
+        state.position[i] = angle
+        if state.unconfirmed is not None:
+            unconfirmed = list(state.unconfirmed)
+            unconfirmed[i] = angle
+            state.unconfirmed = tuple(unconfirmed)
         for band in (self._held_before_loss, self._held_since_off):
             if band is None:
                 continue
@@ -250,12 +252,7 @@ class ArduPilotOutputs(OutputsTruth):
         ):
             return
         log.info("output %d shows %d us: the joint is taken there (%.1f deg)", output, shown, angle)
-        state.position[i] = angle
-        if state.unconfirmed is not None:
-            unconfirmed = list(state.unconfirmed)
-            unconfirmed[i] = angle
-            state.unconfirmed = tuple(unconfirmed)
-        self._held_at(i, angle)
+        self._joint_at(i, angle)
 
     def on_param(self, name: str, value: float) -> None:
         if name == SAFETY_MASK_PARAM:
