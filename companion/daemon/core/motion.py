@@ -320,7 +320,12 @@ class Motion:
         goal = self.goal
         if goal is None or goal == last.step_deg:
             return
-        max_step_deg = self._max_step_deg(now)
+        # The autopilot may apply this step in the same output cycle as the one in flight (two
+        # commands a few ms apart): together they stay within one control step.
+        ahead_deg = max(
+            (abs(a - b) for a, b in zip(last.step_deg, state.position, strict=True)), default=0.0
+        )
+        max_step_deg = min(self._max_step_deg(now), core.settings.step_deg - ahead_deg)
         if not max_step_deg > 0:
             return
         step = limit_step(last.step_deg, goal, max_step_deg)
