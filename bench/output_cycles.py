@@ -171,6 +171,29 @@ def _param_id(raw: Any) -> str:
     return text.rstrip("\0")
 
 
+def set_param(gcs: GroundStation, flavour: str, name: str, value: int) -> None:
+    """PARAM_SET from the ground station; returns once a PARAM_VALUE says it is set (sent
+    again every 0.5 s: a rebooting autopilot is deaf). Only one with the value set will do:
+    the autopilot sends PARAM_VALUE on every link, so the daemon's own read of the parameter
+    may have left an answer with the old value waiting here."""
+    msg = gcs.mav.param_set_encode(
+        1, 1, name.encode(), param_value(flavour, value), mavlink.MAV_PARAM_TYPE_INT32
+    )
+    for _ in range(10):
+        gcs.send(msg)
+        answer = gcs.wait_for(
+            lambda m: (
+                m.get_type() == "PARAM_VALUE"
+                and _param_id(m.param_id) == name
+                and m.param_value == msg.param_value
+            ),
+            0.5,
+        )
+        if answer is not None:
+            return
+    raise TimeoutError(f"no PARAM_VALUE for {name} within 5 s")
+
+
 def sim_live(state: dict[str, Any]) -> bool:
     """The simulator's truth: every arm output live (pulses that follow its commands)."""
     return all(state["outputs"][str(o)]["live"] for o in ARM_OUTPUTS)
@@ -198,28 +221,6 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
         source = ControlSocketInput(stack)
         gcs = GroundStation(stack.gcs_url)
 
-        def set_param(name: str, value: int) -> None:
-            """PARAM_SET from the ground station; returns once a PARAM_VALUE says it is set
-            (sent again every 0.5 s: a rebooting autopilot is deaf). Only one with the value
-            set will do: the autopilot sends PARAM_VALUE on every link, so the daemon's own
-            read of the parameter may have left an answer with the old value waiting here."""
-            msg = gcs.mav.param_set_encode(
-                1, 1, name.encode(), param_value(flavour, value), mavlink.MAV_PARAM_TYPE_INT32
-            )
-            for _ in range(10):
-                gcs.send(msg)
-                answer = gcs.wait_for(
-                    lambda m: (
-                        m.get_type() == "PARAM_VALUE"
-                        and _param_id(m.param_id) == name
-                        and m.param_value == msg.param_value
-                    ),
-                    0.5,
-                )
-                if answer is not None:
-                    return
-            raise TimeoutError(f"no PARAM_VALUE for {name} within 5 s")
-
         def act(event: str) -> None:
             if event in ("arm", "disarm"):
                 sim.arm(event == "arm")
@@ -228,11 +229,11 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
             elif event in ("safety_on", "safety_off"):
                 sim.safety(event == "safety_on")
             elif event in ("prearm_on", "prearm_off"):
-                set_param("COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
+                set_param(gcs, flavour, "COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
             elif event in ("mask_arm", "mask_none"):
                 # ArduPilot applies a new mask at boot (@RebootRequired); the simulator at once,
                 # which is the same while the switch is off (drawn only then): set, reboot.
-                set_param("BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0)
+                set_param(gcs, flavour, "BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0)
                 sim.reboot()
             elif event == "reboot":
                 sim.reboot()

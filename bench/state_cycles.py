@@ -107,9 +107,9 @@ from bench.output_cycles import (
     Agreement,
     bound_s,
     joint_angle,
-    param_value,
     quantum_deg,
     random_poses,
+    set_param,
     sim_live,
 )
 from bench.report import machine, md_table, write_markdown
@@ -460,9 +460,11 @@ class Cycles:
         elif event in ("safety_on", "safety_off"):
             sim.safety(event == "safety_on")
         elif event in ("prearm_on", "prearm_off"):
-            self.set_param("COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
+            set_param(self.gcs, self.flavour, "COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
         elif event in ("mask_arm", "mask_none"):
-            self.set_param("BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0)
+            set_param(
+                self.gcs, self.flavour, "BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0
+            )
             self.mask_has_arm = event == "mask_arm"
             sim.reboot()
         elif event == "reboot":
@@ -519,29 +521,6 @@ class Cycles:
             if text.count("reload refused") > refused:
                 record.refused = True
                 return
-
-    def set_param(self, name: str, value: int) -> None:
-        """PARAM_SET from the ground station; returns once a PARAM_VALUE says it is set
-        (sent again every 0.5 s: a rebooting autopilot is deaf). Only one with the value set
-        will do: the autopilot sends PARAM_VALUE on every link, so the daemon's own read of the
-        parameter may have left an answer with the old value waiting here."""
-        gcs = self.gcs
-        msg = gcs.mav.param_set_encode(
-            1, 1, name.encode(), param_value(self.flavour, value), mavlink.MAV_PARAM_TYPE_INT32
-        )
-        for _ in range(10):
-            gcs.send(msg)
-            answer = gcs.wait_for(
-                lambda m: (
-                    m.get_type() == "PARAM_VALUE"
-                    and _param_id(m.param_id) == name
-                    and m.param_value == msg.param_value
-                ),
-                0.5,
-            )
-            if answer is not None:
-                return
-        raise TimeoutError(f"no PARAM_VALUE for {name} within 5 s")
 
     def foreign_pwm(self) -> int:
         return 2000 if self.rng.random() < 0.5 else int(self.rng.integers(1000, 2001))
@@ -643,11 +622,6 @@ class Cycles:
                     )
                 )
                 run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))
-
-
-def _param_id(raw: Any) -> str:
-    text = raw.decode("ascii", "replace") if isinstance(raw, bytes | bytearray) else str(raw)
-    return text.rstrip("\0")
 
 
 # -- the report -------------------------------------------------------------------------------
