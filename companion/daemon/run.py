@@ -208,8 +208,14 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         saved = pose_file.load(config.pose_file, config.calibration)
         if saved is not None:
             daemon.restore_pose(saved)
-            log.info("outputs left at %s (%s): the joints are taken there", saved, config.pose_file)
-        saver = pose_file.PoseSaver(config.pose_file, time.monotonic())
+            log.info(
+                "outputs left at %s (%s): the joints are taken there%s",
+                dict(pose_file.pose_of(saved)),
+                config.pose_file,
+                "" if pose_file.same_everywhere(saved) else " (within a band: re-sent first)",
+            )
+        saver = pose_file.PoseSaver(config.pose_file)
+        daemon.pose_sink = saver.offer
     server = None
     try:
         if config.control_socket:
@@ -276,8 +282,6 @@ def _run(config: DaemonConfig, config_path: str) -> int:
                 if device is not None
                 else f"waiting for the autopilot heartbeat on {config.link.url}"
             )
-            if saver is not None:
-                saver.offer(daemon.rest_pwm, time.monotonic())
             signals.wait(min(ping_s, 0.5))
     finally:
         signals.close()
@@ -286,8 +290,8 @@ def _run(config: DaemonConfig, config_path: str) -> int:
         # The daemon first: it refuses new requests and answers every waiting one (its socket
         # client is still connected to read the answer); then the socket closes.
         daemon.close(park=config.park_on_stop)
-        if saver is not None and daemon.rest_pwm is not None:
-            saver.save(daemon.rest_pwm, time.monotonic())
+        if saver is not None:
+            saver.close()  # what the control thread offered last
         if server is not None:
             server.close()
         notifier.close()

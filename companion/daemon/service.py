@@ -195,9 +195,10 @@ class ArmDaemon:
         # What the service's main loop reports to systemd twice a second (brief()), published
         # by the control thread after each step: that loop then never wakes it for a snapshot.
         self._brief = self._core.link_and_outcome_counts()
-        #: The outputs' PWMs as of the control thread's last step while the arm was at rest
-        #: (None: moving; read by ``run`` for the pose file).
-        self.rest_pwm: dict[int, int] | None = None
+        #: Given where the outputs may be (``ControlCore.outputs_left``) by the control thread
+        #: whenever it changed (``run``: the pose file's writer; it must not block).
+        self.pose_sink: Callable[[tuple[dict[int, int], dict[int, int]]], None] | None = None
+        self._left: tuple[dict[int, int], dict[int, int]] | None = None
         self._closing: bool | None = None  # set by close(): park or not
         self._new_config: DaemonConfig | None = None
         self._thread: threading.Thread | None = None
@@ -207,9 +208,10 @@ class ArmDaemon:
 
     # -- life cycle -------------------------------------------------------------------------
 
-    def restore_pose(self, pwm_by_output: dict[int, int]) -> None:
-        """Before :meth:`start`: where the outputs were left (see ``pose_file``)."""
-        self._core.restore_pose(pwm_by_output)
+    def restore_pose(self, left: tuple[dict[int, int], dict[int, int]]) -> None:
+        """Before :meth:`start`: per output, the lowest and highest PWM the outputs were left
+        at (see ``pose_file``)."""
+        self._core.restore_pose(left)
 
     def start(self) -> None:
         s = self.config.link
@@ -628,7 +630,11 @@ class ArmDaemon:
             self._guarded(f"{request.kind} request", request, _bind(self._request, request))
             self._feed_frames()  # ACKs that came in during a solve
         self._brief = core.link_and_outcome_counts()
-        self.rest_pwm = core.settled_pwm()
+        if self.pose_sink is not None:
+            left = core.outputs_left()
+            if left is not None and left != self._left:
+                self._left = left
+                self.pose_sink(left)
         # The snapshot other threads asked for (status()), once for all of them.
         with self._status_cond:
             asked = self._status_asked

@@ -14,18 +14,22 @@ CONFIG = parse_config({"link": {"url": "udpout:127.0.0.1:14550"}})
 CALIBRATION = CONFIG.calibration
 
 
-def test_what_is_saved_at_rest_is_loaded_at_the_next_start(tmp_path):
+def test_what_is_offered_is_written_and_loaded_at_the_next_start(tmp_path):
     path = str(tmp_path / "pose.json")
-    saver = pose_file.PoseSaver(path, 0.0)
-    pwm = dict.fromkeys(CALIBRATION.outputs, 1600)
-    saver.offer(None, 5.0)  # moving: nothing written
-    assert pose_file.load(path, CALIBRATION) is None
-    saver.offer(pwm, 5.0)
-    assert pose_file.load(path, CALIBRATION) == pwm
-    saver.offer({**pwm, 9: 1700}, 5.5)  # within a second of the last write: not yet
-    assert pose_file.load(path, CALIBRATION) == pwm
-    saver.offer({**pwm, 9: 1700}, 6.1)
-    assert pose_file.load(path, CALIBRATION)[9] == 1700
+    saver = pose_file.PoseSaver(path)
+    low = dict.fromkeys(CALIBRATION.outputs, 1600)
+    saver.offer(None)  # nothing new: nothing written
+    saver.offer((low, {**low, 9: 1620}))
+    saver.offer((low, {**low, 9: 1640}))  # the latest wins
+    saver.close()
+    assert pose_file.load(path, CALIBRATION) == (low, {**low, 9: 1640})
+
+
+def test_a_file_of_one_pwm_per_output_is_that_band():
+    pwm = {str(o): 1600 for o in CALIBRATION.outputs}
+    left = ({o: 1600 for o in CALIBRATION.outputs},) * 2
+    assert pose_file.pose_of(left)[9] == 1600 and pose_file.same_everywhere(left)
+    assert json.loads(json.dumps({"pwm_us": pwm}))
 
 
 def test_a_file_that_does_not_match_the_config_is_set_aside(tmp_path, caplog):
@@ -37,6 +41,8 @@ def test_a_file_that_does_not_match_the_config_is_set_aside(tmp_path, caplog):
         json.dumps({"pwm_us": {"1": 1500}}).encode(),  # other outputs
         json.dumps({"pwm_us": {**good, "9": 1500.5}}).encode(),
         json.dumps({"pwm_us": [1500]}).encode(),
+        json.dumps({"pwm_us": good, "low_us": {**good, "9": 1600}}).encode(),  # low above
+        json.dumps([1500]).encode(),
         b"[" * 5000,
     ]
     with caplog.at_level(logging.WARNING, logger="armbridge"):
@@ -47,10 +53,12 @@ def test_a_file_that_does_not_match_the_config_is_set_aside(tmp_path, caplog):
 
 
 def test_a_file_that_cannot_be_written_is_said_once(tmp_path, caplog):
-    saver = pose_file.PoseSaver(str(tmp_path / "no-such-dir" / "pose.json"), 0.0)
+    saver = pose_file.PoseSaver(str(tmp_path / "no-such-dir" / "pose.json"))
     with caplog.at_level(logging.WARNING, logger="armbridge"):
-        saver.offer(dict.fromkeys(CALIBRATION.outputs, 1500), 5.0)
-        saver.offer(dict.fromkeys(CALIBRATION.outputs, 1600), 7.0)
+        for pwm in (1500, 1600):
+            pwm_by_output = dict.fromkeys(CALIBRATION.outputs, pwm)
+            saver.offer((pwm_by_output, pwm_by_output))
+        saver.close()
     assert sum("not written" in r.getMessage() for r in caplog.records) == 1
 
 
@@ -59,7 +67,7 @@ def test_the_core_starts_where_the_outputs_were_left_unless_a_readback_shows_the
     # starts from, not the park pose (a restarted daemon's first goto jumped from park).
     rig = Rig()
     left = {o: 1700 for o in CALIBRATION.outputs}
-    rig.core.restore_pose(left)
+    rig.core.restore_pose((left, left))
     rig.up()
     angles = [CALIBRATION.for_output(o).pwm_us_to_angle_deg(1700) for o in CALIBRATION.outputs]
     assert rig.core.status()["current_deg"] == angles != list(PARK)
@@ -67,3 +75,41 @@ def test_the_core_starts_where_the_outputs_were_left_unless_a_readback_shows_the
     assert rig.core.status()["current_deg"][0] == CALIBRATION.for_output(9).pwm_us_to_angle_deg(
         1500
     )
+
+
+def test_a_band_restored_is_re_sent_at_its_middle_before_the_first_targets_steps():
+    # A daemon killed mid-motion left the outputs between two steps: the next one re-sends
+    # the middle (within half the band of where they are), then steps from there.
+    rig = Rig()
+    low = {o: 1600 for o in CALIBRATION.outputs}
+    high = {o: 1630 for o in CALIBRATION.outputs}
+    rig.core.restore_pose((low, high))
+    rig.up()
+    assert rig.servo() == {}  # nothing before a target
+    rig.goto(PARK)
+    rig.tick()
+    assert rig.servo() == dict.fromkeys(CALIBRATION.outputs, 1615)
+
+
+def test_the_band_written_holds_the_acknowledged_pose_and_the_step_on_its_way():
+    rig = Rig()
+    rig.up()
+    assert rig.core.outputs_left() is None  # nothing sent: the file keeps what it says
+    rig.goto([q + 30.0 for q in PARK])
+    rig.tick()
+    first = rig.servo()
+    low, high = rig.core.outputs_left()
+    park = rig.core.status()["current_deg"]
+    park_us = {
+        o: CALIBRATION.for_output(o).angle_to_pwm_us(park[i])
+        for i, o in enumerate(CALIBRATION.outputs)
+    }
+    for output in CALIBRATION.outputs:
+        assert {low[output], high[output]} == {park_us[output], first[output]}
+    assert first != park_us
+    rig.ack_all(rig.sent)
+    low, high = rig.core.outputs_left()  # the switch may have gone on before the step
+    assert {low[9], high[9]} == {park_us[9], first[9]}
+    rig.sys_status(safety_on=False)  # it did not
+    low, high = rig.core.outputs_left()
+    assert low == high == first

@@ -314,28 +314,53 @@ class ControlCore:
         self.motion.stop(actions, reply)
         return actions
 
-    def restore_pose(self, pwm_by_output: dict[int, int]) -> None:
-        """Before anything is sent: the outputs were left at these PWMs (``pose_file``), so
-        the joints are taken there rather than at the park pose. A readback that shows an
-        output's PWM later still wins (the outputs' truth)."""
+    def restore_pose(self, left: tuple[dict[int, int], dict[int, int]]) -> None:
+        """Before anything is sent: per output, the lowest and the highest PWM the outputs
+        were left at (``pose_file``). The joints are taken at the middle of that band rather
+        than at the park pose, and a band wider than a PWM is re-sent there before the first
+        target's steps (within half the band of the truth). A readback that shows an output's
+        PWM later still wins (the outputs' truth)."""
         state = self.state
         if state.ever_sent:
             return
+        low, high = left
         calibration = self.config.calibration
+        exact = True
         for i, output in enumerate(state.outputs):
-            if output in pwm_by_output:
+            if output in low:
                 joint = calibration.for_output(output)
-                state.position[i] = joint.pwm_us_to_angle_deg(pwm_by_output[output])
+                ends = (
+                    joint.pwm_us_to_angle_deg(low[output]),
+                    joint.pwm_us_to_angle_deg(high[output]),
+                )
+                state.position[i] = (ends[0] + ends[1]) / 2
+                exact = exact and low[output] == high[output]
+        if not exact:
+            state.unconfirmed = tuple(state.position)
 
-    def settled_pwm(self) -> dict[int, int] | None:
-        """The outputs' acknowledged PWMs while the arm is at rest (every output acknowledged,
-        nothing on its way, no goal left), else None."""
+    def outputs_left(self) -> tuple[dict[int, int], dict[int, int]] | None:
+        """Per output, the lowest and the highest PWM the outputs may hold now: the
+        acknowledged pose, the steps on their way, one still to confirm, and what the outputs'
+        truth says they may hold (ArduPilot's held outputs); for ``pose_file``. None before
+        anything was sent (what the outputs were left at is still what they hold)."""
         state = self.state
-        if not state.settled() or self.motion.moving(tuple(state.position)):
+        if not state.ever_sent:
             return None
-        if not state.acked_pwm.keys() >= set(state.outputs):
-            return None
-        return {o: state.acked_pwm[o] for o in state.outputs}
+        poses = [tuple(state.position), *(f.step_deg for f in state.flights)]
+        if state.unconfirmed is not None:
+            poses.append(state.unconfirmed)
+        poses += self.outputs.may_hold()
+        calibration = self.config.calibration
+        low: dict[int, int] = {}
+        high: dict[int, int] = {}
+        for i, output in enumerate(state.outputs):
+            joint = calibration.for_output(output)
+            angles = (min(max(p[i], joint.angle_min_deg), joint.angle_max_deg) for p in poses)
+            pwms = [
+                min(max(joint.mapped_pwm_us(a), joint.pwm_min_us), joint.pwm_max_us) for a in angles
+            ]
+            low[output], high[output] = min(pwms), max(pwms)
+        return low, high
 
     # -- reading ----------------------------------------------------------------------------
 

@@ -92,6 +92,9 @@ class OutputsTruth(abc.ABC):
         #: The last output found set by another sender, for status: output, PWM shown, PWM
         #: acknowledged before, when it was seen (None: none since the start).
         self.foreign_command: dict[str, float] | None = None
+        #: When the last SYSTEM_TIME that continued the autopilot's clock arrived (see
+        #: :meth:`_disagrees`: a readback is believed only with the autopilot heard after it).
+        self._clock_heard_s = -math.inf
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -125,16 +128,25 @@ class OutputsTruth(abc.ABC):
         older = [pwm for t, pwm in history if t < cutoff]
         return recent | set(older[-1:]), bool(older)
 
-    def _disagrees(self, output: int, at_s: float) -> bool:
+    def clock_heard(self, at_s: float) -> None:
+        """A SYSTEM_TIME that continues the autopilot's clock arrived at ``at_s``."""
+        self._clock_heard_s = at_s
+
+    def _disagrees(self, output: int, at_s: float, *, clock_after: bool = False) -> bool:
         """Another settled readback not showing what ``output`` acknowledged, arrived at
         ``at_s``: whether the readbacks now disagree with it for long enough to be believed
-        (READBACK_MISMATCHES in a row over READBACK_SPAN_INTERVALS of the stream)."""
+        (READBACK_MISMATCHES in a row over READBACK_SPAN_INTERVALS of the stream).
+        ``clock_after``: and a SYSTEM_TIME continuing the autopilot's clock came after the
+        first of them (the autopilot was there, not rebooting: while it is silent, forged
+        frames are all the readbacks there are, and none of its own contradicts them)."""
         count = self._mismatches.get(output, 0) + 1
         self._mismatches[output] = count
         since_s = self._mismatch_since_s.setdefault(output, at_s)
         interval_s = self._core.settings.readback_interval_s
-        believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
-            READBACK_SPAN_INTERVALS * interval_s
+        believed = (
+            count >= READBACK_MISMATCHES
+            and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
+            and (not clock_after or self._clock_heard_s > since_s)
         )
         if believed:
             self._doubt_until_s.pop(output, None)
@@ -167,6 +179,16 @@ class OutputsTruth(abc.ABC):
                 READBACK_WAIT_S,
             )
         return True
+
+    def _start_at(self, i: int, angle: float) -> None:
+        """Nothing of ours acknowledged yet: joint ``i`` is at ``angle`` (its output shows it),
+        and a pose restored to re-send first (``pose_file``) keeps it there."""
+        state = self._core.state
+        state.position[i] = angle
+        if state.unconfirmed is not None:
+            unconfirmed = list(state.unconfirmed)
+            unconfirmed[i] = angle
+            state.unconfirmed = tuple(unconfirmed)
 
     def in_range(self, output: int, pwm_us: int) -> bool:
         """Whether ``pwm_us`` lies in ``output``'s servo range (a disarmed PWM may not)."""
@@ -233,6 +255,11 @@ class OutputsTruth(abc.ABC):
     def may_step_to(self, step: tuple[float, ...]) -> bool:
         """Whether a motion step to ``step`` may go out now."""
         return True
+
+    def may_hold(self) -> list[tuple[float, ...]]:
+        """Poses the outputs may hold beside the acknowledged one and the steps on their way
+        (the ends of a band; default: none)."""
+        return []
 
     def stepped_to(self, step: tuple[float, ...]) -> None:  # noqa: B027
         """An update to ``step`` went out."""

@@ -164,7 +164,7 @@ class ArduPilotOutputs(OutputsTruth):
                 if not state.ever_sent:
                     # The start: ArduPilot keeps what its outputs were told (by an earlier
                     # daemon) until it reboots; the joint is there, not at the park pose.
-                    state.position[i] = self.angle_shown(output, shown)
+                    self._start_at(i, self.angle_shown(output, shown))
                     if self._held_since_off is not None:  # nothing sent: they hold that
                         self._held_since_off = band_of([tuple(state.position)])
                 elif self._shown_steadily(output, shown) and not any(
@@ -183,7 +183,11 @@ class ArduPilotOutputs(OutputsTruth):
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
                 self._agrees(output)
                 continue
-            if not settled or on_its_way or not self._disagrees(output, self.shown_s):
+            if (
+                not settled
+                or on_its_way
+                or not self._disagrees(output, self.shown_s, clock_after=True)
+            ):
                 continue
             self._agrees(output)
             if not core.motion.moving(tuple(state.position)):
@@ -231,8 +235,8 @@ class ArduPilotOutputs(OutputsTruth):
 
     def _shown_steadily(self, output: int, shown: int) -> bool:
         """Readbacks show ``output`` at ``shown`` (within the tolerance) twice in a row over
-        more than the stream's interval (as :meth:`_disagrees`: a forged frame alone is never
-        believed)."""
+        more than the stream's interval, and the autopilot's clock went on after the first (as
+        :meth:`_disagrees`: a forged frame alone is never believed)."""
         at_s = self.shown_s
         seen = self._unacked_seen.get(output)
         if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
@@ -241,7 +245,11 @@ class ArduPilotOutputs(OutputsTruth):
         pwm, since_s, count = seen
         self._unacked_seen[output] = (pwm, since_s, count + 1)
         span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
-        return count + 1 >= READBACK_MISMATCHES and at_s - since_s >= span_s
+        return (
+            count + 1 >= READBACK_MISMATCHES
+            and at_s - since_s >= span_s
+            and self._clock_heard_s > since_s
+        )
 
     def _take_shown(self, i: int, output: int, shown: int) -> None:
         """The joint of ``output`` (index ``i``) is where its readback shows."""
@@ -359,6 +367,16 @@ class ArduPilotOutputs(OutputsTruth):
         """A step to ``step`` went out: the outputs may hold it."""
         if self._held_since_off is not None:
             widen(self._held_since_off, step)
+
+    def may_hold(self) -> list[tuple[float, ...]]:
+        """The ends of the bands the outputs may hold since the switch was last seen off and
+        from before a loss or a reboot."""
+        return [
+            tuple(end)
+            for band in (self._held_since_off, self._held_before_loss)
+            if band is not None
+            for end in band
+        ]
 
     def all_acknowledged(self) -> None:
         self._held_before_loss = None  # they hold what was acknowledged

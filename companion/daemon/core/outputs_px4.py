@@ -110,7 +110,7 @@ class Px4Outputs(OutputsTruth):
                     # Nothing of ours acknowledged yet (start, reboot): the joint is where the
                     # output puts it, not at the assumed start pose. (A PWM outside the servo's
                     # range, such as PX4 SITL's disarmed 900 us, says nothing of where it is.)
-                    state.position[joint_of[output]] = self.angle_shown(output, shown)
+                    self._start_at(joint_of[output], self.angle_shown(output, shown))
                 continue
             shown_ok, settled = self._expected_pwms(output, now)
             # PX4 applies a command on its output cycle and answers it on its commander's: a
