@@ -204,6 +204,7 @@ class AutopilotWatch:
         previous, previous_s = self.boot_ms, self._boot_seen_s
         if previous is None:
             self._take_time(boot_ms, received_s)
+            self._core.outputs.clock_heard(received_s)
             return
         after_silence = self._system_time_s is None or received_s - previous_s > SYSTEM_TIME_GAP_S
         suspected = self._reboot_suspected
@@ -218,6 +219,7 @@ class AutopilotWatch:
                     boot_ms,
                 )
             self._take_time(boot_ms, received_s)
+            self._core.outputs.clock_heard(received_s)
             return
         if silence_s < REBOOT_SILENCE_S:
             if suspected is None or is_reboot(

@@ -337,6 +337,12 @@ def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
     assert rig.core.status()["foreign_command"] is None  # one readback alone is not believed
     rig.advance(0.1)
     rig.readback(shown)
+    # Nor two, until the autopilot's clock is heard after the first (not rebooting, when
+    # forged frames alone would show).
+    assert rig.core.status()["foreign_command"] is None
+    rig.system_time(600_000)
+    rig.clock.advance(0.02)
+    rig.readback(shown)
     status = rig.core.status()
     assert status["foreign_command"]["output"] == output
     assert status["foreign_command"]["shown_us"] == 2000
@@ -431,10 +437,34 @@ def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_i
     rig.clock.advance(0.02)
     rig.readback({output: 2000})
     rig.clock.advance(0.02)
+    rig.system_time(190)  # its clock goes on
     rig.readback({output: 2000})
     rig.sys_status(safety_on=False)
     rig.advance(0.05)
     assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_readbacks_forged_while_it_reboots_are_not_believed(rig):
+    # Forged readbacks while the autopilot is silent, rebooting, are all the readbacks there
+    # are: taken as a foreign command, the daemon re-sent the forged pose after the boot (a
+    # 119 deg step on the simulator).
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    acked = dict(rig.core.status()["last_pwm_us"])
+    rig.clock.advance(0.3)  # settled
+    forged = {o: 1000 for o in acked}
+    for _ in range(10):
+        rig.readback(forged)
+        rig.clock.advance(0.01)
+    assert rig.core.status()["foreign_command"] is None
+    rig.advance(0.3)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    rig.sent.clear()
+    rig.readback({})  # no pulses since the boot
+    rig.sys_status(safety_on=False)
+    rig.advance(0.05)
+    assert rig.servo() == acked  # its own pose re-sent, not the forged one
 
 
 def test_ardupilot_after_a_reboot_forged_readbacks_among_its_own_no_pulses_are_not_believed(
