@@ -277,9 +277,9 @@ class Px4Outputs(OutputsTruth):
         ]
 
     def unknown(self, now: float) -> dict[int, str]:
-        """While the readback is silent for READBACK_STALE_INTERVALS, and each output until a
+        """While the readback is silent for READBACK_STALE_INTERVALS; each output until a
         readback showed what it stored since the start, a loss or a reboot (its marker, or a
-        step)."""
+        step); and one whose readback disagrees until the next say whether to believe it."""
         outputs = self._core.state.outputs
         if self.shown_s == -math.inf:
             return dict.fromkeys(outputs, "not known live (no SERVO_OUTPUT_RAW yet)")
@@ -291,7 +291,17 @@ class Px4Outputs(OutputsTruth):
             "not known live yet (no readback has shown what it stores since the start, "
             "a loss or a reboot)"
         )
-        return {o: why for o in outputs if o not in self._confirmed}
+        unknown = {o: why for o in outputs if o not in self._confirmed}
+        # A readback shows another PWM than acknowledged: not known live until the next ones
+        # say whether to believe it (the motion holds meanwhile; the outputs may be dead).
+        for output, until_s in self._doubt_until_s.items():
+            if now < until_s:
+                unknown.setdefault(
+                    output,
+                    f"not known live (output {output} shows {self.shown.get(output)} us, not "
+                    "what it acknowledged)",
+                )
+        return unknown
 
     def streams_silent(self, now: float) -> bool:
         """A readback stream (once seen) silent for READBACK_SILENT_S: a rebooted PX4 forgot

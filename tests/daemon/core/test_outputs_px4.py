@@ -94,6 +94,26 @@ def test_px4_a_readback_showing_a_step_before_its_ack_is_not_a_dead_output():
     assert [c for c in rig.sent if c.command == ACTUATOR]  # the next step at once
 
 
+def test_px4_a_readback_that_disagrees_once_says_not_known_live_until_the_next_agree():
+    # Status said live 20-40 ms longer than the outputs were (the readbacks not believed yet).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 0.5)
+    rig.clock.advance(0.2)  # settled
+    real = dict(px4.shown)
+    rig.readback(dict.fromkeys(real, 1500))  # forged, or the first of a disarm
+    status = rig.core.status()
+    assert status["outputs_live"] is False
+    assert "not what it acknowledged" in status["not_live"][str(rig.calibration.outputs[0])]
+    rig.clock.advance(0.02)
+    rig.readback(real)
+    rig.advance(0.05)  # two intervals after the one that disagreed
+    rig.readback(real)
+    assert rig.core.status()["outputs_live"] is True
+
+
 def test_px4_after_a_reboot_the_stale_pose_is_not_sent_again():
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
@@ -119,11 +139,14 @@ def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_read
     assert rig.core.status()["outputs_live"] is True
     px4.set_live(False)  # disarm: every output at 1500
     rig.sent.clear()
-    px4.readback()  # one readback alone is not believed (a forged one would do that)
-    assert rig.core.status()["outputs_live"] is True
+    # One readback alone is not believed (a forged one would do that), nor two an interval
+    # apart (a forger's may fall between two of PX4's): no marker is sent on their word, but
+    # status says at once the outputs are not known live.
+    px4.readback()
+    assert rig.core.status()["outputs_live"] is False
     rig.clock.advance(0.02)
-    px4.readback()  # nor two an interval apart (a forger's may fall between two of PX4's)
-    assert rig.core.status()["outputs_live"] is True
+    px4.readback()
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
     rig.clock.advance(0.02)
     px4.readback()  # the next: longer than an interval, none showing the stored PWM
     assert rig.core.status()["outputs_live"] is False
@@ -336,5 +359,11 @@ def test_px4_a_forged_readback_between_the_autopilots_own_never_sends_a_marker()
         rig.clock.advance(0.01)
         px4.readback()
         px4.handle()
+    # Not known live while the readbacks disagree (status says so), but nothing was sent on
+    # their word, and once they agree again the outputs are live.
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
+    assert "not what it acknowledged" in rig.core.status()["not_live"][str(min(px4.shown))]
+    rig.clock.advance(0.05)
+    px4.readback()
     assert rig.core.status()["outputs_live"] is True
     assert max_physical_step_us(px4) <= 1.0
