@@ -1,6 +1,6 @@
 """Simulator settings: flavour, identity, output function table, servo model, arm, faults.
 
-Settings come from a TOML file (``--config``, schema in ``docs/sim_servo.md`` and
+Settings come from a TOML file (``--config``, schema in ``docs/simulator.md`` and
 ``sim_servo/examples/quad_arm.toml``) and are then overridden by command-line flags. Every value
 is validated here, once; the message names the field, the value and the allowed range.
 
