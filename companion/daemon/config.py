@@ -101,9 +101,10 @@ STALL_GAIN = (0.0, 1.0)
 #: 1 deg/s a joint takes three minutes to cross a 180 deg range: the arm would hang mid-motion
 #: long after its target went stale (and 1e-300 is a typo, not a speed).
 JOINT_SPEED_DEG_S = (1.0, 1000.0)
-#: The control socket's connections: each holds at most a 64 KiB request line and 64 KiB of
-#: queued replies (control_socket.MAX_LINE_BYTES, MAX_QUEUED_REPLY_BYTES), so 256 bound the
-#: socket's buffers to 32 MiB; onboard software needs a handful.
+#: The control socket's connections: each holds at most a ~370 KiB request line (a 2 000-point
+#: trajectory) and 64 KiB of queued replies (control_socket.MAX_LINE_BYTES,
+#: MAX_QUEUED_REPLY_BYTES), so 256 bound the socket's buffers to ~110 MiB; onboard software
+#: needs a handful.
 MAX_CONNECTIONS = (1, 256)
 #: A connection that completes no request for this long is closed. 0.1 s is already shorter
 #: than a loaded board may take between connecting and sending; past an hour a dead client
