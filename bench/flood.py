@@ -5,7 +5,7 @@
                           [--via autopilot|direct]
                           [--seed 0] [--markdown bench/results/flood.md]
 
-About 25 s with the defaults (the issue's size: 5 000 targets/s for 10 s).
+About 25 s with the defaults (5 000 targets/s for 10 s).
 
 The daemon (``armbridge run``, shipped defaults plus a control socket) and the simulated flight
 controller (``python -m sim_servo``, ArduCopter link timing, a ground-station link) run as

@@ -91,9 +91,9 @@ SEGMENTS = (
 )  # fmt: skip
 TOTALS = ("→ servos", "→ last servo ACK", "→ ACK")
 #: The daemon's share (received → last ACK of the first update), p99, ardupilot.
-ISSUE13_ARDUPILOT_P99_MS = 8.0
-#: An earlier px4 "→ ACK" row (p50, p99 ms), on the simulator without the
-#: link timing model: the bar "not worse than before" is measured against.
+TARGET_ARDUPILOT_P99_MS = 8.0
+#: A reference px4 "→ ACK" (p50, p99 ms), measured on the simulator without its link timing
+#: model: the bar "not worse" is measured against.
 OLD_PX4_ACK_MS = (6.7, 8.0)
 #: A tick wait longer than this: the target waited for an update in flight.
 WAITED_S = 0.001
@@ -202,13 +202,13 @@ def measure(records: list[dict], sim_s: np.ndarray) -> dict:
 
 
 def _target(r: dict, total: str, p50: float, p99: float, results: list[dict]) -> str:
-    """The issue's verdict for this row; beside it, the old core's figure from the same run."""
+    """The target's verdict for this row; beside it, the old core's figure from the same run."""
     if r["old"]:
         return ""
     verdicts = []
     if total == "→ last servo ACK" and r["base"] == "ardupilot":
-        met = p99 <= ISSUE13_ARDUPILOT_P99_MS
-        verdicts.append(f"p99 ≤ {ISSUE13_ARDUPILOT_P99_MS:g}: " + ("yes" if met else "**no**"))
+        met = p99 <= TARGET_ARDUPILOT_P99_MS
+        verdicts.append(f"p99 ≤ {TARGET_ARDUPILOT_P99_MS:g}: " + ("yes" if met else "**no**"))
     old = next((o for o in results if o["old"] and o["base"] == r["base"]), None)
     if old is not None:
         o50, o99, _ = percentiles_ms([row[total] for row in old["rows"]])
@@ -219,7 +219,7 @@ def _target(r: dict, total: str, p50: float, p99: float, results: list[dict]) ->
         old50, old99 = OLD_PX4_ACK_MS
         worse = p50 > old50 or p99 > old99
         verdicts.append(
-            f"README's old row {old50:g} / {old99:g} (old simulator): "
+            f"reference {old50:g} / {old99:g} (no link timing model): "
             + ("**worse**" if worse else "not worse")
         )
     return "; ".join(verdicts)
@@ -237,9 +237,9 @@ def report(results: list[dict], args: argparse.Namespace, load_before: str) -> l
         f"timing (default); input: {INPUTS[args.input].name}; {args.targets} reachable targets "
         f"(seed {args.seed}) per dialect, one at a time, 0–{args.gap_ms:g} ms apart, the "
         "dialects' stacks running at once and the targets interleaved. Targets: "
-        f"→ last servo ACK p99 ≤ {ISSUE13_ARDUPILOT_P99_MS:g} ms for ardupilot; px4 not worse "
-        f"than the README's old → ACK row ({OLD_PX4_ACK_MS[0]:g} / {OLD_PX4_ACK_MS[1]:g} ms "
-        "p50 / p99, measured on the old simulator without link timing).",
+        f"→ last servo ACK p99 ≤ {TARGET_ARDUPILOT_P99_MS:g} ms for ardupilot; px4 not worse "
+        f"than the reference → ACK ({OLD_PX4_ACK_MS[0]:g} / {OLD_PX4_ACK_MS[1]:g} ms "
+        "p50 / p99, measured on the simulator without its link timing model).",
         "",
     ]
     rows = []

@@ -5,7 +5,7 @@ contradicted by what reaches the servos?
                           [--joint-speed-deg-s 1000] [--seed 0]
                           [--markdown bench/results/races.md]
 
-About 35 s with the defaults (the issue's size, 1 000 rounds).
+About 35 s with the defaults (1 000 rounds).
 
 The daemon (``armbridge run``) and the simulated flight controller (ArduCopter link timing) run
 as subprocesses on UDP loopback (``bench/loopback.py``). Each round:

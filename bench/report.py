@@ -1,7 +1,8 @@
 """What every bench script's report shares: the machine line, Markdown tables, the file.
 
 The scripts print their Markdown and, with ``--markdown FILE`` (or their default file), write
-the same text there through :func:`write_markdown`.
+the same text there through :func:`write_markdown`, which heads it with the run's provenance
+(:func:`devkit.provenance.run_header`: the command, commit, date, machine and load average).
 """
 
 from __future__ import annotations
@@ -15,17 +16,13 @@ from typing import Any
 
 import numpy as np
 
+from devkit.provenance import machine, run_header, with_header
+
+__all__ = ["cores", "format_cell", "interpreter", "machine", "md_table", "write_markdown"]
+
 
 def cores() -> int:
     return os.cpu_count() or 1
-
-
-def machine() -> str:
-    """Architecture, cores, Python and kernel: ``x86_64, 2 cores, Python 3.11.2, Linux 6.1``."""
-    return (
-        f"{platform.machine()}, {os.cpu_count()} cores, Python "
-        f"{platform.python_version()}, {platform.system()} {platform.release()}"
-    )
 
 
 def interpreter() -> str:
@@ -52,6 +49,11 @@ def md_table(
 
 
 def write_markdown(path: Path, text: str) -> None:
-    """Write a report (UTF-8), making its directory if needed."""
+    """Write a report (UTF-8) headed with the run's provenance, making its directory if needed.
+
+    The header goes under the report's ``# title`` line (at the top without one): the exact
+    command from ``sys.argv``, the commit (``+dirty`` with uncommitted changes), the UTC date,
+    the machine and the load average when written.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(text, encoding="utf-8")
+    path.write_text(with_header(text, run_header()), encoding="utf-8")

@@ -78,7 +78,6 @@ kind (the last event before the step), unanswered gotos, status over its bound.
 from __future__ import annotations
 
 import argparse
-import datetime
 import functools
 import math
 import os
@@ -86,7 +85,6 @@ import platform
 import select
 import shutil
 import subprocess
-import sys
 import time
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
@@ -112,7 +110,7 @@ from bench.output_cycles import (
     set_param,
     sim_live,
 )
-from bench.report import machine, md_table, write_markdown
+from bench.report import md_table, write_markdown
 from companion.kinematics.arm import Arm, Pose
 from devkit.control_client import ControlConnection
 from devkit.daemon_process import NOT_SERVING
@@ -659,8 +657,7 @@ def _ms(values: list[float], q: float) -> float:
 
 
 def header(args: argparse.Namespace, runs: list[Run]) -> list[str]:
-    dirty = git("status", "--porcelain")
-    commit = git("rev-parse", "--short", "HEAD") + (" (with uncommitted changes)" if dirty else "")
+    """The title and the run's settings (write_markdown adds command, commit, date, machine)."""
     if args.daemon_root is None:
         last = git("log", "-1", "--format=%h %cs", "--", "companion")
         daemon = f"the daemon, `companion/`, as of {last}"
@@ -669,16 +666,12 @@ def header(args: argparse.Namespace, runs: list[Run]) -> list[str]:
         daemon = f"the daemon from `{args.daemon_root}`" + (
             f", commit {found}" if found != "unknown" else " (not a git checkout)"
         )
-    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     loads = "; ".join(f"{r.flavour} {r.load_before}" for r in runs)
     return [
         f"# State cycles ({args.cycles} cycles a flavour, seed {args.seed})",
         "",
-        f"`{' '.join(['python -m bench.state_cycles', *sys.argv[1:]])}`",
-        "",
-        f"Commit {commit} ({daemon}); {now}; "
-        f"{machine()} ({platform.node() or 'unknown host'}, pid {os.getpid()}); load average "
-        f"before each flavour: {loads}.",
+        f"Run on {daemon} ({platform.node() or 'unknown host'}, pid {os.getpid()}); load "
+        f"average before each flavour: {loads}.",
         "",
         f"Daemon rate {RATE_HZ:g} Hz, joint speed {JOINT_SPEED_DEG_S:g} °/s at start (reloads "
         f"draw {RELOAD_SPEEDS[0]}–{RELOAD_SPEEDS[-1]} °/s); a step is fast above "

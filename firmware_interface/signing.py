@@ -98,7 +98,7 @@ LOCKOUT_FIX = (
     "signing-key holder's clock was ahead and the autopilot took its timestamp: correct that "
     "clock, then reset the autopilot's timestamp: disarmed, send it the same key again with "
     "SETUP_SIGNING from a ground station (MAVProxy: signing setup with the same passphrase; "
-    "Mission Planner: MAVLink Signing), which stores the current time (README: Signing)"
+    "Mission Planner: MAVLink Signing), which stores the current time (docs/signing.md)"
 )
 
 

@@ -291,7 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
 
     timing = parser.add_argument_group(
-        "link timing (a model fitted to ArduCopter SITL; see docs/sim_servo.md)"
+        "link timing (a model fitted to ArduCopter SITL; see docs/simulator.md)"
     )
     timing.add_argument(
         "--link-delay-ms",

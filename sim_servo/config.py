@@ -1,6 +1,6 @@
 """Simulator settings: flavour, identity, output function table, servo model, arm, faults.
 
-Settings come from a TOML file (``--config``, schema in ``docs/sim_servo.md`` and
+Settings come from a TOML file (``--config``, schema in ``docs/simulator.md`` and
 ``sim_servo/examples/quad_arm.toml``) and are then overridden by command-line flags. Every value
 is validated here, once; the message names the field, the value and the allowed range.
 
@@ -13,7 +13,7 @@ Output functions use each flavour's own numbers:
   ships them (``PWM_MAIN_FUNC5..16`` = 0): the arm's outputs must be set to 301–306.
 
 A *ready* vehicle (:func:`ready_setup`, the flag ``--ready``, what the test helpers and the
-benches start) is one set up as the README's PX4 / ArduPilot set-up sections say: PX4 — the
+benches start) is one set up as ``docs/px4.md`` and ``docs/ardupilot.md`` say: PX4 — the
 arm's outputs on functions 301–306 in joint order, ``COM_PREARM_MODE`` 2, forwarding on both
 links (``MAV_0_FORWARD`` / ``MAV_1_FORWARD`` 1) and armed at start (so its outputs are live at
 once, not 5 s after boot; after a reboot it comes back disarmed and prearms 5 s later, as real

@@ -3,7 +3,7 @@ server flushes once per loop pass, after the frames of that pass have left, and 
 answers a query: a frame never waits for the log, and a reader who asked sees everything).
 
 Every event has ``t_s`` (seconds since the simulator started, monotonic) and ``event``; the other
-fields depend on the event (see ``docs/sim_servo.md``). The last ``keep`` events are also kept in
+fields depend on the event (see ``docs/simulator.md``). The last ``keep`` events are also kept in
 memory so the query socket can return them.
 
 What a servo physically receives is in the log: ``start`` has every output's pulse

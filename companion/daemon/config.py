@@ -3,7 +3,7 @@
 Everything is checked at load time, before anything is opened or sent. An error is a
 :class:`~companion.errors.ConfigError` that names the file, the field (``link.url``,
 ``joint[3].pwm_max_us``) and the allowed values; ``armbridge run`` and ``check-config`` turn it
-into exit code 2. The schema is documented in the README ("Daemon configuration") and in the
+into exit code 2. The schema is documented in ``docs/configuration.md`` and in the
 example ``companion/daemon/examples/armbridge.toml``.
 """
 
@@ -49,13 +49,14 @@ if TYPE_CHECKING:
 DEFAULT_OUTPUTS = (9, 10, 11, 12, 13, 14)  # outputs 1–4 drive a quad's motors
 
 # -- Bounds of the numbers, each with its physical reason (also in the example config and the
-# README). A bound is (min, max); None for min means "> 0".
+# docs/configuration.md). A bound is (min, max); None for min means "> 0".
 
 #: The control loop's rate. 1 Hz: the service counts itself healthy while it ticked within
 #: 2 / rate_hz + 1 s, which must stay inside the shipped unit's WatchdogSec=5: 3 s at 1 Hz,
 #: 5 s at 0.5 Hz.
 #: 400 Hz: ArduPilot's copter main loop (SCHED_LOOP_RATE) and a digital servo's frame rate;
-#: updates faster than that are never executed (and the serial link tops out near it, README).
+#: updates faster than that are never executed (and a serial link tops out near it:
+#: docs/ardupilot.md).
 RATE_HZ = (1.0, 400.0)
 #: The autopilot's HEARTBEAT comes at 1 Hz: below 2 s one lost or late heartbeat would be
 #: taken for a lost link (and stop the arm). Above 60 s the arm keeps commanding a dead link.
@@ -100,9 +101,10 @@ STALL_GAIN = (0.0, 1.0)
 #: 1 deg/s a joint takes three minutes to cross a 180 deg range: the arm would hang mid-motion
 #: long after its target went stale (and 1e-300 is a typo, not a speed).
 JOINT_SPEED_DEG_S = (1.0, 1000.0)
-#: The control socket's connections: each holds at most a 64 KiB request line and 64 KiB of
-#: queued replies (control_socket.MAX_LINE_BYTES, MAX_QUEUED_REPLY_BYTES), so 256 bound the
-#: socket's buffers to 32 MiB; onboard software needs a handful.
+#: The control socket's connections: each holds at most a ~370 KiB request line (a 2 000-point
+#: trajectory) and 64 KiB of queued replies (control_socket.MAX_LINE_BYTES,
+#: MAX_QUEUED_REPLY_BYTES), so 256 bound the socket's buffers to ~110 MiB; onboard software
+#: needs a handful.
 MAX_CONNECTIONS = (1, 256)
 #: A connection that completes no request for this long is closed. 0.1 s is already shorter
 #: than a loaded board may take between connecting and sending; past an hour a dead client

@@ -1,7 +1,7 @@
 """``armbridge demo``: the simulated flight controller and the daemon on loopback.
 
 The simulator runs as a separate process (``python -m sim_servo``) and is read over its query
-socket (one JSON request per line, see ``docs/sim_servo.md``); the daemon runs in this process.
+socket (one JSON request per line, see ``docs/simulator.md``); the daemon runs in this process.
 The demo sends the arm through a few reachable poses, an unreachable target and a
 figure-eight, and prints per target: solve time, errors, PWM sent and the hand pose the
 simulator reports. With matplotlib installed it also writes a PNG (``--plot PATH``).

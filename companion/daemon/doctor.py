@@ -792,7 +792,7 @@ def _signing(config: DaemonConfig, findings: Findings) -> Check:
             "signing",
             Verdict.WARN,
             "off: anyone who can send a frame on this link may move the arm",
-            "set link.signing_key (and the same key on the autopilot) — see the README, signing",
+            "set link.signing_key (and the same key on the autopilot) — see docs/signing.md",
         )
     if not findings.params or all(v is None for v in findings.params.values()):
         return Check(
@@ -831,8 +831,8 @@ def _routing(findings: Findings, kind: str | None) -> Check:
         Verdict.WARN,
         f"no ground station heard through the autopilot in {findings.listened_s:.0f} s",
         "if one is connected, its USER_1 targets will not reach us: connect it to another "
-        "autopilot port, not behind the same MAVProxy as us (README: Where the daemon sits)"
-        + forwarding,
+        "autopilot port, not behind the same MAVProxy as us (docs/mavlink-targets.md: "
+        "where the daemon sits)" + forwarding,
     )
 
 

@@ -1,7 +1,7 @@
 """Compile the IK and keep-out kernels ahead of time: ``python -m companion.ik``.
 
 Run it at install with the daemon's ``NUMBA_CACHE_DIR`` and the installed package (the shipped
-unit uses ``/var/cache/armbridge``; README "Running on a board")::
+unit uses ``/var/cache/armbridge``; ``docs/board.md``)::
 
     sudo NUMBA_CACHE_DIR=/var/cache/armbridge /opt/armbridge/.venv/bin/python -P -m companion.ik
 

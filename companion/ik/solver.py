@@ -58,8 +58,9 @@ keeps consecutive solutions on the same elbow/wrist branch.
 
 Importing this module does no work and does not import numba. :func:`warm_up` loads the
 kernels: the ahead-of-time module (:mod:`companion.ik.aot`: a plain extension module, no numba
-at run time) where ``python -m companion.ik`` has built an up-to-date one (the README's board
-install does, with a C compiler); otherwise numba's JIT, which compiles them on the first call
+at run time) where ``python -m companion.ik`` has built an up-to-date one (the board
+install in ``docs/board.md`` does, with a C compiler); otherwise numba's JIT, which compiles
+them on the first call
 (no explicit signatures: it infers them from the arrays; about 20 s of CPU on the 2-core
 development machine) and caches them on disk, so later processes load them (numba's import and
 first call, 0.5–0.8 s). The daemon calls :func:`warm_up` before it reports READY; a first

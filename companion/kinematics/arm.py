@@ -1,7 +1,7 @@
 """Arm description (a serial chain of revolute and prismatic joints, limits, base and tool) and
 hand poses.
 
-An arm is read from a TOML file of Denavit–Hartenberg rows (schema in the README, "Arm files") or
+An arm is read from a TOML file of Denavit–Hartenberg rows (schema in ``docs/arm.md``) or
 from a URDF (:mod:`companion.kinematics.urdf`)::
 
     from companion.kinematics.arm import Arm, Pose

@@ -233,7 +233,7 @@ def test_malformed_field_is_named(tmp_path, desc, edit, field, words):
     assert str(path) in str(info.value)
 
 
-# -- bounds with physical meaning (the reasons are in config.py, the example and the README) --
+# -- bounds with physical meaning (reasons in config.py, the example, docs/configuration.md) --
 
 URL = "udpout:127.0.0.1:14550"
 

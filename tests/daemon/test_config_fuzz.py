@@ -43,7 +43,7 @@ def test_every_config_field_has_fuzz_values_and_is_in_the_example():
     fields = schema_fields()
     assert len(fields) == len(set(fields)) == 44
     assert set(fields) == set(FIELD_KINDS)
-    # The README promises the example lists every field with its default.
+    # docs/configuration.md promises the example lists every field with its default.
     for dotted in fields:
         key = dotted.split(".")[1]
         assert re.search(rf"^#?\s*{key}\s*=", EXAMPLE_TEXT, re.M), f"{dotted} not in the example"

@@ -146,9 +146,9 @@ def unstarted():
 
 
 def test_a_request_its_client_gave_up_on_is_never_carried_out(tmp_path, unstarted):
-    # A goto whose client was told "no answer" used to wait in an unbounded queue and move the
-    # arm 55 s later. Here the control thread never runs: after the reply timeout the request
-    # is taken back, answered cancelled, and gone.
+    # A goto whose client was told "no answer" must not wait in a queue and move the arm long
+    # after. Here the control thread never runs: after the reply timeout the request is taken
+    # back, answered cancelled, and gone.
     srv = ControlServer(tmp_path / "c.sock", unstarted, reply_timeout_s=0.2)
     try:
         (reply,) = raw(srv, b'{"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]}')
@@ -242,8 +242,8 @@ def test_requests_sent_before_close_are_answered(tmp_path, unstarted):
 def test_a_bug_in_the_loop_is_logged_and_the_socket_keeps_serving(
     tmp_path, unstarted, monkeypatch, caplog
 ):
-    """The issue saw the accept thread die for good (socket dead, MAVLink still moving the
-    arm): a failure of the loop itself is logged and the next round serves again."""
+    """A failure of the accept loop itself is logged and the next round serves again (the
+    socket must not die while MAVLink still moves the arm)."""
     srv = ControlServer(tmp_path / "c.sock", unstarted)
     real_accept = srv._accept
     failed = []

@@ -295,7 +295,7 @@ def test_de_only_converged_result_is_within_both_tolerances(seed):
 
 def test_target_beyond_float_range_reports_infinite_errors_and_an_in_limit_start():
     # |p| beyond ~1e154 cm: every cost overflows to inf and no configuration becomes the
-    # record. The result used to be whatever np.empty held: another solve's errors and joints.
+    # record. The result must not be whatever np.empty holds: another solve's errors and joints.
     solve(ARM, G, budget_ms=1.0, seed=0)  # leave a finished solve's arrays behind
     start = (10.0, 80.0, 20.0, 10.0, 20.0, 30.0)
     far = Pose(1e308, -1e308, 1e200, 0, 0, 0)

@@ -1,8 +1,8 @@
 """A daemon restarted more than a minute after the simulated autopilot booted must
-reconnect with signing on. The simulator used to keep its own signing timestamp where it
-started (pymavlink adds 1 per frame), so a companion whose clock was over a minute ahead took
-every frame of it as a stream more than a minute old ("bad signature") for ever. Now it adopts
-the companion's newer timestamp, as the signing spec asks.
+reconnect with signing on. A simulator that kept its own signing timestamp where it started
+(pymavlink adds 1 per frame) would look, to a companion whose clock is over a minute ahead,
+like a stream more than a minute old ("bad signature") for ever; it adopts the companion's
+newer timestamp, as the signing spec asks.
 
 The "two minutes later" is the link's wall clock set 120 s ahead: the same timestamps a daemon
 started two minutes after the simulator would use, without waiting two minutes.

@@ -6,7 +6,7 @@ and PX4 drops a USER_1 for a component its companion link has not heard ("Ignore
 from 255/190 to 1/191"; the simulator's PX4 flavour does the same, ArduPilot answers
 UNSUPPORTED itself). The daemon's status says ``autopilot_heard_us`` once the autopilot has
 answered one of its commands, and under systemd its STATUS= line says ``link up`` from then on
-(READY=1 itself comes before any autopilot is heard, on purpose: see the README's "The unit").
+(READY=1 itself comes before any autopilot is heard, on purpose: see docs/board.md, "The unit").
 So a target sent at either moment must reach the daemon and be ACCEPTED.
 
 Real processes on loopback: the simulator connecting out to the daemon (``--udpout``, as PX4

@@ -13,7 +13,7 @@ import pytest
 UNIT = (
     Path(__file__).resolve().parents[2] / "companion" / "daemon" / "examples" / "armbridge.service"
 )
-#: The issue's target; the shipped unit scores 1.7 with systemd 252.
+#: The bound we hold the unit to; the shipped unit scores 1.7 with systemd 252.
 EXPOSURE_MAX = 3.0
 
 analyze = shutil.which("systemd-analyze")
