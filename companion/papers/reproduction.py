@@ -73,9 +73,7 @@ def parse_row(text: str) -> TableRow:
     try:
         return TableRow(int(table), int(test))
     except ValueError as exc:
-        raise ValueError(
-            f"row={text!r} is not a row of the papers' tables; allowed: {allowed}"
-        ) from exc
+        raise ValueError(f"row={text!r}: {exc}; allowed: {allowed}") from exc
 
 
 class Verdict(Enum):
