@@ -13,6 +13,10 @@ from companion.kinematics import Pose
 TARGET_G = Pose(-20.0, 3.0, 40.0, 0.0, 10.0, 15.0)
 """§5: G = (x, y, z, roll, pitch, yaw) in cm and degrees; unreachable within the Table 2 limits."""
 
+TABLE1_LINK_LENGTHS_CM: tuple[float, ...] = (3.5, 6.5, 28.2, 21.0, 2.5, 7.5, 5.0)
+"""Table 1: the arm part's links l0…l6 in cm (J0–J1 … J6–J7), the lengths of the papers'
+modified DH table (Table 3: a0 = l0, a1 = l1, a2 = l2, d4 = l3 + l4, a5 = l5, tool l6 along x)."""
+
 TABLE2_RANGES_DEG: tuple[tuple[float, float], ...] = (
     (-90.0, 90.0),
     (0.0, 180.0),

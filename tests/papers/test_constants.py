@@ -44,3 +44,11 @@ def test_printed_poses_parse_and_a_bad_one_is_named():
     with pytest.raises(ValueError, match="x, y, z"):
         constants.parse_pose("(-20, 3, forty, 0, 10, 15)")
     assert len(constants.TABLE5_TOTAL_ERROR) == 14 and len(constants.TABLE7_TOTAL_ERROR) == 20
+
+
+def test_the_modified_arm_file_has_the_table1_links():
+    arm = Arm.from_package_file("paper_arm_modified.toml")
+    l0, l1, l2, l3, l4, l5, l6 = constants.TABLE1_LINK_LENGTHS_CM
+    assert [j.a_cm for j in arm.joints] == [l0, l1, l2, 0.0, 0.0, l5]
+    assert [j.d_cm for j in arm.joints] == [0.0, 0.0, 0.0, l3 + l4, 0.0, 0.0]
+    assert arm.tool is not None and arm.tool[0][3] == l6

@@ -11,6 +11,7 @@ from companion.papers.inverse_acceleration import (
     PAPER_CASES_QDD,
     PAPER_T_S,
     PAPER_TABLE_T_S,
+    TEXT_T_S_103,
     AccelerationFit,
     DHChainModel,
     InverseAccelerationProblem,
@@ -181,12 +182,31 @@ def test_problem_validates_its_inputs():
     with pytest.raises(ValueError, match="acc_m_s2"):
         InverseAccelerationProblem(m, PAPER_T_S, np.zeros((5, 2)))
     with pytest.raises(ValueError, match="fit="):
-        InverseAccelerationProblem(m, PAPER_T_S, np.zeros((103, 2)), fit="vector")
+        InverseAccelerationProblem(m, PAPER_T_S, np.zeros((PAPER_T_S.size, 2)), fit="vector")
     with pytest.raises(ValueError, match="bound_rad_s2=0"):
-        InverseAccelerationProblem(m, PAPER_T_S, np.zeros((103, 2)), bound_rad_s2=0)
+        InverseAccelerationProblem(m, PAPER_T_S, np.zeros((PAPER_T_S.size, 2)), bound_rad_s2=0)
     with pytest.raises(ValueError, match="link_lengths_m"):
         planar_3r((1.0, -1.0, 1.0))
     with pytest.raises(ValueError, match="polish_starts=0"):
-        fit_joint_accelerations(m, PAPER_T_S, np.zeros((103, 2)), polish_starts=0)
+        fit_joint_accelerations(m, PAPER_T_S, np.zeros((PAPER_T_S.size, 2)), polish_starts=0)
     with pytest.raises(ValueError, match="beam=0"):
-        fit_joint_accelerations(m, PAPER_T_S, np.zeros((103, 2)), beam=0)
+        fit_joint_accelerations(m, PAPER_T_S, np.zeros((PAPER_T_S.size, 2)), beam=0)
+
+
+def test_the_paper_grid_holds_every_table_instant_and_the_literal_103_points_none():
+    # 10³ steps of 5 ms from 0 to 5 s; the instants are found exactly, not just nearly.
+    assert PAPER_T_S.size == 1001
+    assert PAPER_T_S[0] == 0.0 and PAPER_T_S[-1] == 5.0
+    np.testing.assert_allclose(np.diff(PAPER_T_S), 0.005, rtol=1e-9)
+    assert np.isin(PAPER_TABLE_T_S, PAPER_T_S).all()
+    assert TEXT_T_S_103.size == 103
+    assert not np.isclose(TEXT_T_S_103[None, :], PAPER_TABLE_T_S[:, None], atol=1e-6).any()
+
+
+def test_the_record_on_the_paper_grid_gives_the_tables_at_their_instants():
+    m = planar_3r()
+    at = np.searchsorted(PAPER_T_S, PAPER_TABLE_T_S)
+    for case, qdd in enumerate(PAPER_CASES_QDD, start=1):
+        record = m.acc_m_s2(np.array([qdd]), PAPER_T_S)[0]
+        printed = np.array(PAPER_ORIGINAL_M_S2[case])
+        np.testing.assert_allclose(np.linalg.norm(record[at], axis=1), printed, atol=1e-4)
