@@ -17,7 +17,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 from companion.daemon.config import DaemonConfig
-from companion.daemon.core.actions import Action
+from companion.daemon.core.actions import Action, SendCommand
 from companion.daemon.core.keepout_gate import KeepoutGate
 from companion.daemon.core.motion import Motion
 from companion.daemon.core.outputs import OutputsTruth
@@ -203,6 +203,14 @@ class ControlCore:
                 if (v := getattr(msg, f"servo{n}_raw", 0)) and msg.port == 0
             }
             self.outputs.on_readback(shown, at_s)
+            if watch.pinned is not None and self.outputs.take_clock_probe(self.clock()):
+                actions.append(
+                    SendCommand(
+                        watch.pinned,
+                        mavlink.MAV_CMD_REQUEST_MESSAGE,
+                        (float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME), 0, 0, 0, 0, 0, 0),
+                    )
+                )
             if self.outputs.hold_wanted:
                 self.motion.next_step(actions, immediate=True)
         elif kind == "SYS_STATUS":

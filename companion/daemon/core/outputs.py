@@ -45,6 +45,11 @@ READBACK_SPAN_INTERVALS = 1.25
 #: link, some of them are his).
 READBACK_DOUBT_INTERVALS = 2.0
 
+#: A readback that starts to disagree asks the autopilot for a SYSTEM_TIME at once (its clock
+#: going on is what a belief waits for, see ``OutputsTruth._disagrees``), at most once in this
+#: many readback intervals.
+CLOCK_PROBE_INTERVALS = 2.0
+
 #: A band of poses: per joint, the lowest and the highest angle.
 Band = tuple[list[float], list[float]]
 
@@ -95,6 +100,9 @@ class OutputsTruth(abc.ABC):
         #: When the last SYSTEM_TIME that continued the autopilot's clock arrived (see
         #: :meth:`_disagrees`: a readback is believed only with the autopilot heard after it).
         self._clock_heard_s = -math.inf
+        #: A readback started to disagree: ask for a SYSTEM_TIME (see :meth:`take_clock_probe`).
+        self._probe_wanted = False
+        self._probe_sent_s = -math.inf
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -132,6 +140,20 @@ class OutputsTruth(abc.ABC):
         """A SYSTEM_TIME that continues the autopilot's clock arrived at ``at_s``."""
         self._clock_heard_s = at_s
 
+    def take_clock_probe(self, now: float) -> bool:
+        """Whether to ask the autopilot for a SYSTEM_TIME now (a readback started to disagree;
+        at most once in CLOCK_PROBE_INTERVALS readback intervals): its answer, a round trip
+        later, says it is there and did not reboot, rather than the stream's next frame up to
+        its interval later. Asked once: True clears it."""
+        if not self._probe_wanted:
+            return False
+        interval_s = CLOCK_PROBE_INTERVALS * self._core.settings.readback_interval_s
+        if now - self._probe_sent_s < interval_s:
+            return False
+        self._probe_wanted = False
+        self._probe_sent_s = now
+        return True
+
     def _disagrees(self, output: int, at_s: float, *, clock_after: bool = False) -> bool:
         """Another settled readback not showing what ``output`` acknowledged, arrived at
         ``at_s``: whether the readbacks now disagree with it for long enough to be believed
@@ -143,10 +165,13 @@ class OutputsTruth(abc.ABC):
         self._mismatches[output] = count
         since_s = self._mismatch_since_s.setdefault(output, at_s)
         interval_s = self._core.settings.readback_interval_s
+        clock_ok = not clock_after or self._clock_heard_s > since_s
+        if not clock_ok:
+            self._probe_wanted = True
         believed = (
             count >= READBACK_MISMATCHES
             and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
-            and (not clock_after or self._clock_heard_s > since_s)
+            and clock_ok
         )
         if believed:
             self._doubt_until_s.pop(output, None)

@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from companion.daemon.core.outputs import (
+    READBACK_DOUBT_INTERVALS,
     READBACK_MISMATCHES,
     READBACK_SPAN_INTERVALS,
     READBACK_TOLERANCE_US,
@@ -241,15 +242,30 @@ class ArduPilotOutputs(OutputsTruth):
         seen = self._unacked_seen.get(output)
         if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
             self._unacked_seen[output] = (shown, at_s, 1)
+            self._hold_for(output, at_s)
             return False
         pwm, since_s, count = seen
         self._unacked_seen[output] = (pwm, since_s, count + 1)
-        span_s = READBACK_SPAN_INTERVALS * self._core.settings.readback_interval_s
-        return (
+        interval_s = self._core.settings.readback_interval_s
+        believed = (
             count + 1 >= READBACK_MISMATCHES
-            and at_s - since_s >= span_s
+            and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
             and self._clock_heard_s > since_s
         )
+        if believed:
+            self._doubt_until_s.pop(output, None)
+        else:
+            self._hold_for(output, at_s)
+        return believed
+
+    def _hold_for(self, output: int, at_s: float) -> None:
+        """A readback arrived at ``at_s`` shows ``output`` set by another sender, not believed
+        yet: the motion (a re-send after a loss or a reboot among it) holds until the next
+        readbacks say, and the autopilot is asked whether it is there (its clock)."""
+        interval_s = self._core.settings.readback_interval_s
+        self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
+        if not self._clock_heard_s > self._unacked_seen[output][1]:
+            self._probe_wanted = True
 
     def _take_shown(self, i: int, output: int, shown: int) -> None:
         """The joint of ``output`` (index ``i``) is where its readback shows."""

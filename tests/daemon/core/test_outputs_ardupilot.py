@@ -338,8 +338,10 @@ def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
     rig.advance(0.1)
     rig.readback(shown)
     # Nor two, until the autopilot's clock is heard after the first (not rebooting, when
-    # forged frames alone would show).
+    # forged frames alone would show): it was asked for at the first.
     assert rig.core.status()["foreign_command"] is None
+    probes = [c for c in rig.sent if c.command == mavlink.MAV_CMD_REQUEST_MESSAGE]
+    assert [p.params[0] for p in probes] == [mavlink.MAVLINK_MSG_ID_SYSTEM_TIME] * 2  # unanswered
     rig.system_time(600_000)
     rig.clock.advance(0.02)
     rig.readback(shown)
@@ -441,6 +443,28 @@ def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_i
     rig.readback({output: 2000})
     rig.sys_status(safety_on=False)
     rig.advance(0.05)
+    assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_after_a_reboot_the_resend_waits_for_an_output_another_sender_set(rig):
+    # Rebooted; the switch known off, the outputs were re-sent at once, over a ground station's
+    # servo command shown in one readback and not believed yet: a 72 deg step back.
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    output = rig.calibration.outputs[0]
+    rig.sent.clear()
+    rig.readback({output: 2000})  # the other outputs: no pulses since the boot
+    rig.sys_status(safety_on=False)
+    rig.advance(0.01)
+    assert not rig.servo()  # the re-send holds while the readbacks decide
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.system_time(180)  # the answer to the probe: its clock goes on
+    rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.advance(0.01)
     assert rig.servo()[output] == 2000
 
 
