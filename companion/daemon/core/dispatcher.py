@@ -203,7 +203,11 @@ class ControlCore:
                 if (v := getattr(msg, f"servo{n}_raw", 0)) and msg.port == 0
             }
             self.outputs.on_readback(shown, at_s)
-            if watch.pinned is not None and self.outputs.take_clock_probe(self.clock()):
+            if (
+                watch.pinned is not None
+                and self.state.link_up  # nothing is sent while the link is down
+                and self.outputs.take_clock_probe(self.clock())
+            ):
                 actions.append(
                     SendCommand(
                         watch.pinned,

@@ -507,3 +507,15 @@ def test_ardupilot_after_a_reboot_forged_readbacks_among_its_own_no_pulses_are_n
     rig.sys_status(safety_on=False)
     rig.advance(0.05)
     assert rig.servo().get(output) != 2000
+
+
+def test_ardupilot_no_clock_probe_goes_out_while_the_link_is_down(rig):
+    _settle(rig, near(PARK))
+    rig.advance(4.0, link_up=False)  # lost: nothing is sent
+    assert rig.core.status()["holding"]
+    rig.sent.clear()
+    output = rig.calibration.outputs[0]
+    for _ in range(3):
+        rig.readback({output: 2000})
+        rig.clock.advance(0.02)
+    assert not rig.sent
