@@ -56,7 +56,9 @@ simulator tags its events with the sender), outputs coming alive with a value su
 stored, and PX4 itself driving its outputs to the disarmed PWM. The daemon's next command after
 a foreign one (jumping back from the foreign PWM) is the daemon's, unless it went out less than
 ``RACE_WINDOW_S`` (a readback interval and a hop) after the foreign command: then no readback
-could have shown it to the daemon yet, and it is counted apart as a **race**. The target is 0
+could have shown it to the daemon yet, and it is counted apart as a **race**; so is one after
+an autopilot reboot less than ``BELIEF_WINDOW_S`` after the foreign command (its readbacks
+could not be believed before it: a **reboot race**). The target is 0
 daemon steps. **The limit around a reload**: in force from the moment the daemon applied it,
 which lies between the SIGHUP and the ``reloaded`` line seen in its log plus two control periods
 (the command in flight); in that window a step is judged against the higher of the old and new
@@ -78,6 +80,7 @@ kind (the last event before the step), unanswered gotos, status over its bound.
 from __future__ import annotations
 
 import argparse
+import bisect
 import functools
 import math
 import os
@@ -87,6 +90,7 @@ import shutil
 import subprocess
 import time
 from collections import Counter, defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -160,6 +164,10 @@ FORGE_INTERVAL_S = 0.01
 #: A daemon command from a PWM a foreign command set less than this before is a race
 #: (``devkit.joint_steps.RACE``): the readback's interval on loopback UDP (50 Hz) and a hop.
 RACE_WINDOW_S = 0.02 + 0.01
+#: A foreign command the autopilot's reboot followed this soon (``devkit.joint_steps.RACE_REBOOT``):
+#: the race window, the span of two readbacks over more than an interval (1.25 × 20 ms), and the
+#: round trip of the SYSTEM_TIME asked for then.
+BELIEF_WINDOW_S = RACE_WINDOW_S + 1.25 * 0.02 + 0.01
 #: The window after the ``reloaded`` log line in which the old limit may still be in force.
 RELOAD_MARGIN_PERIODS = 2
 #: At most this many control connections for gotos at once (each answers one at a time).
@@ -596,6 +604,9 @@ class Cycles:
         calibration = default_calibration(ARM_OUTPUTS)
         changes = output_changes(events)
         stored = stored_by_foreign(events)
+        reboots_s = sorted(
+            e["t_s"] for e in events if e["event"] == "fault" and e.get("fault") == "reboot"
+        )
         for output in ARM_OUTPUTS:
             joint = calibration.for_output(output)
             quantum = quantum_deg(joint)
@@ -610,16 +621,25 @@ class Cycles:
             run.first_pulses += len(first)
             for step in steps:
                 run.steps.append(step)
+                before_s = foreign_command_before(stored.get(output, []), step.t_s)
                 run.kinds.append(
                     step_kind(
                         step,
                         disarmed_us=run.disarmed_us,
                         stored_foreign=foreign_stored_at(stored.get(output, []), step.t_s),
-                        foreign_before_s=foreign_command_before(stored.get(output, []), step.t_s),
+                        foreign_before_s=before_s,
                         race_window_s=RACE_WINDOW_S,
+                        reboot_cut_short=before_s is not None
+                        and reboot_within(reboots_s, step.t_s - before_s, BELIEF_WINDOW_S),
                     )
                 )
                 run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))
+
+
+def reboot_within(reboots_s: Sequence[float], t_s: float, window_s: float) -> bool:
+    """Whether one of ``reboots_s`` (sorted) lies in ``[t_s, t_s + window_s]``."""
+    k = bisect.bisect_left(reboots_s, t_s)
+    return k < len(reboots_s) and reboots_s[k] <= t_s + window_s
 
 
 # -- the report -------------------------------------------------------------------------------

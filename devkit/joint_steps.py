@@ -38,7 +38,12 @@ PWM (disarm, kill, prearm off, reboot). **A race** (counted apart from both): th
 command from a PWM a foreign command set less than ``race_window_s`` before (a readback interval
 and a hop): no readback could have shown the daemon that command yet, so its step was computed
 from the PWM before it; later ones are the daemon's (a readback showing a foreign PWM holds the
-motion until it is believed, and the joint is then taken where it shows).
+motion until it is believed, and the joint is then taken where it shows). **A reboot race**
+(also apart): the autopilot rebooted within ``belief_window_s`` of the foreign command, before
+its readbacks could be believed (two over more than an interval, and the autopilot's clock
+heard after them): after the reboot the outputs carry no pulses, and what the daemon re-sends
+was computed without the foreign PWM, which it cannot tell from frames forged while an
+autopilot reboots.
 
 **A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
 instant known only within a window (the signal sent … the daemon said it applied it): a step in
@@ -61,6 +66,7 @@ FOREIGN_COMMAND = "foreign: command"
 FOREIGN_ALIVE = "foreign: coming alive"
 AUTOPILOT = "foreign: autopilot to its disarmed PWM"
 RACE = "race: the daemon's command before a readback could show a foreign one"
+RACE_REBOOT = "race: a reboot before the readbacks could confirm a foreign command"
 DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
 FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
 #: Causes of an output change that bring stored values out (the outputs coming alive).
@@ -229,17 +235,24 @@ def step_kind(
     stored_foreign: bool,
     foreign_before_s: float | None = None,
     race_window_s: float = 0.0,
+    reboot_cut_short: bool = False,
 ) -> str:
     """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
-    :data:`FOREIGN_KINDS` or :data:`RACE`. ``disarmed_us``: PX4's disarmed PWM (None on
-    ArduPilot); ``stored_foreign``: the output's stored value came from a foreign command;
-    ``foreign_before_s``: the command before this one was a foreign sender's, this long before
-    (:func:`foreign_command_before`)."""
+    :data:`FOREIGN_KINDS`, :data:`RACE` or :data:`RACE_REBOOT`. ``disarmed_us``: PX4's
+    disarmed PWM (None on ArduPilot); ``stored_foreign``: the output's stored value came from
+    a foreign command; ``foreign_before_s``: the command before this one was a foreign
+    sender's, this long before
+    (:func:`foreign_command_before`); ``reboot_cut_short``: the autopilot rebooted so soon after
+    that foreign command that its readbacks could not be believed before the outputs lost their
+    pulses (the daemon then cannot tell it from frames forged while the autopilot reboots:
+    :data:`RACE_REBOOT`)."""
     if step.cause == "command":
         if step.source is not None:
             return FOREIGN_COMMAND
         if foreign_before_s is not None and foreign_before_s <= race_window_s:
             return RACE
+        if foreign_before_s is not None and reboot_cut_short:
+            return RACE_REBOOT
         return DAEMON_COMMAND
     if disarmed_us is not None and step.to_us == disarmed_us:
         return AUTOPILOT

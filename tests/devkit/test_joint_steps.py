@@ -11,6 +11,7 @@ from devkit.joint_steps import (
     FOREIGN_ALIVE,
     FOREIGN_COMMAND,
     RACE,
+    RACE_REBOOT,
     Change,
     JointStep,
     Reload,
@@ -181,6 +182,10 @@ def test_the_daemons_command_right_after_a_foreign_one_is_a_race_later_its_own()
     assert step_kind(step, foreign_before_s=0.02, **kind) == RACE
     assert step_kind(step, foreign_before_s=0.5, **kind) == DAEMON_COMMAND
     assert step_kind(step, foreign_before_s=None, **kind) == DAEMON_COMMAND
+    # The autopilot rebooted before the foreign command's readbacks could be believed.
+    cut = step_kind(step, foreign_before_s=0.5, reboot_cut_short=True, **kind)
+    assert cut == RACE_REBOOT
+    assert step_kind(step, foreign_before_s=None, reboot_cut_short=True, **kind) == DAEMON_COMMAND
 
 
 def test_a_pulse_outside_the_servos_range_is_taken_as_no_pulses():
