@@ -91,6 +91,9 @@ class OutputsTruth(abc.ABC):
         #: the first of them arrived.
         self._mismatches: dict[int, int] = {}
         self._mismatch_since_s: dict[int, float] = {}
+        #: Per output: when its readbacks first disagreed long enough (waiting for the
+        #: autopilot's clock, see :meth:`_clock_after`).
+        self._span_met_s: dict[int, float] = {}
         #: Per output: the motion holds until then (a settled readback disagreed lately, see
         #: READBACK_DOUBT_INTERVALS), unless the readbacks were believed first.
         self._doubt_until_s: dict[int, float] = {}
@@ -158,26 +161,34 @@ class OutputsTruth(abc.ABC):
         """Another settled readback not showing what ``output`` acknowledged, arrived at
         ``at_s``: whether the readbacks now disagree with it for long enough to be believed
         (READBACK_MISMATCHES in a row over READBACK_SPAN_INTERVALS of the stream).
-        ``clock_after``: and a SYSTEM_TIME continuing the autopilot's clock came after the
-        first of them (the autopilot was there, not rebooting: while it is silent, forged
-        frames are all the readbacks there are, and none of its own contradicts them)."""
+        ``clock_after``: and a SYSTEM_TIME continuing the autopilot's clock came after they
+        did (:meth:`_clock_after`)."""
         count = self._mismatches.get(output, 0) + 1
         self._mismatches[output] = count
         since_s = self._mismatch_since_s.setdefault(output, at_s)
         interval_s = self._core.settings.readback_interval_s
-        clock_ok = not clock_after or self._clock_heard_s > since_s
-        if not clock_ok:
-            self._probe_wanted = True
-        believed = (
-            count >= READBACK_MISMATCHES
-            and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
-            and clock_ok
+        believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
+            READBACK_SPAN_INTERVALS * interval_s
         )
+        if believed and clock_after:
+            believed = self._clock_after(output, at_s)
         if believed:
             self._doubt_until_s.pop(output, None)
         else:
             self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
         return believed
+
+    def _clock_after(self, output: int, at_s: float) -> bool:
+        """The readbacks of ``output`` disagree long enough (the span is complete at ``at_s``
+        or was earlier): whether a SYSTEM_TIME continuing the autopilot's clock has come
+        since (if not, one is asked for). Then the autopilot did not reboot during the span:
+        its own readbacks flowed, fell inside it, and disagreed too. While it reboots, silent,
+        forged frames are all the readbacks there are, and none of its own contradicts them."""
+        met_s = self._span_met_s.setdefault(output, at_s)
+        if self._clock_heard_s > met_s:
+            return True
+        self._probe_wanted = True
+        return False
 
     def in_doubt(self, now: float) -> bool:
         """A settled readback disagreed with what an output acknowledged, and the readbacks
@@ -188,6 +199,7 @@ class OutputsTruth(abc.ABC):
         """A readback showed what ``output`` acknowledged (or a step on its way)."""
         self._mismatches[output] = 0
         self._mismatch_since_s.pop(output, None)
+        self._span_met_s.pop(output, None)
 
     def _readback_seen(self, now: float) -> bool:
         """A readback since :attr:`_readback_since_s` tells where the joints are; without one

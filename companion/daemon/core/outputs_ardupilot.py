@@ -158,7 +158,7 @@ class ArduPilotOutputs(OutputsTruth):
             if shown is None or not self.in_range(output, shown):
                 # No pulses (an output nothing set since boot), or not a joint's PWM: that
                 # contradicts frames that showed one (forged, after a reboot).
-                self._unacked_seen.pop(output, None)
+                self._forget_unacked(output)
                 continue
             acked = state.acked_pwm.get(output)
             if acked is None:
@@ -176,7 +176,7 @@ class ArduPilotOutputs(OutputsTruth):
                     # the pose re-sent keeps it there.
                     self._take_shown(i, output, shown)
                 continue
-            self._unacked_seen.pop(output, None)
+            self._forget_unacked(output)
             expected, settled = self._expected_pwms(output, now)
             on_its_way = {
                 f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
@@ -242,6 +242,7 @@ class ArduPilotOutputs(OutputsTruth):
         seen = self._unacked_seen.get(output)
         if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
             self._unacked_seen[output] = (shown, at_s, 1)
+            self._span_met_s.pop(output, None)
             self._hold_for(output, at_s)
             return False
         pwm, since_s, count = seen
@@ -250,13 +251,19 @@ class ArduPilotOutputs(OutputsTruth):
         believed = (
             count + 1 >= READBACK_MISMATCHES
             and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
-            and self._clock_heard_s > since_s
+            and self._clock_after(output, at_s)
         )
         if believed:
             self._doubt_until_s.pop(output, None)
+            self._span_met_s.pop(output, None)
         else:
             self._hold_for(output, at_s)
         return believed
+
+    def _forget_unacked(self, output: int) -> None:
+        """``output``'s readbacks no longer show a PWM set by another sender since a loss."""
+        if self._unacked_seen.pop(output, None) is not None:
+            self._span_met_s.pop(output, None)
 
     def _hold_for(self, output: int, at_s: float) -> None:
         """A readback arrived at ``at_s`` shows ``output`` set by another sender, not believed
@@ -264,8 +271,6 @@ class ArduPilotOutputs(OutputsTruth):
         readbacks say, and the autopilot is asked whether it is there (its clock)."""
         interval_s = self._core.settings.readback_interval_s
         self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
-        if not self._clock_heard_s > self._unacked_seen[output][1]:
-            self._probe_wanted = True
 
     def _take_shown(self, i: int, output: int, shown: int) -> None:
         """The joint of ``output`` (index ``i``) is where its readback shows."""

@@ -337,11 +337,12 @@ def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
     assert rig.core.status()["foreign_command"] is None  # one readback alone is not believed
     rig.advance(0.1)
     rig.readback(shown)
-    # Nor two, until the autopilot's clock is heard after the first (not rebooting, when
-    # forged frames alone would show): it was asked for at the first.
+    # Nor two, until the autopilot's clock is heard after them (it did not reboot meanwhile, when
+    # forged frames alone would show): it is asked for now.
     assert rig.core.status()["foreign_command"] is None
-    probes = [c for c in rig.sent if c.command == mavlink.MAV_CMD_REQUEST_MESSAGE]
-    assert [p.params[0] for p in probes] == [mavlink.MAVLINK_MSG_ID_SYSTEM_TIME] * 2  # unanswered
+    [probe] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_REQUEST_MESSAGE]
+    assert probe.params[0] == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+    rig.clock.advance(0.005)  # its answer, a round trip later
     rig.system_time(600_000)
     rig.clock.advance(0.02)
     rig.readback(shown)
@@ -439,7 +440,10 @@ def test_ardupilot_after_a_reboot_an_output_another_sender_set_is_resent_where_i
     rig.clock.advance(0.02)
     rig.readback({output: 2000})
     rig.clock.advance(0.02)
+    rig.readback({output: 2000})
+    rig.clock.advance(0.005)
     rig.system_time(190)  # its clock goes on
+    rig.clock.advance(0.02)
     rig.readback({output: 2000})
     rig.sys_status(safety_on=False)
     rig.advance(0.05)
@@ -461,11 +465,31 @@ def test_ardupilot_after_a_reboot_the_resend_waits_for_an_output_another_sender_
     assert not rig.servo()  # the re-send holds while the readbacks decide
     rig.clock.advance(0.02)
     rig.readback({output: 2000})
+    assert not rig.servo()
+    rig.clock.advance(0.005)
     rig.system_time(180)  # the answer to the probe: its clock goes on
     rig.clock.advance(0.02)
     rig.readback({output: 2000})
     rig.advance(0.01)
     assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_the_clock_heard_before_the_readbacks_disagreed_long_enough_is_not_enough(
+    rig,
+):
+    # Forged frames began before the reboot, the autopilot's SYSTEM_TIME came between them,
+    # then it fell silent: the forged ones alone went on and were believed (104 deg).
+    _settle(rig, near(PARK))
+    rig.clock.advance(0.3)  # settled
+    acked = dict(rig.core.status()["last_pwm_us"])
+    forged = {o: 1000 for o in acked}
+    rig.readback(forged)
+    rig.clock.advance(0.005)
+    rig.system_time(600_000)  # the autopilot, still there
+    for _ in range(8):  # then only forged frames: it reboots, silent
+        rig.clock.advance(0.01)
+        rig.readback(forged)
+    assert rig.core.status()["foreign_command"] is None
 
 
 def test_ardupilot_readbacks_forged_while_it_reboots_are_not_believed(rig):
