@@ -327,6 +327,7 @@ class ArduPilotOutputs(OutputsTruth):
         before the loss, the switch forgotten; the pose to send them to again (None: nothing
         was ever sent)."""
         state = self._core.state
+        self._readback_since_s = self._core.clock()  # where they are: the next readback says
         if not (flights or state.ever_sent):
             self._forget_safety()
             return None
@@ -360,8 +361,10 @@ class ArduPilotOutputs(OutputsTruth):
     # -- the motion's questions --------------------------------------------------------------
 
     def may_move(self, actions: list[Action], now: float) -> bool:
-        if not self._core.state.ever_sent and not self._readback_seen(now):
-            return False  # where the joints are comes from the first readback
+        if not self._readback_seen(now):
+            # Where the joints are comes from the first readback since the start, a loss or a
+            # reboot (another sender may have set an output meanwhile: the re-send waits).
+            return False
         if not self._safety_known(now):
             return False
         dead = self.dead()

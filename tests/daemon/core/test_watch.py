@@ -80,6 +80,9 @@ def test_a_reboot_within_the_loss_timeout_is_seen_and_every_output_resent(rig):
     assert rig.servo() == {}
     rig.sys_status(safety_on=False)
     rig.advance(1.0 / RATE_HZ)
+    assert rig.servo() == {}  # nor before a readback said what the outputs show since the boot
+    rig.readback({})  # no pulses: nothing set them since
+    rig.advance(1.0 / RATE_HZ)
     assert sorted(rig.servo()) == [9, 10, 11, 12, 13, 14]  # every output, not only changes
 
 
@@ -95,6 +98,7 @@ def test_system_time_going_quiet_resends_every_output_at_once_even_with_the_arm_
     assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
     assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
     rig.sys_status(safety_on=False)
+    rig.readback({})  # nor before a readback (no pulses: it rebooted)
     rig.advance(1.0 / RATE_HZ)
     # A reboot left the outputs at their boot values: the acknowledged PWMs go out again with
     # no new target (before: only with the next target).
@@ -154,6 +158,7 @@ def test_link_loss_holds_rejects_waiting_targets_and_resends_every_output_when_b
     rig.advance(0.01)
     assert rig.servo() == {}  # not before a SYS_STATUS said where its safety switch is
     rig.sys_status(safety_on=False)
+    rig.readback({})  # nor before a readback (no pulses: it rebooted)
     rig.advance(1.0 / RATE_HZ)
     # Back: every output within half a step of both poses it may hold (the acknowledged one
     # and the step on its way), then on towards the goal.
