@@ -99,6 +99,9 @@ class ArduPilotOutputs(OutputsTruth):
         self._rewind_to: tuple[float, ...] | None = None
         #: When a SYS_STATUS last said the switch is on (by arrival).
         self._safety_on_seen_s = -math.inf
+        #: The switch unknown (start, loss, reboot): since when SYS_STATUS says it is off, with
+        #: none saying on since (None: none said off yet).
+        self._off_since_s: float | None = None
         #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
         #: show, since when, how many in a row (see :meth:`_shown_steadily`).
         self._unacked_seen: dict[int, tuple[int, float, int]] = {}
@@ -114,6 +117,18 @@ class ArduPilotOutputs(OutputsTruth):
         interval_s = core.settings.sys_status_interval_s
         if safety_on:
             self._safety_on_seen_s = at_s
+            self._off_since_s = None
+        elif self.safety_on is None:
+            # Unknown since the start, a loss or a reboot (it boots with the switch on): "off"
+            # is believed once SYS_STATUS has said so for SAFETY_ON_STICKY_INTERVALS, counted
+            # from when the stream was asked for at the earliest, with none saying on: the
+            # autopilot's own stream, flowing by then, would have said on (frames forged as
+            # its own, while it reboots or before its stream comes back, are all there is).
+            if self._off_since_s is None:
+                self._off_since_s = at_s
+            since_s = max(self._off_since_s, self._sys_status_asked_s)
+            if at_s - since_s < SAFETY_ON_STICKY_INTERVALS * interval_s:
+                return
         elif at_s - self._safety_on_seen_s < SAFETY_ON_STICKY_INTERVALS * interval_s:
             if self.safety_on is False:
                 log.warning(
@@ -305,6 +320,7 @@ class ArduPilotOutputs(OutputsTruth):
         boots at BRD_SAFETY_DEFLT), and no pose from before is rewound to."""
         self.safety_on = None
         self._sys_status_s = None
+        self._off_since_s = None
         self._held_since_off = self._rewind_to = None
 
     def _resend_pose(self, flights: Sequence[Flight]) -> tuple[float, ...]:

@@ -163,8 +163,21 @@ class Rig:
             # ArduPilot moves once a readback said where the joints are (no pulses on the
             # arm's outputs since its boot: nothing) and it knows the switch is off.
             self.readback({})
-            self.sys_status(safety_on=False)
+            self.switch_off()
         return sent
+
+    def switch_off(self):
+        """ArduPilot's SYS_STATUS stream says the safety switch is off, long enough to be
+        believed while it is unknown (1.5 intervals, none saying on): two frames, the second
+        stamped two intervals after the first. The clock stays where it is (the tests'
+        timing is unchanged)."""
+        self.sys_status(safety_on=False)
+        later_s = self.clock() + 2 * self.status_interval_s
+        outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+        return self.frame(
+            lambda c: c.sys_status_encode(outputs, outputs, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+            received_s=later_s,
+        )
 
     def request(self, kind, payload=None, **kw) -> Request:
         request = Request(kind, payload, received_s=self.clock(), **kw)

@@ -286,10 +286,11 @@ def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_be
     rig = Rig()
     rig.heartbeat()
     rig.tick()
-    rig.sys_status(safety_on=False)
+    rig.switch_off()
     away = tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
     request = rig.goto(tuple(a + 1.5 for a in away))
-    rig.advance(0.1)
+    for _ in range(4):
+        rig.advance(0.025)
     assert not rig.servo()  # no readback yet: where the joints are is unknown
     rig.readback(_pwm_of(rig, away))
     rig.advance(0.05)
@@ -303,11 +304,13 @@ def test_ardupilot_with_no_readback_the_arm_moves_after_the_wait():
     rig = Rig()
     rig.heartbeat()
     rig.tick()
-    rig.sys_status(safety_on=False)
+    rig.switch_off()
     rig.goto(near(PARK))
-    rig.advance(1.0)
+    for _ in range(40):  # the SYS_STATUS stream flowing
+        rig.advance(0.025)
     assert not rig.servo()
-    rig.advance(1.1)
+    for _ in range(44):
+        rig.advance(0.025)
     assert rig.servo()  # READBACK_WAIT_S: from the park pose, said once in the log
 
 
@@ -543,3 +546,26 @@ def test_ardupilot_no_clock_probe_goes_out_while_the_link_is_down(rig):
         rig.readback({output: 2000})
         rig.clock.advance(0.02)
     assert not rig.sent
+
+
+def test_ardupilot_after_a_reboot_off_is_believed_only_once_the_stream_said_so_long_enough(rig):
+    # A SYS_STATUS forged as "off" came before the autopilot's own stream was back after its
+    # reboot (it boots with the switch on): the outputs were re-sent and the arm moved on,
+    # stored, and jumped up to 16 deg at the switch's release.
+    _settle(rig, near(PARK))
+    rig.system_time(600_000)
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    rig.readback({})
+    rig.sent.clear()
+    rig.sys_status(safety_on=False, stream=False)  # forged, the stream not back yet
+    rig.clock.advance(0.01)
+    rig.sys_status(safety_on=False, stream=False)
+    rig.advance(0.01)
+    assert rig.core.status()["safety_on"] is None
+    assert not rig.servo()
+    rig.sys_status(safety_on=True)  # its own stream
+    rig.clock.advance(0.03)
+    rig.sys_status(safety_on=False, stream=False)  # forged again
+    assert rig.core.status()["safety_on"] is True
