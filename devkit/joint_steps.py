@@ -201,14 +201,19 @@ def joint_steps(
 
 
 def stored_by_foreign(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tuple[float, bool]]]:
-    """Per output, each command that gave it a PWM (``servo`` events) in log order:
-    ``(t_s, whether a foreign sender gave it)``."""
+    """Per output, each command that gave it a new PWM (``servo`` events) in log order:
+    ``(t_s, whether a foreign sender gave it)``. A command that gives the PWM it already had
+    is left out: the value is still the earlier sender's (the daemon re-sending what a ground
+    station stored does not make it the daemon's)."""
     stored: dict[int, list[tuple[float, bool]]] = {}
+    last_pwm: dict[int, int] = {}
     for event in events:
         if event["event"] == "servo":
-            stored.setdefault(int(event["output"]), []).append(
-                (float(event["t_s"]), bool(event.get("src")))
-            )
+            output, pwm = int(event["output"]), int(event["pwm_us"])
+            if last_pwm.get(output) == pwm:
+                continue
+            last_pwm[output] = pwm
+            stored.setdefault(output, []).append((float(event["t_s"]), bool(event.get("src"))))
     return stored
 
 

@@ -198,3 +198,18 @@ def test_a_pulse_outside_the_servos_range_is_taken_as_no_pulses():
     ]
     out = undriven_outside(changes, 1000, 2000)
     assert [c.pwm_us for c in out] == [1500, 0, 1510, 0]
+
+
+def test_a_command_that_restates_the_stored_pwm_leaves_it_the_earlier_senders():
+    # The daemon re-sent (adopted) what a ground station stored while the outputs were held:
+    # the jump at their release is the ground station's.
+    events = [
+        {"event": "servo", "t_s": 1.0, "output": 9, "pwm_us": 1500},
+        {"event": "servo", "t_s": 2.0, "output": 9, "pwm_us": 1418, "src": [255, 190]},
+        {"event": "servo", "t_s": 3.0, "output": 9, "pwm_us": 1418},
+        {"event": "servo", "t_s": 4.0, "output": 9, "pwm_us": 1500},
+    ]
+    stored = stored_by_foreign(events)[9]
+    assert foreign_stored_at(stored, 3.5)  # still the ground station's value
+    assert not foreign_stored_at(stored, 4.0)  # the daemon's new one
+    assert foreign_command_before(stored, 4.0) == pytest.approx(2.0)
