@@ -74,6 +74,7 @@ from companion.ik.layout import (
     MODE_POSITION,
     N_IPARAMS,
     O_COST,
+    O_DE_GAINS,
     O_EVALUATIONS,
     O_GENERATIONS,
     O_LM_ITERATIONS,
@@ -84,6 +85,7 @@ from companion.ik.layout import (
     R_COST,
     R_ORI_DEG,
     R_POS_CM,
+    S_DE_GAINS,
     S_EVALUATIONS,
     S_GENERATIONS,
     S_LM_ITERATIONS,
@@ -115,7 +117,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "32abd9710a71e89e1a5667861437ef42b49cdd723335e987f3f2e11d52420a44"
+LAYOUT_SHA256 = "42a692718f0549c11aa6aaf9463bf24af6ec86ae6a8b2bf1ff59c8a2a4f517b6"
 
 _U64 = nb.types.uint64
 
@@ -984,6 +986,8 @@ def generation(
                     cost[i] = trial_cost[i]
                     for j in range(n):
                         pop[i, j] = trials[i, j]
+            if _min(cost) < best_before:
+                counts[S_DE_GAINS] += 1
         counts[S_GENERATIONS] += 1
         counts[S_EVALUATIONS] += n_pop
         done = _refine_best(
@@ -1022,6 +1026,7 @@ def _report(counts, record, record_q, joint_params, out):
     out[O_EVALUATIONS] = counts[S_EVALUATIONS]
     out[O_LM_ITERATIONS] = counts[S_LM_ITERATIONS]
     out[O_RESTARTS] = counts[S_RESTARTS]
+    out[O_DE_GAINS] = counts[S_DE_GAINS]
     n = record_q.shape[0]
     for j in range(n):
         out[O_Q + j] = record_q[j]
