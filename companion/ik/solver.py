@@ -89,6 +89,7 @@ from companion.ik.layout import (
     MODE_POSE,
     MODE_POSITION,
     O_COST,
+    O_DE_GAINS,
     O_EVALUATIONS,
     O_GENERATIONS,
     O_LM_ITERATIONS,
@@ -128,34 +129,36 @@ class StopReason(Enum):
 
 @dataclass(frozen=True)
 class SolverSettings:
-    """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
+    """Settings of the search. The defaults are :data:`METHODS` ``"restarts"``: no DE
+    generation at all (``stall_generations`` 0), so ``F``, ``Cr`` and ``stall_gain`` do not
+    apply; ``"memetic"`` and ``"de"`` are the DE searches (see ``bench/solver.py`` and
+    ``docs/measurements/solver.md`` for how each was chosen)."""
 
     pop_size: int = 4
-    """DE population (NP)."""
+    """Population NP: the individuals drawn at each restart (LM starts from their best) and
+    DE's population between restarts."""
     F: float = 0.7
     """DE scale factor."""
     Cr: float = 0.7
     """DE crossover probability (binomial)."""
     lm_iterations: int = 30
-    """Damped-least-squares steps per refinement of DE's best (at most)."""
+    """Damped-least-squares steps per refinement of the population's best (at most)."""
     lm_lambda0: float = 0.1
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
-    lm_window: int = 4
+    lm_window: int = 3
     """LM gives up when the cost has not dropped below ``lm_progress`` × its value
-    ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
-    lm_progress: float = 0.3
+    ``lm_window`` steps ago (0: never): a start that is not converging hands over to the next
+    restart or DE generation. Tuning arms and seeds: 3 and 0.5 against 4 and 0.3 before,
+    median work 0.97–1.01×, p99 0.82–0.97× on six arms."""
+    lm_progress: float = 0.5
     """See ``lm_window``."""
-    stall_generations: int = 1
+    stall_generations: int = 0
     """Generations without progress (see ``stall_gain``) before the population is drawn anew
-    (the restart takes the next generation's DE step's place, and LM starts from its best)."""
+    (the restart takes the next generation's DE step's place, and LM starts from its best).
+    0: every generation is a restart, no DE step ever runs (method ``"restarts"``)."""
     stall_gain: float = 0.0
     """A generation makes progress when it brings the best cost below ``stall_gain`` times
-    what it was (0.5: at least halves it). 0, the default, counts no generation as progress:
-    with ``stall_generations`` 1 every generation after the first is a restart, i.e. the
-    search is LM from the best of ``pop_size`` fresh draws again and again (on
-    Puma560's and Stanford's poses with few solutions within the limits this took half the
-    work at p99 of the settings before, NP 8, 2 generations, gain 0.5, which keep DE
-    generations between restarts and were 10-25 % faster at p99 on UR5, UR10 and Baxter)."""
+    what it was (0.5: at least halves it; 1: any improvement; 0: none counts)."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
     warm_spread_deg: float = 5.0
@@ -173,7 +176,7 @@ class SolverSettings:
             ("lm_lambda0", self.lm_lambda0 > 0.0, "> 0"),
             ("lm_window", self.lm_window >= 0, ">= 0"),
             ("lm_progress", 0.0 < self.lm_progress <= 1.0, "in (0, 1]"),
-            ("stall_generations", self.stall_generations >= 1, ">= 1"),
+            ("stall_generations", self.stall_generations >= 0, ">= 0"),
             ("stall_gain", 0.0 <= self.stall_gain <= 1.0, "in [0, 1]"),
             ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
             ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
@@ -186,33 +189,70 @@ class SolverSettings:
 
 DEFAULT_SETTINGS = SolverSettings()
 
-#: Search methods by name, each the settings it starts from (the daemon's ``solver.method``).
-#: "memetic": the tuned defaults (DE with least-squares refinement; see the module docstring
-#: for what they amount to). "de": the same compiled search without the least-squares steps:
-#: plain DE rand/1/bin with the papers' Table 4 settings (F = 0.9, Cr = 0.95) and the authors'
-#: pick of NP (Table 5, test 9: 12), plus a restart (the population drawn anew, the best kept
-#: aside) after 50 generations in a row that did not improve the best. Without the restarts
-#: 40 % of random reachable poses of the default arm stall short of the daemon's tolerances
-#: (0.01 cm, 0.1°) within 20 ms; with them none (200 poses: median 1.7 ms of CPU, p90 6.5 ms).
+#: Search methods by name, each the settings it starts from (the daemon's ``solver.method``,
+#: ``armbridge solve --method``):
+#:
+#: * ``"restarts"`` (the default, :data:`DEFAULT_SETTINGS`): multi-start LM. Draw NP = 4
+#:   joint vectors uniformly within the limits (one of them, at each restart, a corner of the
+#:   joint box), run LM from the best; if it does not converge, draw 4 anew, and again. No DE
+#:   generation runs.
+#: * ``"memetic"``: memetic DE. DE rand/1/bin generations (NP 6, F 0.5, Cr 0.3) each followed
+#:   by LM on the best individual not yet refined to a standstill, the result written back
+#:   into the population; the population is drawn anew after 2 generations in a row that did
+#:   not improve its best. Tuned on seeds 0–99 of six arms (F, Cr, NP, generations between
+#:   restarts; bench/solver.py): the least bad of the DE variants, and still 0–20 % more work
+#:   at the median and up to 40 % at p99 than "restarts" (its DE generations lower the best
+#:   cost in 1–3 % of solves).
+#: * ``"de"``: the papers' DE, no least squares: rand/1/bin with Table 4's F = 0.9 and
+#:   Cr = 0.95 and the authors' pick of NP (Table 5, test 9: 12), plus a restart (the
+#:   population drawn anew, the best kept aside) after 50 generations in a row that did not
+#:   improve the best. Without the restarts 40 % of random reachable poses of the default arm
+#:   stall short of the daemon's tolerances (0.01 cm, 0.1°) within 20 ms; with them none (200
+#:   poses: median 1.7 ms of CPU, p90 6.5 ms).
 METHODS: dict[str, SolverSettings] = {
-    "memetic": DEFAULT_SETTINGS,
+    "restarts": DEFAULT_SETTINGS,
+    "memetic": SolverSettings(pop_size=6, F=0.5, Cr=0.3, stall_generations=2, stall_gain=1.0),
     "de": SolverSettings(
         pop_size=12, F=0.9, Cr=0.95, lm_iterations=0, stall_generations=50, stall_gain=1.0
     ),
 }
 
+DEFAULT_METHOD = "restarts"
+"""The method :data:`DEFAULT_SETTINGS` are (the daemon's default ``solver.method``)."""
 
-def method_settings(method: str = "memetic", **changes: Any) -> SolverSettings:
+#: Settings a method does not use, refused by :func:`method_settings` with the reason.
+_NOT_FOR = {
+    "restarts": {
+        "F": "restarts runs no DE generation",
+        "Cr": "restarts runs no DE generation",
+        "stall_generations": "restarts draws the population anew at every generation",
+        "stall_gain": "restarts draws the population anew at every generation",
+    },
+    "memetic": {},
+    "de": {"lm_iterations": "de runs no least-squares steps"},
+}
+
+
+def method_settings(method: str = DEFAULT_METHOD, **changes: Any) -> SolverSettings:
     """The settings of search ``method`` (a name in :data:`METHODS`) with ``changes``
     (:class:`SolverSettings` fields) over its own. With no changes, the method's own object:
     :func:`solve` keeps its arrays and estimates from call to call for one settings object.
-    ``"de"`` runs no least-squares steps: ``lm_iterations`` above 0 is refused with it."""
+    A setting the method does not use is refused (``ValueError`` naming it and the method):
+    ``F``, ``Cr``, ``stall_generations`` and ``stall_gain`` with ``"restarts"``,
+    ``lm_iterations`` above 0 with ``"de"``; ``"memetic"`` and ``"de"`` need
+    ``stall_generations`` ≥ 1 (0 is ``"restarts"``)."""
     if method not in METHODS:
         raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
-    if method == "de" and changes.get("lm_iterations", 0) != 0:
+    for name, why in _NOT_FOR[method].items():
+        if name in changes and not (name == "lm_iterations" and changes[name] == 0):
+            users = [m for m in METHODS if name not in _NOT_FOR[m]]
+            raise ValueError(
+                f"{name}={changes[name]!r} goes with method {' or '.join(map(repr, users))}: {why}"
+            )
+    if method != "restarts" and changes.get("stall_generations", 1) < 1:
         raise ValueError(
-            f"lm_iterations={changes['lm_iterations']!r} goes with method 'memetic': "
-            "'de' runs no least-squares steps"
+            f"stall_generations={changes['stall_generations']!r} must be >= 1 with method "
+            f"{method!r} (0, a restart at every generation, is method 'restarts')"
         )
     return replace(METHODS[method], **changes) if changes else METHODS[method]
 
@@ -242,6 +282,9 @@ class IKResult:
     restarts: int
     stop_reason: StopReason
     q: tuple[float, ...] = ()
+    de_improvements: int = 0
+    """DE generations (not restarts) whose selection lowered the population's best cost: the
+    search's DE did measurable work in this solve when it is above 0."""
 
     @property
     def q_rad(self) -> FloatArray:
@@ -405,7 +448,6 @@ def solve(
     if not _warmed_up:
         warm_up()
     started = clock()
-    cpu_started = cpu_clock()
     pose = target if type(target) is Pose else _as_pose(target)
     # The common case inline (a Python call costs ~0.06 µs; a fast solve is ~15 µs).
     if type(budget_ms) is float and 0.0 < budget_ms < math.inf:
@@ -470,8 +512,10 @@ def solve(
     # (about one generation's work), counted in CPU time if that is less, so an
     # initialisation preempted for 11 ms does not make every generation look 11 ms long.
     # Carried over, the estimates stay within 4× of that calibration either way. The CPU
-    # clock is a system call (~0.6 µs, ten times the wall clock's), so it is read at the start
-    # and after each chunk that did not converge, not once more at the end.
+    # clock is a system call (~0.7 µs, and a lock in the kernel: 5 % of a fast solve), so a
+    # calibrated call reads it only after a chunk that did not converge, never at the start
+    # nor at the end: the first chunk's CPU time is then counted as its wall time (an upper
+    # bound; a first chunk preempted for a while leaves the search that much less budget).
     if ws.clock is clock and ws.cpu_clock is cpu_clock:
         cpu_estimate_s = ws.cpu_estimate_s
         wall_estimate_s = ws.wall_estimate_s
@@ -487,24 +531,31 @@ def solve(
             limit = int(0.5 * left_s / wall_estimate_s) if left_s > 0.0 else 0
         gens = limit - 1 if limit > 1 else 0
         done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
-        now = clock()
         if not done:
+            now = clock()
             cpu_now = cpu_clock()
-            sample_s = (cpu_now - cpu_started) / (gens + 1)
+            cpu_started = cpu_now - (now - started)  # see above: wall time so far
+            sample_s = (now - started) / (gens + 1)
             if sample_s > 4.0 * cpu_estimate_s:
                 sample_s = 4.0 * cpu_estimate_s
             cpu_estimate_s += 0.25 * (sample_s - cpu_estimate_s)
             wall_estimate_s += 0.25 * ((now - before) / (gens + 1) - wall_estimate_s)
-        chunk = 2 * gens if gens > 0 else 2
-        if chunk > 64:
-            chunk = 64
+            chunk = 2 * gens if gens > 0 else 2
+            if chunk > 64:
+                chunk = 64
     else:
+        cpu_started = cpu_clock()
         done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, 0)
         now = clock()
         cpu_now = cpu_clock()
         cpu_estimate_s = wall_estimate_s = min(now - started, cpu_now - cpu_started)
         ws.calibration_s = cpu_estimate_s
+        ws.cpu_estimate_s = ws.wall_estimate_s = cpu_estimate_s
+        ws.clock = clock
+        ws.cpu_clock = cpu_clock
         chunk = 1
+    # A call that converged in its first compiled call (most do) changed no estimate.
+    at_once = done
     while True:
         if done:
             reason = StopReason.CONVERGED
@@ -537,11 +588,10 @@ def solve(
             cpu_now = cpu_after
         now = after
         chunk = min(2 * chunk, 64)
-    calibration_s = ws.calibration_s
-    ws.cpu_estimate_s = min(max(cpu_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
-    ws.wall_estimate_s = min(max(wall_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
-    ws.clock = clock
-    ws.cpu_clock = cpu_clock
+    if not at_once:
+        calibration_s = ws.calibration_s
+        ws.cpu_estimate_s = min(max(cpu_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
+        ws.wall_estimate_s = min(max(wall_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
 
     out = ws.out.tolist()
     n = ws.n
@@ -561,6 +611,7 @@ def solve(
     fields["restarts"] = int(out[O_RESTARTS])
     fields["stop_reason"] = reason
     fields["q"] = tuple(out[O_Q : O_Q + n])
+    fields["de_improvements"] = int(out[O_DE_GAINS])
     return result
 
 
@@ -673,10 +724,25 @@ def _check_search_arrays(args: tuple[np.ndarray, ...]) -> None:
 _local = threading.local()
 
 
+_WORKSPACES = 8
+"""Workspaces a thread keeps (the last used is also ``_local.ws``, the fast path): a caller
+that alternates settings or arms (a bench comparing methods pose by pose) keeps each one's
+arrays and estimates instead of rebuilding them at every switch."""
+
+
 def _workspace(arm: Arm, settings: SolverSettings) -> _Workspace:
     ws: _Workspace | None = getattr(_local, "ws", None)
     if ws is None or ws.arm is not arm or ws.settings is not settings:
-        ws = _Workspace(arm, settings)
+        kept: dict[tuple[int, int], _Workspace] | None = getattr(_local, "kept", None)
+        if kept is None:
+            kept = _local.kept = {}
+        key = (id(arm), id(settings))
+        ws = kept.pop(key, None)
+        if ws is None or ws.arm is not arm or ws.settings is not settings:
+            ws = _Workspace(arm, settings)
+        if len(kept) >= _WORKSPACES:
+            del kept[next(iter(kept))]  # the least recently used
+        kept[key] = ws
         _local.ws = ws
     return ws
 
