@@ -11,8 +11,8 @@ from __future__ import annotations
 
 # Layout of the float parameter vector ``fparams``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-F_SPREAD, F_STALL_GAIN = 8, 9
-N_FPARAMS = 10
+F_SPREAD, F_STALL_GAIN, F_LM_NEAR = 8, 9, 10
+N_FPARAMS = 11
 # Layout of the integer parameter vector ``iparams``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE, I_DOF, I_POP = range(6)
 N_IPARAMS = 6
