@@ -1,26 +1,40 @@
 """Deadline-bounded, warm-startable inverse kinematics: :func:`solve`.
 
 This is where the time budget is enforced. The search itself is compiled
-(:mod:`companion.ik.kernels`): memetic differential evolution, DE rand/1/bin with
-damped-least-squares (Levenberg–Marquardt) steps refining its best individual, and restarts.
-Under the default settings (:data:`DEFAULT_SETTINGS`: NP 4, up to 30 LM steps, a restart
-after every generation that does not meet the tolerances) it is in effect LM from the best of
-4 random draws, again and again: on 3 × 300 random reachable poses of the default arm, cold,
-untimed, 69–77 % of solves ended in the LM of the first population (no generation at all),
-every other one ran exactly one DE generation, and every later generation was a restart
-(seeds 0, 1, 2 of the draw: 225, 232, 208 of 300; all converged; the tolerances 1e-3 cm and
-1e-3° or the daemon's 0.01 cm and 0.1° alike)::
+(:mod:`companion.ik.kernels`); three methods share it (:data:`METHODS`, the daemon's
+``[solver] method``, ``armbridge solve --method``):
 
-    python -c "import numpy as np; from companion.ik import solve; \
-    from companion.kinematics import Arm, Pose; a = Arm.default(); \
-    rs = [solve(a, Pose.from_matrix(a.fk_matrix(q)), seed=k, budget_ms=None) \
-    for k, q in enumerate(a.random_q_rad(np.random.default_rng(0), 300))]; \
-    print(sum(r.generations == 0 for r in rs), max(r.generations - r.restarts for r in rs))"
+* ``"restarts"``, the default: multi-start damped least squares. Draw NP = 4 joint vectors
+  uniformly within the limits (at every restart after the first, one of them a corner of the
+  joint box: targets reached with joints at their limits converge from there), run
+  Levenberg–Marquardt (LM, analytic geometric Jacobian, clamped to the limits) from the best of
+  them; if it does not reach the tolerances, draw 4 anew and run LM again, until it does or the
+  budget is spent. The best configuration seen is kept throughout. No DE generation runs
+  (``stall_generations`` 0: every generation is a restart). A start whose LM stops making
+  progress (its cost not below 0.3 × what it was 4 steps before, while more than
+  ``lm_near_cost`` from the target) is abandoned early for a fresh draw.
+* ``"memetic"``: memetic DE, DE rand/1/bin generations (NP 6, F 0.5, Cr 0.3) each followed by
+  LM on the best individual not yet refined to a standstill, written back into the population;
+  the population is drawn anew after 2 generations in a row that did not improve its best.
+* ``"de"``: the papers' DE with no least squares (rand/1/bin, Table 4's F 0.9 and Cr 0.95, NP
+  12), with a restart after 50 generations without improvement.
 
-The DE proper (several generations between restarts) is :data:`METHODS` ``"de"``: the same
-kernels without LM, with the papers' F and Cr. This module runs the search in chunks of
-generations (one compiled call each, :func:`kernels.search`), reading the clocks between
-chunks; the first call also initialises the population. Two limits bound it: the budget
+Why the default is "restarts" and not DE: measured on the tuning arms and seeds (``bench/
+solver.py``: seeds 0–99; paper arm, Puma560, UR5, Panda, Stanford, Orion5), every setting that
+lets DE generations run between restarts did more work than restarting. Over NP 6–12, 1–4
+generations between restarts, F 0.5–0.9 and Cr 0.3–0.95, the median CPU time per solve was
+−8 % to +26 % of restarts' and p99 −26 % to +200 %, the mean always higher; their DE
+generations lowered the population's best cost in 1–4 % of solves
+(``IKResult.de_improvements``). "memetic" is the least bad of them: median +0–21 %, p99
+−4 % to +39 %. The settings before this (NP 4, one DE generation after a failed first LM, then
+restarts) spent that generation for little as well: restarting right away was 1–8 % faster at
+the median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
+first LM run. ``docs/measurements/solver.md`` has the
+per-arm table of the three methods beside roboticstoolbox's ``ik_LM``.
+
+This module runs the search in chunks of generations (one compiled call each,
+:func:`kernels.search`), reading the clocks between chunks; the first call also initialises
+the population (for "restarts": the first draw and its LM run). Two limits bound it: the budget
 (``budget_ms``) counts this thread's CPU time, so time other processes hold the CPU is not
 taken from the search; the ceiling (``ceiling_ms``, by default :data:`CEILING_PER_BUDGET` × the
 budget) bounds the call in wall time however little CPU it got. It stops:
@@ -34,7 +48,9 @@ budget) bounds the call in wall time however little CPU it got. It stops:
   call with a pair of clocks calibrates them on the initialisation, counted in CPU time if that
   is less. A chunk is never predicted to take more than half of the budget, or of the time to
   the ceiling, left; so the ceiling holds unless one generation takes twice the average and
-  more, or the machine does not let this thread run at all;
+  more, or the machine does not let this thread run at all. (A call whose first compiled call
+  does not converge counts that call's CPU time as its wall time, an upper bound: the CPU
+  clock is not read before it, to keep a system call off every solve.)
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 With ``budget_ms=None`` there is no deadline (and no ceiling unless one is given): the search is
@@ -53,8 +69,9 @@ never an exception.
 
 Warm start: ``q_start_deg`` (normally the previous command) is in the first population (with
 the default NP 4 the only individual around it; a larger one adds a third within
-``settings.warm_spread_deg``), and a minimal-movement term (``settings.movement_weight``)
-keeps consecutive solutions on the same elbow/wrist branch.
+``settings.warm_spread_deg``), so the first LM run starts from it whenever it is the best of
+the draws (a small move of the target), and a minimal-movement term
+(``settings.movement_weight``) keeps consecutive solutions on the same elbow/wrist branch.
 
 Importing this module does no work and does not import numba. :func:`warm_up` loads the
 kernels: the ahead-of-time module (:mod:`companion.ik.aot`: a plain extension module, no numba
