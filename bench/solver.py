@@ -690,7 +690,8 @@ def main() -> None:
         if n not in ARMS:
             parser.error(f"--arms: {n!r} is not one of {', '.join(ARMS)}")
     started = time.perf_counter()
-    lines = header(sys.argv[1:])
+    lines = ["# IK solver: ours against roboticstoolbox ik_LM (bench/solver.py)", ""]
+    lines += header(sys.argv[1:])
     main_rows: list[dict] = []
     sweep_rows: list[dict] = []
     limit_rows: list[dict] = []
