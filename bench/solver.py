@@ -254,7 +254,8 @@ def interleaved(
     shuffled for each pose), all in this thread: a worker thread per solver measured 10-15 µs
     more CPU time per call for ours and for rtb alike (the thread woken on another core,
     cold). The solver keeps a workspace per (arm, settings) in the thread, so each method
-    keeps its arrays and estimates from one pose to the next, as a daemon would. One row per solver."""
+    keeps its arrays and estimates from one pose to the next, as a daemon would. One row per
+    solver."""
     peers = list(methods) + (["rtb"] if ets is not None else [])
     stats: dict[str, dict[str, list]] = {who: {"ok": [], "cpu": [], "wall": []} for who in peers}
     results: dict[str, list[IKResult]] = {m: [] for m in methods}
