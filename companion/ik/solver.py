@@ -481,10 +481,10 @@ def solve(
     started = clock()
     pose = target if type(target) is Pose else _as_pose(target)
     # The common case inline (a Python call costs ~0.06 µs; a fast solve is ~15 µs).
-    if type(budget_ms) is float and 0.0 < budget_ms < math.inf:
+    if type(budget_ms) is float and 0.0 < budget_ms < _INF:
         budget_s = budget_ms * 1e-3
     elif budget_ms is None:
-        budget_s = math.inf  # never "predicted not to finish": only convergence or the limit
+        budget_s = _INF  # never "predicted not to finish": only convergence or the limit
     else:
         budget_s = _positive("budget_ms", budget_ms) * 1e-3
     if ceiling_ms is None:
@@ -500,8 +500,8 @@ def solve(
         ws.fparams[F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
         ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
-    if mode is TargetMode.POSE:
-        start = START_NEW | MODE_POSE
+    if mode is _POSE:
+        start = _START_POSE
     elif mode is TargetMode.POSITION:
         start = START_NEW | MODE_POSITION
     elif mode is TargetMode.POSITION_AXIS:
@@ -518,11 +518,7 @@ def solve(
         start |= START_HAS_PREV
     ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
-    counts = ws.counts
-    max_gens = settings.max_generations
     search = _search
-    x_cm, y_cm, z_cm = pose.x_cm, pose.y_cm, pose.z_cm
-    roll_deg, pitch_deg, yaw_deg = pose.roll_deg, pose.pitch_deg, pose.yaw_deg
 
     # Two limits, each with its own estimate of a generation: the budget counts this thread's
     # CPU time (``cpu_clock``), the ceiling wall time (``clock``). Another process that holds
@@ -550,18 +546,25 @@ def solve(
     if ws.clock is clock and ws.cpu_clock is cpu_clock:
         cpu_estimate_s = ws.cpu_estimate_s
         wall_estimate_s = ws.wall_estimate_s
-        limit = (_FIRST_CHUNK if _FIRST_CHUNK < max_gens else max_gens) + 1
-        before = clock()
-        # The CPU used so far is at most the wall time that passed: no second CPU read.
-        spent_s = before - started
-        left_s = budget_s - spent_s
-        if limit * cpu_estimate_s > 0.5 * left_s:
-            limit = int(0.5 * left_s / cpu_estimate_s) if left_s > 0.0 else 0
-        left_s = ceiling_s - spent_s
-        if limit * wall_estimate_s > 0.5 * left_s:
-            limit = int(0.5 * left_s / wall_estimate_s) if left_s > 0.0 else 0
+        # The first chunk is sized on the whole budget and ceiling: the microseconds of
+        # Python since ``started`` are left out of the sizing (not out of the search's time).
+        limit = ws.first_limit
+        if limit * cpu_estimate_s > 0.5 * budget_s:
+            limit = int(0.5 * budget_s / cpu_estimate_s)
+        if limit * wall_estimate_s > 0.5 * ceiling_s:
+            limit = int(0.5 * ceiling_s / wall_estimate_s)
         gens = limit - 1 if limit > 1 else 0
-        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
+        done = search(
+            *args,
+            start,
+            pose.x_cm,
+            pose.y_cm,
+            pose.z_cm,
+            pose.roll_deg,
+            pose.pitch_deg,
+            pose.yaw_deg,
+            gens,
+        )
         if not done:
             now = clock()
             cpu_now = cpu_clock()
@@ -570,13 +573,23 @@ def solve(
             if sample_s > 4.0 * cpu_estimate_s:
                 sample_s = 4.0 * cpu_estimate_s
             cpu_estimate_s += 0.25 * (sample_s - cpu_estimate_s)
-            wall_estimate_s += 0.25 * ((now - before) / (gens + 1) - wall_estimate_s)
+            wall_estimate_s += 0.25 * ((now - started) / (gens + 1) - wall_estimate_s)
             chunk = 2 * gens if gens > 0 else 2
             if chunk > 64:
                 chunk = 64
     else:
         cpu_started = cpu_clock()
-        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, 0)
+        done = search(
+            *args,
+            start,
+            pose.x_cm,
+            pose.y_cm,
+            pose.z_cm,
+            pose.roll_deg,
+            pose.pitch_deg,
+            pose.yaw_deg,
+            0,
+        )
         now = clock()
         cpu_now = cpu_clock()
         cpu_estimate_s = wall_estimate_s = min(now - started, cpu_now - cpu_started)
@@ -591,7 +604,7 @@ def solve(
         if done:
             reason = StopReason.CONVERGED
             break
-        left = max_gens - int(counts[S_GENERATIONS])
+        left = settings.max_generations - int(ws.counts[S_GENERATIONS])
         if left <= 0:
             reason = StopReason.ITERATION_LIMIT
             break
@@ -609,7 +622,8 @@ def solve(
             if gens < 1:
                 reason = StopReason.CEILING
                 break
-        done = search(*args, 0, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
+        # The pose arguments are read only when a search starts (start 0 goes on).
+        done = search(*args, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gens)
         after = clock()
         if not done:
             cpu_after = cpu_clock()
@@ -647,6 +661,9 @@ def solve(
 
 
 _new_result = object.__new__
+_INF = math.inf
+_POSE = TargetMode.POSE
+_START_POSE = START_NEW | MODE_POSE
 
 
 def _axis_goal(
@@ -727,6 +744,8 @@ class _Workspace:
         self.iparams[layout.I_DOF] = n
         self.iparams[layout.I_POP] = size
         self.rng = np.zeros(1, dtype=np.uint64)
+        # The first compiled call: the initialisation and up to _FIRST_CHUNK generations.
+        self.first_limit = min(_FIRST_CHUNK, settings.max_generations) + 1
         # The estimates of a generation's CPU and wall time, carried from call to call, and
         # the clocks they were measured on (see solve()).
         self.clock: Clock | None = None
