@@ -516,7 +516,7 @@ def solve(
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
         np.clip(q_start * ws.to_joint, ws.lower, ws.upper, out=ws.q_start)
         start |= START_HAS_PREV
-    ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
+    ws.rng_items[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
     search = _search
 
@@ -638,7 +638,7 @@ def solve(
         ws.cpu_estimate_s = min(max(cpu_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
         ws.wall_estimate_s = min(max(wall_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
 
-    out = ws.out.tolist()
+    out = ws.out_items.tolist()
     n = ws.n
     # The frozen dataclass's own __init__ sets its 12 fields one object.__setattr__ at a time
     # (~2 µs); filling the instance's dict is the same object for a third of that.
@@ -730,6 +730,7 @@ class _Workspace:
         self.goal = goal.reshape(4, 4)
         self.goal[...] = np.eye(4)
         record[...] = np.inf
+        self.out_items = memoryview(self.out)
         self.fparams[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
         self.fparams[layout.F_SCALE] = settings.F
         self.fparams[layout.F_CR] = settings.Cr
@@ -744,6 +745,10 @@ class _Workspace:
         self.iparams[layout.I_DOF] = n
         self.iparams[layout.I_POP] = size
         self.rng = np.zeros(1, dtype=np.uint64)
+        # The generator's state and the results through memoryviews: setting and reading
+        # them so runs CPython's own code, not numpy's item machinery (solve() does both at
+        # every call; from cold caches it is the lighter path).
+        self.rng_items = memoryview(self.rng)
         # The first compiled call: the initialisation and up to _FIRST_CHUNK generations.
         self.first_limit = min(_FIRST_CHUNK, settings.max_generations) + 1
         # The estimates of a generation's CPU and wall time, carried from call to call, and
