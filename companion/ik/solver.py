@@ -111,15 +111,14 @@ from companion.ik.layout import (
     MODE_POSE,
     MODE_POSITION,
     O_COST,
-    O_DE_GAINS,
-    O_EVALUATIONS,
-    O_GENERATIONS,
-    O_LM_ITERATIONS,
     O_ORI_DEG,
     O_POS_CM,
     O_Q,
-    O_RESTARTS,
+    S_DE_GAINS,
+    S_EVALUATIONS,
     S_GENERATIONS,
+    S_LM_ITERATIONS,
+    S_RESTARTS,
     START_GOAL_SET,
     START_HAS_PREV,
     START_NEW,
@@ -650,13 +649,14 @@ def solve(
     fields["cost"] = out[O_COST]
     fields["converged"] = reason is StopReason.CONVERGED
     fields["elapsed_ms"] = (clock() - started) * 1e3
-    fields["generations"] = int(out[O_GENERATIONS])
-    fields["evaluations"] = int(out[O_EVALUATIONS])
-    fields["lm_iterations"] = int(out[O_LM_ITERATIONS])
-    fields["restarts"] = int(out[O_RESTARTS])
+    counts = ws.counts_items.tolist()  # ints already: no int() of each float in ``out``
+    fields["generations"] = counts[S_GENERATIONS]
+    fields["evaluations"] = counts[S_EVALUATIONS]
+    fields["lm_iterations"] = counts[S_LM_ITERATIONS]
+    fields["restarts"] = counts[S_RESTARTS]
     fields["stop_reason"] = reason
     fields["q"] = tuple(out[O_Q : O_Q + n])
-    fields["de_improvements"] = int(out[O_DE_GAINS])
+    fields["de_improvements"] = counts[S_DE_GAINS]
     return result
 
 
@@ -730,7 +730,8 @@ class _Workspace:
         self.goal = goal.reshape(4, 4)
         self.goal[...] = np.eye(4)
         record[...] = np.inf
-        self.out_items = memoryview(self.out)
+        self.out_items = self.out.data
+        self.counts_items = self.counts.data
         self.fparams[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
         self.fparams[layout.F_SCALE] = settings.F
         self.fparams[layout.F_CR] = settings.Cr
@@ -748,7 +749,7 @@ class _Workspace:
         # The generator's state and the results through memoryviews: setting and reading
         # them so runs CPython's own code, not numpy's item machinery (solve() does both at
         # every call; from cold caches it is the lighter path).
-        self.rng_items = memoryview(self.rng)
+        self.rng_items = self.rng.data
         # The first compiled call: the initialisation and up to _FIRST_CHUNK generations.
         self.first_limit = min(_FIRST_CHUNK, settings.max_generations) + 1
         # The estimates of a generation's CPU and wall time, carried from call to call, and
