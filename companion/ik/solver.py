@@ -32,10 +32,11 @@ generations lowered the population's best cost in 1–4 % of solves
 restarts) spent that generation for little as well: restarting right away was 1–8 % faster at
 the median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
 first LM run. On the bench (``docs/measurements/solver.md``: rtb's whole DH zoo, seed 2026,
-the three methods and roboticstoolbox's ``ik_LM`` taking turns pose by pose) memetic's median
-was −2 % to +13 % of restarts' and its DE generations lowered the best cost in 0–8 % of solves
-(3 % or less on every arm of 3 joints or more); the papers' DE took 5–30× rtb's time and missed
-the 20 ms budget on up to 17 % of poses.
+the three methods and roboticstoolbox's ``ik_LM`` taking turns pose by pose; two runs)
+memetic's median was −2 % to +15 % of restarts' (above it on 24 of the 25 arms in either run)
+and its DE generations lowered the best cost in 0–8 % of solves (3 % or less on every arm of 3
+joints or more); the papers' DE took 5–45× rtb's time and missed the 20 ms budget on up to
+17 % of poses.
 
 This module runs the search in chunks of generations (one compiled call each,
 :func:`kernels.search`), reading the clocks between chunks; the first call also initialises
