@@ -33,7 +33,7 @@ restarts) spent that generation for little as well: restarting right away was 1�
 the median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
 first LM run. On the bench (``docs/measurements/solver.md``: rtb's whole DH zoo, seed 2026,
 the three methods and roboticstoolbox's ``ik_LM`` taking turns pose by pose; two runs)
-memetic's median was −2 % to +15 % of restarts' (above it on 24 of the 25 arms in either run)
+memetic's median was −2 % to +15 % of restarts' (above it on 23 and 24 of the 25 arms)
 and its DE generations lowered the best cost in 0–8 % of solves (3 % or less on every arm of 3
 joints or more); the papers' DE took 5–45× rtb's time and missed the 20 ms budget on up to
 17 % of poses.
