@@ -55,10 +55,17 @@ def _frame_toml(key: str, matrix: np.ndarray) -> str:
 
 
 def arm_toml(name: str) -> str:
-    robot = _model(name)
+    return model_toml(MODELS[name], name)
+
+
+def model_toml(model: str, name: str) -> str:
+    """The arm file of ``roboticstoolbox.models.DH.<model>()`` (any of rtb's DH zoo)."""
+    import roboticstoolbox as rtb
+
+    robot = getattr(rtb.models.DH, model)()
     qlim = robot.ets().qlim  # rtb's limits, ±π where the model has none
     lines = [
-        f"# {robot.name} from roboticstoolbox-python {_rtb_version()} (models.DH.{MODELS[name]}),",
+        f"# {robot.name} from roboticstoolbox-python {_rtb_version()} (models.DH.{model}),",
         "# written by bench/arm_references.py --write-arms. Lengths in metres as rtb has them.",
         f'name = "{name}"',
         f'convention = "{"modified" if robot.mdh else "standard"}"',

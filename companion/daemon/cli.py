@@ -75,7 +75,7 @@ def _cmd_solve(args: argparse.Namespace) -> int:
 
     flags = {key: getattr(args, key) for key in SEARCH_FLAGS if getattr(args, key) is not None}
     changes = search_changes(Table(flags, "", error=FlagError))
-    settings = ik.method_settings(flags.get("method", "memetic"), **dict(changes))
+    settings = ik.method_settings(flags.get("method", ik.DEFAULT_METHOD), **dict(changes))
 
     if args.arm and args.arm.lower().endswith(".urdf"):
         arm = Arm.from_urdf(args.arm, tip_link=args.tip_link)
@@ -607,23 +607,31 @@ def build_parser() -> argparse.ArgumentParser:
     )
     search.add_argument(
         "--method",
-        help="memetic (default: DE with least-squares steps) or de (plain DE, no least squares)",
+        help="restarts (default: least squares from the best of NP fresh draws, again and "
+        "again), memetic (DE generations with least-squares steps) or de (the papers' DE, no "
+        "least squares)",
     )
-    search.add_argument("--pop-size", type=int, help="DE population NP [4, 100]")
-    search.add_argument("--mutation-f", type=float, help="DE scale factor F (0, 2]")
-    search.add_argument("--crossover-cr", type=float, help="DE crossover probability Cr [0, 1]")
     search.add_argument(
-        "--lm-iterations", type=int, help="least-squares steps per refinement [0, 100] (memetic)"
+        "--pop-size", type=int, help="NP: draws per restart, DE's population [4, 100]"
+    )
+    search.add_argument("--mutation-f", type=float, help="DE scale factor F (0, 2] (DE methods)")
+    search.add_argument(
+        "--crossover-cr", type=float, help="DE crossover probability Cr [0, 1] (DE methods)"
+    )
+    search.add_argument(
+        "--lm-iterations",
+        type=int,
+        help="least-squares steps per refinement [0, 100] (restarts, memetic)",
     )
     search.add_argument(
         "--stall-generations",
         type=int,
-        help="generations without progress before a restart [1, 10000]",
+        help="generations without progress before a restart [1, 10000] (DE methods)",
     )
     search.add_argument(
         "--stall-gain",
         type=float,
-        help="progress: the best cost cut below this times what it was [0, 1]",
+        help="progress: the best cost cut below this times what it was [0, 1] (DE methods)",
     )
     p.set_defaults(func=_cmd_solve)
 

@@ -79,20 +79,25 @@ TOL_POS_CM = (1e-6, 10.0)
 TOL_ORI_DEG = (1e-6, 180.0)
 #: The solver's search methods: the names of companion.ik.METHODS (a test keeps the two equal;
 #: named here so that check-config starts without the solver).
-SOLVER_METHODS = ("memetic", "de")
+SOLVER_METHODS = ("restarts", "memetic", "de")
+#: The default method (companion.ik.DEFAULT_METHOD; the same test keeps the two equal).
+SOLVER_METHOD = "restarts"
 #: The search's settings (``solver.method`` and the rest; the defaults are the method's own,
-#: companion.ik.METHODS). DE rand/1 draws three others besides each individual: 4 at
-#: least. The papers' populations went to 30; at 100 one generation is ~30 µs of evaluations.
+#: companion.ik.METHODS). NP: the individuals drawn at each restart, and DE's population;
+#: DE rand/1 draws three others besides each individual: 4 at least. The papers' populations
+#: went to 30; at 100 one generation is ~30 µs of evaluations.
 POP_SIZE = (4, 100)
 #: DE's scale factor F: 0 would not move; past 2 a difference vector overshoots the joint box.
 MUTATION_F = (None, 2.0)
 #: DE's crossover probability Cr (binomial; one coordinate always comes from the donor).
 CROSSOVER_CR = (0.0, 1.0)
-#: Least-squares steps per refinement ("memetic" only; 0: none). LM hands back to DE when a
-#: few steps did not cut the cost; 100 steps from one start is past converging.
+#: Least-squares steps per refinement ("restarts" and "memetic"; 0: none). LM hands over to
+#: the next restart or DE generation when a few steps did not cut the cost; 100 steps from
+#: one start is past converging.
 LM_ITERATIONS = (0, 100)
-#: Generations in a row without progress before the population is drawn anew (a restart);
-#: 10 000 generations are past any budget (~1 µs each at the least).
+#: Generations in a row without progress before the population is drawn anew (a restart;
+#: "memetic" and "de": "restarts" draws it anew at every generation); 10 000 generations are
+#: past any budget (~1 µs each at the least).
 STALL_GENERATIONS = (1, 10_000)
 #: A generation makes progress when it brings the best cost below this times what it was:
 #: 0 counts none (restart after every ``stall_generations``), 1 counts any improvement.
@@ -183,7 +188,7 @@ class DaemonConfig:
     seed: int | None = None
     #: ``solver.method``, and the search settings the file sets over the method's own, as
     #: sorted (SolverSettings field, value) pairs (see :attr:`search_settings`).
-    solver_method: str = "memetic"
+    solver_method: str = SOLVER_METHOD
     solver_settings: tuple[tuple[str, float], ...] = ()
     rate_hz: float = 20.0
     joint_speed_deg_s: float = 60.0
@@ -352,7 +357,7 @@ def parse_config(data: dict, *, source: str = "<dict>") -> DaemonConfig:
         tol_pos_cm=_bounded(solver, "tol_pos_cm", 0.01, TOL_POS_CM),
         tol_ori_deg=_bounded(solver, "tol_ori_deg", 0.1, TOL_ORI_DEG),
         seed=solver.integer("seed", min_value=0) if "seed" in solver else None,
-        solver_method=solver.string("method", "memetic", choices=SOLVER_METHODS),
+        solver_method=solver.string("method", SOLVER_METHOD, choices=SOLVER_METHODS),
         solver_settings=search_changes(solver),
         rate_hz=_bounded(control, "rate_hz", 20.0, RATE_HZ),
         joint_speed_deg_s=_bounded(arm_table, "joint_speed_deg_s", 60.0, JOINT_SPEED_DEG_S),
@@ -504,16 +509,30 @@ def _check_rest_pose_clear(
     )
 
 
+#: ``[solver]`` keys only some methods use: key → (those methods, why not the others). The
+#: same rules as ``companion.ik.method_settings``, named here for check-config.
+_SEARCH_KEY_METHODS = {
+    "mutation_f": (("memetic", "de"), '"restarts" runs no DE generation'),
+    "crossover_cr": (("memetic", "de"), '"restarts" runs no DE generation'),
+    "stall_generations": (
+        ("memetic", "de"),
+        '"restarts" draws the population anew at every generation',
+    ),
+    "stall_gain": (("memetic", "de"), '"restarts" draws the population anew at every generation'),
+    "lm_iterations": (("restarts", "memetic"), '"de" runs no least-squares steps'),
+}
+
+
 def search_changes(t: Table) -> tuple[tuple[str, float], ...]:
     """``[solver]``'s search settings, each checked against its bounds, as sorted
     (SolverSettings field, value) pairs over the method's own (``companion.ik.method_settings``
     takes them). ``armbridge solve`` checks its flags with this too (a table of them, its
     errors naming the flag)."""
-    method = t.string("method", "memetic", choices=SOLVER_METHODS)
-    if method == "de" and "lm_iterations" in t:
-        raise t.fail(
-            "lm_iterations", 'goes with method = "memetic" ("de" runs no least-squares steps)'
-        )
+    method = t.string("method", SOLVER_METHOD, choices=SOLVER_METHODS)
+    for key, (users, why) in _SEARCH_KEY_METHODS.items():
+        if key in t and method not in users:
+            named = " or ".join(f'"{m}"' for m in users)
+            raise t.fail(key, f"goes with method = {named} ({why})")
     changes: dict[str, float] = {}
     for key, (low, high) in (
         ("pop_size", POP_SIZE),

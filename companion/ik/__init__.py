@@ -7,6 +7,7 @@ the ahead-of-time module is there: :mod:`companion.ik.aot`).
 """
 
 from companion.ik.solver import (
+    DEFAULT_METHOD,
     DEFAULT_SETTINGS,
     METHODS,
     IKResult,
@@ -21,6 +22,7 @@ from companion.ik.solver import (
 )
 
 __all__ = [
+    "DEFAULT_METHOD",
     "DEFAULT_SETTINGS",
     "IKResult",
     "METHODS",

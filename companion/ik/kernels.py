@@ -55,6 +55,7 @@ import numpy as np
 from companion.ik.layout import (
     F_CR,
     F_LM_LAMBDA0,
+    F_LM_NEAR,
     F_LM_PROGRESS,
     F_LM_WINDOW,
     F_MOVE_W,
@@ -74,6 +75,7 @@ from companion.ik.layout import (
     MODE_POSITION,
     N_IPARAMS,
     O_COST,
+    O_DE_GAINS,
     O_EVALUATIONS,
     O_GENERATIONS,
     O_LM_ITERATIONS,
@@ -84,6 +86,7 @@ from companion.ik.layout import (
     R_COST,
     R_ORI_DEG,
     R_POS_CM,
+    S_DE_GAINS,
     S_EVALUATIONS,
     S_GENERATIONS,
     S_LM_ITERATIONS,
@@ -115,7 +118,7 @@ TWO_PI = 2.0 * math.pi
 # numba. numba freezes these globals into the compiled code, and its cache is keyed to this
 # file and each function's bytecode, not to them: this digest of layout.py makes a change there
 # change this file too, so the cache is rebuilt (tests/ik/test_aot.py checks that it is current).
-LAYOUT_SHA256 = "32abd9710a71e89e1a5667861437ef42b49cdd723335e987f3f2e11d52420a44"
+LAYOUT_SHA256 = "6a0fb365dc6c0a45f7170580c23dbedba4cd2f74ab4520503503ae242a83bf18"
 
 _U64 = nb.types.uint64
 
@@ -493,6 +496,9 @@ def lm_refine(q, lo, hi, frames, joint_params, goal, mode, fparams, iters, out):
     )
 
 
+# See _lm_steps' window test.
+NEAR_STALL = 0.9
+
 # A revolute joint whose range is at least this wide (but less than a turn) is free in LM: its
 # steps are not clamped at the limits, and only the configuration LM ends at is brought back
 # into them (:func:`_lm_steps`). Clamped steps stall at a limit, where a step round the other
@@ -532,6 +538,7 @@ def _lm_steps(
     tol_ori = fparams[F_TOL_ORI]
     window = int(fparams[F_LM_WINDOW])
     progress = fparams[F_LM_PROGRESS]
+    near = fparams[F_LM_NEAR]
     cost = np.inf
     pos_err = np.inf
     ori_err = np.inf
@@ -573,8 +580,11 @@ def _lm_steps(
             done = steps - start
             if window > 0 and done > 0 and done % window == 0:
                 # Slow progress over the last window: a local minimum, or far from the basin.
-                # Give up early; DE supplies other starts.
-                if cost > progress * checkpoint:
+                # Give up early; a restart or DE supplies other starts. Within
+                # fparams[F_LM_NEAR] of the target, only when it stalls (cost not below
+                # NEAR_STALL of what it was): there steady but slow progress is more likely a
+                # solution near a singularity approached (linearly) than a local minimum.
+                if cost > progress * checkpoint and (cost > near or cost > NEAR_STALL * checkpoint):
                     break
                 checkpoint = cost
             elif done == 0:
@@ -984,6 +994,8 @@ def generation(
                     cost[i] = trial_cost[i]
                     for j in range(n):
                         pop[i, j] = trials[i, j]
+            if _min(cost) < best_before:
+                counts[S_DE_GAINS] += 1
         counts[S_GENERATIONS] += 1
         counts[S_EVALUATIONS] += n_pop
         done = _refine_best(
@@ -1022,6 +1034,7 @@ def _report(counts, record, record_q, joint_params, out):
     out[O_EVALUATIONS] = counts[S_EVALUATIONS]
     out[O_LM_ITERATIONS] = counts[S_LM_ITERATIONS]
     out[O_RESTARTS] = counts[S_RESTARTS]
+    out[O_DE_GAINS] = counts[S_DE_GAINS]
     n = record_q.shape[0]
     for j in range(n):
         out[O_Q + j] = record_q[j]

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 # Layout of the float parameter vector ``fparams``.
 F_SCALE, F_CR, F_TOL_POS, F_TOL_ORI, F_MOVE_W, F_LM_LAMBDA0, F_LM_WINDOW, F_LM_PROGRESS = range(8)
-F_SPREAD, F_STALL_GAIN = 8, 9
-N_FPARAMS = 10
+F_SPREAD, F_STALL_GAIN, F_LM_NEAR = 8, 9, 10
+N_FPARAMS = 11
 # Layout of the integer parameter vector ``iparams``.
 I_LM_ITERS, I_STALL_GENS, I_HAS_PREV, I_MODE, I_DOF, I_POP = range(6)
 N_IPARAMS = 6
@@ -21,14 +21,15 @@ MODE_POSE, MODE_POSITION, MODE_AXIS = range(3)
 # Flags of ``kernels.search``'s ``start`` (the low two bits are the mode).
 START_HAS_PREV, START_GOAL_SET, START_NEW = 4, 8, 16
 # Layout of the integer state vector ``counts`` (counters the Python loop reads).
-S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS = range(5)
-N_STATE = 5
+S_GENERATIONS, S_EVALUATIONS, S_LM_ITERATIONS, S_STALE, S_RESTARTS, S_DE_GAINS = range(6)
+N_STATE = 6
 # Layout of ``record``: best found so far, pose-wise (q is kept in ``record_q``).
 R_COST, R_POS_CM, R_ORI_DEG = range(3)
-# Layout of ``out`` (what ``kernels.search`` returns to Python, 7 + 2n floats): the record, the
+# Layout of ``out`` (what ``kernels.search`` returns to Python, 8 + 2n floats): the record, the
 # counters, then the record's joints in joint units (rad, cm) and in user units (deg, cm).
 O_COST, O_POS_CM, O_ORI_DEG, O_GENERATIONS, O_EVALUATIONS, O_LM_ITERATIONS, O_RESTARTS = range(7)
-O_Q = 7
+O_DE_GAINS = 7
+O_Q = 8
 
 # ``kernels.search``'s array arguments, in order: (name, numpy dtype, ndim), each C-contiguous.
 # Three buffers, not an argument per array: the compiled wrapper unboxes every array argument at

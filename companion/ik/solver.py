@@ -1,26 +1,46 @@
 """Deadline-bounded, warm-startable inverse kinematics: :func:`solve`.
 
 This is where the time budget is enforced. The search itself is compiled
-(:mod:`companion.ik.kernels`): memetic differential evolution, DE rand/1/bin with
-damped-least-squares (Levenberg–Marquardt) steps refining its best individual, and restarts.
-Under the default settings (:data:`DEFAULT_SETTINGS`: NP 4, up to 30 LM steps, a restart
-after every generation that does not meet the tolerances) it is in effect LM from the best of
-4 random draws, again and again: on 3 × 300 random reachable poses of the default arm, cold,
-untimed, 69–77 % of solves ended in the LM of the first population (no generation at all),
-every other one ran exactly one DE generation, and every later generation was a restart
-(seeds 0, 1, 2 of the draw: 225, 232, 208 of 300; all converged; the tolerances 1e-3 cm and
-1e-3° or the daemon's 0.01 cm and 0.1° alike)::
+(:mod:`companion.ik.kernels`); three methods share it (:data:`METHODS`, the daemon's
+``[solver] method``, ``armbridge solve --method``):
 
-    python -c "import numpy as np; from companion.ik import solve; \
-    from companion.kinematics import Arm, Pose; a = Arm.default(); \
-    rs = [solve(a, Pose.from_matrix(a.fk_matrix(q)), seed=k, budget_ms=None) \
-    for k, q in enumerate(a.random_q_rad(np.random.default_rng(0), 300))]; \
-    print(sum(r.generations == 0 for r in rs), max(r.generations - r.restarts for r in rs))"
+* ``"restarts"``, the default: multi-start damped least squares. Draw NP = 4 joint vectors
+  uniformly within the limits (at every restart after the first, one of them a corner of the
+  joint box: targets reached with joints at their limits converge from there), run
+  Levenberg–Marquardt (LM, analytic geometric Jacobian, clamped to the limits) from the best of
+  them; if it does not reach the tolerances, draw 4 anew and run LM again, until it does or the
+  budget is spent. The best configuration seen is kept throughout. No DE generation runs
+  (``stall_generations`` 0: every generation is a restart). LM runs at most 30 steps from a
+  start, and abandons it early for a fresh draw when it stops making progress: its cost
+  (cm² + deg²) not below 0.3 × what it was 4 steps before while above ``lm_near_cost`` (400),
+  or not below 0.9 × once within it (near the target slow progress is more often a solution
+  near a singularity, approached linearly, than a local minimum).
+* ``"memetic"``: memetic DE, DE rand/1/bin generations (NP 6, F 0.5, Cr 0.3) each followed by
+  LM on the best individual not yet refined to a standstill, written back into the population;
+  the population is drawn anew after 2 generations in a row that did not improve its best.
+* ``"de"``: the papers' DE with no least squares (rand/1/bin, Table 4's F 0.9 and Cr 0.95, NP
+  12), with a restart after 50 generations without improvement.
 
-The DE proper (several generations between restarts) is :data:`METHODS` ``"de"``: the same
-kernels without LM, with the papers' F and Cr. This module runs the search in chunks of
-generations (one compiled call each, :func:`kernels.search`), reading the clocks between
-chunks; the first call also initialises the population. Two limits bound it: the budget
+Why the default is "restarts" and not DE: measured on the tuning arms and seeds (``bench/
+solver.py``: seeds 0–99; paper arm, Puma560, UR5, Panda, Stanford, Orion5), every setting that
+lets DE generations run between restarts did more work than restarting. Over NP 6–12, 1–4
+generations between restarts, F 0.5–0.9 and Cr 0.3–0.95, the median CPU time per solve was
+−8 % to +26 % of restarts' and p99 −26 % to +200 %, the mean always higher; their DE
+generations lowered the population's best cost in 1–4 % of solves
+(``IKResult.de_improvements``). "memetic" is the least bad of them: median +0–21 %, p99
+−4 % to +39 %. The settings before this (NP 4, one DE generation after a failed first LM, then
+restarts) spent that generation for little as well: restarting right away was 1–8 % faster at
+the median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
+first LM run. On the bench (``docs/measurements/solver.md``: rtb's whole DH zoo, seed 2026,
+the three methods and roboticstoolbox's ``ik_LM`` taking turns pose by pose; two runs)
+memetic's median was −2 % to +15 % of restarts' (above it on 23 and 24 of the 25 arms)
+and its DE generations lowered the best cost in 0–8 % of solves (3 % or less on every arm of 3
+joints or more); the papers' DE took 5–45× rtb's time and missed the 20 ms budget on up to
+17 % of poses.
+
+This module runs the search in chunks of generations (one compiled call each,
+:func:`kernels.search`), reading the clocks between chunks; the first call also initialises
+the population (for "restarts": the first draw and its LM run). Two limits bound it: the budget
 (``budget_ms``) counts this thread's CPU time, so time other processes hold the CPU is not
 taken from the search; the ceiling (``ceiling_ms``, by default :data:`CEILING_PER_BUDGET` × the
 budget) bounds the call in wall time however little CPU it got. It stops:
@@ -34,7 +54,9 @@ budget) bounds the call in wall time however little CPU it got. It stops:
   call with a pair of clocks calibrates them on the initialisation, counted in CPU time if that
   is less. A chunk is never predicted to take more than half of the budget, or of the time to
   the ceiling, left; so the ceiling holds unless one generation takes twice the average and
-  more, or the machine does not let this thread run at all;
+  more, or the machine does not let this thread run at all. (A call whose first compiled call
+  does not converge counts that call's CPU time as its wall time, an upper bound: the CPU
+  clock is not read before it, to keep a system call off every solve.)
 * at ``settings.max_generations`` (ITERATION_LIMIT).
 
 With ``budget_ms=None`` there is no deadline (and no ceiling unless one is given): the search is
@@ -53,8 +75,9 @@ never an exception.
 
 Warm start: ``q_start_deg`` (normally the previous command) is in the first population (with
 the default NP 4 the only individual around it; a larger one adds a third within
-``settings.warm_spread_deg``), and a minimal-movement term (``settings.movement_weight``)
-keeps consecutive solutions on the same elbow/wrist branch.
+``settings.warm_spread_deg``), so the first LM run starts from it whenever it is the best of
+the draws (a small move of the target), and a minimal-movement term
+(``settings.movement_weight``) keeps consecutive solutions on the same elbow/wrist branch.
 
 Importing this module does no work and does not import numba. :func:`warm_up` loads the
 kernels: the ahead-of-time module (:mod:`companion.ik.aot`: a plain extension module, no numba
@@ -90,14 +113,14 @@ from companion.ik.layout import (
     MODE_POSE,
     MODE_POSITION,
     O_COST,
-    O_EVALUATIONS,
-    O_GENERATIONS,
-    O_LM_ITERATIONS,
     O_ORI_DEG,
     O_POS_CM,
     O_Q,
-    O_RESTARTS,
+    S_DE_GAINS,
+    S_EVALUATIONS,
     S_GENERATIONS,
+    S_LM_ITERATIONS,
+    S_RESTARTS,
     START_GOAL_SET,
     START_HAS_PREV,
     START_NEW,
@@ -129,34 +152,44 @@ class StopReason(Enum):
 
 @dataclass(frozen=True)
 class SolverSettings:
-    """Tuned settings of the memetic DE (see ``bench/solver.py`` for how they were chosen)."""
+    """Settings of the search. The defaults are :data:`METHODS` ``"restarts"``: no DE
+    generation at all (``stall_generations`` 0), so ``F``, ``Cr`` and ``stall_gain`` do not
+    apply; ``"memetic"`` and ``"de"`` are the DE searches (see ``bench/solver.py`` and
+    ``docs/measurements/solver.md`` for how each was chosen)."""
 
     pop_size: int = 4
-    """DE population (NP)."""
+    """Population NP: the individuals drawn at each restart (LM starts from their best) and
+    DE's population between restarts."""
     F: float = 0.7
     """DE scale factor."""
     Cr: float = 0.7
     """DE crossover probability (binomial)."""
     lm_iterations: int = 30
-    """Damped-least-squares steps per refinement of DE's best (at most)."""
+    """Damped-least-squares steps per refinement of the population's best (at most)."""
     lm_lambda0: float = 0.1
     """Initial Levenberg–Marquardt damping (relative to diag(JᵀJ))."""
     lm_window: int = 4
     """LM gives up when the cost has not dropped below ``lm_progress`` × its value
-    ``lm_window`` steps ago (0: never): a start that is not converging hands over to DE."""
+    ``lm_window`` steps ago (0: never): a start that is not converging hands over to the next
+    restart or DE generation."""
     lm_progress: float = 0.3
     """See ``lm_window``."""
-    stall_generations: int = 1
+    lm_near_cost: float = 400.0
+    """Within this cost (cm² + deg²: about 20 cm or 20°) of the target, the window test gives
+    up only on a start that stalls (its cost not below 0.9 × what it was): there slow but
+    steady progress is more often a solution near a singularity, approached linearly, than a
+    local minimum. Targets whose every solution has a wrist near its singularity (UR10, seed
+    2026, pose 986: q5 179.3°) otherwise restarted thousands of times (from 40 seeds, 17 ran
+    out of a 20 ms budget); with it all 40 converge in the first LM run. Tuning arms and
+    seeds: the worst UR5 solve 1.2 ms instead of 6.5 ms, p99 0.9–1.1× elsewhere (a window of
+    3 steps and 0.5 was also tried: 0.9–1.0× at p99, but the UR5 tail stayed)."""
+    stall_generations: int = 0
     """Generations without progress (see ``stall_gain``) before the population is drawn anew
-    (the restart takes the next generation's DE step's place, and LM starts from its best)."""
+    (the restart takes the next generation's DE step's place, and LM starts from its best).
+    0: every generation is a restart, no DE step ever runs (method ``"restarts"``)."""
     stall_gain: float = 0.0
     """A generation makes progress when it brings the best cost below ``stall_gain`` times
-    what it was (0.5: at least halves it). 0, the default, counts no generation as progress:
-    with ``stall_generations`` 1 every generation after the first is a restart, i.e. the
-    search is LM from the best of ``pop_size`` fresh draws again and again (on
-    Puma560's and Stanford's poses with few solutions within the limits this took half the
-    work at p99 of the settings before, NP 8, 2 generations, gain 0.5, which keep DE
-    generations between restarts and were 10-25 % faster at p99 on UR5, UR10 and Baxter)."""
+    what it was (0.5: at least halves it; 1: any improvement; 0: none counts)."""
     movement_weight: float = 1.0
     """Warm start: cost per rad² of joint motion from ``q_start`` (pose cost is cm² + deg²)."""
     warm_spread_deg: float = 5.0
@@ -174,7 +207,8 @@ class SolverSettings:
             ("lm_lambda0", self.lm_lambda0 > 0.0, "> 0"),
             ("lm_window", self.lm_window >= 0, ">= 0"),
             ("lm_progress", 0.0 < self.lm_progress <= 1.0, "in (0, 1]"),
-            ("stall_generations", self.stall_generations >= 1, ">= 1"),
+            ("lm_near_cost", self.lm_near_cost >= 0.0, ">= 0"),
+            ("stall_generations", self.stall_generations >= 0, ">= 0"),
             ("stall_gain", 0.0 <= self.stall_gain <= 1.0, "in [0, 1]"),
             ("movement_weight", self.movement_weight >= 0.0, ">= 0"),
             ("warm_spread_deg", self.warm_spread_deg >= 0.0, ">= 0"),
@@ -187,33 +221,70 @@ class SolverSettings:
 
 DEFAULT_SETTINGS = SolverSettings()
 
-#: Search methods by name, each the settings it starts from (the daemon's ``solver.method``).
-#: "memetic": the tuned defaults (DE with least-squares refinement; see the module docstring
-#: for what they amount to). "de": the same compiled search without the least-squares steps:
-#: plain DE rand/1/bin with the papers' Table 4 settings (F = 0.9, Cr = 0.95) and the authors'
-#: pick of NP (Table 5, test 9: 12), plus a restart (the population drawn anew, the best kept
-#: aside) after 50 generations in a row that did not improve the best. Without the restarts
-#: 40 % of random reachable poses of the default arm stall short of the daemon's tolerances
-#: (0.01 cm, 0.1°) within 20 ms; with them none (200 poses: median 1.7 ms of CPU, p90 6.5 ms).
+#: Search methods by name, each the settings it starts from (the daemon's ``solver.method``,
+#: ``armbridge solve --method``):
+#:
+#: * ``"restarts"`` (the default, :data:`DEFAULT_SETTINGS`): multi-start LM. Draw NP = 4
+#:   joint vectors uniformly within the limits (one of them, at each restart, a corner of the
+#:   joint box), run LM from the best; if it does not converge, draw 4 anew, and again. No DE
+#:   generation runs.
+#: * ``"memetic"``: memetic DE. DE rand/1/bin generations (NP 6, F 0.5, Cr 0.3) each followed
+#:   by LM on the best individual not yet refined to a standstill, the result written back
+#:   into the population; the population is drawn anew after 2 generations in a row that did
+#:   not improve its best. Tuned on seeds 0–99 of six arms (F, Cr, NP, generations between
+#:   restarts; bench/solver.py): the least bad of the DE variants, and still 0–20 % more work
+#:   at the median and up to 40 % at p99 than "restarts" (its DE generations lower the best
+#:   cost in 1–3 % of solves).
+#: * ``"de"``: the papers' DE, no least squares: rand/1/bin with Table 4's F = 0.9 and
+#:   Cr = 0.95 and the authors' pick of NP (Table 5, test 9: 12), plus a restart (the
+#:   population drawn anew, the best kept aside) after 50 generations in a row that did not
+#:   improve the best. Without the restarts 40 % of random reachable poses of the default arm
+#:   stall short of the daemon's tolerances (0.01 cm, 0.1°) within 20 ms; with them none (200
+#:   poses: median 1.7 ms of CPU, p90 6.5 ms).
 METHODS: dict[str, SolverSettings] = {
-    "memetic": DEFAULT_SETTINGS,
+    "restarts": DEFAULT_SETTINGS,
+    "memetic": SolverSettings(pop_size=6, F=0.5, Cr=0.3, stall_generations=2, stall_gain=1.0),
     "de": SolverSettings(
         pop_size=12, F=0.9, Cr=0.95, lm_iterations=0, stall_generations=50, stall_gain=1.0
     ),
 }
 
+DEFAULT_METHOD = "restarts"
+"""The method :data:`DEFAULT_SETTINGS` are (the daemon's default ``solver.method``)."""
 
-def method_settings(method: str = "memetic", **changes: Any) -> SolverSettings:
+#: Settings a method does not use, refused by :func:`method_settings` with the reason.
+_NOT_FOR = {
+    "restarts": {
+        "F": "restarts runs no DE generation",
+        "Cr": "restarts runs no DE generation",
+        "stall_generations": "restarts draws the population anew at every generation",
+        "stall_gain": "restarts draws the population anew at every generation",
+    },
+    "memetic": {},
+    "de": {"lm_iterations": "de runs no least-squares steps"},
+}
+
+
+def method_settings(method: str = DEFAULT_METHOD, **changes: Any) -> SolverSettings:
     """The settings of search ``method`` (a name in :data:`METHODS`) with ``changes``
     (:class:`SolverSettings` fields) over its own. With no changes, the method's own object:
     :func:`solve` keeps its arrays and estimates from call to call for one settings object.
-    ``"de"`` runs no least-squares steps: ``lm_iterations`` above 0 is refused with it."""
+    A setting the method does not use is refused (``ValueError`` naming it and the method):
+    ``F``, ``Cr``, ``stall_generations`` and ``stall_gain`` with ``"restarts"``,
+    ``lm_iterations`` above 0 with ``"de"``; ``"memetic"`` and ``"de"`` need
+    ``stall_generations`` ≥ 1 (0 is ``"restarts"``)."""
     if method not in METHODS:
         raise ValueError(f"method={method!r} must be one of {', '.join(METHODS)}")
-    if method == "de" and changes.get("lm_iterations", 0) != 0:
+    for name, why in _NOT_FOR[method].items():
+        if name in changes and not (name == "lm_iterations" and changes[name] == 0):
+            users = [m for m in METHODS if name not in _NOT_FOR[m]]
+            raise ValueError(
+                f"{name}={changes[name]!r} goes with method {' or '.join(map(repr, users))}: {why}"
+            )
+    if method != "restarts" and changes.get("stall_generations", 1) < 1:
         raise ValueError(
-            f"lm_iterations={changes['lm_iterations']!r} goes with method 'memetic': "
-            "'de' runs no least-squares steps"
+            f"stall_generations={changes['stall_generations']!r} must be >= 1 with method "
+            f"{method!r} (0, a restart at every generation, is method 'restarts')"
         )
     return replace(METHODS[method], **changes) if changes else METHODS[method]
 
@@ -243,6 +314,9 @@ class IKResult:
     restarts: int
     stop_reason: StopReason
     q: tuple[float, ...] = ()
+    de_improvements: int = 0
+    """DE generations (not restarts) whose selection lowered the population's best cost: the
+    search's DE did measurable work in this solve when it is above 0."""
 
     @property
     def q_rad(self) -> FloatArray:
@@ -406,13 +480,12 @@ def solve(
     if not _warmed_up:
         warm_up()
     started = clock()
-    cpu_started = cpu_clock()
     pose = target if type(target) is Pose else _as_pose(target)
     # The common case inline (a Python call costs ~0.06 µs; a fast solve is ~15 µs).
-    if type(budget_ms) is float and 0.0 < budget_ms < math.inf:
+    if type(budget_ms) is float and 0.0 < budget_ms < _INF:
         budget_s = budget_ms * 1e-3
     elif budget_ms is None:
-        budget_s = math.inf  # never "predicted not to finish": only convergence or the limit
+        budget_s = _INF  # never "predicted not to finish": only convergence or the limit
     else:
         budget_s = _positive("budget_ms", budget_ms) * 1e-3
     if ceiling_ms is None:
@@ -428,8 +501,8 @@ def solve(
         ws.fparams[F_TOL_ORI] = _positive("tol_ori_deg", tol_ori_deg)
         ws.tol_pos_cm, ws.tol_ori_deg = tol_pos_cm, tol_ori_deg
     # Identity tests, not a dict: hashing an Enum member runs Python code (~0.3 µs).
-    if mode is TargetMode.POSE:
-        start = START_NEW | MODE_POSE
+    if mode is _POSE:
+        start = _START_POSE
     elif mode is TargetMode.POSITION:
         start = START_NEW | MODE_POSITION
     elif mode is TargetMode.POSITION_AXIS:
@@ -444,13 +517,9 @@ def solve(
             raise ValueError(f"q_start_deg={q_start_deg!r} must be {n} finite angles in degrees")
         np.clip(q_start * ws.to_joint, ws.lower, ws.upper, out=ws.q_start)
         start |= START_HAS_PREV
-    ws.rng[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
+    ws.rng_items[0] = seed & _MASK64 if type(seed) is int else _seed_value(seed)
     args = ws.args
-    counts = ws.counts
-    max_gens = settings.max_generations
     search = _search
-    x_cm, y_cm, z_cm = pose.x_cm, pose.y_cm, pose.z_cm
-    roll_deg, pitch_deg, yaw_deg = pose.roll_deg, pose.pitch_deg, pose.yaw_deg
 
     # Two limits, each with its own estimate of a generation: the budget counts this thread's
     # CPU time (``cpu_clock``), the ceiling wall time (``clock``). Another process that holds
@@ -471,46 +540,72 @@ def solve(
     # (about one generation's work), counted in CPU time if that is less, so an
     # initialisation preempted for 11 ms does not make every generation look 11 ms long.
     # Carried over, the estimates stay within 4× of that calibration either way. The CPU
-    # clock is a system call (~0.6 µs, ten times the wall clock's), so it is read at the start
-    # and after each chunk that did not converge, not once more at the end.
+    # clock is a system call (~0.7 µs, and a lock in the kernel: 5 % of a fast solve), so a
+    # calibrated call reads it only after a chunk that did not converge, never at the start
+    # nor at the end: the first chunk's CPU time is then counted as its wall time (an upper
+    # bound; a first chunk preempted for a while leaves the search that much less budget).
     if ws.clock is clock and ws.cpu_clock is cpu_clock:
         cpu_estimate_s = ws.cpu_estimate_s
         wall_estimate_s = ws.wall_estimate_s
-        limit = (_FIRST_CHUNK if _FIRST_CHUNK < max_gens else max_gens) + 1
-        before = clock()
-        # The CPU used so far is at most the wall time that passed: no second CPU read.
-        spent_s = before - started
-        left_s = budget_s - spent_s
-        if limit * cpu_estimate_s > 0.5 * left_s:
-            limit = int(0.5 * left_s / cpu_estimate_s) if left_s > 0.0 else 0
-        left_s = ceiling_s - spent_s
-        if limit * wall_estimate_s > 0.5 * left_s:
-            limit = int(0.5 * left_s / wall_estimate_s) if left_s > 0.0 else 0
+        # The first chunk is sized on the whole budget and ceiling: the microseconds of
+        # Python since ``started`` are left out of the sizing (not out of the search's time).
+        limit = ws.first_limit
+        if limit * cpu_estimate_s > 0.5 * budget_s:
+            limit = int(0.5 * budget_s / cpu_estimate_s)
+        if limit * wall_estimate_s > 0.5 * ceiling_s:
+            limit = int(0.5 * ceiling_s / wall_estimate_s)
         gens = limit - 1 if limit > 1 else 0
-        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
-        now = clock()
+        done = search(
+            *args,
+            start,
+            pose.x_cm,
+            pose.y_cm,
+            pose.z_cm,
+            pose.roll_deg,
+            pose.pitch_deg,
+            pose.yaw_deg,
+            gens,
+        )
         if not done:
+            now = clock()
             cpu_now = cpu_clock()
-            sample_s = (cpu_now - cpu_started) / (gens + 1)
+            cpu_started = cpu_now - (now - started)  # see above: wall time so far
+            sample_s = (now - started) / (gens + 1)
             if sample_s > 4.0 * cpu_estimate_s:
                 sample_s = 4.0 * cpu_estimate_s
             cpu_estimate_s += 0.25 * (sample_s - cpu_estimate_s)
-            wall_estimate_s += 0.25 * ((now - before) / (gens + 1) - wall_estimate_s)
-        chunk = 2 * gens if gens > 0 else 2
-        if chunk > 64:
-            chunk = 64
+            wall_estimate_s += 0.25 * ((now - started) / (gens + 1) - wall_estimate_s)
+            chunk = 2 * gens if gens > 0 else 2
+            if chunk > 64:
+                chunk = 64
     else:
-        done = search(*args, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, 0)
+        cpu_started = cpu_clock()
+        done = search(
+            *args,
+            start,
+            pose.x_cm,
+            pose.y_cm,
+            pose.z_cm,
+            pose.roll_deg,
+            pose.pitch_deg,
+            pose.yaw_deg,
+            0,
+        )
         now = clock()
         cpu_now = cpu_clock()
         cpu_estimate_s = wall_estimate_s = min(now - started, cpu_now - cpu_started)
         ws.calibration_s = cpu_estimate_s
+        ws.cpu_estimate_s = ws.wall_estimate_s = cpu_estimate_s
+        ws.clock = clock
+        ws.cpu_clock = cpu_clock
         chunk = 1
+    # A call that converged in its first compiled call (most do) changed no estimate.
+    at_once = done
     while True:
         if done:
             reason = StopReason.CONVERGED
             break
-        left = max_gens - int(counts[S_GENERATIONS])
+        left = settings.max_generations - int(ws.counts[S_GENERATIONS])
         if left <= 0:
             reason = StopReason.ITERATION_LIMIT
             break
@@ -528,7 +623,8 @@ def solve(
             if gens < 1:
                 reason = StopReason.CEILING
                 break
-        done = search(*args, 0, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens)
+        # The pose arguments are read only when a search starts (start 0 goes on).
+        done = search(*args, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, gens)
         after = clock()
         if not done:
             cpu_after = cpu_clock()
@@ -538,13 +634,12 @@ def solve(
             cpu_now = cpu_after
         now = after
         chunk = min(2 * chunk, 64)
-    calibration_s = ws.calibration_s
-    ws.cpu_estimate_s = min(max(cpu_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
-    ws.wall_estimate_s = min(max(wall_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
-    ws.clock = clock
-    ws.cpu_clock = cpu_clock
+    if not at_once:
+        calibration_s = ws.calibration_s
+        ws.cpu_estimate_s = min(max(cpu_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
+        ws.wall_estimate_s = min(max(wall_estimate_s, 0.25 * calibration_s), 4.0 * calibration_s)
 
-    out = ws.out.tolist()
+    out = ws.out_items.tolist()
     n = ws.n
     # The frozen dataclass's own __init__ sets its 12 fields one object.__setattr__ at a time
     # (~2 µs); filling the instance's dict is the same object for a third of that.
@@ -556,16 +651,21 @@ def solve(
     fields["cost"] = out[O_COST]
     fields["converged"] = reason is StopReason.CONVERGED
     fields["elapsed_ms"] = (clock() - started) * 1e3
-    fields["generations"] = int(out[O_GENERATIONS])
-    fields["evaluations"] = int(out[O_EVALUATIONS])
-    fields["lm_iterations"] = int(out[O_LM_ITERATIONS])
-    fields["restarts"] = int(out[O_RESTARTS])
+    counts = ws.counts_items.tolist()  # ints already: no int() of each float in ``out``
+    fields["generations"] = counts[S_GENERATIONS]
+    fields["evaluations"] = counts[S_EVALUATIONS]
+    fields["lm_iterations"] = counts[S_LM_ITERATIONS]
+    fields["restarts"] = counts[S_RESTARTS]
     fields["stop_reason"] = reason
     fields["q"] = tuple(out[O_Q : O_Q + n])
+    fields["de_improvements"] = counts[S_DE_GAINS]
     return result
 
 
 _new_result = object.__new__
+_INF = math.inf
+_POSE = TargetMode.POSE
+_START_POSE = START_NEW | MODE_POSE
 
 
 def _axis_goal(
@@ -632,6 +732,8 @@ class _Workspace:
         self.goal = goal.reshape(4, 4)
         self.goal[...] = np.eye(4)
         record[...] = np.inf
+        self.out_items = self.out.data
+        self.counts_items = self.counts.data
         self.fparams[layout.F_SPREAD] = math.radians(settings.warm_spread_deg)
         self.fparams[layout.F_SCALE] = settings.F
         self.fparams[layout.F_CR] = settings.Cr
@@ -639,12 +741,19 @@ class _Workspace:
         self.fparams[layout.F_LM_LAMBDA0] = settings.lm_lambda0
         self.fparams[layout.F_LM_WINDOW] = settings.lm_window
         self.fparams[layout.F_LM_PROGRESS] = settings.lm_progress
+        self.fparams[layout.F_LM_NEAR] = settings.lm_near_cost
         self.fparams[layout.F_STALL_GAIN] = settings.stall_gain
         self.iparams[layout.I_LM_ITERS] = settings.lm_iterations
         self.iparams[layout.I_STALL_GENS] = settings.stall_generations
         self.iparams[layout.I_DOF] = n
         self.iparams[layout.I_POP] = size
         self.rng = np.zeros(1, dtype=np.uint64)
+        # The generator's state and the results through memoryviews: setting and reading
+        # them so runs CPython's own code, not numpy's item machinery (solve() does both at
+        # every call; from cold caches it is the lighter path).
+        self.rng_items = self.rng.data
+        # The first compiled call: the initialisation and up to _FIRST_CHUNK generations.
+        self.first_limit = min(_FIRST_CHUNK, settings.max_generations) + 1
         # The estimates of a generation's CPU and wall time, carried from call to call, and
         # the clocks they were measured on (see solve()).
         self.clock: Clock | None = None
@@ -674,10 +783,25 @@ def _check_search_arrays(args: tuple[np.ndarray, ...]) -> None:
 _local = threading.local()
 
 
+_WORKSPACES = 8
+"""Workspaces a thread keeps (the last used is also ``_local.ws``, the fast path): a caller
+that alternates settings or arms (a bench comparing methods pose by pose) keeps each one's
+arrays and estimates instead of rebuilding them at every switch."""
+
+
 def _workspace(arm: Arm, settings: SolverSettings) -> _Workspace:
     ws: _Workspace | None = getattr(_local, "ws", None)
     if ws is None or ws.arm is not arm or ws.settings is not settings:
-        ws = _Workspace(arm, settings)
+        kept: dict[tuple[int, int], _Workspace] | None = getattr(_local, "kept", None)
+        if kept is None:
+            kept = _local.kept = {}
+        key = (id(arm), id(settings))
+        ws = kept.pop(key, None)
+        if ws is None or ws.arm is not arm or ws.settings is not settings:
+            ws = _Workspace(arm, settings)
+        if len(kept) >= _WORKSPACES:
+            del kept[next(iter(kept))]  # the least recently used
+        kept[key] = ws
         _local.ws = ws
     return ws
 

@@ -47,12 +47,13 @@ def test_solve_takes_the_search_settings_of_the_daemon_config(capsys, monkeypatc
     assert (seen[0].pop_size, seen[0].F, seen[0].Cr, seen[0].lm_iterations) == (16, 0.8, 0.95, 0)
     for flags, words in (
         (["--pop-size", "3"], "--pop-size: 3 outside [4, 100]"),
-        (["--crossover-cr", "1.5"], "--crossover-cr: 1.5 outside [0, 1]"),
-        (["--method", "ga"], "--method: 'ga' is not one of memetic, de"),
+        (["--method", "memetic", "--crossover-cr", "1.5"], "--crossover-cr: 1.5 outside [0, 1]"),
+        (["--method", "ga"], "--method: 'ga' is not one of restarts, memetic, de"),
         (
             ["--method", "de", "--lm-iterations", "5"],
-            '--lm-iterations: goes with method = "memetic"',
+            '--lm-iterations: goes with method = "restarts" or "memetic"',
         ),
+        (["--mutation-f", "0.8"], '--mutation-f: goes with method = "memetic" or "de"'),
     ):
         assert main([*reach, *flags]) == 2
         assert words in capsys.readouterr().err

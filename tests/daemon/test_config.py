@@ -539,23 +539,27 @@ SEARCH_BOUNDS = [
 @pytest.mark.parametrize("bound", SEARCH_BOUNDS, ids=[b[0] for b in SEARCH_BOUNDS])
 def test_every_search_setting_accepts_its_ends_and_refuses_past_them(bound):
     key, field, below, lowest, highest, above, range_text = bound
+    # "memetic" uses every one of them ("restarts" no DE setting, "de" no LM).
     for value in (lowest, highest):
-        settings = parse_config(config(solver={key: value})).search_settings
+        settings = parse_config(config(solver={"method": "memetic", key: value})).search_settings
         assert getattr(settings, field) == value
     for value in (below, above):
         with pytest.raises(ConfigError) as info:
-            parse_config(config(solver={key: value}))
+            parse_config(config(solver={"method": "memetic", key: value}))
         assert info.value.field == f"solver.{key}", str(info.value)
         assert f"{value!r} outside {range_text}" in str(info.value)
 
 
 def test_the_search_defaults_to_the_methods_own_settings():
-    from companion.daemon.config import SOLVER_METHODS
-    from companion.ik import DEFAULT_SETTINGS, METHODS
+    from companion.daemon.config import SOLVER_METHOD, SOLVER_METHODS
+    from companion.ik import DEFAULT_METHOD, DEFAULT_SETTINGS, METHODS
 
-    assert SOLVER_METHODS == tuple(METHODS)
-    memetic = parse_config(config())
-    assert memetic.solver_method == "memetic" and memetic.search_settings is DEFAULT_SETTINGS
+    assert SOLVER_METHODS == tuple(METHODS) and SOLVER_METHOD == DEFAULT_METHOD
+    default = parse_config(config())
+    assert default.solver_method == "restarts" and default.search_settings is DEFAULT_SETTINGS
+    memetic = parse_config(config(solver={"method": "memetic"}))
+    assert memetic.search_settings is METHODS["memetic"]
+    assert memetic.search_settings.stall_generations >= 1  # DE generations between restarts
     de = parse_config(config(solver={"method": "de"}))
     assert de.solver_method == "de" and de.search_settings is METHODS["de"]
     s = de.search_settings
@@ -568,9 +572,11 @@ def test_the_search_defaults_to_the_methods_own_settings():
 @pytest.mark.parametrize(
     ("solver", "field", "words"),
     [
-        ({"method": "ga"}, "solver.method", "'ga' is not one of memetic, de"),
+        ({"method": "ga"}, "solver.method", "'ga' is not one of restarts, memetic, de"),
         ({"method": "de", "lm_iterations": 5}, "solver.lm_iterations", '"de" runs no least-'),
-        ({"method": "de", "lm_iterations": 0}, "solver.lm_iterations", 'with method = "memetic"'),
+        ({"method": "de", "lm_iterations": 0}, "solver.lm_iterations", '"restarts" or "memetic"'),
+        ({"mutation_f": 0.9}, "solver.mutation_f", 'with method = "memetic" or "de"'),
+        ({"method": "restarts", "stall_generations": 3}, "solver.stall_generations", "anew"),
         ({"pop_size": 8.0}, "solver.pop_size", "must be an integer"),
     ],
 )

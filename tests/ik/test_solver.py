@@ -489,19 +489,19 @@ def test_the_estimate_carries_over_to_the_next_call_on_the_same_clock(monkeypatc
 
 # -- the budget is CPU time, the ceiling wall time -----------------------------------------------
 
-#: A reachable pose that seed 13 solves in 6 generations after the initialisation (untimed).
-SLOW = reachable(13)
+#: A reachable pose that seed 80 solves in 6 generations after the initialisation (untimed).
+SLOW = reachable(80)
 
 
 def test_a_preempted_solve_is_not_ended_by_its_budget(monkeypatch):
     # Other processes hold the CPU: every step takes 5 ms of wall time for 0.05 ms of the
     # solver's CPU. Past the 10 ms budget in wall time, the search has used 0.1 ms of CPU and
     # goes on to the answer an untimed solve gives.
-    untimed = solve(ARM, SLOW, seed=13, budget_ms=None, settings=UNTIMED)
+    untimed = solve(ARM, SLOW, seed=80, budget_ms=None, settings=UNTIMED)
     assert untimed.converged and untimed.generations == 6
     wall, cpu = FakeClock(0.0), FakeClock(0.0)
     _charged_run(monkeypatch, wall, 5e-3, lambda i: 5e-3, cpu, 5e-5, lambda i: 5e-5)
-    res = solve(ARM, SLOW, seed=13, budget_ms=10.0, ceiling_ms=100.0, clock=wall, cpu_clock=cpu)
+    res = solve(ARM, SLOW, seed=80, budget_ms=10.0, ceiling_ms=100.0, clock=wall, cpu_clock=cpu)
     assert res.stop_reason is StopReason.CONVERGED
     assert (res.q, res.generations) == (untimed.q, untimed.generations)
     assert res.elapsed_ms == pytest.approx(40.0)  # init, chunks of 1, 2 and 4 generations
@@ -512,7 +512,7 @@ def test_a_wall_clock_budget_gave_the_preempted_solve_up(monkeypatch):
     # the ceiling the budget): the initialisation took half of it, and no generation is started.
     clock = FakeClock(0.0)
     _charged_run(monkeypatch, clock, 5e-3, lambda i: 5e-3)
-    res = solve(ARM, SLOW, seed=13, budget_ms=10.0, ceiling_ms=10.0, clock=clock, cpu_clock=clock)
+    res = solve(ARM, SLOW, seed=80, budget_ms=10.0, ceiling_ms=10.0, clock=clock, cpu_clock=clock)
     assert res.stop_reason is StopReason.DEADLINE and not res.converged
     assert res.generations == 0
 
@@ -573,15 +573,60 @@ def test_without_a_budget_neither_clock_ends_the_search(monkeypatch):
 
 
 def test_methods_are_settings_by_name():
-    from companion.ik import DEFAULT_SETTINGS, METHODS, method_settings
+    from companion.ik import DEFAULT_METHOD, DEFAULT_SETTINGS, METHODS, method_settings
 
-    assert method_settings() is DEFAULT_SETTINGS is METHODS["memetic"]
+    assert DEFAULT_METHOD == "restarts" and list(METHODS) == ["restarts", "memetic", "de"]
+    assert method_settings() is DEFAULT_SETTINGS is METHODS["restarts"]
     assert method_settings("de") is METHODS["de"]
     assert method_settings("de", pop_size=20).pop_size == 20
-    with pytest.raises(ValueError, match="method='ga' must be one of memetic, de"):
+    assert method_settings("restarts", pop_size=6, lm_iterations=10).stall_generations == 0
+    with pytest.raises(ValueError, match="method='ga' must be one of restarts, memetic, de"):
         method_settings("ga")
-    with pytest.raises(ValueError, match="lm_iterations=3 goes with method 'memetic'"):
+    with pytest.raises(
+        ValueError, match="lm_iterations=3 goes with method 'restarts' or 'memetic'"
+    ):
         method_settings("de", lm_iterations=3)
+    with pytest.raises(ValueError, match="F=0.9 goes with method 'memetic' or 'de'"):
+        method_settings("restarts", F=0.9)
+    with pytest.raises(ValueError, match="stall_generations=2 goes with method 'memetic' or 'de'"):
+        method_settings("restarts", stall_generations=2)
+    with pytest.raises(ValueError, match="is method 'restarts'"):
+        method_settings("memetic", stall_generations=0)
+
+
+#: Reachable poses and seeds of which about a third need more than the first LM run.
+HARD_SEEDS = range(300, 500)
+
+
+def test_restarts_run_no_de_generation():
+    # Every generation of "restarts" draws the population anew: as many restarts as
+    # generations, and no DE step lowers anything.
+    from companion.ik import METHODS
+
+    went_on = 0
+    for seed in HARD_SEEDS:
+        res = solve(ARM, reachable(seed), seed=seed, budget_ms=None, settings=UNTIMED)
+        assert res.converged
+        assert res.restarts == res.generations and res.de_improvements == 0
+        went_on += res.generations > 0
+    assert went_on >= 20  # the seeds do exercise restarts
+    assert METHODS["restarts"].stall_generations == 0
+
+
+def test_memetic_runs_de_generations_that_lower_the_best():
+    # "memetic" keeps its population between restarts: DE steps run (generations beyond
+    # the restarts), and on some poses one of them lowers the population's best cost.
+    from companion.ik import method_settings
+
+    memetic = method_settings("memetic", max_generations=GENERATIONS)
+    de_steps = gains = 0
+    for seed in HARD_SEEDS:
+        res = solve(ARM, reachable(seed), seed=seed, budget_ms=None, settings=memetic)
+        assert res.converged
+        de_steps += res.generations - res.restarts
+        gains += res.de_improvements
+        assert res.de_improvements <= res.generations - res.restarts
+    assert de_steps > 0 and gains > 0
 
 
 @pytest.mark.parametrize("seed", range(4))
