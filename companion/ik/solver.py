@@ -28,9 +28,9 @@ generations between restarts, F 0.5–0.9 and Cr 0.3–0.95, the median CPU time
 −8 % to +26 % of restarts' and p99 −26 % to +200 %, the mean always higher; their DE
 generations lowered the population's best cost in 1–4 % of solves
 (``IKResult.de_improvements``). "memetic" is the least bad of them: median +0–21 %, p99
-−4 % to +39 %. The settings before this (NP 4, one DE generation after a failed first LM, then
-restarts) spent that generation for little as well: restarting right away was 1–8 % faster at
-the median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
+−4 % to +39 %. One DE generation after a failed first LM (NP 4), then restarts,
+spends that generation for little as well: restarting right away is 1–8 % faster at the
+median and up to 42 % at p99. On random reachable poses 3 in 4 solves or more end in the
 first LM run. On the bench (``docs/measurements/solver.md``: rtb's whole DH zoo, seed 2026,
 the three methods and roboticstoolbox's ``ik_LM`` taking turns pose by pose; two runs)
 memetic's median was −2 % to +15 % of restarts' (above it on 23 and 24 of the 25 arms)
