@@ -181,6 +181,8 @@ class UpdatePipeline:
         ACKs wait in the queue behind this one would be taken as unanswered."""
         state = self._core.state
         now = self._core.clock() if at_s is None else at_s
+        if self._core.watch.reboot_suspected:
+            return  # its verdict first: a reboot clears them, the old clock going on resumes
         while state.flights:
             inflight = state.flights[0]
             outcome = inflight.tracker.poll(now)

@@ -106,6 +106,13 @@ class AutopilotWatch:
         self._reboot_suspected: tuple[int, float] | None = None
 
     @property
+    def reboot_suspected(self) -> bool:
+        """A SYSTEM_TIME said the autopilot rebooted, and the second signal is awaited: what
+        its outputs hold is unknown until then, so nothing is sent (a step re-sent over what
+        another sender set since its boot would jump)."""
+        return self._reboot_suspected is not None
+
+    @property
     def heard_us_on_link(self) -> bool:
         """The autopilot answered us on a link that is up."""
         return self._core.state.link_up and self._heard_us

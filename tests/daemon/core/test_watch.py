@@ -337,6 +337,25 @@ def test_a_reboot_with_no_silence_before_it_is_taken_on_the_new_clocks_second_si
     assert rig.core.status()["counters"]["autopilot_reboots"] == 1
 
 
+def test_nothing_is_sent_while_a_reboot_awaits_its_second_signal(rig):
+    # A step was on its way when the autopilot rebooted (frames forged meanwhile shortened its
+    # silence): its ACKs never came, and it was confirmed one command at a time while the
+    # reboot waited for its second signal, over a ground station's command given since the
+    # boot (a 106 deg step).
+    rig.system_time(600_000)
+    rig.goto(tuple(p + 30.0 for p in PARK))
+    rig.tick()
+    assert rig.servo()  # the first step, never answered
+    rig.clock.advance(0.25)
+    rig.system_time(40)  # went back, no silence before it: suspected
+    rig.sent.clear()
+    for _ in range(3):  # past the update's deadline (0.5 s), the new clock not long enough
+        rig.advance(0.1)
+    assert not rig.servo()
+    _stream_system_time(rig, 40, 0.5)  # the second signal: a reboot, the outputs re-sent anew
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+
+
 def test_a_control_thread_stall_is_no_reboot(rig):
     # A 0.26 s stall of the control thread: frames taken late, dated by their arrival.
     rig.system_time(600_000, received_s=rig.clock())
