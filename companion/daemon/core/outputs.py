@@ -285,6 +285,15 @@ class OutputsTruth(abc.ABC):
     def may_move(self, actions: list[Action], now: float) -> bool:
         """Whether the next update may go out (nothing in flight); may send one itself."""
 
+    def may_confirm(self, now: float) -> bool:
+        """Whether a command of an update left unknown may be confirmed alone now (default:
+        yes)."""
+        return True
+
+    def unanswered(self, now: float) -> None:  # noqa: B027
+        """Not one ACK came for an update: the autopilot may have gone silent (default:
+        nothing to do)."""
+
     def may_pipeline(self) -> bool:
         """Whether a step may go out behind the update in flight (outputs known live)."""
         return True

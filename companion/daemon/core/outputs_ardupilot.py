@@ -183,9 +183,11 @@ class ArduPilotOutputs(OutputsTruth):
                     self._start_at(i, self.angle_shown(output, shown))
                     if self._held_since_off is not None:  # nothing sent: they hold that
                         self._held_since_off = band_of([tuple(state.position)])
-                elif self._shown_steadily(output, shown) and not any(
-                    output in f.pwm_by_output for f in state.flights
-                ):
+                elif any(output in f.pwm_by_output for f in state.flights):
+                    # Ours on its way (shown before its ACK, or not applied yet): its outcome
+                    # says where the output is.
+                    self._forget_unacked(output)
+                elif self._shown_steadily(output, shown):
                     # After a loss or a reboot, before anything of ours is acknowledged: an
                     # output that shows a PWM (another sender set it since the boot) is there;
                     # the pose re-sent keeps it there.
@@ -199,11 +201,9 @@ class ArduPilotOutputs(OutputsTruth):
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
                 self._agrees(output)
                 continue
-            if (
-                not settled
-                or on_its_way
-                or not self._disagrees(output, self.shown_s, clock_after=True)
-            ):
+            # Neither what it acknowledged nor a step on its way (an update left unknown among
+            # them): another sender's, once believed.
+            if not settled or not self._disagrees(output, self.shown_s, clock_after=True):
                 continue
             self._agrees(output)
             if not core.motion.moving(tuple(state.position)):
@@ -232,7 +232,8 @@ class ArduPilotOutputs(OutputsTruth):
 
     def _joint_at(self, i: int, angle: float) -> None:
         """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
-        joint is there, a pose still to re-send keeps it there, and with the switch off that is
+        joint is there, a pose still to re-send keeps it there, a command of an update left
+        unknown is not confirmed over it, and with the switch off that is
         where the output is, whatever the bands said (otherwise the bands take it in beside
         what they held)."""
         state = self._core.state
@@ -241,6 +242,9 @@ class ArduPilotOutputs(OutputsTruth):
             unconfirmed = list(state.unconfirmed)
             unconfirmed[i] = angle
             state.unconfirmed = tuple(unconfirmed)
+        output = state.outputs[i]
+        for flight in state.flights:  # an update left unknown is not confirmed over it
+            flight.pending = [c for c in flight.pending if output not in c.outputs]
         for band in (self._held_before_loss, self._held_since_off):
             if band is None:
                 continue
@@ -391,6 +395,15 @@ class ArduPilotOutputs(OutputsTruth):
 
     def may_pipeline(self) -> bool:
         return True
+
+    def may_confirm(self, now: float) -> bool:
+        """Confirming an update alone re-sends its commands: not before a readback since it
+        went unanswered (another sender may have set an output since a reboot), nor while a
+        readback's word is in doubt or the safety switch is unknown."""
+        return self._readback_seen(now) and not self.in_doubt(now) and self._safety_known(now)
+
+    def unanswered(self, now: float) -> None:
+        self._readback_since_s = now  # where the outputs are: the next readback says
 
     def may_step_to(self, step: tuple[float, ...]) -> bool:
         """A motion step to ``step`` keeps the poses the outputs may hold since the last

@@ -68,6 +68,9 @@ class Flight:
     #: The steps of updates ahead of it that ended unanswered (the outputs may hold them).
     folded: list[tuple[float, ...]] = field(default_factory=list)
     seq: int = 0  # updates sent before it since the start
+    #: Its outcome is taken, the commands to confirm one at a time wait for the outputs' truth
+    #: to allow them (see ``OutputsTruth.may_confirm``).
+    deferred: bool = False
 
 
 @dataclass(eq=False)

@@ -217,11 +217,23 @@ class UpdatePipeline:
     ) -> None:
         """The outcome of the only update in flight: resolve it, or confirm what it left
         unknown one command at a time."""
-        link = self._core.config.link
+        core = self._core
+        if inflight.deferred:  # its outcome was taken: the confirmations wait
+            self._confirm_next(actions, inflight, now)
+            return
+        link = core.config.link
         inflight.accepted.update(outcome.accepted)
         inflight.refused.update(outcome.refused)
         unknown = set(outcome.unknown)
         commands = inflight.tracker.commands
+        tracker = inflight.tracker
+        if unknown and tracker.acks_missing == len(tracker.commands):
+            # Not one ACK: the autopilot may have gone silent (a reboot, with frames forged as
+            # its own filling the silence): every stream is asked for again, and the outputs'
+            # truth says when the confirmations may go out (a readback since, on ArduPilot).
+            log.info("servo update unanswered (%s): asking for every stream again", outcome.reason)
+            core.outputs.unanswered(now)
+            core.watch.ask_for_streams(actions)
         if unknown:
             # Each command is sent at most 1 + command_retries times: once in the batch, then
             # alone until its ACK comes.
@@ -244,11 +256,21 @@ class UpdatePipeline:
             log.info("servo update unconfirmed (%s), confirming one at a time", outcome.reason)
         elif inflight.pending:
             inflight.attempt = 1
+        self._confirm_next(actions, inflight, now)
+
+    def _confirm_next(self, actions: list[Action], inflight: Flight, now: float) -> None:
+        """Send the next command to confirm alone, once the outputs' truth allows it (else
+        the flight waits, ``deferred``), or resolve the update when none is left."""
         if inflight.pending:
+            if not self._core.outputs.may_confirm(now):
+                inflight.deferred = True
+                return
+            inflight.deferred = False
             command = inflight.pending.pop(0)
             inflight.tracker = UpdateTracker([command], sent_s=now, timeout_s=inflight.timeout_s)
             self._emit(actions, [command], inflight.attempt)
             return
+        inflight.deferred = False
         self._resolve(actions, inflight, now)
 
     def _poses_left_unknown(self, inflight: Flight) -> list[tuple[float, ...]]:

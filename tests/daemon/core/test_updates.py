@@ -153,6 +153,8 @@ def test_an_update_that_stays_unanswered_fails_its_target_and_is_resent_before_m
     first = rig.servo()
     for _ in range(1 + rig.config.link.command_retries):
         rig.advance(rig.config.link.command_timeout_s)
+        rig.readback(first)  # (after an update with no ACK at all, confirmed once one came)
+        rig.advance(0.001)
     reply = rig.reply(request)
     assert reply.outcome is Outcome.FAILED and "no COMMAND_ACK" in reply.message
     status = rig.core.status()
@@ -175,6 +177,8 @@ def test_a_moving_arm_survives_unanswered_updates_up_to_update_attempts(rig):
         rig.advance(1.0 / RATE_HZ)  # a tick: the next step goes out
         for _ in range(1 + rig.config.link.command_retries):
             rig.advance(rig.config.link.command_timeout_s)  # and is never answered
+            rig.readback(rig.core.status()["last_pwm_us"] or {})
+            rig.advance(0.001)
         moving = rig.core.status()["goal_deg"] is not None
         assert moving == (attempt < UPDATE_ATTEMPTS)
 
@@ -233,7 +237,9 @@ def test_an_unanswered_update_with_one_behind_it_is_decided_by_the_one_behind(ri
     status = rig.core.status()
     assert status["last_pwm_us"] is None  # unknown, not "acknowledged at park"
     assert rig.servo() == {}  # no retry of the first: the second re-sent its outputs
-    rig.advance(0.01)  # the second's deadline: its commands confirmed one at a time
+    rig.advance(0.01)  # the second's deadline: no ACK at all for it
+    rig.readback(parked)  # the confirmations wait for a readback since (a reboot?)
+    rig.advance(0.001)  # its commands confirmed one at a time
     confirmed = {}
     for expected in behind:
         [alone] = [c for c in rig.sent if c.command == SERVO]
@@ -277,3 +283,33 @@ def test_acks_taken_late_by_a_stalled_control_thread_are_judged_at_their_arrival
         )
     assert rig.reply(request).outcome is Outcome.ACCEPTED
     assert rig.core.status()["counters"]["servo_errors"] == 0
+
+
+def test_an_update_with_no_ack_at_all_waits_for_a_readback_and_not_over_another_sender(
+    rig,
+):
+    # The autopilot rebooted unseen (frames forged as its own filled its silence): not one ACK
+    # came, and the step was confirmed one command at a time over a ground station's command
+    # given since the boot (a 73 deg step).
+    rig.system_time(600_000)
+    request = rig.goto(near(PARK))
+    rig.ack_all(rig.sent)
+    assert rig.reply(request).outcome is Outcome.ACCEPTED
+    acked = dict(rig.core.status()["last_pwm_us"])
+    rig.goto(tuple(p + 30.0 for p in PARK))
+    rig.advance(1.0 / RATE_HZ)
+    rig.sent.clear()
+    rig.advance(rig.config.link.command_timeout_s)  # not one ACK
+    assert any(c.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL for c in rig.sent)
+    assert rig.servo() == {}  # nothing confirmed before a readback says where they are
+    output = rig.calibration.outputs[0]
+    shown = {**acked, output: 2000}
+    for boot_ms in (600_900, 600_920, 600_940):  # a ground station's command shows
+        rig.clock.advance(0.02)
+        rig.readback(shown)
+        rig.clock.advance(0.005)
+        rig.system_time(boot_ms)  # the autopilot, there
+        rig.advance(0.001)
+    assert rig.core.status()["foreign_command"]["output"] == output
+    rig.advance(0.05)
+    assert output not in rig.servo()  # its command of the update is not confirmed over it
