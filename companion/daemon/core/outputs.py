@@ -39,6 +39,8 @@ READBACK_SETTLE_S = 0.15
 #: the daemon command the outputs somewhere on their word alone.
 READBACK_MISMATCHES = 2
 READBACK_SPAN_INTERVALS = 1.25
+#: PWMs tracked per output at once while its readbacks disagree (the oldest dropped).
+MISMATCH_VALUES = 4
 #: Meanwhile (a settled readback disagreed, not believed yet) the motion holds: no step goes
 #: out on a belief the next readbacks may overturn; until this many intervals after the last
 #: readback that disagreed (frames that agree between do not end it: with a forger on the
@@ -89,8 +91,9 @@ class OutputsTruth(abc.ABC):
         self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
         #: Per output: settled readbacks in a row not showing the acknowledged PWM, and when
         #: the first of them arrived.
-        self._mismatches: dict[int, int] = {}
-        self._mismatch_since_s: dict[int, float] = {}
+        #: Per output, per PWM shown (within READBACK_TOLERANCE_US): when the settled
+        #: readbacks in a row not showing the acknowledged PWM first showed it, and how many.
+        self._mismatches: dict[int, dict[int, tuple[float, int]]] = {}
         #: Per output: when its readbacks first disagreed long enough (waiting for the
         #: autopilot's clock, see :meth:`_clock_after`).
         self._span_met_s: dict[int, float] = {}
@@ -160,12 +163,22 @@ class OutputsTruth(abc.ABC):
     def _disagrees(self, output: int, at_s: float, *, clock_after: bool = False) -> bool:
         """Another settled readback not showing what ``output`` acknowledged, arrived at
         ``at_s``: whether the readbacks now disagree with it for long enough to be believed
-        (READBACK_MISMATCHES in a row over READBACK_SPAN_INTERVALS of the stream).
+        (READBACK_MISMATCHES showing the same PWM over READBACK_SPAN_INTERVALS of the stream,
+        none showing the acknowledged PWM between).
         ``clock_after``: and a SYSTEM_TIME continuing the autopilot's clock came after they
         did (:meth:`_clock_after`)."""
-        count = self._mismatches.get(output, 0) + 1
-        self._mismatches[output] = count
-        since_s = self._mismatch_since_s.setdefault(output, at_s)
+        # Counted per PWM shown: the belief is "the output shows this PWM". Frames forged with
+        # another PWM between the autopilot's own (a dead output's) neither count for it nor
+        # stand for it (taking the last frame's PWM for what the readbacks say would store a
+        # marker where a forged frame says).
+        shown = self.shown.get(output, 0)
+        values = self._mismatches.setdefault(output, {})
+        key = next((v for v in values if abs(v - shown) <= READBACK_TOLERANCE_US), shown)
+        since_s, count = values.get(key, (at_s, 0))
+        count += 1
+        values[key] = (since_s, count)
+        if len(values) > MISMATCH_VALUES:  # a forger's every frame another PWM: bounded
+            del values[min(values, key=lambda v: values[v][0])]
         interval_s = self._core.settings.readback_interval_s
         believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
             READBACK_SPAN_INTERVALS * interval_s
@@ -197,8 +210,7 @@ class OutputsTruth(abc.ABC):
 
     def _agrees(self, output: int) -> None:
         """A readback showed what ``output`` acknowledged (or a step on its way)."""
-        self._mismatches[output] = 0
-        self._mismatch_since_s.pop(output, None)
+        self._mismatches.pop(output, None)
         self._span_met_s.pop(output, None)
 
     def _readback_seen(self, now: float) -> bool:

@@ -184,7 +184,6 @@ class Px4Outputs(OutputsTruth):
 
     def lost(self, flights: Sequence[Flight]) -> None:
         self._mismatches.clear()
-        self._mismatch_since_s.clear()
         self._doubt_until_s.clear()
         self._forget_liveness(self._core.clock())
         # PX4 applies what it stores in one step once its outputs are live: re-sending the

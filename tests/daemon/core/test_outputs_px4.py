@@ -367,3 +367,25 @@ def test_px4_a_forged_readback_between_the_autopilots_own_never_sends_a_marker()
     px4.readback()
     assert rig.core.status()["outputs_live"] is True
     assert max_physical_step_us(px4) <= 1.0
+
+
+def test_px4_readbacks_of_a_dead_output_among_forged_ones_store_the_marker_where_it_shows():
+    # The outputs died (showing the disarmed PWM) while frames forged with other PWMs came
+    # between: the dead output was believed on the forged frame's word, and its marker stored
+    # there, 160 deg away (PX4 applied it at the next prearm).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 1.0)
+    px4.set_live(False)  # every output at 1500
+    rig.sent.clear()
+    forged = {o: 1100 for o in px4.shown}
+    for _ in range(4):
+        rig.clock.advance(0.01)
+        px4.readback()
+        rig.clock.advance(0.01)
+        rig.readback(forged)
+    px4.handle()
+    assert rig.core.status()["outputs_live"] is False
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
