@@ -183,10 +183,14 @@ class ArduPilotOutputs(OutputsTruth):
                     self._start_at(i, self.angle_shown(output, shown))
                     if self._held_since_off is not None:  # nothing sent: they hold that
                         self._held_since_off = band_of([tuple(state.position)])
-                elif any(output in f.pwm_by_output for f in state.flights):
+                elif any(output in f.pwm_by_output for f in state.flights) or self._as_held(
+                    i, output, shown
+                ):
                     # Ours on its way (shown before its ACK, or not applied yet): its outcome
-                    # says where the output is.
+                    # says where the output is. Or where the joint is already taken to be (a
+                    # PWM believed before, the pose to re-send): nothing to decide.
                     self._forget_unacked(output)
+                    self._doubt_until_s.pop(output, None)
                 elif self._shown_steadily(output, shown):
                     # After a loss or a reboot, before anything of ours is acknowledged: an
                     # output that shows a PWM (another sender set it since the boot) is there;
@@ -278,6 +282,15 @@ class ArduPilotOutputs(OutputsTruth):
         else:
             self._hold_for(output, at_s)
         return believed
+
+    def _as_held(self, i: int, output: int, shown: int) -> bool:
+        """Whether ``shown`` is the PWM of where joint ``i`` is taken to be (the pose still to
+        re-send, else the acknowledged one)."""
+        state = self._core.state
+        angle = (state.unconfirmed or state.position)[i]
+        joint = self._core.config.calibration.for_output(output)
+        angle = min(max(angle, joint.angle_min_deg), joint.angle_max_deg)
+        return abs(joint.mapped_pwm_us(angle) - shown) <= READBACK_TOLERANCE_US
 
     def _forget_unacked(self, output: int) -> None:
         """``output``'s readbacks no longer show a PWM set by another sender since a loss."""
