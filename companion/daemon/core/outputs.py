@@ -230,8 +230,8 @@ class OutputsTruth(abc.ABC):
         return True
 
     def _start_at(self, i: int, angle: float) -> None:
-        """Nothing of ours acknowledged yet: joint ``i`` is at ``angle`` (its output shows it),
-        and a pose restored to re-send first (``pose_file``) keeps it there."""
+        """Joint ``i`` is at ``angle`` (its output shows it: at the start, or set by another
+        sender), and a pose still to re-send (``pose_file``, a loss) keeps it there."""
         state = self._core.state
         state.position[i] = angle
         if state.unconfirmed is not None:

@@ -241,11 +241,7 @@ class ArduPilotOutputs(OutputsTruth):
         where the output is, whatever the bands said (otherwise the bands take it in beside
         what they held)."""
         state = self._core.state
-        state.position[i] = angle
-        if state.unconfirmed is not None:
-            unconfirmed = list(state.unconfirmed)
-            unconfirmed[i] = angle
-            state.unconfirmed = tuple(unconfirmed)
+        self._start_at(i, angle)
         output = state.outputs[i]
         for flight in state.flights:  # an update left unknown is not confirmed over it
             flight.pending = [c for c in flight.pending if output not in c.outputs]
