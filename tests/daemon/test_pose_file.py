@@ -25,11 +25,12 @@ def test_what_is_offered_is_written_and_loaded_at_the_next_start(tmp_path):
     assert pose_file.load(path, CALIBRATION) == (low, {**low, 9: 1640})
 
 
-def test_a_file_of_one_pwm_per_output_is_that_band():
-    pwm = {str(o): 1600 for o in CALIBRATION.outputs}
-    left = ({o: 1600 for o in CALIBRATION.outputs},) * 2
-    assert pose_file.pose_of(left)[9] == 1600 and pose_file.same_everywhere(left)
-    assert json.loads(json.dumps({"pwm_us": pwm}))
+def test_a_file_of_one_pwm_per_output_is_that_band(tmp_path):
+    path = tmp_path / "pose.json"
+    path.write_text(json.dumps({"pwm_us": {str(o): 1600 for o in CALIBRATION.outputs}}))
+    left = pose_file.load(str(path), CALIBRATION)
+    assert left is not None and pose_file.same_everywhere(left)
+    assert pose_file.pose_of(left) == dict.fromkeys(CALIBRATION.outputs, 1600)
 
 
 def test_a_file_that_does_not_match_the_config_is_set_aside(tmp_path, caplog):
