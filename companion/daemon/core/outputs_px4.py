@@ -136,19 +136,27 @@ class Px4Outputs(OutputsTruth):
             # An output that stops showing what it acknowledged was disarmed, killed or
             # rebooted, once the readbacks say so for long enough to be believed (a forged
             # readback alone never moves a live output to a marker).
-            if output in self._not_live and acked == self._held_pwm.get(output):
+            dead_pwm = self._dead_pwm.get(output)
+            if (
+                output in self._not_live
+                and acked == self._held_pwm.get(output)
+                and dead_pwm is not None
+                and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US
+            ):
                 self._agrees(output)
-                continue  # told to hold its marker (or the last PWM known)
+                continue  # still dead, told to hold its marker (or the last PWM known)
+            # Live showing another PWM, or dead showing one other than it did (another
+            # sender's value stored meanwhile, brought out at arming; a new disarmed PWM): once
+            # believed, the joint is there, and its marker is taken from there.
             if not self._disagrees(output, self.shown_s):
                 continue
             self._confirmed.discard(output)
-            if output not in self._not_live:
-                reason = (
-                    f"output {output} shows {shown} us, not the {acked} us acknowledged "
-                    "(disarmed, or the outputs not armed)"
-                )
-                log.warning("%s: holding the arm where it is", reason)
-                self._not_live[output] = reason
+            reason = (
+                f"output {output} shows {shown} us, not the {acked} us acknowledged "
+                "(disarmed, the outputs not armed, or set by another sender)"
+            )
+            log.warning("%s: holding the arm where it is", reason)
+            self._not_live[output] = reason
             self._dead_pwm[output] = shown
             self._dead_seq[output] = state.updates_sent
             # The joint is where the output puts it. Its marker is stored at once (PX4 would

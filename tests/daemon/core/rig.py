@@ -267,6 +267,12 @@ class Px4OutputsModel:
         self._refresh()
         return commands
 
+    def foreign_store(self, output: int, pwm_us: int) -> None:
+        """Another sender's DO_SET_ACTUATOR stores ``pwm_us`` on ``output`` (shown at once if
+        live; its move is not ours, so not recorded)."""
+        self.stored[output] = pwm_us
+        self._refresh(record=False)
+
     def set_live(self, live: bool) -> None:
         """Arm or prearm (live), disarm or kill (not). Disarming drives every output to the
         disarmed PWM at once: PX4's doing, not ours, so not recorded as a move."""

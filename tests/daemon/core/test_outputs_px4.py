@@ -389,3 +389,36 @@ def test_px4_readbacks_of_a_dead_output_among_forged_ones_store_the_marker_where
     px4.handle()
     assert rig.core.status()["outputs_live"] is False
     assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+
+
+def test_px4_an_output_holding_its_marker_that_shows_another_pwm_is_taken_where_it_shows():
+    # Dead outputs hold their markers; a ground station's DO_SET_ACTUATOR stores 2000 us on one
+    # of them meanwhile, and the prearm brings it out there. The readback showed 2000 us for
+    # seconds, but the output was taken to still hold its marker: the next hold sent it there,
+    # 160-180 deg in one command.
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 1.0)
+    px4.set_live(False)
+    run(rig, px4, 0.5)  # found dead: the markers stored
+    assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+    first, second = rig.calibration.outputs[:2]
+    px4.foreign_store(first, 2000)  # another sender's, stored while dead
+    px4.set_live(True)  # prearm: the first output at 2000, the others at their markers
+    del px4.physical_moves[:]
+    run(rig, px4, 1.0)
+    status = rig.core.status()
+    assert str(first) not in status.get("not_live", {})
+    px4.foreign_store(second, 1200)  # another sender's again, live: a hold goes out for it
+    for k in range(100):  # the readback at its own rate (50 Hz), ticks at 20 Hz
+        rig.clock.advance(0.01)
+        if k % 2 == 0:
+            px4.readback()
+        if k % 5 == 0:
+            rig.tick()
+        px4.handle()
+    assert max_physical_step_us(px4) <= 1.0
+    # It went on from 2000 us at the speed limit, never back to its marker.
+    assert next(m for m in px4.physical_moves if m[0] == first)[1] == 2000
