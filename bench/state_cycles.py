@@ -58,7 +58,9 @@ a foreign one (jumping back from the foreign PWM) is the daemon's, unless it wen
 ``RACE_WINDOW_S`` (a readback interval and a hop) after the foreign command: then no readback
 could have shown it to the daemon yet, and it is counted apart as a **race**; so is one after
 an autopilot reboot less than ``BELIEF_WINDOW_S`` after the foreign command (its readbacks
-could not be believed before it: a **reboot race**). The target is 0
+could not be believed before it: a **reboot race**), and PX4's outputs coming alive
+``DEAD_WINDOW_S`` or less after going to the disarmed PWM, back to within a step of where they
+were (dead too briefly for the readbacks to show it: a **dead-time race**). The target is 0
 daemon steps. **The limit around a reload**: in force from the moment the daemon applied it,
 which lies between the SIGHUP and the ``reloaded`` line seen in its log plus two control periods
 (the command in flight); in that window a step is judged against the higher of the old and new
@@ -168,6 +170,10 @@ RACE_WINDOW_S = 0.02 + 0.01
 #: the race window, the span of two readbacks over more than an interval (1.25 × 20 ms), and the
 #: round trip of the SYSTEM_TIME asked for then.
 BELIEF_WINDOW_S = RACE_WINDOW_S + 1.25 * 0.02 + 0.01
+#: PX4's outputs dead (at the disarmed PWM) for less than this before coming alive again
+#: (``devkit.joint_steps.RACE_DEAD``): the first readback showing them dead (an interval), the
+#: ones it takes to believe it (over more than an interval: the third, two more) and a hop.
+DEAD_WINDOW_S = 3 * 0.02 + 0.01
 #: The window after the ``reloaded`` log line in which the old limit may still be in force.
 RELOAD_MARGIN_PERIODS = 2
 #: At most this many control connections for gotos at once (each answers one at a time).
@@ -631,6 +637,7 @@ class Cycles:
                         race_window_s=RACE_WINDOW_S,
                         reboot_cut_short=before_s is not None
                         and reboot_within(reboots_s, step.t_s - before_s, BELIEF_WINDOW_S),
+                        dead_window_s=DEAD_WINDOW_S,
                     )
                 )
                 run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))

@@ -43,7 +43,11 @@ motion until it is believed, and the joint is then taken where it shows). **A re
 its readbacks could be believed (two over more than an interval, and the autopilot's clock
 heard after them): after the reboot the outputs carry no pulses, and what the daemon re-sends
 was computed without the foreign PWM, which it cannot tell from frames forged while an
-autopilot reboots.
+autopilot reboots. **A dead-time race** (apart too): PX4's outputs went to the disarmed PWM
+and came alive again within ``dead_window_s`` (a kill, then an arm at once), before the
+readbacks could show them dead and the daemon store a marker there; they came back to within
+a step of the pulse they had before, as PX4 brings out what it stored (a daemon holding still
+would see the same jump).
 
 **A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
 instant known only within a window (the signal sent … the daemon said it applied it): a step in
@@ -67,6 +71,7 @@ FOREIGN_ALIVE = "foreign: coming alive"
 AUTOPILOT = "foreign: autopilot to its disarmed PWM"
 RACE = "race: the daemon's command before a readback could show a foreign one"
 RACE_REBOOT = "race: a reboot before the readbacks could confirm a foreign command"
+RACE_DEAD = "race: the outputs alive again before a readback could show them dead"
 DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
 FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
 #: Causes of an output change that bring stored values out (the outputs coming alive).
@@ -97,6 +102,9 @@ class JointStep:
     allowed_deg: float  # joint_speed_deg_s / rate_hz + quantum_deg
     cause: str  # the simulator's cause of the change: command, arm, prearm, safety_off ...
     source: tuple[int, int] | None = None  # a foreign command's sender
+    #: |Δangle| from the pulse before ``from_us`` (None: none): a step coming alive after a
+    #: short dead time, compared with where the joint was before it (:data:`RACE_DEAD`).
+    back_deg: float | None = None
 
     @property
     def fast(self) -> bool:
@@ -171,6 +179,7 @@ def joint_steps(
     steps: list[JointStep] = []
     first: list[Change] = []
     pulse: int | None = None  # the last pulse (> 0): where the servo holds
+    before: int | None = None  # the pulse before it
     previous_s: float | None = None
     ordered = list(changes)
     for k, change in enumerate(ordered):
@@ -194,8 +203,13 @@ def joint_steps(
                     allowed_deg=allowed_deg,
                     cause=change.cause,
                     source=change.source,
+                    back_deg=None
+                    if before is None
+                    else abs(to_angle_deg(change.pwm_us) - to_angle_deg(before)),
                 )
             )
+        if change.pwm_us != pulse:
+            before = pulse
         pulse = change.pwm_us
     return steps, first
 
@@ -241,6 +255,7 @@ def step_kind(
     foreign_before_s: float | None = None,
     race_window_s: float = 0.0,
     reboot_cut_short: bool = False,
+    dead_window_s: float = 0.0,
 ) -> str:
     """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
     :data:`FOREIGN_KINDS`, :data:`RACE` or :data:`RACE_REBOOT`. ``disarmed_us``: PX4's
@@ -250,7 +265,9 @@ def step_kind(
     (:func:`foreign_command_before`); ``reboot_cut_short``: the autopilot rebooted so soon after
     that foreign command that its readbacks could not be believed before the outputs lost their
     pulses (the daemon then cannot tell it from frames forged while the autopilot reboots:
-    :data:`RACE_REBOOT`)."""
+    :data:`RACE_REBOOT`); ``dead_window_s``: outputs back from PX4's disarmed PWM this soon
+    after going there, to within a step of where they were before, were dead for less than
+    the readbacks need to show it (:data:`RACE_DEAD`)."""
     if step.cause == "command":
         if step.source is not None:
             return FOREIGN_COMMAND
@@ -262,7 +279,17 @@ def step_kind(
     if disarmed_us is not None and step.to_us == disarmed_us:
         return AUTOPILOT
     if step.cause in ALIVE_CAUSES:
-        return FOREIGN_ALIVE if stored_foreign else DAEMON_ALIVE
+        if stored_foreign:
+            return FOREIGN_ALIVE
+        if (
+            disarmed_us is not None
+            and step.from_us == disarmed_us
+            and step.dt_s <= dead_window_s
+            and step.back_deg is not None
+            and step.back_deg <= step.allowed_deg
+        ):
+            return RACE_DEAD
+        return DAEMON_ALIVE
     return AUTOPILOT
 
 

@@ -11,6 +11,7 @@ from devkit.joint_steps import (
     FOREIGN_ALIVE,
     FOREIGN_COMMAND,
     RACE,
+    RACE_DEAD,
     RACE_REBOOT,
     Change,
     JointStep,
@@ -213,3 +214,23 @@ def test_a_command_that_restates_the_stored_pwm_leaves_it_the_earlier_senders():
     assert foreign_stored_at(stored, 3.5)  # still the ground station's value
     assert not foreign_stored_at(stored, 4.0)  # the daemon's new one
     assert foreign_command_before(stored, 4.0) == pytest.approx(2.0)
+
+
+def test_outputs_back_from_the_disarmed_pwm_within_the_readbacks_blind_time_are_a_race():
+    # A kill, then an arm 33 ms later: PX4 brings out what it stored, a step from where the
+    # joint was before; the readbacks could not show the outputs dead in that time.
+    changes = [
+        Change(0.0, 1044, "start"),
+        Change(1.0, 1000, "kill"),
+        Change(1.033, 1046, "arm"),
+        Change(2.0, 1000, "kill"),
+        Change(2.5, 1046, "arm"),  # dead long enough to be seen: the daemon's
+        Change(3.0, 1000, "kill"),
+        Change(3.03, 1200, "arm"),  # far from where it was: the daemon's
+    ]
+    found, _ = steps(changes)
+    alive = [s for s in found if s.cause == "arm"]
+    kind = {"disarmed_us": 1000, "stored_foreign": False, "dead_window_s": 0.07}
+    assert [s.fast for s in alive] == [True, True, True]
+    assert [step_kind(s, **kind) for s in alive] == [RACE_DEAD, DAEMON_ALIVE, DAEMON_ALIVE]
+    assert step_kind(alive[0], disarmed_us=1000, stored_foreign=False) == DAEMON_ALIVE
