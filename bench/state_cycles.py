@@ -628,6 +628,7 @@ class Cycles:
             for step in steps:
                 run.steps.append(step)
                 before_s = foreign_command_before(stored.get(output, []), step.t_s)
+                in_force_deg_s = limits.at(step.t_s)[1]
                 run.kinds.append(
                     step_kind(
                         step,
@@ -638,6 +639,7 @@ class Cycles:
                         reboot_cut_short=before_s is not None
                         and reboot_within(reboots_s, step.t_s - before_s, BELIEF_WINDOW_S),
                         dead_window_s=DEAD_WINDOW_S,
+                        back_allowed_deg=in_force_deg_s / RATE_HZ + quantum,
                     )
                 )
                 run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))

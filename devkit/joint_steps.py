@@ -256,6 +256,7 @@ def step_kind(
     race_window_s: float = 0.0,
     reboot_cut_short: bool = False,
     dead_window_s: float = 0.0,
+    back_allowed_deg: float | None = None,
 ) -> str:
     """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
     :data:`FOREIGN_KINDS`, :data:`RACE` or :data:`RACE_REBOOT`. ``disarmed_us``: PX4's
@@ -267,7 +268,8 @@ def step_kind(
     pulses (the daemon then cannot tell it from frames forged while the autopilot reboots:
     :data:`RACE_REBOOT`); ``dead_window_s``: outputs back from PX4's disarmed PWM this soon
     after going there, to within a step of where they were before, were dead for less than
-    the readbacks need to show it (:data:`RACE_DEAD`)."""
+    the readbacks need to show it (:data:`RACE_DEAD`); "a step" is ``back_allowed_deg`` (the
+    limit in force, e.g. after a reload; default ``step.allowed_deg``)."""
     if step.cause == "command":
         if step.source is not None:
             return FOREIGN_COMMAND
@@ -286,7 +288,8 @@ def step_kind(
             and step.from_us == disarmed_us
             and step.dt_s <= dead_window_s
             and step.back_deg is not None
-            and step.back_deg <= step.allowed_deg
+            and step.back_deg
+            <= (step.allowed_deg if back_allowed_deg is None else back_allowed_deg)
         ):
             return RACE_DEAD
         return DAEMON_ALIVE

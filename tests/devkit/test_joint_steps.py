@@ -234,3 +234,7 @@ def test_outputs_back_from_the_disarmed_pwm_within_the_readbacks_blind_time_are_
     assert [s.fast for s in alive] == [True, True, True]
     assert [step_kind(s, **kind) for s in alive] == [RACE_DEAD, DAEMON_ALIVE, DAEMON_ALIVE]
     assert step_kind(alive[0], disarmed_us=1000, stored_foreign=False) == DAEMON_ALIVE
+    # After a reload to a higher speed, a step is the one in force.
+    wider = JointStep(9, 1.033, 1000, 1070, 7.0, 0.033, 3.1, "arm", None, 4.5)
+    assert step_kind(wider, **kind) == DAEMON_ALIVE
+    assert step_kind(wider, back_allowed_deg=6.1, **kind) == RACE_DEAD
