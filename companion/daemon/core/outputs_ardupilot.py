@@ -237,9 +237,9 @@ class ArduPilotOutputs(OutputsTruth):
     def _joint_at(self, i: int, angle: float) -> None:
         """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
         joint is there, a pose still to re-send keeps it there, a command of an update left
-        unknown is not confirmed over it, and with the switch off that is
-        where the output is, whatever the bands said (otherwise the bands take it in beside
-        what they held)."""
+        unknown is not confirmed over it, a rewind still to come leaves it there, and with the
+        switch off that is where the output is, whatever the bands said (otherwise the bands
+        take it in beside what they held)."""
         state = self._core.state
         self._start_at(i, angle)
         output = state.outputs[i]
@@ -252,6 +252,10 @@ class ArduPilotOutputs(OutputsTruth):
                 band[0][i] = band[1][i] = angle
             else:
                 band[0][i], band[1][i] = min(band[0][i], angle), max(band[1][i], angle)
+        if self._rewind_to is not None:  # the switch on: the rewind leaves it there
+            rewind = list(self._rewind_to)
+            rewind[i] = angle
+            self._rewind_to = tuple(rewind)
 
     def _shown_steadily(self, output: int, shown: int) -> bool:
         """Readbacks show ``output`` at ``shown`` (within the tolerance) twice in a row over
@@ -397,7 +401,9 @@ class ArduPilotOutputs(OutputsTruth):
         if not self._safety_known(now):
             return False
         dead = self.dead()
-        if dead and self._rewind_to is not None:
+        if dead and self._rewind_to is not None and not self.in_doubt(now):
+            # (Not while a readback is in doubt: it may show an output another sender set,
+            # which the rewind must not send back over.)
             self._rewind(actions, dead, now)
         # The safety switch: whatever is sent is applied at once when it goes off.
         return not dead

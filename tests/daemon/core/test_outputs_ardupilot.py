@@ -569,3 +569,44 @@ def test_ardupilot_after_a_reboot_off_is_believed_only_once_the_stream_said_so_l
     rig.clock.advance(0.03)
     rig.sys_status(safety_on=False, stream=False)  # forged again
     assert rig.core.status()["safety_on"] is True
+
+
+def test_ardupilot_the_rewind_never_sends_an_output_back_over_another_senders_command(rig):
+    # The arm moving, a ground station's DO_SET_SERVO put an output at 2000 us, and the safety
+    # switch went on 37 ms later, before the readbacks could be believed: the rewind sent the
+    # output back to where the daemon had it (1634 us) while its readback showed 2000, and the
+    # release brought that out, 58 deg from the 2000 us the servo had last been given.
+    goal = list(PARK)
+    goal[0] += 60.0
+    goal[1] -= 40.0
+    rig.goto(goal)
+    done = 0
+    for i in range(10):  # moving, the readback streaming what was acknowledged
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+        if i % 2:
+            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    rig.ack_all(rig.sent[done:])
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    rig.readback(shown)  # the ground station's command: one readback, not believed yet
+    rig.sys_status(safety_on=True)  # the switch on
+    rig.sent.clear()
+    for _ in range(3):
+        rig.clock.advance(0.02)
+        rig.readback(shown)
+        rig.tick()
+    # While the readback is in doubt nothing goes to that output but 2000.
+    assert rig.servo().get(output, 2000) == 2000
+    rig.system_time(600_000)  # the autopilot's clock: the readbacks are believed
+    rig.clock.advance(0.02)
+    rig.readback(shown)
+    assert rig.core.status()["foreign_command"]["output"] == output
+    for _ in range(5):
+        rig.ack_all(rig.sent)
+        rig.clock.advance(0.02)
+        rig.readback(shown)
+        rig.tick()
+    # The rewind leaves it where the other sender put it.
+    assert rig.servo().get(output, 2000) == 2000
