@@ -238,17 +238,18 @@ class ArduPilotOutputs(OutputsTruth):
         """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
         joint is there, a pose still to re-send keeps it there, a command of an update left
         unknown is not confirmed over it, a rewind still to come leaves it there, and with the
-        switch off that is where the output is, whatever the bands said (otherwise the bands
-        take it in beside what they held)."""
+        switch off (or the output free of it, BRD_SAFETY_MASK) that is where the output is,
+        whatever the bands said (otherwise the bands take it in beside what they held)."""
         state = self._core.state
         self._start_at(i, angle)
         output = state.outputs[i]
         for flight in state.flights:  # an update left unknown is not confirmed over it
             flight.pending = [c for c in flight.pending if output not in c.outputs]
+        live = self.safety_on is False or (self.safety_on is True and output not in self.dead())
         for band in (self._held_before_loss, self._held_since_off):
             if band is None:
                 continue
-            if self.safety_on is False:
+            if live:
                 band[0][i] = band[1][i] = angle
             else:
                 band[0][i], band[1][i] = min(band[0][i], angle), max(band[1][i], angle)

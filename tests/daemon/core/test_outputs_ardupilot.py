@@ -610,3 +610,36 @@ def test_ardupilot_the_rewind_never_sends_an_output_back_over_another_senders_co
         rig.tick()
     # The rewind leaves it where the other sender put it.
     assert rig.servo().get(output, 2000) == 2000
+
+
+def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_another_sender_put_it(
+    rig,
+):
+    # The arm's outputs in BRD_SAFETY_MASK, the switch on (they stay live), a ground station's
+    # servo command believed; then a reboot. The re-send went to the pose the switch had been
+    # seen on at (the rewind, never carried out since no output was held), 58 deg from where
+    # the ground station had put the output.
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", float(ARM_MASK), 9, 1, 65535))
+    _settle(rig, near(PARK))
+    rig.sys_status(safety_on=True)
+    rig.advance(0.05)
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    for _ in range(3):
+        rig.readback(shown)
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.clock.advance(0.02)
+    rig.readback(shown)
+    assert rig.core.status()["foreign_command"]["output"] == output
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    rig.sent.clear()
+    for boot_ms in (170, 190, 210):  # no pulses since the boot; its clock goes on
+        rig.readback({})
+        rig.clock.advance(0.02)
+        rig.system_time(boot_ms)
+    rig.switch_off()
+    rig.advance(0.05)
+    assert rig.servo()[output] == 2000
