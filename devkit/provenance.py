@@ -39,13 +39,19 @@ def git(*args: str, cwd: Path = ROOT) -> str | None:
     return out.stdout.strip()
 
 
+#: What the benches write (``--markdown``, results): changes there say nothing of the code.
+BENCH_OUTPUTS = ("docs/measurements", "docs/papers-report.md", "bench/results")
+
+
 def commit(cwd: Path = ROOT, run_git: Callable[..., str | None] = git) -> str:
-    """The short commit of ``cwd``'s checkout, ``+dirty`` if tracked files changed; ``unknown``
-    outside a git checkout."""
+    """The short commit of ``cwd``'s checkout, ``+dirty`` if tracked files changed (but the
+    benches' own pages and results, :data:`BENCH_OUTPUTS`: a run of several benches writes
+    them one after the other); ``unknown`` outside a git checkout."""
     head = run_git("rev-parse", "--short", "HEAD", cwd=cwd)
     if not head:
         return "unknown"
-    dirty = run_git("status", "--porcelain", "--untracked-files=no", cwd=cwd)
+    exclude = [f":(exclude){path}" for path in BENCH_OUTPUTS]
+    dirty = run_git("status", "--porcelain", "--untracked-files=no", "--", ".", *exclude, cwd=cwd)
     return head + ("+dirty" if dirty else "")
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import subprocess
 from pathlib import Path
 
 from devkit.provenance import command, commit, run_header, with_header
@@ -54,3 +55,21 @@ def test_the_header_goes_under_the_title():
         "# Title\n\n- command: `python -m bench.x`\n\nbody\n"
     )
     assert with_header("| a |\n", header) == "- command: `python -m bench.x`\n\n| a |\n"
+
+
+def test_the_benches_own_pages_do_not_make_the_tree_dirty(tmp_path):
+    # A run of several benches writes their pages one after the other: the later ones must
+    # still name the commit the code came from, without "+dirty".
+    def run(*args: str) -> None:
+        subprocess.run(["git", *args], cwd=tmp_path, check=True, capture_output=True)
+
+    (tmp_path / "docs/measurements").mkdir(parents=True)
+    (tmp_path / "docs/measurements/latency.md").write_text("old\n")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    run("init", "-q")
+    run("add", ".")
+    run("-c", "user.name=t", "-c", "user.email=t@example.org", "commit", "-qm", "start")
+    (tmp_path / "docs/measurements/latency.md").write_text("new\n")
+    assert not commit(tmp_path).endswith("+dirty")
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert commit(tmp_path).endswith("+dirty")
