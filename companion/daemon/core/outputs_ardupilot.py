@@ -56,6 +56,16 @@ SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
 #: the last one that said it is on: the autopilot's own stream, saying on, would otherwise be
 #: overruled by a frame forged between two of its frames.
 SAFETY_ON_STICKY_INTERVALS = 1.5
+#: Two SYS_STATUS arriving less than this many intervals apart break the stream's cadence:
+#: one of them is not the autopilot's (frames forged as its own, on an unsigned link). Then an
+#: "off" does not narrow the band of what the outputs may hold (the switch may have gone on
+#: just before a forged one), the last two narrowings are undone, and so until
+#: SAFETY_ON_STICKY_INTERVALS after the last such frame. A forger sending twice an interval or
+#: more always comes this close to the autopilot's frames; one sending no more often than the
+#: stream, between its frames, is not told apart (signing is the remedy). A link that bunches
+#: frames, or a stalled reader, breaks the cadence too: the arm then waits within its band for
+#: a clean "off".
+SYS_STATUS_CADENCE_INTERVALS = 0.4
 
 
 def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
@@ -102,6 +112,11 @@ class ArduPilotOutputs(OutputsTruth):
         #: The switch unknown (start, loss, reboot): since when SYS_STATUS says it is off, with
         #: none saying on since (None: none said off yet).
         self._off_since_s: float | None = None
+        #: When the last SYS_STATUS arrived, and until when "off" narrows no band (see
+        #: SYS_STATUS_CADENCE_INTERVALS); the band as it was before the last two narrowings.
+        self._sys_status_at_s = -math.inf
+        self._cadence_broken_until_s = -math.inf
+        self._bands_before: list[Band] = []
         #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
         #: show, since when, how many in a row (see :meth:`_shown_steadily`).
         self._unacked_seen: dict[int, tuple[int, float, int]] = {}
@@ -115,6 +130,7 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_s = core.clock()
         self._sys_status_ever = True
         interval_s = core.settings.sys_status_interval_s
+        self._check_cadence(at_s, interval_s)
         if safety_on:
             self._safety_on_seen_s = at_s
             self._off_since_s = None
@@ -157,10 +173,35 @@ class ArduPilotOutputs(OutputsTruth):
             poses += [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
         else:
             poses.append(tuple(state.position))
-        self._held_since_off = band_of(poses)
+        band = self._held_since_off
+        if band is not None and at_s < self._cadence_broken_until_s:
+            for pose in poses:  # perhaps forged: nothing narrows
+                widen(band, pose)
+        else:
+            if band is not None:
+                self._bands_before = [*self._bands_before[-1:], band]
+            self._held_since_off = band_of(poses)
         if self._step_waits_for_sys_status and state.link_up:
             self._step_waits_for_sys_status = False
             core.motion.next_step(actions, immediate=False)  # the step held back for this
+
+    def _check_cadence(self, at_s: float, interval_s: float) -> None:
+        """A SYS_STATUS arrived at ``at_s``: less than SYS_STATUS_CADENCE_INTERVALS after the
+        one before, one of them is not the autopilot's, and so perhaps the "off" frames that
+        narrowed the band lately: those narrowings are undone (see the constant)."""
+        gap_s = at_s - self._sys_status_at_s
+        if gap_s < 0:
+            return  # stamped before the one before: says nothing of the cadence
+        self._sys_status_at_s = at_s
+        if gap_s >= SYS_STATUS_CADENCE_INTERVALS * interval_s:
+            return
+        self._cadence_broken_until_s = at_s + SAFETY_ON_STICKY_INTERVALS * interval_s
+        band = self._held_since_off
+        if band is not None:
+            for before in self._bands_before:
+                widen(band, before[0])
+                widen(band, before[1])
+        self._bands_before = []
 
     def _check_readback(self) -> None:
         """At the start the joints are where the readback shows; later, an output that shows

@@ -169,10 +169,11 @@ class Rig:
     def switch_off(self):
         """ArduPilot's SYS_STATUS stream says the safety switch is off, long enough to be
         believed while it is unknown (1.5 intervals, none saying on): two frames, the second
-        stamped two intervals after the first. The clock stays where it is (the tests'
-        timing is unchanged)."""
+        stamped 1.5 intervals after the first (the stream's next frames, stamped 1 and 2
+        intervals after it, are then no closer to it than half an interval: its cadence
+        holds). The clock stays where it is (the tests' timing is unchanged)."""
         self.sys_status(safety_on=False)
-        later_s = self.clock() + 2 * self.status_interval_s
+        later_s = self.clock() + 1.5 * self.status_interval_s + 1e-6
         outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
         return self.frame(
             lambda c: c.sys_status_encode(outputs, outputs, outputs, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0),

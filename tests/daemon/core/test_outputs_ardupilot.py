@@ -643,3 +643,35 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_another_s
     rig.switch_off()
     rig.advance(0.05)
     assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_forged_safety_off_frames_do_not_narrow_what_the_outputs_may_hold(rig):
+    # The switch went on between a SYS_STATUS saying off and the next step, and frames forged
+    # saying off came every 10 ms from then on: each was taken as the autopilot's, and what the
+    # outputs may hold was narrowed to the latest steps, without the pose they held when the
+    # switch went on. The rewind went to the middle of those steps, and the release moved the
+    # joints 3.4-3.8 deg (here two of the autopilot's "on" frames are lost: two steps go out).
+    goal = list(PARK)
+    goal[0] += 60.0
+    goal[1] -= 40.0
+    rig.goto(goal)
+    joint = rig.calibration.for_output(rig.calibration.outputs[0])
+    span_deg = joint.angle_max_deg - joint.angle_min_deg
+    step_us = STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
+    held: dict[int, int] = {}
+    t0, done = rig.clock(), 0
+    for k in range(300):  # 5 ms a pass
+        acked = dict(rig.core.status()["last_pwm_us"] or {})
+        new, done = rig.sent[done:], len(rig.sent)
+        if not held and rig.clock() - t0 >= 0.5 and rig.servo(new):
+            # The switch went on just before this step: the outputs hold what they had.
+            held = acked
+            rig.safety_stream = True  # the autopilot's frames say on from now ...
+            rig._status_due_s = rig.clock() + 3 * rig.status_interval_s  # ... two lost
+        rig.ack_all(new)  # carried out at once (stored, once the switch is on)
+        rig.advance(0.005)
+        if held and k % 2:
+            rig.sys_status(safety_on=False, stream=False)  # forged, every 10 ms
+    assert held and rig.core.status()["outputs_live"] is False
+    released = rig.core.status()["last_pwm_us"]  # what goes out at the release
+    assert max(abs(released[o] - held[o]) for o in held) <= step_us, (held, released)
