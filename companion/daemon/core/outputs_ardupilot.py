@@ -15,6 +15,7 @@ switch is seen on, the held outputs are sent back to the middle of that band (th
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 from collections.abc import Sequence
@@ -66,6 +67,12 @@ SAFETY_ON_STICKY_INTERVALS = 1.5
 #: frames, or a stalled reader, breaks the cadence too: the arm then waits within its band for
 #: a clean "off".
 SYS_STATUS_CADENCE_INTERVALS = 0.4
+#: A SYS_STATUS saying off speaks of the moment it left the autopilot, which may be before
+#: steps taken since (the control thread takes it later than the reader did, a busy board or
+#: a held frame): "off" narrows the band to the poses held since this many intervals before
+#: it arrived, each step sent since and the pose it was sent from (without them, the switch
+#: going on just before a step was acknowledged left the pose it held out of the band).
+SYS_STATUS_AGE_INTERVALS = 0.5
 
 
 def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
@@ -117,6 +124,10 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_at_s = -math.inf
         self._cadence_broken_until_s = -math.inf
         self._bands_before: list[Band] = []
+        #: The steps sent lately: when, the pose each was sent from, the step.
+        self._steps_sent: collections.deque[
+            tuple[float, tuple[float, ...], tuple[float, ...]]
+        ] = collections.deque(maxlen=32)
         #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
         #: show, since when, how many in a row (see :meth:`_shown_steadily`).
         self._unacked_seen: dict[int, tuple[int, float, int]] = {}
@@ -173,6 +184,10 @@ class ArduPilotOutputs(OutputsTruth):
             poses += [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
         else:
             poses.append(tuple(state.position))
+        since_s = at_s - SYS_STATUS_AGE_INTERVALS * interval_s
+        for sent_s, base, step in self._steps_sent:
+            if sent_s >= since_s:
+                poses += [base, step]
         band = self._held_since_off
         if band is not None and at_s < self._cadence_broken_until_s:
             for pose in poses:  # perhaps forged: nothing narrows
@@ -475,6 +490,8 @@ class ArduPilotOutputs(OutputsTruth):
 
     def stepped_to(self, step: tuple[float, ...]) -> None:
         """A step to ``step`` went out: the outputs may hold it."""
+        state = self._core.state
+        self._steps_sent.append((self._core.clock(), tuple(state.position), step))
         if self._held_since_off is not None:
             widen(self._held_since_off, step)
 

@@ -675,3 +675,41 @@ def test_ardupilot_forged_safety_off_frames_do_not_narrow_what_the_outputs_may_h
     assert held and rig.core.status()["outputs_live"] is False
     released = rig.core.status()["last_pwm_us"]  # what goes out at the release
     assert max(abs(released[o] - held[o]) for o in held) <= step_us, (held, released)
+
+
+def test_ardupilot_an_off_taken_after_a_steps_ack_still_holds_the_pose_before_that_step(rig):
+    # A SYS_STATUS saying off left the autopilot just before the switch went on, and was taken
+    # after the next step's ACK: what the outputs may hold was narrowed to that step, without
+    # the pose they held when the switch went on; the rewind went to the middle of the steps
+    # sent since (here two: the "on" frame comes late too), and the release moved a joint 4 deg.
+    goal = list(PARK)
+    goal[0] += 60.0
+    goal[1] -= 40.0
+    rig.goto(goal)
+    joint = rig.calibration.for_output(rig.calibration.outputs[0])
+    span_deg = joint.angle_max_deg - joint.angle_min_deg
+    step_us = STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
+    held: dict[int, int] = {}
+    done = 0
+    for k in range(300):  # 5 ms a pass; a step every 10 passes
+        if k == 109:
+            rig._status_due_s = math.inf  # the stream's next frame is late
+        acked = dict(rig.core.status()["last_pwm_us"] or {})
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        if k == 110:
+            # The switch went on just before this step, and the autopilot's last "off", sent
+            # before that (stamped 2 ms ago), is taken only after the step's ACK.
+            assert rig.servo(new)
+            held = acked
+            outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+            rig.frame(
+                lambda c: c.sys_status_encode(outputs, outputs, outputs, *[0] * 10),
+                received_s=rig.clock() - 0.002,
+            )
+            rig.safety_stream = True  # its next frames say on, the first after the next step
+            rig._status_due_s = rig.clock() + 2.2 * rig.status_interval_s
+        rig.advance(0.005)
+    assert held and rig.core.status()["outputs_live"] is False
+    released = rig.core.status()["last_pwm_us"]  # what goes out at the release
+    assert max(abs(released[o] - held[o]) for o in held) <= step_us, (held, released)

@@ -91,6 +91,7 @@ def test_system_time_going_quiet_resends_every_output_at_once_even_with_the_arm_
     rig.ack_all(rig.take(rig.core.request(Request("goto", near(PARK)))))
     acked = rig.core.status()["last_pwm_us"]
     assert not rig.core.status()["moving"]
+    rig.clock.advance(0.02)
     rig.sys_status(safety_on=False)  # the switch off with the update acknowledged
     rig.sent.clear()
     rig.safety_stream = None  # silent: it may have rebooted and forgotten every stream
