@@ -125,9 +125,9 @@ class ArduPilotOutputs(OutputsTruth):
         self._cadence_broken_until_s = -math.inf
         self._bands_before: list[Band] = []
         #: The steps sent lately: when, the pose each was sent from, the step.
-        self._steps_sent: collections.deque[
-            tuple[float, tuple[float, ...], tuple[float, ...]]
-        ] = collections.deque(maxlen=32)
+        self._steps_sent: collections.deque[tuple[float, tuple[float, ...], tuple[float, ...]]] = (
+            collections.deque(maxlen=32)
+        )
         #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
         #: show, since when, how many in a row (see :meth:`_shown_steadily`).
         self._unacked_seen: dict[int, tuple[int, float, int]] = {}

@@ -690,6 +690,7 @@ def test_ardupilot_an_off_taken_after_a_steps_ack_still_holds_the_pose_before_th
     span_deg = joint.angle_max_deg - joint.angle_min_deg
     step_us = STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
     held: dict[int, int] = {}
+    motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS  # enabled: the switch off
     done = 0
     for k in range(300):  # 5 ms a pass; a step every 10 passes
         if k == 109:
@@ -702,9 +703,8 @@ def test_ardupilot_an_off_taken_after_a_steps_ack_still_holds_the_pose_before_th
             # before that (stamped 2 ms ago), is taken only after the step's ACK.
             assert rig.servo(new)
             held = acked
-            outputs = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
             rig.frame(
-                lambda c: c.sys_status_encode(outputs, outputs, outputs, *[0] * 10),
+                lambda c: c.sys_status_encode(motors, motors, motors, *[0] * 10),
                 received_s=rig.clock() - 0.002,
             )
             rig.safety_stream = True  # its next frames say on, the first after the next step
