@@ -75,6 +75,8 @@ class Streams:
         self._next_due_s: dict[int, float | None] = {}
         self.boot(now_s)
         self._heartbeat_paused = False
+        #: What the last SERVO_OUTPUT_RAW showed (see :meth:`_note_readback`).
+        self._readback_shown: dict[int, int] = {}
         #: Set by pause_heartbeat() (a test asking over the query socket): overrides the
         #: configured schedule.
         self._heartbeat_held: bool | None = None
@@ -195,7 +197,20 @@ class Streams:
             if due is None or now_s < due:
                 continue
             self._advance(msg_id, now_s)
+            if msg_id == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW:
+                self._note_readback(now_s)
             self._wire.send(self.message(msg_id, now_s), now_s)
+
+    def _note_readback(self, now_s: float) -> None:
+        """A SERVO_OUTPUT_RAW goes out: a ``readback`` event names the outputs whose PWM it
+        shows for the first time since the one before (when a peer could first see a change;
+        a bench tells from it what the companion could know when it sent a command)."""
+        pwm_us = self._outputs.pwm_us
+        shown = {o: pwm_us[o] for o in range(1, OUTPUT_COUNT + 1)}
+        changed = {str(o): v for o, v in shown.items() if self._readback_shown.get(o) != v}
+        self._readback_shown = shown
+        if changed:
+            self._state.emit(now_s, "readback", pwm_us=changed)
 
     def message(self, msg_id: int, now_s: float) -> mavlink.MAVLink_message:
         """The streamed message ``msg_id`` as at ``now_s``."""
