@@ -55,8 +55,9 @@ outputs coming alive with values it stored — or **foreign** — a ground stati
 simulator tags its events with the sender), outputs coming alive with a value such a command
 stored, and PX4 itself driving its outputs to the disarmed PWM. The daemon's next command after
 a foreign one (jumping back from the foreign PWM) is the daemon's, unless it went out less than
-``RACE_WINDOW_S`` (a readback interval and a hop) after the foreign command: then no readback
-could have shown it to the daemon yet, and it is counted apart as a **race**; so is one after
+``RACE_HOP_S`` after the first readback that showed the foreign PWM left the simulator (its
+``readback`` events): then that readback could not have reached the daemon yet, and it is
+counted apart as a **race**; so is one after
 an autopilot reboot less than ``BELIEF_WINDOW_S`` after the foreign command (its readbacks
 could not be believed before it: a **reboot race**), and PX4's outputs coming alive
 ``DEAD_WINDOW_S`` or less after going to the disarmed PWM, back to within a step of where they
@@ -130,11 +131,13 @@ from devkit.joint_steps import (
     JointStep,
     Reload,
     SpeedLimits,
+    first_shown_after,
     foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
     output_changes,
+    readbacks_shown,
     step_kind,
     stored_by_foreign,
     undriven_outside,
@@ -163,9 +166,14 @@ EVENTS = {
 RELOAD_SPEEDS = tuple(range(20, 121, 10))
 #: A forger's frame interval.
 FORGE_INTERVAL_S = 0.01
-#: A daemon command from a PWM a foreign command set less than this before is a race
-#: (``devkit.joint_steps.RACE``): the readback's interval on loopback UDP (50 Hz) and a hop.
-RACE_WINDOW_S = 0.02 + 0.01
+#: A daemon command from a PWM a foreign command set is a race (``devkit.joint_steps.RACE``)
+#: when it reached the simulator less than this after the first readback showing that PWM left
+#: it: the readback's way to the daemon (held up to 4.8 ms, ``[link_timing]``) and the command's
+#: way back.
+RACE_HOP_S = 0.01
+#: The most that can take at 50 Hz (a readback interval and a hop): a log without ``readback``
+#: events is judged with it.
+RACE_WINDOW_S = 0.02 + RACE_HOP_S
 #: A foreign command the autopilot's reboot followed this soon (``devkit.joint_steps.RACE_REBOOT``):
 #: the race window, the span of two readbacks over more than an interval (1.25 × 20 ms), and the
 #: round trip of the SYSTEM_TIME asked for then.
@@ -610,6 +618,7 @@ class Cycles:
         calibration = default_calibration(ARM_OUTPUTS)
         changes = output_changes(events)
         stored = stored_by_foreign(events)
+        readbacks = readbacks_shown(events)
         reboots_s = sorted(
             e["t_s"] for e in events if e["event"] == "fault" and e.get("fault") == "reboot"
         )
@@ -628,6 +637,16 @@ class Cycles:
             for step in steps:
                 run.steps.append(step)
                 before_s = foreign_command_before(stored.get(output, []), step.t_s)
+                race_window_s = RACE_WINDOW_S
+                if before_s is not None and readbacks:
+                    shown_s = first_shown_after(
+                        readbacks.get(output, []), step.from_us, step.t_s - before_s
+                    )
+                    race_window_s = (
+                        math.inf
+                        if shown_s is None
+                        else shown_s - (step.t_s - before_s) + RACE_HOP_S
+                    )
                 in_force_deg_s = limits.at(step.t_s)[1]
                 run.kinds.append(
                     step_kind(
@@ -635,7 +654,7 @@ class Cycles:
                         disarmed_us=run.disarmed_us,
                         stored_foreign=foreign_stored_at(stored.get(output, []), step.t_s),
                         foreign_before_s=before_s,
-                        race_window_s=RACE_WINDOW_S,
+                        race_window_s=race_window_s,
                         reboot_cut_short=before_s is not None
                         and reboot_within(reboots_s, step.t_s - before_s, BELIEF_WINDOW_S),
                         dead_window_s=DEAD_WINDOW_S,

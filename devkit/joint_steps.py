@@ -35,10 +35,11 @@ foreign sender's: a command from another link than the companion's (the simulato
 ``src``), or coming alive with a value such a command stored (the last ``servo`` event of the
 output before the step was tagged). The autopilot's own: PX4 driving an output to its disarmed
 PWM (disarm, kill, prearm off, reboot). **A race** (counted apart from both): the daemon's
-command from a PWM a foreign command set less than ``race_window_s`` before (a readback interval
-and a hop): no readback could have shown the daemon that command yet, so its step was computed
-from the PWM before it; later ones are the daemon's (a readback showing a foreign PWM holds the
-motion until it is believed, and the joint is then taken where it shows). **A reboot race**
+command from a PWM a foreign command set less than ``race_window_s`` before (until a readback
+first showed the foreign PWM, and a hop): no readback could have shown the daemon that command
+yet, so its step was computed from the PWM before it; later ones are the daemon's (a readback
+showing a foreign PWM holds the motion until it is believed, and the joint is then taken where
+it shows). **A reboot race**
 (also apart): the autopilot rebooted within ``belief_window_s`` of the foreign command, before
 its readbacks could be believed (two over more than an interval, and the autopilot's clock
 heard after them): after the reboot the outputs carry no pulses, and what the daemon re-sends
@@ -231,6 +232,24 @@ def stored_by_foreign(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tup
     return stored
 
 
+def readbacks_shown(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tuple[float, int]]]:
+    """Per output, when a streamed readback first showed each new PWM (the simulator's
+    ``readback`` events), in log order: ``(t_s, pwm_us)``."""
+    shown: dict[int, list[tuple[float, int]]] = {}
+    for event in events:
+        if event["event"] == "readback":
+            for output, pwm in event["pwm_us"].items():
+                shown.setdefault(int(output), []).append((float(event["t_s"]), int(pwm)))
+    return shown
+
+
+def first_shown_after(shown: Sequence[tuple[float, int]], pwm_us: int, t_s: float) -> float | None:
+    """When a readback first showed ``pwm_us`` at or after ``t_s`` (from :func:`readbacks_shown`;
+    None: none did)."""
+    k = bisect.bisect_left([t for t, _ in shown], t_s)
+    return next((t for t, pwm in shown[k:] if pwm == pwm_us), None)
+
+
 def foreign_stored_at(stored: Sequence[tuple[float, bool]], t_s: float) -> bool:
     """Whether the last command at or before ``t_s`` (from :func:`stored_by_foreign`) was a
     foreign sender's."""
@@ -263,7 +282,9 @@ def step_kind(
     disarmed PWM (None on ArduPilot); ``stored_foreign``: the output's stored value came from
     a foreign command; ``foreign_before_s``: the command before this one was a foreign
     sender's, this long before
-    (:func:`foreign_command_before`); ``reboot_cut_short``: the autopilot rebooted so soon after
+    (:func:`foreign_command_before`); ``race_window_s``: a daemon command less than this after
+    it is a race (the time until a readback first showed the foreign PWM, and a hop);
+    ``reboot_cut_short``: the autopilot rebooted so soon after
     that foreign command that its readbacks could not be believed before the outputs lost their
     pulses (the daemon then cannot tell it from frames forged while the autopilot reboots:
     :data:`RACE_REBOOT`); ``dead_window_s``: outputs back from PX4's disarmed PWM this soon

@@ -17,11 +17,13 @@ from devkit.joint_steps import (
     JointStep,
     Reload,
     SpeedLimits,
+    first_shown_after,
     foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
     output_changes,
+    readbacks_shown,
     step_kind,
     stored_by_foreign,
     undriven_outside,
@@ -238,3 +240,17 @@ def test_outputs_back_from_the_disarmed_pwm_within_the_readbacks_blind_time_are_
     wider = JointStep(9, 1.033, 1000, 1070, 7.0, 0.033, 3.1, "arm", None, 4.5)
     assert step_kind(wider, **kind) == DAEMON_ALIVE
     assert step_kind(wider, back_allowed_deg=6.1, **kind) == RACE_DEAD
+
+
+def test_when_a_readback_first_showed_a_pwm():
+    events = [
+        {"t_s": 1.0, "event": "readback", "pwm_us": {"9": 1500, "10": 1400}},
+        {"t_s": 1.02, "event": "output", "output": 9},
+        {"t_s": 1.04, "event": "readback", "pwm_us": {"9": 2000}},
+        {"t_s": 1.06, "event": "readback", "pwm_us": {"9": 1510}},
+    ]
+    shown = readbacks_shown(events)
+    assert shown == {9: [(1.0, 1500), (1.04, 2000), (1.06, 1510)], 10: [(1.0, 1400)]}
+    assert first_shown_after(shown[9], 2000, 1.01) == 1.04
+    assert first_shown_after(shown[9], 1500, 1.01) is None  # shown before, not since
+    assert first_shown_after(shown[10], 1400, 0.0) == 1.0
