@@ -75,6 +75,9 @@ answers one request at a time, so a goto never waits behind another's answer); a
 
 **Status** ``outputs_live`` against the simulator's truth as output_cycles measures it (the
 time from an event until a poll finds them equal; a restart's from when the new daemon answers).
+Of the time they disagree, the part where the outputs were live and the daemon said only that
+it does not know (``not_live`` reasons "not known live …", "safety switch unknown …": readbacks
+or a switch undecided, not a verdict) is given apart.
 
 The run's headline figures are per flavour and event kind: the daemon's fast steps after each
 kind (the last event before the step), unanswered gotos, status over its bound.
@@ -162,6 +165,8 @@ EVENTS = {
         "forge_readback": 2, "forge_safety": 2, "forge_time": 1,
     },
 }  # fmt: skip
+#: The daemon's reasons for an output that mean "not known live" rather than "not live".
+UNKNOWN_PREFIXES = ("not known live", "safety switch unknown")
 #: The joint speeds a reload draws from (°/s).
 RELOAD_SPEEDS = tuple(range(20, 121, 10))
 #: A forger's frame interval.
@@ -231,6 +236,9 @@ class Run:
     first_pulses: int = 0
     sim_t0: float = 0.0
     disagree_s: float = 0.0
+    #: ... of which the daemon said "not known live" (not a verdict: the readbacks or the
+    #: switch undecided) while the outputs were live.
+    unknown_s: float = 0.0
     polled_s: float = 0.0
     wall_s: float = 0.0
     load_before: str = ""
@@ -431,20 +439,25 @@ class Cycles:
         end_s = time.monotonic() + dwell_s
         last_poll_s: float | None = None
         last_agree = True
+        last_unknown = False
         while (now := time.monotonic()) < end_s:
             self.gotos.poll(min(POLL_S, end_s - now))
             if time.monotonic() - (last_poll_s or 0.0) < POLL_S:
                 continue
             truth = sim_live(self.sim.state())
-            said = self.daemon_live()
-            if said is None:
+            said_status = self.daemon_live()
+            if said_status is None:
                 continue  # it died: restarted, its polls start over
+            said, unknown = said_status
             polled = time.monotonic()
             if last_poll_s is not None:
                 run.polled_s += polled - last_poll_s
                 if not last_agree:
                     run.disagree_s += polled - last_poll_s
+                    if last_unknown:
+                        run.unknown_s += polled - last_poll_s
             last_poll_s, last_agree = polled, truth == said
+            last_unknown = truth and unknown
             pending = self.pending
             if pending is not None:
                 pending.dwell_s = polled - pending.t_s
@@ -454,10 +467,15 @@ class Cycles:
                     run.agreements.append(pending)
                     self.pending = None
 
-    def daemon_live(self) -> bool | None:
-        """The daemon's ``outputs_live``; None when it died (it is then started again)."""
+    def daemon_live(self) -> tuple[bool, bool] | None:
+        """The daemon's ``outputs_live``, and whether every output it says is not live is only
+        not known to be (:data:`UNKNOWN_PREFIXES`); None when it died (it is then started
+        again)."""
         try:
-            return bool(self.stack.status()["outputs_live"])
+            status = self.stack.status()
+            reasons = status["not_live"].values()
+            unknown = bool(reasons) and all(r.startswith(UNKNOWN_PREFIXES) for r in reasons)
+            return bool(status["outputs_live"]), unknown
         except NOT_SERVING:
             assert self.stack.daemon is not None
             code = self.stack.daemon.proc.poll()
@@ -865,6 +883,7 @@ def status_table(runs: list[Run]) -> list[str]:
             max(agreed, default=math.nan) * 1e3, over,
             sum(1 for a in censored if a.dwell_s <= bound),
             100.0 * r.disagree_s / r.polled_s if r.polled_s else math.nan,
+            100.0 * r.unknown_s / r.polled_s if r.polled_s else math.nan,
         ])  # fmt: skip
     return [
         f"Bound: the flavour's readback period + {MARGIN_S * 1e3:.0f} ms.",
@@ -880,6 +899,7 @@ def status_table(runs: list[Run]) -> list[str]:
                 "over the bound",
                 "next event first (dwell under the bound)",
                 "time disagreeing %",
+                "of which live but said not known live %",
             ],
             rows,
         ),
