@@ -396,6 +396,7 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_s = None
         self._off_since_s = None
         self._held_since_off = self._rewind_to = None
+        self._bands_before = []
 
     def _resend_pose(self, flights: Sequence[Flight]) -> tuple[float, ...]:
         """After a loss or a reboot: the pose to send every output to again, within one step of
