@@ -124,6 +124,9 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_at_s = -math.inf
         self._cadence_broken_until_s = -math.inf
         self._bands_before: list[Band] = []
+        #: Per output, the PWM its readback showed when the first of the ACKs it has was
+        #: given (see :meth:`acknowledged`).
+        self._shown_before: dict[int, int | None] = {}
         #: The steps sent lately: when, the pose each was sent from, the step.
         self._steps_sent: collections.deque[tuple[float, tuple[float, ...], tuple[float, ...]]] = (
             collections.deque(maxlen=32)
@@ -255,6 +258,11 @@ class ArduPilotOutputs(OutputsTruth):
                 continue
             self._forget_unacked(output)
             expected, settled = self._expected_pwms(output, now)
+            if not settled and (before := self._shown_before.get(output)) is not None:
+                # Our first ACKs are all recent (a start, a loss, a reboot): the readback may
+                # still show what the output held before them, and nothing else.
+                expected.add(before)
+                settled = True
             on_its_way = {
                 f.pwm_by_output[output] for f in state.flights if output in f.pwm_by_output
             }
@@ -505,6 +513,11 @@ class ArduPilotOutputs(OutputsTruth):
             if band is not None
             for end in band
         ]
+
+    def acknowledged(self, output: int, pwm: int, now: float) -> None:
+        if not self._ack_history.get(output):
+            self._shown_before[output] = self.shown.get(output)
+        super().acknowledged(output, pwm, now)
 
     def all_acknowledged(self) -> None:
         self._held_before_loss = None  # they hold what was acknowledged

@@ -713,3 +713,34 @@ def test_ardupilot_an_off_taken_after_a_steps_ack_still_holds_the_pose_before_th
     assert held and rig.core.status()["outputs_live"] is False
     released = rig.core.status()["last_pwm_us"]  # what goes out at the release
     assert max(abs(released[o] - held[o]) for o in held) <= step_us, (held, released)
+
+
+def test_ardupilot_a_foreign_pwm_shown_before_the_first_acks_settle_holds_the_motion():
+    # A daemon (re)started moments before: its first steps were acknowledged less than a
+    # readback's settling time ago when a ground station's servo command showed in the
+    # readback. It was taken as a readback lagging behind those steps, and the next step went
+    # out over the ground station's 2000 us: 61-107 deg.
+    rig = Rig()
+    rig.heartbeat()
+    rig.tick()
+    start = {o: 1500 for o in rig.calibration.outputs}
+    rig.readback(start)
+    rig.switch_off()
+    goal = list(PARK)
+    goal[0] += 60.0
+    rig.goto(goal)
+    done = 0
+    for _ in range(2):  # two steps, acknowledged at once; the readback lags behind them
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+        rig.readback(start)
+    new, done = rig.sent[done:], len(rig.sent)
+    rig.ack_all(new)
+    output = rig.calibration.outputs[0]
+    for _ in range(2):  # the ground station's command shows, at the readback's rate
+        rig.clock.advance(0.02)
+        rig.readback({**start, output: 2000})
+    rig.sent.clear()
+    rig.advance(0.01)  # the next tick: the motion holds while the readbacks decide
+    assert output not in rig.servo()
