@@ -111,6 +111,7 @@ def test_the_band_written_holds_the_acknowledged_pose_and_the_step_on_its_way():
     rig.ack_all(rig.sent)
     low, high = rig.core.outputs_left()  # the switch may have gone on before the step
     assert {low[9], high[9]} == {park_us[9], first[9]}
-    rig.sys_status(safety_on=False)  # it did not
+    rig.clock.advance(0.02)
+    rig.sys_status(safety_on=False)  # it did not (an "off" that left the autopilot after it)
     low, high = rig.core.outputs_left()
     assert low == high == first

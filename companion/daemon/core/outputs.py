@@ -89,6 +89,10 @@ class OutputsTruth(abc.ABC):
         #: those from the last :meth:`settle_s`); no entry: nothing acknowledged since the
         #: start, a loss or a reboot.
         self._ack_history: dict[int, collections.deque[tuple[float, int]]] = {}
+        #: Per output, when the newest of its ACKs a readback showed was given (the readback
+        #: cannot show the ones before it any more; no entry: none shown since its history
+        #: began).
+        self._shown_ack_s: dict[int, float] = {}
         #: Per output: settled readbacks in a row not showing the acknowledged PWM, and when
         #: the first of them arrived.
         #: Per output, per PWM shown (within READBACK_TOLERANCE_US): when the settled
@@ -137,10 +141,24 @@ class OutputsTruth(abc.ABC):
         history = self._ack_history.get(output)
         if not history:
             return set(), False
+        # A readback shows the output's PWMs in order: once one showed an ACK, the ACKs before
+        # it are behind the output (one showing them again is another sender's).
+        shown_s = self._shown_ack_s.get(output, -math.inf)
         cutoff = now - self.settle_s() + 1e-9
-        recent = {pwm for t, pwm in history if t >= cutoff}
-        older = [pwm for t, pwm in history if t < cutoff]
-        return recent | set(older[-1:]), bool(older)
+        recent = {pwm for t, pwm in history if t >= max(cutoff, shown_s)}
+        older = [pwm for t, pwm in history if shown_s <= t < cutoff]
+        return recent | set(older[-1:]), bool(older) or shown_s > -math.inf
+
+    def _shown_ack(self, output: int, shown: int) -> None:
+        """A readback showed ``shown``, one of ``output``'s ACKs the readback may still show:
+        the oldest of those with that PWM is where the output is now (see
+        :meth:`_expected_pwms`)."""
+        history = self._ack_history.get(output) or ()
+        shown_s = self._shown_ack_s.get(output, -math.inf)
+        for t, pwm in history:
+            if t >= shown_s and abs(pwm - shown) <= READBACK_TOLERANCE_US:
+                self._shown_ack_s[output] = t
+                return
 
     def clock_heard(self, at_s: float) -> None:
         """A SYSTEM_TIME that continues the autopilot's clock arrived at ``at_s``."""

@@ -268,6 +268,7 @@ class ArduPilotOutputs(OutputsTruth):
             }
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in expected | on_its_way):
                 self._agrees(output)
+                self._shown_ack(output, shown)
                 continue
             # Neither what it acknowledged nor a step on its way (an update left unknown among
             # them): another sender's, once believed.
@@ -295,6 +296,7 @@ class ArduPilotOutputs(OutputsTruth):
             }
             state.acked_pwm[output] = shown
             self._ack_history.pop(output, None)
+            self._shown_ack_s.pop(output, None)
             self.acknowledged(output, shown, now)
             self._joint_at(i, angle)
 

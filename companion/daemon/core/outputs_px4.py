@@ -121,6 +121,7 @@ class Px4Outputs(OutputsTruth):
             }
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in shown_ok | on_its_way):
                 self._agrees(output)
+                self._shown_ack(output, shown)
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
                     continue  # the hold at the disarmed PWM: shown either way, proves nothing
@@ -171,6 +172,7 @@ class Px4Outputs(OutputsTruth):
             )
             state.acked_pwm.pop(output, None)
             self._ack_history.pop(output, None)
+            self._shown_ack_s.pop(output, None)
             self._agrees(output)
             self._store_hold_now = True
 
@@ -181,6 +183,7 @@ class Px4Outputs(OutputsTruth):
         nothing), so whether each output is live is unknown again until its marker, sent
         anew, shows or does not (status: not known live)."""
         self._ack_history.clear()
+        self._shown_ack_s.clear()
         self._confirmed.clear()
         self._not_live.clear()
         self._dead_pwm.clear()

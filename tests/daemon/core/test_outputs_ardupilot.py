@@ -744,3 +744,24 @@ def test_ardupilot_a_foreign_pwm_shown_before_the_first_acks_settle_holds_the_mo
     rig.sent.clear()
     rig.advance(0.01)  # the next tick: the motion holds while the readbacks decide
     assert output not in rig.servo()
+
+
+def test_ardupilot_a_readback_back_at_a_pwm_it_showed_before_newer_ones_disagrees(rig):
+    # The readback had shown the arm's first step when a ground station's command put an
+    # output back at the PWM it held before it: taken as a readback lagging behind the step
+    # (that PWM was acknowledged last before the readback's settling time), and the next step
+    # went out over it (9 deg).
+    _settle(rig, near(PARK))
+    output = rig.calibration.outputs[0]
+    before = dict(rig.core.status()["last_pwm_us"])
+    goal = list(PARK)
+    goal[0] += 60.0
+    rig.ack_all(rig.take(rig.core.request(Request("goto", tuple(goal)))))  # the first step
+    rig.clock.advance(0.01)
+    rig.readback(rig.core.status()["last_pwm_us"])  # shown
+    for _ in range(2):  # then the output shows the PWM it held before that step
+        rig.clock.advance(0.015)
+        rig.readback({**rig.core.status()["last_pwm_us"], output: before[output]})
+    rig.sent.clear()
+    rig.advance(0.01)  # the next tick
+    assert output not in rig.servo()
