@@ -124,6 +124,9 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_at_s = -math.inf
         self._cadence_broken_until_s = -math.inf
         self._bands_before: list[Band] = []
+        #: Joints taken where another sender put their output, none of our ACKs for it since
+        #: (a step on its way from before says nothing of where it is).
+        self._taken: set[int] = set()
         #: Per output, the PWM its readback showed when the first of the ACKs it has was
         #: given (see :meth:`acknowledged`).
         self._shown_before: dict[int, int | None] = {}
@@ -303,22 +306,20 @@ class ArduPilotOutputs(OutputsTruth):
     def _joint_at(self, i: int, angle: float) -> None:
         """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
         joint is there, a pose still to re-send keeps it there, a command of an update left
-        unknown is not confirmed over it, a rewind still to come leaves it there, and with the
-        switch off (or the output free of it, BRD_SAFETY_MASK) that is where the output is,
-        whatever the bands said (otherwise the bands take it in beside what they held)."""
+        unknown is not confirmed over it, a rewind still to come leaves it there, and the
+        bands hold it there alone: that is where the output is, or, held by the switch, what
+        it stores and brings out at the release (the other sender's step, not ours; a re-send
+        at the middle of a band widened to take it in beside what they held moved the joint
+        half that width at once)."""
         state = self._core.state
         self._start_at(i, angle)
+        self._taken.add(i)
         output = state.outputs[i]
         for flight in state.flights:  # an update left unknown is not confirmed over it
             flight.pending = [c for c in flight.pending if output not in c.outputs]
-        live = self.safety_on is False or (self.safety_on is True and output not in self.dead())
         for band in (self._held_before_loss, self._held_since_off):
-            if band is None:
-                continue
-            if live:
+            if band is not None:
                 band[0][i] = band[1][i] = angle
-            else:
-                band[0][i], band[1][i] = min(band[0][i], angle), max(band[1][i], angle)
         if self._rewind_to is not None:  # the switch on: the rewind leaves it there
             rewind = list(self._rewind_to)
             rewind[i] = angle
@@ -432,16 +433,19 @@ class ArduPilotOutputs(OutputsTruth):
         if not (flights or state.ever_sent):
             self._forget_safety()
             return None
-        resend = self._resend_pose(flights)
+        resend = list(self._resend_pose(flights))
         if self._held_since_off is not None:
             poses = [tuple(self._held_since_off[0]), tuple(self._held_since_off[1])]
         elif self._held_before_loss is not None:
             poses = [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
         else:
             poses = [tuple(state.position)] + [f.step_deg for f in flights]
-        self._held_before_loss = band_of([*poses, resend])
+        band = band_of([*poses, tuple(resend)])
+        for i in self._taken:  # where another sender put it, whatever was on its way before
+            resend[i] = band[0][i] = band[1][i] = state.position[i]
+        self._held_before_loss = band
         self._forget_safety()
-        return resend
+        return tuple(resend)
 
     def lost(self, flights: Sequence[Flight]) -> None:
         resend = self._forget_outputs(flights)  # the switch unknown (it boots on)
@@ -519,6 +523,7 @@ class ArduPilotOutputs(OutputsTruth):
     def acknowledged(self, output: int, pwm: int, now: float) -> None:
         if not self._ack_history.get(output):
             self._shown_before[output] = self.shown.get(output)
+        self._taken.discard(self._core.state.outputs.index(output))
         super().acknowledged(output, pwm, now)
 
     def all_acknowledged(self) -> None:

@@ -765,3 +765,38 @@ def test_ardupilot_a_readback_back_at_a_pwm_it_showed_before_newer_ones_disagree
     rig.sent.clear()
     rig.advance(0.01)  # the next tick
     assert output not in rig.servo()
+
+
+def test_ardupilot_a_resend_keeps_an_output_where_another_sender_put_it_behind_the_switch(rig):
+    # The switch holding the arm, a ground station's servo command stored 2000 us on an output
+    # (believed from the readback); then the link was lost. The re-send went to the middle of
+    # the band of poses the outputs might hold, widened to take 2000 us in beside the pose
+    # held before: half that width from the stored 2000 us, which the release then brought
+    # out in one step (10 deg).
+    goal = list(PARK)
+    goal[0] += 60.0
+    rig.goto(goal)
+    done = 0
+    for _ in range(4):  # moving
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+    rig.ack_all(rig.sent[done:])
+    rig.sys_status(safety_on=True)  # the switch on: held
+    rig.advance(0.05)
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    for _ in range(3):
+        rig.readback(shown)
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.clock.advance(0.02)
+    rig.readback(shown)
+    assert rig.core.status()["foreign_command"]["output"] == output
+    rig.advance(0.5, link_up=False)  # lost
+    rig.sent.clear()
+    rig.heartbeat()
+    rig.readback(shown)
+    rig.switch_off()
+    rig.advance(0.05)
+    assert rig.servo()[output] == 2000
