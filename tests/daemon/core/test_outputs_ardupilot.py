@@ -327,6 +327,21 @@ def _settle(rig, pose, seconds=1.0):
     assert rig.core.status()["moving"] is False
 
 
+def _far_goal(*, second_deg: float = 0.0) -> list[float]:
+    """A goal seconds of motion away on joint 1 (at 60 deg/s), and ``second_deg`` on joint 2."""
+    goal = list(PARK)
+    goal[0] += 60.0
+    goal[1] += second_deg
+    return goal
+
+
+def _step_us(rig) -> float:
+    """One control step of the first output's joint in PWM, plus the 1 us quantum."""
+    joint = rig.calibration.for_output(rig.calibration.outputs[0])
+    span_deg = joint.angle_max_deg - joint.angle_min_deg
+    return STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
+
+
 def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
     # A ground station's servo test (DO_SET_SERVO) put output 9 at 2000 us: status showed the
     # readback but the daemon went on believing its own PWM, and the next goto jumped 78-132
@@ -576,10 +591,7 @@ def test_ardupilot_the_rewind_never_sends_an_output_back_over_another_senders_co
     # switch went on 37 ms later, before the readbacks could be believed: the rewind sent the
     # output back to where the daemon had it (1634 us) while its readback showed 2000, and the
     # release brought that out, 58 deg from the 2000 us the servo had last been given.
-    goal = list(PARK)
-    goal[0] += 60.0
-    goal[1] -= 40.0
-    rig.goto(goal)
+    rig.goto(_far_goal(second_deg=-40.0))
     done = 0
     for i in range(10):  # moving, the readback streaming what was acknowledged
         new, done = rig.sent[done:], len(rig.sent)
@@ -651,13 +663,8 @@ def test_ardupilot_forged_safety_off_frames_do_not_narrow_what_the_outputs_may_h
     # outputs may hold was narrowed to the latest steps, without the pose they held when the
     # switch went on. The rewind went to the middle of those steps, and the release moved the
     # joints 3.4-3.8 deg (here two of the autopilot's "on" frames are lost: two steps go out).
-    goal = list(PARK)
-    goal[0] += 60.0
-    goal[1] -= 40.0
-    rig.goto(goal)
-    joint = rig.calibration.for_output(rig.calibration.outputs[0])
-    span_deg = joint.angle_max_deg - joint.angle_min_deg
-    step_us = STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
+    rig.goto(_far_goal(second_deg=-40.0))
+    step_us = _step_us(rig)
     held: dict[int, int] = {}
     t0, done = rig.clock(), 0
     for k in range(300):  # 5 ms a pass
@@ -682,13 +689,8 @@ def test_ardupilot_an_off_taken_after_a_steps_ack_still_holds_the_pose_before_th
     # after the next step's ACK: what the outputs may hold was narrowed to that step, without
     # the pose they held when the switch went on; the rewind went to the middle of the steps
     # sent since (here two: the "on" frame comes late too), and the release moved a joint 4 deg.
-    goal = list(PARK)
-    goal[0] += 60.0
-    goal[1] -= 40.0
-    rig.goto(goal)
-    joint = rig.calibration.for_output(rig.calibration.outputs[0])
-    span_deg = joint.angle_max_deg - joint.angle_min_deg
-    step_us = STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
+    rig.goto(_far_goal(second_deg=-40.0))
+    step_us = _step_us(rig)
     held: dict[int, int] = {}
     motors = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS  # enabled: the switch off
     done = 0
@@ -726,9 +728,7 @@ def test_ardupilot_a_foreign_pwm_shown_before_the_first_acks_settle_holds_the_mo
     start = {o: 1500 for o in rig.calibration.outputs}
     rig.readback(start)
     rig.switch_off()
-    goal = list(PARK)
-    goal[0] += 60.0
-    rig.goto(goal)
+    rig.goto(_far_goal())
     done = 0
     for _ in range(2):  # two steps, acknowledged at once; the readback lags behind them
         new, done = rig.sent[done:], len(rig.sent)
@@ -754,9 +754,7 @@ def test_ardupilot_a_readback_back_at_a_pwm_it_showed_before_newer_ones_disagree
     _settle(rig, near(PARK))
     output = rig.calibration.outputs[0]
     before = dict(rig.core.status()["last_pwm_us"])
-    goal = list(PARK)
-    goal[0] += 60.0
-    rig.ack_all(rig.take(rig.core.request(Request("goto", tuple(goal)))))  # the first step
+    rig.ack_all(rig.take(rig.core.request(Request("goto", tuple(_far_goal())))))  # first step
     rig.clock.advance(0.01)
     rig.readback(rig.core.status()["last_pwm_us"])  # shown
     for _ in range(2):  # then the output shows the PWM it held before that step
@@ -773,9 +771,7 @@ def test_ardupilot_a_resend_keeps_an_output_where_another_sender_put_it_behind_t
     # the band of poses the outputs might hold, widened to take 2000 us in beside the pose
     # held before: half that width from the stored 2000 us, which the release then brought
     # out in one step (10 deg).
-    goal = list(PARK)
-    goal[0] += 60.0
-    rig.goto(goal)
+    rig.goto(_far_goal())
     done = 0
     for _ in range(4):  # moving
         new, done = rig.sent[done:], len(rig.sent)
