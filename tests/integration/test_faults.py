@@ -161,8 +161,15 @@ def test_every_accepted_target_reaches_the_servos_through_10_percent_loss_and_ji
     worst = (0.0, 0.0)
     t0 = time.monotonic()
     try:
+        held = 0
         for target in poses(daemon.config, LOSSY_TARGETS, seed=5):
             reply = daemon.submit("goto", target).result(WAIT_S)
+            while reply.outcome is Outcome.TEMPORARILY_REJECTED and held < 5:
+                # The autopilot silent for its gap (lost frames, and on a busy machine a
+                # starved simulator): the daemon holds and says so. Sent again once it is back.
+                held += 1
+                assert wait_until(lambda: not daemon.status()["holding"], WAIT_S)
+                reply = daemon.submit("goto", target).result(WAIT_S)
             assert reply.outcome is Outcome.ACCEPTED, reply.message
             assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
             state = sim.state()
@@ -190,6 +197,7 @@ def test_every_accepted_target_reaches_the_servos_through_10_percent_loss_and_ji
             targets=LOSSY_TARGETS,
             accepted=status["counters"]["accepted"],
             reached=LOSSY_TARGETS,
+            sent_again_after_a_hold=held,
             servo_updates=status["counters"]["servo_updates"],
             commands=commands,
             command_sends=sent,
