@@ -327,6 +327,22 @@ def _settle(rig, pose, seconds=1.0):
     assert rig.core.status()["moving"] is False
 
 
+def _foreign_2000_believed(rig) -> tuple[int, dict[int, int]]:
+    """A ground station's servo command put the first output at 2000 us: readbacks show it
+    over more than an interval, the autopilot's clock goes on after them, and the daemon
+    believes it. Returns the output and what the readback shows."""
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    for _ in range(3):
+        rig.readback(shown)
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.clock.advance(0.02)
+    rig.readback(shown)
+    assert rig.core.status()["foreign_command"]["output"] == output
+    return output, shown
+
+
 def _far_goal(*, second_deg: float = 0.0) -> list[float]:
     """A goal seconds of motion away on joint 1 (at 60 deg/s), and ``second_deg`` on joint 2."""
     goal = list(PARK)
@@ -635,15 +651,7 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_another_s
     _settle(rig, near(PARK))
     rig.sys_status(safety_on=True)
     rig.advance(0.05)
-    output = rig.calibration.outputs[0]
-    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
-    for _ in range(3):
-        rig.readback(shown)
-        rig.clock.advance(0.02)
-    rig.system_time(600_000)
-    rig.clock.advance(0.02)
-    rig.readback(shown)
-    assert rig.core.status()["foreign_command"]["output"] == output
+    output, _ = _foreign_2000_believed(rig)
     rig.advance(0.36)  # the reboot's silence
     rig.system_time(150)
     assert rig.core.status()["counters"]["autopilot_reboots"] == 1
@@ -780,15 +788,7 @@ def test_ardupilot_a_resend_keeps_an_output_where_another_sender_put_it_behind_t
     rig.ack_all(rig.sent[done:])
     rig.sys_status(safety_on=True)  # the switch on: held
     rig.advance(0.05)
-    output = rig.calibration.outputs[0]
-    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
-    for _ in range(3):
-        rig.readback(shown)
-        rig.clock.advance(0.02)
-    rig.system_time(600_000)
-    rig.clock.advance(0.02)
-    rig.readback(shown)
-    assert rig.core.status()["foreign_command"]["output"] == output
+    output, shown = _foreign_2000_believed(rig)
     rig.advance(0.5, link_up=False)  # lost
     rig.sent.clear()
     rig.heartbeat()
