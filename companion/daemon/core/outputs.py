@@ -33,14 +33,16 @@ READBACK_TOLERANCE_US = 1
 #: interval, see :meth:`OutputsTruth.settle_s`).
 READBACK_SETTLE_S = 0.15
 #: An output's readback disagrees with what it acknowledged only after this many readbacks in
-#: a row show something else, spanning more than the stream's interval (by arrival) with none
-#: showing it between: the autopilot's own readback falls inside that span, so frames forged
-#: as the autopilot's (an unsigned link), however many, are contradicted by it and never make
-#: the daemon command the outputs somewhere on their word alone.
+#: a row show the same other PWM, spanning more than the stream's interval (by arrival) with
+#: none showing anything else between: the autopilot's own readback falls inside that span,
+#: so frames forged as the autopilot's (an unsigned link), however many, are contradicted by
+#: it and never make the daemon command the outputs somewhere on their word alone. (Frames
+#: that show two PWMs by turns believe neither: the motion holds until one PWM alone is
+#: shown; counting each PWM apart let a forger's frames, spread over the span, be believed
+#: beside the autopilot's own.) The same rule takes an output where it shows when nothing of
+#: ours is acknowledged (:meth:`OutputsTruth._shown_steadily`).
 READBACK_MISMATCHES = 2
 READBACK_SPAN_INTERVALS = 1.25
-#: PWMs tracked per output at once while its readbacks disagree (the oldest dropped).
-MISMATCH_VALUES = 4
 #: Meanwhile (a settled readback disagreed, not believed yet) the motion holds: no step goes
 #: out on a belief the next readbacks may overturn; until this many intervals after the last
 #: readback that disagreed (frames that agree between do not end it: with a forger on the
@@ -93,11 +95,13 @@ class OutputsTruth(abc.ABC):
         #: cannot show the ones before it any more; no entry: none shown since its history
         #: began).
         self._shown_ack_s: dict[int, float] = {}
-        #: Per output: settled readbacks in a row not showing the acknowledged PWM, and when
-        #: the first of them arrived.
-        #: Per output, per PWM shown (within READBACK_TOLERANCE_US): when the settled
-        #: readbacks in a row not showing the acknowledged PWM first showed it, and how many.
-        self._mismatches: dict[int, dict[int, tuple[float, int]]] = {}
+        #: Per output: the PWM settled readbacks in a row showed instead of the acknowledged
+        #: one (within READBACK_TOLERANCE_US), when the first of them arrived, and how many.
+        self._mismatches: dict[int, tuple[int, float, int]] = {}
+        #: Per output with nothing of ours acknowledged: the PWM readbacks in a row showed (within
+        #: READBACK_TOLERANCE_US), when the first of them arrived, and how many (see
+        #: :meth:`_shown_steadily`).
+        self._steady_seen: dict[int, tuple[int, float, int]] = {}
         #: Per output: when its readbacks first disagreed long enough (waiting for the
         #: autopilot's clock, see :meth:`_clock_after`).
         self._span_met_s: dict[int, float] = {}
@@ -182,21 +186,20 @@ class OutputsTruth(abc.ABC):
         """Another settled readback not showing what ``output`` acknowledged, arrived at
         ``at_s``: whether the readbacks now disagree with it for long enough to be believed
         (READBACK_MISMATCHES showing the same PWM over READBACK_SPAN_INTERVALS of the stream,
-        none showing the acknowledged PWM between).
+        none showing another between).
         ``clock_after``: and a SYSTEM_TIME continuing the autopilot's clock came after they
         did (:meth:`_clock_after`)."""
-        # Counted per PWM shown: the belief is "the output shows this PWM". Frames forged with
-        # another PWM between the autopilot's own (a dead output's) neither count for it nor
-        # stand for it (taking the last frame's PWM for what the readbacks say would store a
-        # marker where a forged frame says).
+        # The same PWM in a row: frames forged with another PWM between the autopilot's own
+        # (a dead output's) start the count again, and a PWM is believed only where every
+        # frame of the span showed it, the autopilot's own among them.
         shown = self.shown.get(output, 0)
-        values = self._mismatches.setdefault(output, {})
-        key = next((v for v in values if abs(v - shown) <= READBACK_TOLERANCE_US), shown)
-        since_s, count = values.get(key, (at_s, 0))
+        seen = self._mismatches.get(output)
+        if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
+            seen = (shown, at_s, 0)
+            self._span_met_s.pop(output, None)
+        pwm, since_s, count = seen
         count += 1
-        values[key] = (since_s, count)
-        if len(values) > MISMATCH_VALUES:  # a forger's every frame another PWM: bounded
-            del values[min(values, key=lambda v: values[v][0])]
+        self._mismatches[output] = (pwm, since_s, count)
         interval_s = self._core.settings.readback_interval_s
         believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
             READBACK_SPAN_INTERVALS * interval_s
@@ -208,6 +211,46 @@ class OutputsTruth(abc.ABC):
         else:
             self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
         return believed
+
+    def _shown_steadily(self, output: int, shown: int) -> bool:
+        """``output``, with nothing of ours acknowledged, shows ``shown``: whether readbacks
+        showed it (within the tolerance) READBACK_MISMATCHES times in a row over more than
+        READBACK_SPAN_INTERVALS of the stream, and the autopilot's clock went on after (as
+        :meth:`_disagrees`: a forged frame alone is never believed). Until then the motion
+        holds (:meth:`_hold_for`)."""
+        at_s = self.shown_s
+        seen = self._steady_seen.get(output)
+        if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
+            self._steady_seen[output] = (shown, at_s, 1)
+            self._span_met_s.pop(output, None)
+            self._hold_for(output, at_s)
+            return False
+        pwm, since_s, count = seen
+        self._steady_seen[output] = (pwm, since_s, count + 1)
+        interval_s = self._core.settings.readback_interval_s
+        believed = (
+            count + 1 >= READBACK_MISMATCHES
+            and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
+            and self._clock_after(output, at_s)
+        )
+        if believed:
+            self._doubt_until_s.pop(output, None)
+            self._span_met_s.pop(output, None)
+        else:
+            self._hold_for(output, at_s)
+        return believed
+
+    def _forget_steady(self, output: int) -> None:
+        """``output``'s readbacks are no longer to be judged by :meth:`_shown_steadily`."""
+        if self._steady_seen.pop(output, None) is not None:
+            self._span_met_s.pop(output, None)
+
+    def _hold_for(self, output: int, at_s: float) -> None:
+        """A readback arrived at ``at_s`` shows ``output`` somewhere not believed yet: the
+        motion holds until the next readbacks say, and the autopilot is asked whether it is
+        there (its clock)."""
+        interval_s = self._core.settings.readback_interval_s
+        self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
 
     def _clock_after(self, output: int, at_s: float) -> bool:
         """The readbacks of ``output`` disagree long enough (the span is complete at ``at_s``

@@ -22,9 +22,6 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from companion.daemon.core.outputs import (
-    READBACK_DOUBT_INTERVALS,
-    READBACK_MISMATCHES,
-    READBACK_SPAN_INTERVALS,
     READBACK_TOLERANCE_US,
     Band,
     OutputsTruth,
@@ -134,9 +131,6 @@ class ArduPilotOutputs(OutputsTruth):
         self._steps_sent: collections.deque[tuple[float, tuple[float, ...], tuple[float, ...]]] = (
             collections.deque(maxlen=32)
         )
-        #: Per output with nothing acknowledged since a loss or a reboot: the PWM its readbacks
-        #: show, since when, how many in a row (see :meth:`_shown_steadily`).
-        self._unacked_seen: dict[int, tuple[int, float, int]] = {}
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -235,7 +229,7 @@ class ArduPilotOutputs(OutputsTruth):
             if shown is None or not self.in_range(output, shown):
                 # No pulses (an output nothing set since boot), or not a joint's PWM: that
                 # contradicts frames that showed one (forged, after a reboot).
-                self._forget_unacked(output)
+                self._forget_steady(output)
                 continue
             acked = state.acked_pwm.get(output)
             if acked is None:
@@ -251,7 +245,7 @@ class ArduPilotOutputs(OutputsTruth):
                     # Ours on its way (shown before its ACK, or not applied yet): its outcome
                     # says where the output is. Or where the joint is already taken to be (a
                     # PWM believed before, the pose to re-send): nothing to decide.
-                    self._forget_unacked(output)
+                    self._forget_steady(output)
                     self._doubt_until_s.pop(output, None)
                 elif self._shown_steadily(output, shown):
                     # After a loss or a reboot, before anything of ours is acknowledged: an
@@ -259,7 +253,7 @@ class ArduPilotOutputs(OutputsTruth):
                     # the pose re-sent keeps it there.
                     self._take_shown(i, output, shown)
                 continue
-            self._forget_unacked(output)
+            self._forget_steady(output)
             expected, settled = self._expected_pwms(output, now)
             if not settled and (before := self._shown_before.get(output)) is not None:
                 # Our first ACKs are all recent (a start, a loss, a reboot): the readback may
@@ -325,32 +319,6 @@ class ArduPilotOutputs(OutputsTruth):
             rewind[i] = angle
             self._rewind_to = tuple(rewind)
 
-    def _shown_steadily(self, output: int, shown: int) -> bool:
-        """Readbacks show ``output`` at ``shown`` (within the tolerance) twice in a row over
-        more than the stream's interval, and the autopilot's clock went on after the first (as
-        :meth:`_disagrees`: a forged frame alone is never believed)."""
-        at_s = self.shown_s
-        seen = self._unacked_seen.get(output)
-        if seen is None or abs(seen[0] - shown) > READBACK_TOLERANCE_US:
-            self._unacked_seen[output] = (shown, at_s, 1)
-            self._span_met_s.pop(output, None)
-            self._hold_for(output, at_s)
-            return False
-        pwm, since_s, count = seen
-        self._unacked_seen[output] = (pwm, since_s, count + 1)
-        interval_s = self._core.settings.readback_interval_s
-        believed = (
-            count + 1 >= READBACK_MISMATCHES
-            and at_s - since_s >= READBACK_SPAN_INTERVALS * interval_s
-            and self._clock_after(output, at_s)
-        )
-        if believed:
-            self._doubt_until_s.pop(output, None)
-            self._span_met_s.pop(output, None)
-        else:
-            self._hold_for(output, at_s)
-        return believed
-
     def _as_held(self, i: int, output: int, shown: int) -> bool:
         """Whether ``shown`` is the PWM of where joint ``i`` is taken to be (the pose still to
         re-send, else the acknowledged one)."""
@@ -359,18 +327,6 @@ class ArduPilotOutputs(OutputsTruth):
         joint = self._core.config.calibration.for_output(output)
         angle = min(max(angle, joint.angle_min_deg), joint.angle_max_deg)
         return abs(joint.mapped_pwm_us(angle) - shown) <= READBACK_TOLERANCE_US
-
-    def _forget_unacked(self, output: int) -> None:
-        """``output``'s readbacks no longer show a PWM set by another sender since a loss."""
-        if self._unacked_seen.pop(output, None) is not None:
-            self._span_met_s.pop(output, None)
-
-    def _hold_for(self, output: int, at_s: float) -> None:
-        """A readback arrived at ``at_s`` shows ``output`` set by another sender, not believed
-        yet: the motion (a re-send after a loss or a reboot among it) holds until the next
-        readbacks say, and the autopilot is asked whether it is there (its clock)."""
-        interval_s = self._core.settings.readback_interval_s
-        self._doubt_until_s[output] = at_s + READBACK_DOUBT_INTERVALS * interval_s
 
     def _take_shown(self, i: int, output: int, shown: int) -> None:
         """The joint of ``output`` (index ``i``) is where its readback shows."""

@@ -82,6 +82,9 @@ class Px4Outputs(OutputsTruth):
         self._confirmed: set[int] = set()
         #: Store the pose the outputs show now (an output was found not live).
         self._store_hold_now = False
+        #: Outputs with nothing of ours acknowledged since the start, a loss or a reboot: the
+        #: PWM the readbacks show steadily (see :meth:`_judge_start`).
+        self._start_shown: dict[int, int] = {}
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -105,12 +108,9 @@ class Px4Outputs(OutputsTruth):
                 if (
                     not state.flights
                     and output not in self._ack_history
-                    and self.in_range(output, shown)
+                    and output not in self._not_live
                 ):
-                    # Nothing of ours acknowledged yet (start, reboot): the joint is where the
-                    # output puts it, not at the assumed start pose. (A PWM outside the servo's
-                    # range, such as PX4 SITL's disarmed 900 us, says nothing of where it is.)
-                    self._start_at(joint_of[output], self.angle_shown(output, shown))
+                    self._judge_start(joint_of[output], output, shown)
                 continue
             shown_ok, settled = self._expected_pwms(output, now)
             # PX4 applies a command on its output cycle and answers it on its commander's: a
@@ -176,6 +176,24 @@ class Px4Outputs(OutputsTruth):
             self._agrees(output)
             self._store_hold_now = True
 
+    def _judge_start(self, i: int, output: int, shown: int) -> None:
+        """Nothing of ours acknowledged since the start, a loss or a reboot (nor on its way):
+        the joint is where the readbacks show, once they show one PWM steadily
+        (:meth:`_shown_steadily`: a forged frame alone never places it, nor its marker).
+        (A PWM outside the servo's range, such as PX4 SITL's disarmed 900 us, says nothing
+        of where it is.) A frame showing another PWM takes that back until the readbacks
+        settle again."""
+        start = self._start_shown.get(output)
+        if start is not None and abs(start - shown) <= READBACK_TOLERANCE_US:
+            return
+        self._start_shown.pop(output, None)
+        if not self._shown_steadily(output, shown):
+            return
+        self._forget_steady(output)
+        self._start_shown[output] = shown
+        if self.in_range(output, shown):
+            self._start_at(i, self.angle_shown(output, shown))
+
     # -- losses -----------------------------------------------------------------------------
 
     def _forget_liveness(self, now: float) -> None:
@@ -189,6 +207,8 @@ class Px4Outputs(OutputsTruth):
         self._dead_pwm.clear()
         self._dead_seq.clear()
         self._held_pwm.clear()
+        self._start_shown.clear()
+        self._steady_seen.clear()
         self._store_hold_now = False
         self.safety_on = None
         self._readback_since_s = now
@@ -220,7 +240,7 @@ class Px4Outputs(OutputsTruth):
         return self._store_hold_now
 
     def may_move(self, actions: list[Action], now: float) -> bool:
-        if not self._readback_seen(now) or self._disarmed_out_of_range():
+        if not self._readback_seen(now) or self._unsteady() or self._disarmed_out_of_range():
             return False
         state = self._core.state
         if self._confirmed.issuperset(state.outputs):
@@ -266,24 +286,38 @@ class Px4Outputs(OutputsTruth):
             )
         return dead
 
-    def _disarmed_out_of_range(self) -> list[int]:
-        """Outputs showing a PWM outside their servo's range (PX4 SITL's disarmed 900 us) with
-        nothing of ours acknowledged since the start, a loss or a reboot, while the vehicle is
-        not armed: where the joint is is unknown, and PX4 shows what it stores (an earlier
-        daemon's pose) once armed. Nothing is sent meanwhile: a step stored now would come out
-        in one move at arming, from wherever the joint is."""
-        if self._core.watch.armed:
-            return []
+    def _unplaced(self) -> list[int]:
+        """Outputs with nothing of ours acknowledged since the start, a loss or a reboot, nor
+        on its way, that readbacks show (not found dead), in order."""
         state = self._core.state
         ahead = {o for f in state.flights for o in f.sent_outputs}
         return [
             o
             for o in state.outputs
             if o in self.shown
-            and not self.in_range(o, self.shown[o])
             and o not in self._ack_history
             and o not in ahead
             and o not in self._not_live
+        ]
+
+    def _unsteady(self) -> list[int]:
+        """Outputs not placed yet (:meth:`_unplaced`) whose readbacks have not shown one PWM
+        steadily (:meth:`_judge_start`: forged frames between the autopilot's own, or a
+        change): the motion waits (nothing is sent before where the joint is is known)."""
+        return [o for o in self._unplaced() if o not in self._start_shown]
+
+    def _disarmed_out_of_range(self) -> list[int]:
+        """Outputs not placed yet (:meth:`_unplaced`) whose readbacks steadily show a PWM
+        outside their servo's range (PX4 SITL's disarmed 900 us), while the vehicle is not
+        armed: where the joint is is unknown, and PX4 shows what it stores (an earlier
+        daemon's pose) once armed. Nothing is sent meanwhile: a step stored now would come out
+        in one move at arming, from wherever the joint is."""
+        if self._core.watch.armed:
+            return []
+        return [
+            o
+            for o in self._unplaced()
+            if (start := self._start_shown.get(o)) is not None and not self.in_range(o, start)
         ]
 
     def unknown(self, now: float) -> dict[int, str]:
@@ -302,6 +336,11 @@ class Px4Outputs(OutputsTruth):
             "a loss or a reboot)"
         )
         unknown = {o: why for o in outputs if o not in self._confirmed}
+        for output in self._unsteady():
+            unknown[output] = (
+                f"not known live yet (output {output} shows {self.shown[output]} us; the "
+                "readbacks have not shown one PWM steadily yet)"
+            )
         # A readback shows another PWM than acknowledged: not known live until the next ones
         # say whether to believe it (the motion holds meanwhile; the outputs may be dead).
         for output, until_s in self._doubt_until_s.items():
@@ -338,28 +377,29 @@ class Px4Outputs(OutputsTruth):
 
     def _unmarked_unknown(self) -> bool:
         """An output with nothing acknowledged since the start, a loss or a reboot, and none on
-        its way (its liveness unknown: a marker would tell). An output showing a PWM outside
-        its servo's range gets no marker: nothing is sent before a target unless it is where
-        the outputs show, and that PWM says nothing of where the joint is."""
+        its way (its liveness unknown: a marker would tell), its readbacks steadily showing a
+        PWM in its servo's range. One showing a PWM outside it gets no marker: nothing is sent
+        before a target unless it is where the outputs show, and that PWM says nothing of where
+        the joint is."""
         state = self._core.state
         ahead = {o for f in state.flights for o in f.sent_outputs}
         return any(
             o not in state.acked_pwm
             and o not in ahead
-            and o in self.shown
-            and self.in_range(o, self.shown[o])
+            and (start := self._start_shown.get(o)) is not None
+            and self.in_range(o, start)
             for o in state.outputs
         )
 
     def _marker_pose(self) -> tuple[float, ...]:
         """The pose with each output that has nothing acknowledged at its marker (from the PWM
-        the readback shows), the others where they are."""
+        the readbacks steadily show), the others where they are."""
         state = self._core.state
         pose = list(state.position)
         for i, output in enumerate(state.outputs):
-            shown = self.shown.get(output)
-            if output not in state.acked_pwm and shown is not None and self.in_range(output, shown):
-                pose[i] = self._marker_deg(output, shown)
+            start = self._start_shown.get(output)
+            if output not in state.acked_pwm and start is not None and self.in_range(output, start):
+                pose[i] = self._marker_deg(output, start)
         return tuple(pose)
 
     def _markers_held(self) -> bool:

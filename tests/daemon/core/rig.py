@@ -86,6 +86,8 @@ class Rig:
         self.safety_stream: bool | None = None
         self._status_due_s = math.inf
         self.status_interval_s = stream_intervals_s(ardupilot=True, url=config.link.url)[1]
+        #: The autopilot's clock by the last SYSTEM_TIME it sent: time_boot_ms, and when.
+        self._boot = (600_000, self.clock())
 
     # -- driving ----------------------------------------------------------------------------
 
@@ -126,7 +128,28 @@ class Rig:
         return self.frame(lambda c: c.statustext_encode(6, text.encode()), src)
 
     def system_time(self, boot_ms, src=(1, 1), received_s=None):
+        if src == (1, 1):
+            self._boot = (boot_ms, self.clock())
         return self.frame(lambda c: c.system_time_encode(0, boot_ms), src, received_s)
+
+    def answer_clock_probes(self) -> None:
+        """Answer every SYSTEM_TIME the core asked for since the last call (its probe: a
+        readback started to disagree, or shows where an output is), the autopilot's clock
+        going on from the last SYSTEM_TIME it sent."""
+        probes = [
+            c
+            for c in self.sent
+            if c.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+            and c.params[0] == mavlink.MAVLINK_MSG_ID_SYSTEM_TIME
+        ]
+        for c in probes:
+            self.sent.remove(c)
+            self.clock_goes_on()
+
+    def clock_goes_on(self) -> None:
+        """A SYSTEM_TIME from the autopilot, its clock going on from the last one it sent."""
+        boot_ms, at_s = self._boot
+        self.system_time(boot_ms + round((self.clock() - at_s) * 1000))
 
     def readback(self, pwm_by_output, src=(1, 1)):
         """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0)."""
@@ -254,6 +277,7 @@ class Px4OutputsModel:
         """Apply every DO_SET_ACTUATOR sent so far, its ACK not sent yet (PX4 answers on its
         commander's cycle, after the output cycle may have applied it); ``one``: each command's
         outputs change apart (as many physical moves as commands)."""
+        self.rig.answer_clock_probes()
         commands = [c for c in self.rig.sent if c.command == ACTUATOR]
         self.rig.sent.clear()
         for c in commands:
@@ -281,7 +305,10 @@ class Px4OutputsModel:
         self._refresh(record=live)
 
     def readback(self) -> None:
+        """A SERVO_OUTPUT_RAW of what the outputs show, and a SYSTEM_TIME after it (PX4
+        streams both; its clock going on is what a readback's belief waits for)."""
         self.rig.readback(self.shown)
+        self.rig.clock_goes_on()
 
 
 def px4_rig(disarmed_us: int = 1500) -> tuple[Rig, Px4OutputsModel]:

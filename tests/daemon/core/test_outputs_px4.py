@@ -35,7 +35,7 @@ def test_px4_moves_only_once_a_readback_said_where_the_joints_are():
     request = rig.goto(near(PARK))
     assert not [c for c in rig.sent if c.command == ACTUATOR]  # no readback yet
     px4.readback()
-    run(rig, px4, 0.2)
+    run(rig, px4, 0.5)  # readbacks steadily showing 1500 us, the clock going on: believed
     assert rig.reply(request).outcome is Outcome.ACCEPTED
     # It started from where the outputs were (1500 us), not from the assumed park pose.
     first = px4.physical_moves[0]
@@ -201,7 +201,7 @@ def test_px4_at_the_start_with_the_arm_still_the_markers_say_whether_it_is_live(
     assert status["outputs_live"] is False and "no SERVO_OUTPUT_RAW yet" in str(status["not_live"])
     px4.readback()  # disarmed, nothing stored: 1500 everywhere
     assert "not known live yet" in str(rig.core.status()["not_live"])
-    run(rig, px4, 0.5)  # markers stored, not shown: not live
+    run(rig, px4, 1.0)  # believed at 1500, markers stored, not shown: not live
     assert px4.stored[rig.calibration.outputs[0]] == 1500 + MARKER_OFFSET_US
     status = rig.core.status()
     assert status["outputs_live"] is False and "shows 1500 us" in str(status["not_live"])
@@ -244,7 +244,7 @@ def test_px4_markers_go_out_even_where_the_disarmed_pose_lies_in_a_keepout_volum
     rig.tick()
     px4 = Px4OutputsModel(rig, disarmed_us)
     px4.readback()
-    run(rig, px4, 0.5)
+    run(rig, px4, 1.0)
     assert rig.core.status()["counters"]["keepout_refusals"] == 0
     assert px4.stored[rig.calibration.outputs[0]] == disarmed_us + MARKER_OFFSET_US
     assert_seen_live_at_the_next_readback(rig, px4)
@@ -369,10 +369,12 @@ def test_px4_a_forged_readback_between_the_autopilots_own_never_sends_a_marker()
     assert max_physical_step_us(px4) <= 1.0
 
 
-def test_px4_readbacks_of_a_dead_output_among_forged_ones_store_the_marker_where_it_shows():
+def test_px4_readbacks_of_a_dead_output_among_forged_ones_store_nothing_until_one_pwm_alone_shows():
     # The outputs died (showing the disarmed PWM) while frames forged with other PWMs came
     # between: the dead output was believed on the forged frame's word, and its marker stored
-    # there, 160 deg away (PX4 applied it at the next prearm).
+    # there, 160 deg away (PX4 applied it at the next prearm). Frames showing two PWMs by turns
+    # believe neither: nothing is stored until one alone is shown, then the marker goes where
+    # the autopilot's own frames show.
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
     px4.readback()
@@ -380,15 +382,44 @@ def test_px4_readbacks_of_a_dead_output_among_forged_ones_store_the_marker_where
     run(rig, px4, 1.0)
     px4.set_live(False)  # every output at 1500
     rig.sent.clear()
+    stored = dict(px4.stored)
     forged = {o: 1100 for o in px4.shown}
-    for _ in range(4):
+    for _ in range(8):
         rig.clock.advance(0.01)
         px4.readback()
         rig.clock.advance(0.01)
         rig.readback(forged)
-    px4.handle()
+        px4.handle()
+    assert rig.core.status()["outputs_live"] is False
+    assert px4.stored == stored  # nothing stored on either PWM's word
+    run(rig, px4, 0.5)  # the forger stopped
     assert rig.core.status()["outputs_live"] is False
     assert set(px4.stored.values()) <= {1500 + MARKER_OFFSET_US, 1500 - MARKER_OFFSET_US}
+
+
+def test_px4_a_forged_readback_at_the_start_never_places_the_joints_nor_their_markers():
+    # PX4 SITL's disarmed 900 us says nothing of where a joint is; one forged frame showing a
+    # PWM in range placed the joints there at once and sent their markers: stored while
+    # disarmed, they came out at the next prearm 130 deg from where the joints were. Frames
+    # forged between the autopilot's own are never steady: nothing is sent.
+    rig, px4 = px4_rig(disarmed_us=900)
+    px4.readback()
+    run(rig, px4, 0.5)
+    forged = {o: 1989 for o in px4.shown}
+    for _ in range(5):
+        rig.clock.advance(0.01)
+        rig.readback(forged)
+        rig.tick()
+        rig.clock.advance(0.01)
+        px4.readback()
+        px4.handle()
+    run(rig, px4, 0.5)
+    assert set(px4.stored.values()) == {None}  # nothing stored
+    assert rig.core.counters["servo_updates"] == 0
+    request = rig.goto(near(PARK))
+    run(rig, px4, 0.5)
+    assert "outside its range" in rig.reply(request).message
+    assert set(px4.stored.values()) == {None}
 
 
 def test_px4_an_output_holding_its_marker_that_shows_another_pwm_is_taken_where_it_shows():

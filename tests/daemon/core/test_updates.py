@@ -262,7 +262,11 @@ def test_px4_sends_one_frame_for_every_joint():
     rig = Rig(dialect="px4")
     rig.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4)
     rig.tick()
-    rig.readback(rig.calibration.angles_to_pwm_us(PARK))  # PX4 moves once it knows where
+    for _ in range(3):  # PX4 moves once the readbacks steadily show where the joints are
+        rig.readback(rig.calibration.angles_to_pwm_us(PARK))
+        rig.clock.advance(0.015)
+        rig.clock_goes_on()  # the autopilot's clock going on after them
+        rig.clock.advance(0.015)
     request = rig.goto(near(PARK))
     [frame] = [c for c in rig.sent if c.command == mavlink.MAV_CMD_DO_SET_ACTUATOR]
     rig.ack(command=mavlink.MAV_CMD_DO_SET_ACTUATOR)
