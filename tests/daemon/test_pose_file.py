@@ -8,7 +8,7 @@ import logging
 
 from companion.daemon import pose_file
 from companion.daemon.config import parse_config
-from tests.daemon.core.rig import PARK, Rig
+from tests.daemon.core.rig import PARK, Rig, px4_rig, run
 
 CONFIG = parse_config({"link": {"url": "udpout:127.0.0.1:14550"}})
 CALIBRATION = CONFIG.calibration
@@ -115,3 +115,24 @@ def test_the_band_written_holds_the_acknowledged_pose_and_the_step_on_its_way():
     rig.sys_status(safety_on=False)  # it did not (an "off" that left the autopilot after it)
     low, high = rig.core.outputs_left()
     assert low == high == first
+
+
+def test_joints_placed_by_readbacks_are_saved_before_anything_is_sent():
+    # PX4 showed another sender's 1900 us for seconds while this daemon sent nothing; the
+    # file kept an earlier daemon's pose, and a daemon started after the outputs went back to
+    # PX4 SITL's disarmed 900 us (which says nothing of where a joint is) moved from that pose:
+    # 89 deg in one command.
+    rig, px4 = px4_rig(disarmed_us=900)
+    px4.set_live(True)
+    for output in CALIBRATION.outputs:
+        px4.foreign_store(output, 1900)
+    for _ in range(6):  # readbacks at 50 Hz, the control thread not ticking yet
+        px4.readback()
+        rig.clock.advance(0.02)
+    assert rig.core.counters["servo_updates"] == 0
+    left = rig.core.outputs_left()
+    assert left == (dict.fromkeys(CALIBRATION.outputs, 1900),) * 2
+    px4.set_live(False)  # 900 us: the file keeps where the joints were shown (or a marker)
+    run(rig, px4, 0.5)
+    low, high = rig.core.outputs_left()
+    assert all(1900 - 2 <= low[o] <= high[o] <= 1900 + 2 for o in CALIBRATION.outputs)

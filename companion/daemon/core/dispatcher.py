@@ -354,9 +354,12 @@ class ControlCore:
         """Per output, the lowest and the highest PWM the outputs may hold now: the
         acknowledged pose, the steps on their way, one still to confirm, and what the outputs'
         truth says they may hold (ArduPilot's held outputs); for ``pose_file``. None before
-        anything was sent (what the outputs were left at is still what they hold)."""
+        anything was sent or a readback placed a joint (what the outputs were left at is still
+        what they hold). A joint placed by a readback is saved even before anything is sent:
+        a daemon started later, while the outputs show nothing of it (PX4's disarmed 900 us),
+        then starts where the outputs last showed it, not where an earlier daemon left it."""
         state = self.state
-        if not state.ever_sent:
+        if not (state.ever_sent or state.placed_by_readback):
             return None
         poses = [tuple(state.position), *(f.step_deg for f in state.flights)]
         if state.unconfirmed is not None:

@@ -295,6 +295,7 @@ class OutputsTruth(abc.ABC):
         sender), and a pose still to re-send (``pose_file``, a loss) keeps it there."""
         state = self._core.state
         state.position[i] = angle
+        state.placed_by_readback = True
         if state.unconfirmed is not None:
             unconfirmed = list(state.unconfirmed)
             unconfirmed[i] = angle

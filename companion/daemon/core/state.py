@@ -83,6 +83,9 @@ class ArmState:
     #: write it as steps are acknowledged; PX4's outputs where a readback shows the joint
     #: (nothing acknowledged yet, or an output found not live).
     position: list[float]
+    #: A readback placed a joint (the outputs' truth: at the start, or set by another sender),
+    #: so :attr:`position` says where the outputs are even before anything of ours was sent.
+    placed_by_readback: bool = False
     #: Per output, the PWM the autopilot accepted (updates; cleared by watch on a loss, and
     #: by PX4's outputs for one found not live).
     acked_pwm: dict[int, int] = field(default_factory=dict)
