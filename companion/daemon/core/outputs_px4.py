@@ -279,10 +279,12 @@ class Px4Outputs(OutputsTruth):
     def dead(self) -> dict[int, str]:
         dead = dict(self._not_live)
         for output in self._disarmed_out_of_range():
+            # Live (prearmed) or not, PX4 shows its disarmed PWM while nothing is stored: which
+            # is unknown.
             dead[output] = (
-                f"output {output} shows {self.shown[output]} us, outside its range, and nothing "
-                "of ours is stored since the start (disarmed: the arm moves once armed, from "
-                "where the outputs then show)"
+                f"not known live (output {output} shows {self.shown[output]} us, outside its "
+                "range, and nothing of ours is stored since the start: the arm moves once "
+                "armed, from where the outputs then show)"
             )
         return dead
 
