@@ -158,6 +158,7 @@ class ArmDaemon:
             wake=self._wake,
         )
         self._core = ControlCore(config, solve=self._solve, clock=clock)
+        self._core.before_first_step = self._feed_frames
         self._frames: collections.deque[Any] = collections.deque()
         self._frames_lock = threading.Lock()
         # ACCEPTED COMMAND_ACKs queued for the core and taken by it (under _frames_lock): the

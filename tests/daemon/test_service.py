@@ -561,3 +561,11 @@ def test_a_solve_runs_the_configured_search(monkeypatch):
     settings = calls[0]["settings"]
     assert settings is config.search_settings  # one object: the solver keeps its workspace
     assert (settings.pop_size, settings.lm_iterations, settings.F) == (16, 0, 0.9)
+
+
+def test_frames_that_arrived_during_a_solve_are_fed_before_its_first_step():
+    # A readback showing another sender's command, arrived while a goto was solved, was looked
+    # at only after the goto's first step went out over that command (the core's side:
+    # tests/daemon/core/test_outputs_ardupilot.py).
+    daemon = ArmDaemon(Rig().config)
+    assert daemon._core.before_first_step == daemon._feed_frames

@@ -81,6 +81,13 @@ class ControlCore:
         self.keepout = KeepoutGate(self)
         self.world = WorldTargets(self)
         self.answers = StatusAndAnswers(self)
+        #: Called once a request is solved, before its first step goes out (the service feeds
+        #: the frames that arrived during the solve: a readback showing another sender's
+        #: command, arrived meanwhile, is seen before a step could go out over it).
+        self.before_first_step: Callable[[], None] | None = None
+        #: Those frames are being fed: no step goes out until they all are (the request's own
+        #: next step then weighs them all).
+        self.feeding_frames = False
 
     # -- config -----------------------------------------------------------------------------
 
@@ -143,6 +150,12 @@ class ControlCore:
         if stopped_by is not None and carried_out:
             self.state.stopped_by = None
             log.info("stop released by the %s from %s", request.kind, source_name(request.source))
+        if self.before_first_step is not None:
+            self.feeding_frames = True
+            try:
+                self.before_first_step()
+            finally:
+                self.feeding_frames = False
         motion.next_step(actions, immediate=True)
         return actions
 

@@ -796,3 +796,21 @@ def test_ardupilot_a_resend_keeps_an_output_where_another_sender_put_it_behind_t
     rig.switch_off()
     rig.advance(0.05)
     assert rig.servo()[output] == 2000
+
+
+def test_ardupilot_a_readback_that_arrived_during_a_gotos_solve_is_seen_before_its_first_step(
+    rig,
+):
+    # A ground station's servo command landed just before a goto: the readback showing it
+    # arrived while the goto was being solved, and the goto's first step went out before it
+    # was looked at (36 deg over the other sender's command, bench.state_cycles). Frames that
+    # arrived during the solve are fed first; the readback holds the motion until the next
+    # ones say.
+    _settle(rig, near(PARK))
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    rig.core.before_first_step = lambda: rig.readback(shown)
+    rig.sent.clear()
+    rig.goto(near(PARK, -STEP_DEG / 2))
+    assert not rig.servo()
+    assert rig.core.status()["moving"] is True
