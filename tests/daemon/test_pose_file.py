@@ -72,7 +72,11 @@ def test_the_core_starts_where_the_outputs_were_left_unless_a_readback_shows_the
     rig.up()
     angles = [CALIBRATION.for_output(o).pwm_us_to_angle_deg(1700) for o in CALIBRATION.outputs]
     assert rig.core.status()["current_deg"] == angles != list(PARK)
-    rig.readback({CALIBRATION.outputs[0]: 1500})  # a readback that shows one: it wins
+    for _ in range(3):  # readbacks that show one (over an interval, the clock after): they win
+        rig.readback({CALIBRATION.outputs[0]: 1500})
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.readback({CALIBRATION.outputs[0]: 1500})
     assert rig.core.status()["current_deg"][0] == CALIBRATION.for_output(9).pwm_us_to_angle_deg(
         1500
     )

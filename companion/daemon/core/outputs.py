@@ -240,6 +240,13 @@ class OutputsTruth(abc.ABC):
             self._hold_for(output, at_s)
         return believed
 
+    def _judging(self, now: float) -> bool:
+        """Readbacks are being judged by :meth:`_shown_steadily` (an output with nothing of
+        ours acknowledged shows a PWM not believed yet): the motion waits, unless the last
+        run of them began READBACK_WAIT_S ago (a stream that stopped must not stop the arm for
+        good; one whose frames keep changing, a forger's among them, holds it)."""
+        return any(now - since_s < READBACK_WAIT_S for _, since_s, _ in self._steady_seen.values())
+
     def _forget_steady(self, output: int) -> None:
         """``output``'s readbacks are no longer to be judged by :meth:`_shown_steadily`."""
         if self._steady_seen.pop(output, None) is not None:

@@ -233,25 +233,21 @@ class ArduPilotOutputs(OutputsTruth):
                 continue
             acked = state.acked_pwm.get(output)
             if acked is None:
-                if not state.ever_sent:
-                    # The start: ArduPilot keeps what its outputs were told (by an earlier
-                    # daemon) until it reboots; the joint is there, not at the park pose.
-                    self._start_at(i, self.angle_shown(output, shown))
-                    if self._held_since_off is not None:  # nothing sent: they hold that
-                        self._held_since_off = band_of([tuple(state.position)])
-                elif any(output in f.pwm_by_output for f in state.flights) or self._as_held(
-                    i, output, shown
-                ):
+                if any(output in f.pwm_by_output for f in state.flights):
                     # Ours on its way (shown before its ACK, or not applied yet): its outcome
-                    # says where the output is. Or where the joint is already taken to be (a
-                    # PWM believed before, the pose to re-send): nothing to decide.
+                    # says where the output is.
                     self._forget_steady(output)
                     self._doubt_until_s.pop(output, None)
-                elif self._shown_steadily(output, shown):
-                    # After a loss or a reboot, before anything of ours is acknowledged: an
-                    # output that shows a PWM (another sender set it since the boot) is there;
-                    # the pose re-sent keeps it there.
-                    self._take_shown(i, output, shown)
+                elif output not in self._steady_seen and self._as_held(i, output, shown):
+                    # Where the joint is already taken to be (a PWM believed before, the pose
+                    # to re-send): nothing to decide. (Not while another PWM is being judged:
+                    # frames showing two by turns believe neither.)
+                    self._doubt_until_s.pop(output, None)
+                elif not self._shown_steadily(output, shown):
+                    pass  # not believed yet: the motion holds until the next readbacks say
+                else:
+                    self._forget_steady(output)
+                    self._place(i, output, shown)
                 continue
             self._forget_steady(output)
             expected, settled = self._expected_pwms(output, now)
@@ -296,6 +292,23 @@ class ArduPilotOutputs(OutputsTruth):
             self._shown_ack_s.pop(output, None)
             self.acknowledged(output, shown, now)
             self._joint_at(i, angle)
+
+    def _place(self, i: int, output: int, shown: int) -> None:
+        """Readbacks steadily show ``output`` (index ``i``), nothing of ours acknowledged, at
+        ``shown``: the joint is there."""
+        state = self._core.state
+        if self._as_held(i, output, shown):
+            return  # where it was taken to be
+        if not state.ever_sent:
+            # The start: ArduPilot keeps what its outputs were told (by an earlier daemon)
+            # until it reboots; the joint is there, not at the park pose.
+            self._start_at(i, self.angle_shown(output, shown))
+            if self._held_since_off is not None:  # nothing sent: they hold that
+                self._held_since_off = band_of([tuple(state.position)])
+        else:
+            # After a loss or a reboot: another sender set the output since the boot; the pose
+            # re-sent keeps it there.
+            self._take_shown(i, output, shown)
 
     def _joint_at(self, i: int, angle: float) -> None:
         """Joint ``i``'s output holds ``angle`` (a readback showed another sender's PWM): the
@@ -426,7 +439,9 @@ class ArduPilotOutputs(OutputsTruth):
             # Where the joints are comes from the first readback since the start, a loss or a
             # reboot (another sender may have set an output meanwhile: the re-send waits).
             return False
-        if not self._safety_known(now):
+        if not self._safety_known(now) or self._judging(now):
+            # (Judging: an output shows a PWM not believed yet; moving from where the joint
+            # is taken to be now could jump from where it is.)
             return False
         dead = self.dead()
         if dead and self._rewind_to is not None and not self.in_doubt(now):

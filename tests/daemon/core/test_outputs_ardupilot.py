@@ -292,12 +292,47 @@ def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_be
     for _ in range(4):
         rig.advance(0.025)
     assert not rig.servo()  # no readback yet: where the joints are is unknown
-    rig.readback(_pwm_of(rig, away))
+    _readbacks_believed(rig, _pwm_of(rig, away))
     rig.advance(0.05)
     assert rig.servo()
     assert _first_step_deg(rig, away) <= STEP_DEG + 0.2
     rig.ack_all(rig.sent)
     assert rig.reply(request).outcome is Outcome.ACCEPTED
+
+
+def _readbacks_believed(rig, shown) -> None:
+    """Readbacks show ``shown`` over more than an interval, the autopilot's clock going on
+    after them: believed (nothing of ours acknowledged)."""
+    for _ in range(3):
+        rig.readback(shown)
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.clock.advance(0.02)
+    rig.readback(shown)
+
+
+def test_ardupilot_a_forged_readback_at_the_start_never_places_the_joints():
+    # One forged frame at the start placed the joints where it said, and a goto's first step
+    # went from there: the autopilot's own frames corrected it only at the next readback.
+    # Frames showing two PWMs by turns place nothing, and the motion waits.
+    rig = Rig()
+    rig.heartbeat()
+    rig.tick()
+    rig.switch_off()
+    away = tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
+    rig.goto(tuple(a + 1.5 for a in away))
+    for _ in range(10):
+        rig.readback(_pwm_of(rig, away))
+        rig.advance(0.01)
+        rig.readback(_pwm_of(rig, PARK))  # forged between the autopilot's own
+        rig.advance(0.01)
+    rig.system_time(600_000)
+    rig.advance(0.05)
+    assert not rig.servo()
+    _readbacks_believed(rig, _pwm_of(rig, away))  # the forger stopped
+    rig.advance(0.05)
+    assert rig.servo()
+    assert _first_step_deg(rig, away) <= STEP_DEG + 0.2
 
 
 def test_ardupilot_with_no_readback_the_arm_moves_after_the_wait():
