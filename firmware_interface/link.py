@@ -120,6 +120,12 @@ def is_autopilot_heartbeat(msg: MavMessage) -> bool:
     )
 
 
+#: :meth:`MavlinkLink.caught_up`: how long a caller waits at most for the reader, and how
+#: often it looks (sleeping meanwhile, so the reader thread gets the interpreter).
+CATCH_UP_S = 0.005
+CATCH_UP_POLL_S = 0.0002
+
+
 class LinkState(enum.Enum):
     """Autopilot link state as seen from the companion."""
 
@@ -398,6 +404,10 @@ class MavlinkLink:
         self._transport_factory = transport_factory
         self._transport: Transport | None = None
         self._write_failed: Transport | None = None
+        #: The reader thread: how many reads it began, and whether it waits in one now (see
+        #: :meth:`caught_up`).
+        self._reads_begun = 0
+        self._in_read = False
 
         own_system = self.config.system_id or PROVISIONAL_SYSTEM_ID
         self._encoder = _Codec(None, own_system, self.config.component_id)
@@ -580,6 +590,30 @@ class MavlinkLink:
         for callback in callbacks:
             callback(state)
         return state
+
+    def caught_up(self, timeout_s: float = CATCH_UP_S) -> bool:
+        """Wait, at most ``timeout_s``, until what the transport received by now has been read
+        and handed to the subscribers: the reader waits in a read, the same one twice
+        CATCH_UP_POLL_S apart, with nothing pending. For a thread about to act on what the
+        autopilot said: a frame that arrived while it held the interpreter (a solve in
+        compiled code) is then seen first. False if the reader did not catch up in time (a
+        flood: the caller goes on)."""
+        deadline_s = time.monotonic() + timeout_s
+        seen: tuple[int, bool] | None = None
+        while True:
+            transport = self._transport
+            if transport is None or self._stop.is_set():
+                return True
+            now = (self._reads_begun, self._in_read)
+            if now[1] and not transport.pending():
+                if now == seen:
+                    return True
+                seen = now
+            else:
+                seen = None
+            if time.monotonic() >= deadline_s:
+                return False
+            time.sleep(CATCH_UP_POLL_S)
 
     def wait_for_autopilot(self, timeout_s: float) -> AutopilotInfo:
         """Block until an autopilot HEARTBEAT was heard, at most ``timeout_s`` (real time)."""
@@ -932,14 +966,18 @@ class MavlinkLink:
                         failed_reopens = 0
                         backoff_s = self.config.reconnect_initial_s
                     continue
+                self._reads_begun += 1
+                self._in_read = True
                 try:
                     data, sender = transport.read_from(self.config.read_timeout_s)
                 except TransportError as exc:
+                    self._in_read = False
                     # Drop the port first: whoever sees the error counted sees the link lost.
                     self._drop_transport()
                     self._counts["transport_errors"] += 1
                     log.warning("%s: %s; reopening", self.description, exc)
                     continue
+                self._in_read = False
                 if data:
                     self._receive(transport, data, sender)
         except Exception as exc:  # protocol or subscriber bug: end the link, keep the cause

@@ -90,6 +90,11 @@ class Transport(abc.ABC):
         byte stream, or when nothing arrived)."""
         return self.read(timeout_s), None
 
+    def pending(self) -> bool:
+        """Whether bytes received are waiting to be read (polled without reading: another
+        thread than the reader may ask; default: unknown, False)."""
+        return False
+
     @abc.abstractmethod
     def close(self) -> None:
         """Release the port or socket. Idempotent."""
@@ -218,6 +223,12 @@ class SerialTransport(Transport):
             # pyserial raises TypeError when the fd vanished under it during a read.
             raise TransportError(f"read from {self.description} failed: {exc}") from exc
 
+    def pending(self) -> bool:
+        try:
+            return bool(self._port.in_waiting)
+        except (serial.SerialException, OSError, TypeError, ValueError):
+            return False
+
     def close(self) -> None:
         try:
             self._port.close()
@@ -238,6 +249,13 @@ class _SocketTransport(Transport):
             readable, _, _ = select.select([self._sock], [], [], max(0.0, timeout_s))
         except (OSError, ValueError) as exc:
             raise TransportError(f"{self.description}: {exc}") from exc
+        return bool(readable)
+
+    def pending(self) -> bool:
+        try:
+            readable, _, _ = select.select([self._sock], [], [], 0.0)
+        except (OSError, ValueError):
+            return False
         return bool(readable)
 
     def _recv_datagram(self, timeout_s: float) -> tuple[bytes, tuple[str, int] | None]:

@@ -158,7 +158,7 @@ class ArmDaemon:
             wake=self._wake,
         )
         self._core = ControlCore(config, solve=self._solve, clock=clock)
-        self._core.before_first_step = self._feed_frames
+        self._core.before_first_step = self._frames_before_step
         self._frames: collections.deque[Any] = collections.deque()
         self._frames_lock = threading.Lock()
         # ACCEPTED COMMAND_ACKs queued for the core and taken by it (under _frames_lock): the
@@ -662,6 +662,15 @@ class ArmDaemon:
 
     def _request(self, request: Request) -> None:
         self._carry_out(self._core.request(request))
+
+    def _frames_before_step(self) -> None:
+        """A request was solved: the frames that arrived meanwhile go to the core before its
+        first step (the solve held the interpreter, so the reader may not have queued them
+        yet: it is given up to CATCH_UP_S to)."""
+        link = self.link
+        if link is not None:
+            link.caught_up()
+        self._feed_frames()
 
     def _feed_frames(self) -> None:
         core = self._core

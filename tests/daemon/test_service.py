@@ -566,6 +566,7 @@ def test_a_solve_runs_the_configured_search(monkeypatch):
 def test_frames_that_arrived_during_a_solve_are_fed_before_its_first_step():
     # A readback showing another sender's command, arrived while a goto was solved, was looked
     # at only after the goto's first step went out over that command (the core's side:
-    # tests/daemon/core/test_outputs_ardupilot.py).
+    # tests/daemon/core/test_outputs_ardupilot.py; the link's, which lets the reader hand on
+    # what arrived while the solve held the interpreter: tests/firmware_interface).
     daemon = ArmDaemon(Rig().config)
-    assert daemon._core.before_first_step == daemon._feed_frames
+    assert daemon._core.before_first_step == daemon._frames_before_step

@@ -428,3 +428,28 @@ def test_a_missing_serial_device_is_waited_for_only_when_asked(tmp_path):
         link.close()
         os.close(master)
         os.close(slave)
+
+
+def test_caught_up_waits_until_the_reader_handed_on_what_had_arrived(udp_peer, udp_link):
+    # A thread about to act on the autopilot's word (the daemon's first step after a solve,
+    # which held the interpreter) first lets the reader hand on every frame that had arrived.
+    import threading
+
+    udp_peer.wait_for_messages("HEARTBEAT")
+    gate = threading.Event()
+    seen: list[int] = []
+
+    def slow(msg) -> None:  # the reader, busy with the first frame
+        seen.append(msg.time_boot_ms)
+        if len(seen) == 1:
+            gate.wait(2.0)
+
+    udp_link.subscribe(slow, ["SYSTEM_TIME"])
+    codec = udp_peer.mav
+    udp_peer.send(codec.system_time_encode(0, 1))
+    assert wait_until(lambda: seen == [1])
+    udp_peer.send(codec.system_time_encode(0, 2))
+    assert udp_link.caught_up(0.05) is False  # the reader is stuck: the caller goes on
+    threading.Timer(0.05, gate.set).start()
+    assert udp_link.caught_up(2.0) is True
+    assert seen == [1, 2]
