@@ -279,15 +279,21 @@ def _first_step_deg(rig, start_pose) -> float:
     )
 
 
-def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_before():
-    # A daemon restarted with the arm away from park: ArduPilot still holds what the earlier
-    # daemon sent, and its readback shows it. Assuming park, the first goto moved every joint
-    # ~42 deg in one command.
+def _restarted_away() -> tuple[Rig, tuple[float, ...]]:
+    """A daemon just started, the switch off, and the pose an earlier daemon left the arm at
+    (far from park), which ArduPilot still holds and shows."""
     rig = Rig()
     rig.heartbeat()
     rig.tick()
     rig.switch_off()
-    away = tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
+    return rig, tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
+
+
+def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_before():
+    # A daemon restarted with the arm away from park: ArduPilot still holds what the earlier
+    # daemon sent, and its readback shows it. Assuming park, the first goto moved every joint
+    # ~42 deg in one command.
+    rig, away = _restarted_away()
     request = rig.goto(tuple(a + 1.5 for a in away))
     for _ in range(4):
         rig.advance(0.025)
@@ -302,7 +308,7 @@ def test_ardupilot_a_restarted_daemon_starts_where_the_readback_shows_and_not_be
 
 def _readbacks_believed(rig, shown) -> None:
     """Readbacks show ``shown`` over more than an interval, the autopilot's clock going on
-    after them: believed (nothing of ours acknowledged)."""
+    after them: believed."""
     for _ in range(3):
         rig.readback(shown)
         rig.clock.advance(0.02)
@@ -315,11 +321,7 @@ def test_ardupilot_a_forged_readback_at_the_start_never_places_the_joints():
     # One forged frame at the start placed the joints where it said, and a goto's first step
     # went from there: the autopilot's own frames corrected it only at the next readback.
     # Frames showing two PWMs by turns place nothing, and the motion waits.
-    rig = Rig()
-    rig.heartbeat()
-    rig.tick()
-    rig.switch_off()
-    away = tuple(p + 40.0 for p in PARK[:1]) + tuple(p - 30.0 for p in PARK[1:])
+    rig, away = _restarted_away()
     rig.goto(tuple(a + 1.5 for a in away))
     for _ in range(10):
         rig.readback(_pwm_of(rig, away))
@@ -368,12 +370,7 @@ def _foreign_2000_believed(rig) -> tuple[int, dict[int, int]]:
     believes it. Returns the output and what the readback shows."""
     output = rig.calibration.outputs[0]
     shown = {**rig.core.status()["last_pwm_us"], output: 2000}
-    for _ in range(3):
-        rig.readback(shown)
-        rig.clock.advance(0.02)
-    rig.system_time(600_000)
-    rig.clock.advance(0.02)
-    rig.readback(shown)
+    _readbacks_believed(rig, shown)
     assert rig.core.status()["foreign_command"]["output"] == output
     return output, shown
 
