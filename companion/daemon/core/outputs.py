@@ -167,6 +167,11 @@ class OutputsTruth(abc.ABC):
     def clock_heard(self, at_s: float) -> None:
         """A SYSTEM_TIME that continues the autopilot's clock arrived at ``at_s``."""
         self._clock_heard_s = at_s
+        if self.shown_s > -math.inf and any(met_s < at_s for met_s in self._span_met_s.values()):
+            # Readbacks waited for this (their span met): judged again now, not a readback
+            # later. (The frame already counted counts again; a belief still needs frames
+            # spanning READBACK_SPAN_INTERVALS, so that believes nothing sooner than it should.)
+            self._check_readback()
 
     def take_clock_probe(self, now: float) -> bool:
         """Whether to ask the autopilot for a SYSTEM_TIME now (a readback started to disagree;

@@ -453,3 +453,20 @@ def test_px4_an_output_holding_its_marker_that_shows_another_pwm_is_taken_where_
     assert max_physical_step_us(px4) <= 1.0
     # It went on from 2000 us at the speed limit, never back to its marker.
     assert next(m for m in px4.physical_moves if m[0] == first)[1] == 2000
+
+
+def test_px4_the_clock_that_readbacks_waited_for_decides_at_once():
+    # A start's readbacks, steady over the span, waited for the autopilot's clock; its answer
+    # decided only at the next readback, an interval later (status said "not known live" past
+    # its bound after every restart, bench.state_cycles).
+    rig, px4 = px4_rig(disarmed_us=1500)
+    for _ in range(2):
+        rig.readback(px4.shown)
+        rig.clock.advance(0.03)
+    rig.readback(px4.shown)  # the span met: the clock is asked for
+    assert "steadily" in str(rig.core.status()["not_live"])
+    rig.clock.advance(0.002)
+    rig.clock_goes_on()  # its answer
+    assert "steadily" not in str(rig.core.status()["not_live"])
+    rig.tick()
+    assert [c for c in rig.sent if c.command == ACTUATOR]  # the markers go out
