@@ -673,14 +673,24 @@ class ArmDaemon:
         self._feed_frames()
 
     def _feed_frames(self) -> None:
+        """Feed the queued frames to the core as one batch: a step one of them asks for goes
+        out once all are fed (``ControlCore.feeding_frames``; within a request's, the request
+        takes it)."""
         core = self._core
-        while True:
-            with self._frames_lock:
-                if not self._frames:
-                    return
-                received_s, msg, counted = self._frames.popleft()
-                self._acks_fed += counted
-            self._carry_out(core.frame(msg, received_s))
+        within = core.feeding_frames
+        core.feeding_frames = True
+        try:
+            while True:
+                with self._frames_lock:
+                    if not self._frames:
+                        break
+                    received_s, msg, counted = self._frames.popleft()
+                    self._acks_fed += counted
+                self._carry_out(core.frame(msg, received_s))
+        finally:
+            core.feeding_frames = within
+        if not within:
+            self._carry_out(core.frames_fed())
 
     def _tick(self) -> list[Action]:
         link = self.link

@@ -570,3 +570,21 @@ def test_frames_that_arrived_during_a_solve_are_fed_before_its_first_step():
     # what arrived while the solve held the interpreter: tests/firmware_interface).
     daemon = ArmDaemon(Rig().config)
     assert daemon._core.before_first_step == daemon._frames_before_step
+
+
+def test_the_queued_frames_are_fed_as_one_batch_and_its_step_taken_after():
+    rig = Rig()
+    rig.up()
+    daemon = ArmDaemon(rig.config, clock=rig.clock)
+    daemon._core = rig.core
+    during: list[bool] = []
+    frame = rig.core.frame
+    rig.core.frame = lambda msg, at_s=None: (
+        during.append(rig.core.feeding_frames) or frame(msg, at_s)
+    )
+    fed: list[bool] = []
+    rig.core.frames_fed = lambda: fed.append(rig.core.feeding_frames) or []
+    daemon._on_frame(_ack_frame())
+    daemon._on_frame(_ack_frame())
+    daemon._feed_frames()
+    assert during == [True, True] and fed == [False]

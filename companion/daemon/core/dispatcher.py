@@ -85,9 +85,13 @@ class ControlCore:
         #: the frames that arrived during the solve: a readback showing another sender's
         #: command, arrived meanwhile, is seen before a step could go out over it).
         self.before_first_step: Callable[[], None] | None = None
-        #: Those frames are being fed: no step goes out until they all are (the request's own
-        #: next step then weighs them all).
+        #: Frames are being fed in a batch (the service's queue, or those that arrived during a
+        #: solve): no step goes out until they all are, so each is weighed against them all (an
+        #: ACK early in the queue would otherwise send a step before a readback behind it, which
+        #: shows another sender's command, is read). The step a frame asked for is deferred to
+        #: :meth:`frames_fed`: True, only for a target waiting; False, any step due.
         self.feeding_frames = False
+        self._deferred_step: bool | None = None
 
     # -- config -----------------------------------------------------------------------------
 
@@ -156,7 +160,23 @@ class ControlCore:
                 self.before_first_step()
             finally:
                 self.feeding_frames = False
+            actions += self.frames_fed()
         motion.next_step(actions, immediate=True)
+        return actions
+
+    def defer_step(self, immediate: bool) -> None:
+        """A frame asked for the next step while frames are fed in a batch: taken once they
+        all are (:meth:`frames_fed`)."""
+        if self._deferred_step is None or not immediate:
+            self._deferred_step = immediate
+
+    def frames_fed(self) -> list[Action]:
+        """A batch of frames was fed (see :attr:`feeding_frames`): the step one of them asked
+        for, now that every one is weighed."""
+        actions: list[Action] = []
+        deferred, self._deferred_step = self._deferred_step, None
+        if deferred is not None:
+            self.motion.next_step(actions, immediate=deferred)
         return actions
 
     def _stop_or_resume(self, actions: list[Action], request: Request) -> Reply:

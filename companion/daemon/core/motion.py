@@ -256,7 +256,10 @@ class Motion:
         line an update takes 13–21 ms of a 20 ms slot)."""
         core = self._core
         state, outputs, updates = core.state, core.outputs, core.updates
-        if not state.link_up or core.watch.reboot_suspected or core.feeding_frames:
+        if core.feeding_frames:
+            core.defer_step(immediate)
+            return
+        if not state.link_up or core.watch.reboot_suspected:
             return
         if outputs.take_hold():
             state.unconfirmed = None

@@ -846,3 +846,27 @@ def test_ardupilot_a_readback_that_arrived_during_a_gotos_solve_is_seen_before_i
     rig.goto(near(PARK, -STEP_DEG / 2))
     assert not rig.servo()
     assert rig.core.status()["moving"] is True
+
+
+def test_ardupilot_frames_fed_as_a_batch_send_no_step_before_the_last_is_weighed(rig):
+    # Queued before a readback that showed a ground station's command, a frame (the ACK that
+    # completed an update, the SYS_STATUS a step waited for) sent a step at once, before the
+    # readback was read: 45-103 deg over the other sender's command (bench.state_cycles). Fed
+    # as one batch, the step waits for the batch's end, and the readback holds it.
+    _settle(rig, near(PARK))
+    rig.sent.clear()
+    rig.goto(near(PARK, -STEP_DEG / 2))
+    first = list(rig.sent)
+    rig.goto(near(PARK, -3 * STEP_DEG))  # waits for the update in flight
+    before = len(rig.sent)
+    output = rig.calibration.outputs[0]
+    shown = {**rig.core.status()["last_pwm_us"], output: 2000}
+    rig.clock.advance(0.03)
+    rig.core.feeding_frames = True
+    rig.ack_all(first)
+    rig.sys_status(safety_on=False)
+    rig.readback(shown)
+    rig.core.feeding_frames = False
+    assert not rig.servo(rig.sent[before:])
+    rig.take(rig.core.frames_fed())
+    assert not rig.servo(rig.sent[before:])  # in doubt: the readbacks decide first
