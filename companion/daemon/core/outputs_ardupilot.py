@@ -79,6 +79,11 @@ def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
     return all(max(hi, a) - min(lo, a) <= width for lo, hi, a in zip(low, high, step, strict=True))
 
 
+def _pinned(pose: tuple[float, ...], i: int, angle: float) -> tuple[float, ...]:
+    """``pose`` with joint ``i`` at ``angle``."""
+    return (*pose[:i], angle, *pose[i + 1 :])
+
+
 def widen(band: Band, step: Sequence[float]) -> None:
     """Widen ``band`` (in place) to hold ``step``."""
     low, high = band
@@ -324,9 +329,18 @@ class ArduPilotOutputs(OutputsTruth):
         output = state.outputs[i]
         for flight in state.flights:  # an update left unknown is not confirmed over it
             flight.pending = [c for c in flight.pending if output not in c.outputs]
-        for band in (self._held_before_loss, self._held_since_off):
+        # So do the bands a broken cadence would restore and the steps an "off" would take in:
+        # what they hold of this joint is from before the other sender's step.
+        for band in (self._held_before_loss, self._held_since_off, *self._bands_before):
             if band is not None:
                 band[0][i] = band[1][i] = angle
+        self._steps_sent = collections.deque(
+            (
+                (sent_s, _pinned(base, i, angle), _pinned(step, i, angle))
+                for sent_s, base, step in self._steps_sent
+            ),
+            maxlen=self._steps_sent.maxlen,
+        )
         if self._rewind_to is not None:  # the switch on: the rewind leaves it there
             rewind = list(self._rewind_to)
             rewind[i] = angle

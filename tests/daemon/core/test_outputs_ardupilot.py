@@ -870,3 +870,26 @@ def test_ardupilot_frames_fed_as_a_batch_send_no_step_before_the_last_is_weighed
     assert not rig.servo(rig.sent[before:])
     rig.take(rig.core.frames_fed())
     assert not rig.servo(rig.sent[before:])  # in doubt: the readbacks decide first
+
+
+def test_ardupilot_undone_narrowings_keep_an_output_where_another_sender_put_it(rig):
+    # A ground station's command believed, then a SYS_STATUS forged as "off" right after the
+    # autopilot's own (the cadence broken: the last narrowings of the band undone) and the
+    # switch on: the undone bands still held the joint's pose from before the command, the
+    # rewind went to the middle of that and 2000 us, and the release moved the joint 57 deg
+    # from where the ground station had put it (bench.state_cycles).
+    _settle(rig, near(PARK))
+    output, shown = _foreign_2000_believed(rig)
+    rig.sent.clear()
+    rig.sys_status(safety_on=False)  # the autopilot's own
+    rig.clock.advance(0.005)
+    rig.sys_status(safety_on=False, stream=False)  # forged, 5 ms after it
+    rig.clock.advance(rig.status_interval_s)
+    rig.sys_status(safety_on=True)  # the switch on
+    for _ in range(5):
+        rig.ack_all(rig.sent)
+        rig.clock.advance(0.02)
+        rig.readback(shown)
+        rig.tick()
+    assert rig.core.status()["outputs_live"] is False
+    assert rig.servo().get(output, 2000) == 2000
