@@ -12,7 +12,9 @@ at most once per control step while the arm moves. A daemon killed mid-motion le
 that holds where the joints are to within that band (one control step while moving). The next
 start takes the joints at the middle of the band, and when the band is wider than a PWM step
 re-sends that middle first, before the first target's steps (at most half a band from the
-truth). What a readback shows still wins over the file (see ``ControlCore.restore_pose``).
+truth); until every output has acknowledged a pose, the band stays in the file it writes (a
+safety switch may hold the outputs anywhere in it, and a reboot then drops what was stored).
+What a readback shows still wins over the file (see ``ControlCore.restore_pose``).
 
 A file that cannot be read or does not match the config (other outputs, a PWM outside an
 output's calibrated range, a low above its high) is set aside with a warning; one that cannot

@@ -140,3 +140,34 @@ def test_joints_placed_by_readbacks_are_saved_before_anything_is_sent():
     run(rig, px4, 0.5)
     low, high = rig.core.outputs_left()
     assert all(1900 - 2 <= low[o] <= high[o] <= 1900 + 2 for o in CALIBRATION.outputs)
+
+
+def test_a_band_restored_stays_in_the_file_until_the_outputs_are_sent_to_it():
+    # A daemon restarted while ArduPilot's safety switch held the outputs somewhere in a band
+    # sent nothing; readbacks placed one joint (another sender's command), and the file it
+    # wrote held the band's middle alone for the others. After a reboot the next daemon stepped
+    # from that middle: 7 deg from where the switch had held a joint (bench.state_cycles).
+    rig = Rig()
+    low = dict.fromkeys(CALIBRATION.outputs, 1600)
+    high = dict.fromkeys(CALIBRATION.outputs, 1630)
+    rig.core.restore_pose((low, high))
+    rig.heartbeat()
+    rig.tick()
+    rig.sys_status(safety_on=True)
+    first = CALIBRATION.outputs[0]
+    for _ in range(3):
+        rig.readback({first: 1800})
+        rig.clock.advance(0.02)
+    rig.system_time(600_000)
+    rig.readback({first: 1800})
+    left_low, left_high = rig.core.outputs_left()
+    assert left_low[first] == left_high[first] == 1800  # where the readbacks show it
+    for output in CALIBRATION.outputs[1:]:
+        assert (left_low[output], left_high[output]) == (1600, 1630)
+    rig.switch_off()
+    rig.goto(PARK)
+    rig.tick()
+    assert rig.servo() == {first: 1800, **dict.fromkeys(CALIBRATION.outputs[1:], 1615)}
+    rig.ack_all(rig.sent)
+    left_low, left_high = rig.core.outputs_left()
+    assert left_low == left_high  # sent to the middle: they hold it

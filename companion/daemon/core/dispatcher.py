@@ -371,17 +371,21 @@ class ControlCore:
         low, high = left
         calibration = self.config.calibration
         exact = True
+        lows, highs = list(state.position), list(state.position)
         for i, output in enumerate(state.outputs):
             if output in low:
                 joint = calibration.for_output(output)
-                ends = (
-                    joint.pwm_us_to_angle_deg(low[output]),
-                    joint.pwm_us_to_angle_deg(high[output]),
+                lows[i], highs[i] = sorted(
+                    (
+                        joint.pwm_us_to_angle_deg(low[output]),
+                        joint.pwm_us_to_angle_deg(high[output]),
+                    )
                 )
-                state.position[i] = (ends[0] + ends[1]) / 2
+                state.position[i] = (lows[i] + highs[i]) / 2
                 exact = exact and low[output] == high[output]
         if not exact:
             state.unconfirmed = tuple(state.position)
+            state.restored = (lows, highs)
 
     def outputs_left(self) -> tuple[dict[int, int], dict[int, int]] | None:
         """Per output, the lowest and the highest PWM the outputs may hold now: the
@@ -397,6 +401,8 @@ class ControlCore:
         poses = [tuple(state.position), *(f.step_deg for f in state.flights)]
         if state.unconfirmed is not None:
             poses.append(state.unconfirmed)
+        if state.restored is not None:
+            poses += [tuple(state.restored[0]), tuple(state.restored[1])]
         poses += self.outputs.may_hold()
         calibration = self.config.calibration
         low: dict[int, int] = {}

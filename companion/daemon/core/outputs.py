@@ -308,6 +308,8 @@ class OutputsTruth(abc.ABC):
         state = self._core.state
         state.position[i] = angle
         state.placed_by_readback = True
+        if state.restored is not None:
+            state.restored[0][i] = state.restored[1][i] = angle
         if state.unconfirmed is not None:
             unconfirmed = list(state.unconfirmed)
             unconfirmed[i] = angle

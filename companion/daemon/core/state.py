@@ -86,6 +86,11 @@ class ArmState:
     #: A readback placed a joint (the outputs' truth: at the start, or set by another sender),
     #: so :attr:`position` says where the outputs are even before anything of ours was sent.
     placed_by_readback: bool = False
+    #: Per joint, the lowest and the highest angle the pose file said the outputs may hold
+    #: (None: nothing restored, or every output acknowledged since). Until the outputs are
+    #: sent to the middle it is what they may hold (a joint placed by a readback since: where
+    #: it shows), and the file keeps it (a safety switch may hold them anywhere in it).
+    restored: tuple[list[float], list[float]] | None = None
     #: Per output, the PWM the autopilot accepted (updates; cleared by watch on a loss, and
     #: by PX4's outputs for one found not live).
     acked_pwm: dict[int, int] = field(default_factory=dict)

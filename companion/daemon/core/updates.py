@@ -345,6 +345,7 @@ class UpdatePipeline:
             state.unconfirmed = None
             self._unanswered = 0
             if all(o in state.acked_pwm or o in state.refused for o in state.outputs):
+                state.restored = None  # they hold what was acknowledged
                 outputs_truth.all_acknowledged()
             state.counters["servo_updates"] += 1  # acknowledged in full
             if inflight.attempt == 0:
