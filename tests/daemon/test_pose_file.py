@@ -165,6 +165,9 @@ def test_a_band_restored_stays_in_the_file_until_the_outputs_are_sent_to_it():
     for output in CALIBRATION.outputs[1:]:
         assert (left_low[output], left_high[output]) == (1600, 1630)
     rig.switch_off()
+    rig.clock.advance(0.005)
+    rig.answer_clock_probes()  # "off" after "on": believed once the clock went on after it
+    rig.sys_status(safety_on=False)
     rig.goto(PARK)
     rig.tick()
     assert rig.servo() == {first: 1800, **dict.fromkeys(CALIBRATION.outputs[1:], 1615)}

@@ -236,29 +236,35 @@ class ControlCore:
                 if (v := getattr(msg, f"servo{n}_raw", 0)) and msg.port == 0
             }
             self.outputs.on_readback(shown, at_s)
-            if (
-                watch.pinned is not None
-                and self.state.link_up  # nothing is sent while the link is down
-                and self.outputs.take_clock_probe(self.clock())
-            ):
-                actions.append(
-                    SendCommand(
-                        watch.pinned,
-                        mavlink.MAV_CMD_REQUEST_MESSAGE,
-                        (float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME), 0, 0, 0, 0, 0, 0),
-                    )
-                )
+            self._probe_clock(actions)
             if self.outputs.hold_wanted:
                 self.motion.next_step(actions, immediate=True)
         elif kind == "SYS_STATUS":
             enabled = msg.onboard_control_sensors_enabled
             safety_on = not enabled & mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
             self.outputs.on_sys_status(actions, safety_on, at_s)
+            self._probe_clock(actions)
         elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
             self.world.on_frame(msg, at_s)
         elif kind == "PARAM_VALUE":
             self.outputs.on_param(_param_name(msg.param_id), msg.param_value)
         return actions
+
+    def _probe_clock(self, actions: list[Action]) -> None:
+        """Ask for a SYSTEM_TIME if the outputs' truth waits for the autopilot's clock."""
+        pinned = self.watch.pinned
+        if (
+            pinned is not None
+            and self.state.link_up  # nothing is sent while the link is down
+            and self.outputs.take_clock_probe(self.clock())
+        ):
+            actions.append(
+                SendCommand(
+                    pinned,
+                    mavlink.MAV_CMD_REQUEST_MESSAGE,
+                    (float(mavlink.MAVLINK_MSG_ID_SYSTEM_TIME), 0, 0, 0, 0, 0, 0),
+                )
+            )
 
     def tick(self, link_up: bool, autopilot: tuple[int, int] | None = None) -> list[Action]:
         """Periodic work; call at least every :meth:`next_wake_s`, and whenever the link's

@@ -174,10 +174,11 @@ class OutputsTruth(abc.ABC):
             self._check_readback()
 
     def take_clock_probe(self, now: float) -> bool:
-        """Whether to ask the autopilot for a SYSTEM_TIME now (a readback started to disagree;
-        at most once in CLOCK_PROBE_INTERVALS readback intervals): its answer, a round trip
-        later, says it is there and did not reboot, rather than the stream's next frame up to
-        its interval later. Asked once: True clears it."""
+        """Whether to ask the autopilot for a SYSTEM_TIME now (a readback started to disagree,
+        ArduPilot's SYS_STATUS said "off" after "on"; at most once in CLOCK_PROBE_INTERVALS
+        readback intervals): its answer, a round trip later, says it is there and did not
+        reboot, rather than the stream's next frame up to its interval later. Asked once:
+        True clears it."""
         if not self._probe_wanted:
             return False
         interval_s = CLOCK_PROBE_INTERVALS * self._core.settings.readback_interval_s

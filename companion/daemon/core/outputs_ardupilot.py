@@ -8,7 +8,8 @@ another sender (a ground station's servo test) set an output: the joint is where
 the motion goes on from there at the speed limit, and status says so (``foreign_command``).
 A SYS_STATUS saying the switch is off while one said it is on less than
 SAFETY_ON_STICKY_INTERVALS ago is not believed (frames forged as the autopilot's, on an
-unsigned link, alternate with its own). What the outputs may hold
+unsigned link, alternate with its own), nor one after "on" before the autopilot's clock went
+on after it (while it reboots, forged frames are all there is). What the outputs may hold
 while the switch is unseen stays within a band a step wide (``SAFETY_STEPS_AHEAD``); once the
 switch is seen on, the held outputs are sent back to the middle of that band (the rewind).
 """
@@ -168,6 +169,15 @@ class ArduPilotOutputs(OutputsTruth):
                     "the autopilot's?): taken as on"
                 )
             safety_on = True
+        elif self.safety_on:
+            # "Off" after "on" is believed once the autopilot's clock went on after the first
+            # such frame (asked for now): while it reboots it is silent, and frames forged as
+            # its own, at its cadence, are all there is.
+            if self._off_since_s is None:
+                self._off_since_s = at_s
+            if self._clock_heard_s <= self._off_since_s:
+                self._probe_wanted = True
+                return
         if safety_on != self.safety_on:
             if safety_on:
                 log.warning("safety switch on: outputs not live")

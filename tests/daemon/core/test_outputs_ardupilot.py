@@ -253,6 +253,11 @@ def test_a_switch_seen_off_from_the_start_is_not_warned_of(rig, caplog):
         rig.sys_status(safety_on=True)
         rig.clock.advance(2 * rig.status_interval_s)  # off believed an interval and a half on
         rig.sys_status(safety_on=False)
+        assert rig.core.status()["safety_on"] is True  # and once the clock went on after it
+        rig.clock.advance(0.005)  # the probe's answer, a round trip later
+        rig.answer_clock_probes()
+        rig.clock.advance(rig.status_interval_s)
+        rig.sys_status(safety_on=False)
     said = [(r.levelname, r.getMessage()) for r in caplog.records if "safety" in r.getMessage()]
     assert said == [
         ("WARNING", "safety switch on: outputs not live"),
@@ -893,3 +898,26 @@ def test_ardupilot_undone_narrowings_keep_an_output_where_another_sender_put_it(
         rig.tick()
     assert rig.core.status()["outputs_live"] is False
     assert rig.servo().get(output, 2000) == 2000
+
+
+def test_ardupilot_off_forged_while_it_is_silent_is_not_believed(rig):
+    # The switch on, the autopilot went silent (a reboot) and SYS_STATUS frames forged as its
+    # own said "off" every 10 ms: with no frame of its own between them they kept the
+    # cadence, "off" was believed, and what the outputs may hold was narrowed to the pose
+    # acknowledged behind the switch. After the reboot the arm stepped from there: 2.5 deg
+    # from where the switch had held it (bench.state_cycles).
+    _settle(rig, near(PARK))
+    rig.clock_goes_on()
+    rig.sys_status(safety_on=True)
+    rig.advance(0.05)
+    rig.safety_stream = None  # silent
+    for _ in range(20):
+        rig.clock.advance(0.011)
+        rig.sys_status(safety_on=False, stream=False)  # forged
+        rig.tick()
+    assert rig.core.status()["safety_on"] is True
+    rig.clock.advance(0.005)
+    rig.answer_clock_probes()  # not rebooting after all: its clock goes on
+    rig.sys_status(safety_on=False)  # and its own stream says off
+    rig.advance(0.03)
+    assert rig.core.status()["safety_on"] is False
