@@ -65,7 +65,10 @@ were (dead too briefly for the readbacks to show it: a **dead-time race**). The 
 daemon steps. **The limit around a reload**: in force from the moment the daemon applied it,
 which lies between the SIGHUP and the ``reloaded`` line seen in its log plus two control periods
 (the command in flight); in that window a step is judged against the higher of the old and new
-limits, and the steps over the lower one only are counted apart ("reload window"). A killed or
+limits, and the steps over the lower one only are counted apart ("reload window"). Outputs
+coming alive bring out a value stored earlier: such a step is judged by the higher of the
+limits in force when it was stored and at the release (a safety switch held the joint
+mid-motion; the rewind stored a pose within the band of that motion's steps). A killed or
 restarted daemon's successor reads the config in force.
 
 **Gotos answered**: each ``goto`` goes on a control connection of its own (a pool: a connection
@@ -142,6 +145,7 @@ from devkit.joint_steps import (
     output_changes,
     readbacks_shown,
     step_kind,
+    stored_before,
     stored_by_foreign,
     undriven_outside,
 )
@@ -679,7 +683,15 @@ class Cycles:
                         back_allowed_deg=in_force_deg_s / RATE_HZ + quantum,
                     )
                 )
-                run.verdicts.append(judge(step, limits, rate_hz=RATE_HZ, quantum_deg=quantum))
+                run.verdicts.append(
+                    judge(
+                        step,
+                        limits,
+                        rate_hz=RATE_HZ,
+                        quantum_deg=quantum,
+                        stored_s=stored_before(stored.get(output, []), step.t_s),
+                    )
+                )
 
 
 def reboot_within(reboots_s: Sequence[float], t_s: float, window_s: float) -> bool:

@@ -257,6 +257,13 @@ def foreign_stored_at(stored: Sequence[tuple[float, bool]], t_s: float) -> bool:
     return k > 0 and stored[k - 1][1]
 
 
+def stored_before(stored: Sequence[tuple[float, bool]], t_s: float) -> float | None:
+    """When the last command at or before ``t_s`` (from :func:`stored_by_foreign`) was given
+    (None: none)."""
+    k = bisect.bisect_right([t for t, _ in stored], t_s)
+    return stored[k - 1][0] if k > 0 else None
+
+
 def foreign_command_before(stored: Sequence[tuple[float, bool]], t_s: float) -> float | None:
     """How long before ``t_s`` the last command strictly before it was given, if a foreign
     sender gave it (from :func:`stored_by_foreign`; None: the daemon's, or none)."""
@@ -349,11 +356,22 @@ class SpeedLimits:
 
 
 def judge(
-    step: JointStep, limits: SpeedLimits, *, rate_hz: float, quantum_deg: float
+    step: JointStep,
+    limits: SpeedLimits,
+    *,
+    rate_hz: float,
+    quantum_deg: float,
+    stored_s: float | None = None,
 ) -> tuple[bool, bool]:
     """(fast against the limit that may be in force — the higher in a reload window —, fast
-    against the lower one): ``|Δangle| > speed / rate_hz + quantum_deg``."""
+    against the lower one): ``|Δangle| > speed / rate_hz + quantum_deg``. A step that brings
+    out a stored value (outputs coming alive: ``stored_s``, when it was stored) is judged by
+    the limit in force then too, the higher of the two: a safety switch that held a joint
+    mid-motion releases it by up to a step of the motion it interrupted, whatever limit a
+    reload set while it was held."""
     lower, higher = limits.at(step.t_s)
+    if stored_s is not None and step.cause != "command":
+        higher = max(higher, limits.at(stored_s)[1])
     return (
         step.step_deg > higher / rate_hz + quantum_deg,
         step.step_deg > lower / rate_hz + quantum_deg,

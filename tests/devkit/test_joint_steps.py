@@ -254,3 +254,16 @@ def test_when_a_readback_first_showed_a_pwm():
     assert first_shown_after(shown[9], 2000, 1.01) == 1.04
     assert first_shown_after(shown[9], 1500, 1.01) is None  # shown before, not since
     assert first_shown_after(shown[10], 1400, 0.0) == 1.0
+
+
+def test_a_stored_value_coming_alive_is_judged_by_the_limit_it_was_stored_under_too():
+    limits = SpeedLimits(120.0, [Reload(1.0, 1.2, 120.0, 20.0)])
+
+    def verdict(cause, stored_s):
+        step = JointStep(9, 5.0, 1500, 1520, 4.0, 0.05, 0.0, cause)
+        return judge(step, limits, rate_hz=20.0, quantum_deg=0.1, stored_s=stored_s)
+
+    assert verdict("safety_off", 0.5) == (False, True)  # stored at 120 °/s: apart
+    assert verdict("safety_off", 2.0) == (True, True)  # stored at 20 °/s
+    assert verdict("command", 0.5) == (True, True)  # a command is its own storing
+    assert verdict("safety_off", None) == (True, True)
