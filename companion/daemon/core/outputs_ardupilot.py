@@ -130,6 +130,9 @@ class ArduPilotOutputs(OutputsTruth):
         #: Joints taken where another sender put their output, none of our ACKs for it since
         #: (a step on its way from before says nothing of where it is).
         self._taken: set[int] = set()
+        #: ... and per output so taken, how many updates had been sent then: the ACKs of those
+        #: sent before it say nothing of where it is (see :meth:`overtaken`).
+        self._taken_seq: dict[int, int] = {}
         #: Per output, the PWM its readback showed when the first of the ACKs it has was
         #: given (see :meth:`acknowledged`).
         self._shown_before: dict[int, int | None] = {}
@@ -339,6 +342,8 @@ class ArduPilotOutputs(OutputsTruth):
         output = state.outputs[i]
         for flight in state.flights:  # an update left unknown is not confirmed over it
             flight.pending = [c for c in flight.pending if output not in c.outputs]
+            flight.step_deg = _pinned(flight.step_deg, i, angle)  # the next step goes from it
+        self._taken_seq[output] = state.updates_sent
         # So do the bands a broken cadence would restore and the steps an "off" would take in:
         # what they hold of this joint is from before the other sender's step.
         for band in (self._held_before_loss, self._held_since_off, *self._bands_before):
@@ -477,6 +482,12 @@ class ArduPilotOutputs(OutputsTruth):
 
     def may_pipeline(self) -> bool:
         return True
+
+    def overtaken(self, seq: int) -> set[int]:
+        # Outputs another sender set, believed after that update went out: its ACKs for them
+        # (given before that command, or the readbacks would not have shown it) say nothing
+        # of where they are.
+        return {o for o, taken_seq in self._taken_seq.items() if seq < taken_seq}
 
     def may_confirm(self, now: float) -> bool:
         """Confirming an update alone re-sends its commands: not before a readback since it

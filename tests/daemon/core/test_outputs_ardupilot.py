@@ -921,3 +921,34 @@ def test_ardupilot_off_forged_while_it_is_silent_is_not_believed(rig):
     rig.sys_status(safety_on=False)  # and its own stream says off
     rig.advance(0.03)
     assert rig.core.status()["safety_on"] is False
+
+
+def test_ardupilot_a_step_acknowledged_after_another_senders_command_was_believed_keeps_it(rig):
+    # The arm moving, a ground station's command on an output was believed while a step sent
+    # before it was still waiting for ACKs: their arrival took the joint back to that step's
+    # angle, and the next step went from there, 22.7 deg from the 2000 us the output held
+    # (bench.state_cycles).
+    rig.goto(_far_goal(second_deg=-40.0))
+    done = 0
+    for i in range(10):  # moving, the readback streaming what was acknowledged
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+        if i % 2:
+            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    in_flight, done = rig.sent[done:], len(rig.sent)
+    assert rig.servo(in_flight)  # a step on its way, not acknowledged yet
+    output, shown = _foreign_2000_believed(rig)
+    rig.ack_all(in_flight)  # its ACKs come now
+    angle = rig.angle(output, 2000)
+    assert rig.core.status()["current_deg"][0] == pytest.approx(angle)
+    assert rig.core.status()["last_pwm_us"][output] == 2000
+    previous = angle
+    for _ in range(3):  # the motion goes on from where the other sender put it
+        rig.advance(0.05)
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        if output in rig.servo(new):
+            step = rig.angle(output, rig.servo(new)[output])
+            assert abs(step - previous) <= STEP_DEG + 0.2
+            previous = step
