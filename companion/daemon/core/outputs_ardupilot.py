@@ -73,11 +73,15 @@ SYS_STATUS_CADENCE_INTERVALS = 0.4
 SYS_STATUS_AGE_INTERVALS = 0.5
 
 
-def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
-    """Whether adding ``step`` to ``band`` keeps it within ``width_deg`` on every joint."""
+def band_allows(
+    band: Band, step: Sequence[float], width_deg: float, joints: Sequence[int] | None = None
+) -> bool:
+    """Whether adding ``step`` to ``band`` keeps it within ``width_deg`` on every joint (of
+    ``joints``, by index: None, all)."""
     low, high = band
     width = width_deg + 1e-9
-    return all(max(hi, a) - min(lo, a) <= width for lo, hi, a in zip(low, high, step, strict=True))
+    indices = range(len(step)) if joints is None else joints
+    return all(max(high[i], step[i]) - min(low[i], step[i]) <= width for i in indices)
 
 
 def _pinned(pose: tuple[float, ...], i: int, angle: float) -> tuple[float, ...]:
@@ -117,6 +121,8 @@ class ArduPilotOutputs(OutputsTruth):
         self._step_waits_for_sys_status = False
         #: The pose to send the held outputs back to once the switch was seen on (the rewind).
         self._rewind_to: tuple[float, ...] | None = None
+        #: ... for the joints the switch held then (not in BRD_SAFETY_MASK), by index.
+        self._rewind_joints: list[int] = []
         #: When a SYS_STATUS last said the switch is on (by arrival).
         self._safety_on_seen_s = -math.inf
         #: The switch unknown (start, loss, reboot): since when SYS_STATUS says it is off, with
@@ -188,6 +194,7 @@ class ArduPilotOutputs(OutputsTruth):
                 log.info("safety switch off")
             if safety_on and self._held_since_off is not None:
                 self._rewind_to = middle(self._held_since_off)
+                self._rewind_joints = self._switch_holds()
             elif not safety_on:
                 self._rewind_to = None
         self.safety_on = safety_on
@@ -415,7 +422,14 @@ class ArduPilotOutputs(OutputsTruth):
         or with none, the oldest step that was on its way (they hold it, the acknowledged
         pose, or the step behind it)."""
         if self.safety_on is True and self._rewind_to is not None:
-            return self._rewind_to  # seen on, not sent back yet
+            # Seen on, not sent back yet: the outputs it held to the rewind; those it left
+            # live (BRD_SAFETY_MASK) went on with the motion.
+            live = flights[0].step_deg if flights else tuple(self._core.state.position)
+            held = self._rewind_joints
+            return tuple(
+                r if i in held else a
+                for i, (r, a) in enumerate(zip(self._rewind_to, live, strict=True))
+            )
         if self.safety_on is not True and self._held_since_off is not None:
             return middle(self._held_since_off)
         if self._held_before_loss is not None:  # lost again before the re-send was acknowledged
@@ -505,7 +519,7 @@ class ArduPilotOutputs(OutputsTruth):
         if self._held_since_off is None:
             return True
         width_deg = self._core.settings.safety_band_width_deg
-        ok = band_allows(self._held_since_off, step, width_deg)
+        ok = band_allows(self._held_since_off, step, width_deg, self._switch_holds())
         self._step_waits_for_sys_status = not ok
         return ok
 
@@ -513,8 +527,16 @@ class ArduPilotOutputs(OutputsTruth):
         """A step to ``step`` went out: the outputs may hold it."""
         state = self._core.state
         self._steps_sent.append((self._core.clock(), tuple(state.position), step))
-        if self._held_since_off is not None:
-            widen(self._held_since_off, step)
+        band = self._held_since_off
+        if band is not None:
+            widen(band, step)
+            # An output the switch leaves live (BRD_SAFETY_MASK) holds the acknowledged pose
+            # or a step on its way, whatever the switch did.
+            held = self._switch_holds()
+            for i in range(len(step)):
+                if i not in held:
+                    poses = [state.position[i], *(f.step_deg[i] for f in state.flights), step[i]]
+                    band[0][i], band[1][i] = min(poses), max(poses)
 
     def may_hold(self) -> list[tuple[float, ...]]:
         """The ends of the bands the outputs may hold since the switch was last seen off and
@@ -611,6 +633,12 @@ class ArduPilotOutputs(OutputsTruth):
                 SYS_STATUS_WAIT_S,
             )
         return True
+
+    def _switch_holds(self) -> list[int]:
+        """The joints (by index) whose outputs the safety switch holds when on: those not in
+        BRD_SAFETY_MASK (all while it is not read)."""
+        mask = self._safety_mask or 0
+        return [i for i, o in enumerate(self._core.state.outputs) if not mask >> (o - 1) & 1]
 
     def _rewind(self, actions: list[Action], dead: dict[int, str], now: float) -> None:
         """The safety switch seen on: it went on at some moment since the SYS_STATUS before,

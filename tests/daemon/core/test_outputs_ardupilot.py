@@ -952,3 +952,36 @@ def test_ardupilot_a_step_acknowledged_after_another_senders_command_was_believe
             step = rig.angle(output, rig.servo(new)[output])
             assert abs(step - previous) <= STEP_DEG + 0.2
             previous = step
+
+
+def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_the_motion_went_on(rig):
+    # The arm's outputs in BRD_SAFETY_MASK: the switch seen on leaves them live and the motion
+    # goes on, but the pose it would have rewound them to was kept, and the re-send after a
+    # reboot went there: 5 deg from where the motion had taken a joint (bench.state_cycles).
+    rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", float(ARM_MASK), 9, 1, 65535))
+    rig.goto(_far_goal())
+    done = 0
+    for i in range(16):  # moving; the switch goes on halfway, the motion goes on
+        if i == 8:
+            rig.sys_status(safety_on=True)
+            at_switch = rig.core.status()["current_deg"][0]
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+    rig.ack_all(rig.sent[done:])
+    assert rig.core.status()["safety_on"] is True
+    held = rig.core.status()["current_deg"][0]
+    assert held - at_switch >= 5 * STEP_DEG  # the outputs it leaves live move on
+    rig.clock_goes_on()
+    rig.advance(0.36)  # the reboot's silence
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    rig.sent.clear()
+    for boot_ms in (170, 190, 210):  # no pulses since the boot; its clock goes on
+        rig.readback({})
+        rig.clock.advance(0.02)
+        rig.system_time(boot_ms)
+    rig.switch_off()
+    rig.advance(0.05)
+    output = rig.calibration.outputs[0]
+    assert abs(rig.angle(output, rig.servo()[output]) - held) <= STEP_DEG + 0.2
