@@ -189,16 +189,18 @@ def _sin_cos(x):
     fn = math.floor(x * _INV_PIO2 + 0.5)
     y = (x - fn * _PIO2_HI) - fn * _PIO2_LO
     z = y * y
-    s = y + y * z * (_S1 + z * (_S2 + z * (_S3 + z * (_S4 + z * (_S5 + z * _S6)))))
-    c = 1.0 - 0.5 * z + z * z * (_C1 + z * (_C2 + z * (_C3 + z * (_C4 + z * (_C5 + z * _C6)))))
-    quadrant = int(fn) & 3
-    if quadrant == 0:
-        return s, c
-    if quadrant == 1:
-        return c, -s
-    if quadrant == 2:
-        return -s, -c
-    return -c, s
+    # Estrin's scheme, not Horner's: three multiply-adds deep instead of six.
+    z2 = z * z
+    z4 = z2 * z2
+    s = y + y * z * ((_S1 + z * _S2) + z2 * (_S3 + z * _S4) + z4 * (_S5 + z * _S6))
+    c = 1.0 - 0.5 * z + z2 * ((_C1 + z * _C2) + z2 * (_C3 + z * _C4) + z4 * (_C5 + z * _C6))
+    # The quadrant by arithmetic, not branches (it is as random as the angle): an odd one
+    # swaps the two, the upper two negate both; each product is exact (by 0, 1 or −1).
+    quadrant = int(fn)
+    odd = float(quadrant & 1)
+    even = 1.0 - odd
+    sign = 1.0 - 2.0 * float((quadrant >> 1) & 1)
+    return (s * even + c * odd) * sign, (c * even - s * odd) * sign
 
 
 @nb.njit(cache=CACHE, **NO_NRT)
