@@ -203,7 +203,11 @@ def _sin_cos(x):
     return (s * even + c * odd) * sign, (c * even - s * odd) * sign
 
 
-@nb.njit(cache=CACHE, **NO_NRT)
+# inline="always" (numba inlines the function's code at each call site) on the FK, the
+# residual, the normal equations and the LDL solve, which LLVM left as calls: a call passes each
+# array as its 7-9 scalars (the FK takes 8 arrays). Measured beside rtb pose by pose: 2-4 % less
+# CPU per solve (hyper, ball, planar3, UR5); the first JIT compile stays about 20 s of CPU.
+@nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def fk_frames(q, frames, joint_params, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
 
@@ -289,7 +293,7 @@ def goal_matrix(x_cm, y_cm, z_cm, roll_rad, pitch_rad, yaw_rad, goal):
     goal[3, 3] = 1.0
 
 
-@nb.njit(cache=CACHE, **NO_NRT)
+@nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def residual(rot, pos, goal, mode, res):
     """The residual of ``mode`` into ``res`` (6,): ``(p_goal − p [cm], a rotation vector
     [deg])``; returns ``(position error cm, the mode's angle error deg)``.
@@ -398,7 +402,7 @@ def candidate_cost(q, frames, joint_params, goal, mode, q_prev, move_w, rot, pos
     return cost
 
 
-@nb.njit(cache=CACHE, **NO_NRT)
+@nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def _ldl_solve(a, b, n):
     """Solve a·x = b in place (b becomes x) for a symmetric positive definite n×n ``a``.
 
@@ -435,7 +439,7 @@ def _ldl_solve(a, b, n):
     return True
 
 
-@nb.njit(cache=CACHE, **NO_NRT)
+@nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr):
     """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
     ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
