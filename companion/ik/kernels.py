@@ -204,9 +204,11 @@ def _sin_cos(x):
 
 
 # inline="always" (numba inlines the function's code at each call site) on the FK, the
-# residual, the normal equations and the LDL solve, which LLVM left as calls: a call passes each
-# array as its 7-9 scalars (the FK takes 8 arrays). Measured beside rtb pose by pose: 2-4 % less
-# CPU per solve (hyper, ball, planar3, UR5); the first JIT compile stays about 20 s of CPU.
+# residual, the normal equations, LM's step and the LDL solve, which LLVM left as calls: a call
+# passes each array as its 7-9 scalars (the FK takes 8 arrays). Measured beside rtb pose by
+# pose: 2-4 % less CPU per solve (hyper, ball, planar3, UR5), and the residual-sized step
+# (:func:`_damped_step`) gains only inlined. The price is the first JIT compile (empty cache):
+# 23 s of CPU instead of 15.5 s on the development machine (the ahead-of-time build likewise).
 @nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def fk_frames(q, frames, joint_params, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
@@ -440,9 +442,11 @@ def _ldl_solve(a, b, n):
 
 
 @nb.njit(cache=CACHE, inline="always", **NO_NRT)
-def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr):
-    """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ),
-    ``jtj`` = JᵀJ and ``jtr`` = Jᵀr."""
+def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr, rows):
+    """Fill ``jac`` (n×6: row j is the residual's derivative by joint j, i.e. Jᵀ) and, for
+    ``rows`` 0 (the n×n form of :func:`_damped_step`), ``jtj`` = JᵀJ (its lower triangle: all
+    :func:`_ldl_solve` reads) and ``jtr`` = Jᵀr; otherwise JᵀJ's diagonal, and r in ``jtr``
+    (its first min(n, 6) entries)."""
     n = jac.shape[0]
     wx = wy = wz = 0.0
     if mode == MODE_AXIS:
@@ -477,10 +481,16 @@ def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac
         jac[j, 3] = a3
         jac[j, 4] = a4
         jac[j, 5] = a5
+        if rows > 0:
+            jtj[j, j] = a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3 + a4 * a4 + a5 * a5
+            if j < 6:
+                # r itself: ``res`` is overwritten by every evaluation, rejected ones too.
+                jtr[j] = res[j]
+            continue
         # Row j of the products, against the rows computed so far (scalars: no inner loop).
         jtr[j] = a0 * r0 + a1 * r1 + a2 * r2 + a3 * r3 + a4 * r4 + a5 * r5
         for c in range(j + 1):
-            s = (
+            jtj[j, c] = (
                 a0 * jac[c, 0]
                 + a1 * jac[c, 1]
                 + a2 * jac[c, 2]
@@ -488,8 +498,60 @@ def _normal_equations(rot, pos, axes, points, goal, joint_params, mode, res, jac
                 + a4 * jac[c, 4]
                 + a5 * jac[c, 5]
             )
-            jtj[j, c] = s
-            jtj[c, j] = s
+
+
+@nb.njit(cache=CACHE, inline="always", **NO_NRT)
+def _damped_step(jac, jtj, jtr, lam, hold, a, g, rows):
+    """LM's step into ``g``: ``(JᵀJ + D)·Δq = Jᵀr`` with ``D = λ·diag(JᵀJ) + 1e-9·I``, over
+    the joints not held (``hold[j]`` 1.0: ``Δq_j`` = 0); False if the matrix is not positive
+    definite to working precision. ``jac``, ``jtj``, ``jtr`` from :func:`_normal_equations`.
+
+    ``rows`` 0: those n×n normal equations. Otherwise (``rows`` = the residual's length, 3 or
+    6, less than n) the same step through a rows×rows system: ``(J·D⁻¹·Jᵀ + I)·y = r``,
+    ``Δq = D⁻¹·Jᵀ·y`` (push-through identity: ``(JᵀJ + D)⁻¹·Jᵀ = D⁻¹·Jᵀ·(J·D⁻¹·Jᵀ + I)⁻¹``).
+    Forming and factoring it costs ~27n multiply-adds against the n×n form's ~n³/6 + 4n²: on
+    a 10-joint arm about half of the linear algebra of an LM step. Measured beside rtb pose by
+    pose (median CPU per solve): hyper and ball (10 joints) −5-6 %, P8 (8) −4 %, Panda (7)
+    −2 %; the same LM iterations. There ``jtr[:rows]`` holds r, ``y`` is solved for in ``a``'s
+    row below the block, and ``g`` holds ``D⁻¹`` until Δq replaces it.
+    """
+    n = jac.shape[0]
+    if rows == 0:
+        for r in range(n):
+            if hold[r] > 0.5:
+                g[r] = 0.0
+                for c in range(r):
+                    a[r, c] = 0.0
+                a[r, r] = 1.0
+            else:
+                g[r] = jtr[r]
+                for c in range(r):
+                    a[r, c] = 0.0 if hold[c] > 0.5 else jtj[r, c]
+                a[r, r] = jtj[r, r] + (lam * jtj[r, r] + 1e-9)
+        return _ldl_solve(a, g, n)
+    y = a[rows]
+    for r in range(rows):
+        y[r] = jtr[r]
+        for c in range(r):
+            a[r, c] = 0.0
+        a[r, r] = 1.0
+    for j in range(n):
+        w = 0.0 if hold[j] > 0.5 else 1.0 / (lam * jtj[j, j] + 1e-9)
+        g[j] = w
+        if w == 0.0:
+            continue
+        for r in range(rows):
+            wr = w * jac[j, r]
+            for c in range(r + 1):
+                a[r, c] += wr * jac[j, c]
+    if not _ldl_solve(a, y, rows):
+        return False
+    for j in range(n):
+        s = 0.0
+        for r in range(rows):
+            s += jac[j, r] * y[r]
+        g[j] *= s
+    return True
 
 
 @nb.njit(cache=CACHE)
@@ -578,6 +640,11 @@ def _lm_steps(
     window = int(fparams[F_LM_WINDOW])
     progress = fparams[F_LM_PROGRESS]
     near = fparams[F_LM_NEAR]
+    # The residual's length where it is below n (a redundant arm, or the position alone on
+    # more than 3 joints): then each step solves a system of that size (:func:`_damped_step`).
+    rows = 3 if mode == MODE_POSITION else 6
+    if rows >= n:
+        rows = 0
     cost = np.inf
     pos_err = np.inf
     ori_err = np.inf
@@ -608,7 +675,7 @@ def _lm_steps(
                     if (pos_err <= tol_pos and ori_err <= tol_ori) or steps >= limit:
                         break
                     _normal_equations(
-                        rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr
+                        rot, pos, axes, points, goal, joint_params, mode, res, jac, jtj, jtr, rows
                     )
                 else:
                     lam *= 8.0
@@ -629,12 +696,9 @@ def _lm_steps(
             elif done == 0:
                 checkpoint = cost
             steps += 1
-            for r in range(n):
-                g[r] = jtr[r]
-                for c in range(n):
-                    a[r, c] = jtj[r, c]
-                a[r, r] += lam * jtj[r, r] + 1e-9
-            if not _ldl_solve(a, g, n):
+            for j in range(n):
+                hold[j] = 0.0
+            if not _damped_step(jac, jtj, jtr, lam, hold, a, g, rows):
                 lam *= 10.0
                 evaluate = False
                 continue
@@ -651,15 +715,8 @@ def _lm_steps(
                 ):
                     held += 1
                     hold[j] = 1.0
-                else:
-                    hold[j] = 0.0
             if 0 < held < n:
-                for r in range(n):
-                    g[r] = 0.0 if hold[r] > 0.5 else jtr[r]
-                    for c in range(n):
-                        a[r, c] = 0.0 if hold[r] > 0.5 or hold[c] > 0.5 else jtj[r, c]
-                    a[r, r] = 1.0 if hold[r] > 0.5 else a[r, r] + lam * jtj[r, r] + 1e-9
-                if not _ldl_solve(a, g, n):
+                if not _damped_step(jac, jtj, jtr, lam, hold, a, g, rows):
                     lam *= 10.0
                     evaluate = False
                     continue
