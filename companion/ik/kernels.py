@@ -208,7 +208,7 @@ def _sin_cos(x):
 # passes each array as its 7-9 scalars (the FK takes 8 arrays). Measured beside rtb pose by
 # pose: 2-4 % less CPU per solve (hyper, ball, planar3, UR5), and the residual-sized step
 # (:func:`_damped_step`) gains only inlined. The price is the first JIT compile (empty cache):
-# 23 s of CPU instead of 15.5 s on the development machine (the ahead-of-time build likewise).
+# 18 s of CPU instead of 15.5 s on the development machine (the ahead-of-time build likewise).
 @nb.njit(cache=CACHE, inline="always", **NO_NRT)
 def fk_frames(q, frames, joint_params, rot, pos, axes, points, want_axes):
     """Hand rotation ``rot`` (3×3) and position ``pos`` (3,) for joints ``q``.
@@ -698,28 +698,32 @@ def _lm_steps(
             steps += 1
             for j in range(n):
                 hold[j] = 0.0
-            if not _damped_step(jac, jtj, jtr, lam, hold, a, g, rows):
-                lam *= 10.0
-                evaluate = False
-                continue
             # A joint at a limit that the step pushes further out would only be clamped back,
             # and the clamped step is no longer a descent step: hold such joints and solve
             # again for the others (one active-set pass). Solutions with joints at their limits
-            # converge.
-            held = 0
-            for j in range(n):
-                if (
-                    joint_params[3, j] < 0.5
-                    and not (free and _free(j, lo, hi, joint_params))
-                    and ((q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0))
-                ):
-                    held += 1
-                    hold[j] = 1.0
-            if 0 < held < n:
+            # converge. (One call site of the step, in a loop: it is compiled inline.)
+            solved = True
+            for active_set_pass in range(2):
                 if not _damped_step(jac, jtj, jtr, lam, hold, a, g, rows):
-                    lam *= 10.0
-                    evaluate = False
-                    continue
+                    solved = False
+                    break
+                if active_set_pass == 1:
+                    break
+                held = 0
+                for j in range(n):
+                    if (
+                        joint_params[3, j] < 0.5
+                        and not (free and _free(j, lo, hi, joint_params))
+                        and ((q[j] <= lo[j] and g[j] < 0.0) or (q[j] >= hi[j] and g[j] > 0.0))
+                    ):
+                        held += 1
+                        hold[j] = 1.0
+                if not 0 < held < n:
+                    break
+            if not solved:
+                lam *= 10.0
+                evaluate = False
+                continue
             evaluate = True
             for j in range(n):
                 if free and _free(j, lo, hi, joint_params):
