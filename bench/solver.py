@@ -18,7 +18,8 @@ on as many of ``--tol-poses`` calibration poses (other draws than the measured o
 * interleaved pose by pose in one thread, the order of the solvers shuffled for each pose;
 * the same per-call work outside the timed region for both: the target ``Pose`` (ours) and the
   4×4 target matrix and start ``q0`` (rtb) are built before the clock starts; inside it, each
-  call turns its answer into a numpy joint vector in our units;
+  call turns its answer into a numpy joint vector in our units; what the tables read of our
+  result is recorded after it (the result then dropped, as rtb's is);
 * the garbage collector frozen (``gc.freeze()``) and disabled around both;
 * thread CPU time (``time.thread_time``) beside wall time, per call;
 * optionally (``--sweep-poses``) an 8 MB buffer touched before every call of either, outside the
@@ -258,7 +259,14 @@ def interleaved(
     solver."""
     peers = list(methods) + (["rtb"] if ets is not None else [])
     stats: dict[str, dict[str, list]] = {who: {"ok": [], "cpu": [], "wall": []} for who in peers}
-    results: dict[str, list[IKResult]] = {m: [] for m in methods}
+    # Each of our results is handed out of the timed call and dropped after what the table
+    # reads of it is recorded (in arrays made beforehand), as a daemon drops each result. Kept
+    # inside it, every solve grew the heap by its result (~1.5 KB): the first touch of each
+    # new page, a page fault, fell in the timed call of 9 % of hyper's solves (~7 µs each).
+    last: dict[str, list[IKResult]] = {m: [] for m in methods}
+    de_gen = {m: np.zeros(len(poses), dtype=bool) for m in methods}
+    de_gain = {m: np.zeros(len(poses), dtype=bool) for m in methods}
+    stops: dict[str, list[StopReason | None]] = {m: [None] * len(poses) for m in methods}
     for m in methods:  # each method's workspace is made before the clock starts
         prepare_ours(arm, poses[0], 0, budget_ms, METHODS[m])()
     # The order is shuffled pose by pose: a fixed rotation would always run the same solver
@@ -271,7 +279,7 @@ def interleaved(
     try:
         for k, target in enumerate(poses):
             calls = {
-                m: prepare_ours(arm, target, seed + k, budget_ms, METHODS[m], results[m])
+                m: prepare_ours(arm, target, seed + k, budget_ms, METHODS[m], last[m])
                 for m in methods
             }
             if ets is not None:
@@ -279,6 +287,12 @@ def interleaved(
             for i in order.permutation(len(peers)):
                 who = peers[i]
                 q, cpu, wall = timed(calls[who], sweep)
+                if who in last:
+                    res = last[who].pop()
+                    de_gen[who][k] = res.generations > res.restarts
+                    de_gain[who][k] = res.de_improvements > 0
+                    stops[who][k] = res.stop_reason
+                    del res
                 stats[who]["ok"].append(judge(arm, target, q))
                 stats[who]["cpu"].append(cpu)
                 stats[who]["wall"].append(wall)
@@ -304,19 +318,20 @@ def interleaved(
         if rtb_cpu is not None:
             row["ratio med"] = row["cpu med"] / float(np.median(rtb_cpu))
             row["ratio p99"] = row["cpu p99"] / float(np.percentile(rtb_cpu, 99))
-        if who in results:
-            res = results[who]
-            row["DE gen %"] = 100.0 * float(np.mean([r.generations > r.restarts for r in res]))
-            row["DE gain %"] = 100.0 * float(np.mean([r.de_improvements > 0 for r in res]))
+        if who in last:
+            row["DE gen %"] = 100.0 * float(np.mean(de_gen[who]))
+            row["DE gain %"] = 100.0 * float(np.mean(de_gain[who]))
             failed = [i for i, good in enumerate(s["ok"]) if not good]
             row["failures: stop, wall/cpu ms"] = (
-                ", ".join(
-                    f"{res[i].stop_reason.value} {wall[i]:.1f}/{cpu[i]:.2f}" for i in failed[:3]
-                )
+                ", ".join(f"{_stop(stops[who][i])} {wall[i]:.1f}/{cpu[i]:.2f}" for i in failed[:3])
                 or "–"
             )
         rows.append(row)
     return rows
+
+
+def _stop(reason: StopReason | None) -> str:
+    return reason.value if reason is not None else "?"
 
 
 #: The two ways of counting the budget compared beside the hog. "wall budget": the CPU clock is

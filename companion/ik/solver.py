@@ -603,7 +603,7 @@ def solve(
     at_once = done
     while True:
         if done:
-            reason = StopReason.CONVERGED
+            reason = _CONVERGED
             break
         left = settings.max_generations - int(ws.counts[S_GENERATIONS])
         if left <= 0:
@@ -649,7 +649,7 @@ def solve(
     fields["pos_err_cm"] = out[O_POS_CM]
     fields["ori_err_deg"] = out[O_ORI_DEG]
     fields["cost"] = out[O_COST]
-    fields["converged"] = reason is StopReason.CONVERGED
+    fields["converged"] = reason is _CONVERGED
     fields["elapsed_ms"] = (clock() - started) * 1e3
     counts = ws.counts_items.tolist()  # ints already: no int() of each float in ``out``
     fields["generations"] = counts[S_GENERATIONS]
@@ -664,7 +664,9 @@ def solve(
 
 _new_result = object.__new__
 _INF = math.inf
+# Enum members as module globals: reading one off its class costs ~0.09 µs (~0.01 µs here).
 _POSE = TargetMode.POSE
+_CONVERGED = StopReason.CONVERGED
 _START_POSE = START_NEW | MODE_POSE
 
 

@@ -122,6 +122,37 @@ def _lm_inputs(arm, seed):
     return k, fparams, q_true, arm.fk_matrix(q_true)
 
 
+@pytest.mark.parametrize("rows", [3, 6])
+@pytest.mark.parametrize("lam", [0.1, 1e-5])
+def test_the_residual_sized_step_equals_the_joint_sized_step(rows, lam):
+    # 10 joints, one held: (J·D⁻¹·Jᵀ + I)·y = r, Δq = D⁻¹·Jᵀ·y is the same step as the n×n
+    # normal equations (JᵀJ + D)·Δq = Jᵀr, D = λ·diag(JᵀJ) + 1e-9·I.
+    n = 10
+    rng = np.random.default_rng(rows)
+    jac = rng.normal(size=(n, 6)) * 30.0
+    jac[:, rows:] = 0.0
+    r = rng.normal(size=6)
+    r[rows:] = 0.0
+    hold = np.zeros(n)
+    hold[3] = 1.0
+    full = jac @ jac.T
+    free = hold < 0.5
+    expected = np.zeros(n)
+    system = full + np.diag(lam * np.diag(full) + 1e-9)
+    expected[free] = np.linalg.solve(system[np.ix_(free, free)], (jac @ r)[free])
+
+    steps = []
+    for form in (0, rows):
+        jtj, jtr, a, g = np.tril(full), jac @ r, np.zeros((n, n)), np.zeros(n)
+        if form:
+            jtj, jtr = np.diag(np.diag(full)), np.concatenate([r, np.zeros(n - 6)])
+        assert kernels._damped_step(jac, jtj, jtr, lam, hold, a, g, form)
+        steps.append(g.copy())
+    for step in steps:
+        np.testing.assert_allclose(step, expected, rtol=1e-9, atol=1e-12)
+        assert step[3] == 0.0
+
+
 def test_lm_converges_from_nearby_and_stays_in_limits():
     k, fparams, q_true, goal = _lm_inputs(PAPER, 5)
     q = np.clip(q_true + 0.1, k.lower, k.upper)
