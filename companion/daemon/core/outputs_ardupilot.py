@@ -73,15 +73,11 @@ SYS_STATUS_CADENCE_INTERVALS = 0.4
 SYS_STATUS_AGE_INTERVALS = 0.5
 
 
-def band_allows(
-    band: Band, step: Sequence[float], width_deg: float, joints: Sequence[int] | None = None
-) -> bool:
-    """Whether adding ``step`` to ``band`` keeps it within ``width_deg`` on every joint (of
-    ``joints``, by index: None, all)."""
+def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
+    """Whether adding ``step`` to ``band`` keeps it within ``width_deg`` on every joint."""
     low, high = band
     width = width_deg + 1e-9
-    indices = range(len(step)) if joints is None else joints
-    return all(max(high[i], step[i]) - min(low[i], step[i]) <= width for i in indices)
+    return all(max(hi, a) - min(lo, a) <= width for lo, hi, a in zip(low, high, step, strict=True))
 
 
 def _pinned(pose: tuple[float, ...], i: int, angle: float) -> tuple[float, ...]:
@@ -519,7 +515,7 @@ class ArduPilotOutputs(OutputsTruth):
         if self._held_since_off is None:
             return True
         width_deg = self._core.settings.safety_band_width_deg
-        ok = band_allows(self._held_since_off, step, width_deg, self._switch_holds())
+        ok = band_allows(self._held_since_off, step, width_deg)
         self._step_waits_for_sys_status = not ok
         return ok
 
@@ -527,16 +523,8 @@ class ArduPilotOutputs(OutputsTruth):
         """A step to ``step`` went out: the outputs may hold it."""
         state = self._core.state
         self._steps_sent.append((self._core.clock(), tuple(state.position), step))
-        band = self._held_since_off
-        if band is not None:
-            widen(band, step)
-            # An output the switch leaves live (BRD_SAFETY_MASK) holds the acknowledged pose
-            # or a step on its way, whatever the switch did.
-            held = self._switch_holds()
-            for i in range(len(step)):
-                if i not in held:
-                    poses = [state.position[i], *(f.step_deg[i] for f in state.flights), step[i]]
-                    band[0][i], band[1][i] = min(poses), max(poses)
+        if self._held_since_off is not None:
+            widen(self._held_since_off, step)
 
     def may_hold(self) -> list[tuple[float, ...]]:
         """The ends of the bands the outputs may hold since the switch was last seen off and

@@ -956,8 +956,9 @@ def test_ardupilot_a_step_acknowledged_after_another_senders_command_was_believe
 
 def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_the_motion_went_on(rig):
     # The arm's outputs in BRD_SAFETY_MASK: the switch seen on leaves them live and the motion
-    # goes on, but the pose it would have rewound them to was kept, and the re-send after a
-    # reboot went there: 5 deg from where the motion had taken a joint (bench.state_cycles).
+    # goes on (within the band), but the pose it would have rewound them to was kept, and the
+    # re-send after a reboot went there: 5 deg from where the motion had taken a joint
+    # (bench.state_cycles).
     rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", float(ARM_MASK), 9, 1, 65535))
     rig.goto(_far_goal())
     done = 0
@@ -971,7 +972,7 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_the_motio
     rig.ack_all(rig.sent[done:])
     assert rig.core.status()["safety_on"] is True
     held = rig.core.status()["current_deg"][0]
-    assert held - at_switch >= 5 * STEP_DEG  # the outputs it leaves live move on
+    assert held > at_switch  # a step went out after it (the band allows one)
     rig.clock_goes_on()
     rig.advance(0.36)  # the reboot's silence
     rig.system_time(150)
