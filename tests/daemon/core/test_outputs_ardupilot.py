@@ -388,6 +388,21 @@ def _far_goal(*, second_deg: float = 0.0) -> list[float]:
     return goal
 
 
+def _moving(rig) -> int:
+    """The arm moving towards a far goal for half a second, every step acknowledged but the
+    last sent, the readback streaming what was acknowledged; how many commands were sent
+    before that last step."""
+    rig.goto(_far_goal(second_deg=-40.0))
+    done = 0
+    for i in range(10):
+        new, done = rig.sent[done:], len(rig.sent)
+        rig.ack_all(new)
+        rig.advance(0.05)
+        if i % 2:
+            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    return done
+
+
 def _step_us(rig) -> float:
     """One control step of the first output's joint in PWM, plus the 1 us quantum."""
     joint = rig.calibration.for_output(rig.calibration.outputs[0])
@@ -644,14 +659,7 @@ def test_ardupilot_the_rewind_never_sends_an_output_back_over_another_senders_co
     # switch went on 37 ms later, before the readbacks could be believed: the rewind sent the
     # output back to where the daemon had it (1634 us) while its readback showed 2000, and the
     # release brought that out, 58 deg from the 2000 us the servo had last been given.
-    rig.goto(_far_goal(second_deg=-40.0))
-    done = 0
-    for i in range(10):  # moving, the readback streaming what was acknowledged
-        new, done = rig.sent[done:], len(rig.sent)
-        rig.ack_all(new)
-        rig.advance(0.05)
-        if i % 2:
-            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    done = _moving(rig)
     rig.ack_all(rig.sent[done:])
     output = rig.calibration.outputs[0]
     shown = {**rig.core.status()["last_pwm_us"], output: 2000}
@@ -928,14 +936,7 @@ def test_ardupilot_a_step_acknowledged_after_another_senders_command_was_believe
     # before it was still waiting for ACKs: their arrival took the joint back to that step's
     # angle, and the next step went from there, 22.7 deg from the 2000 us the output held
     # (bench.state_cycles).
-    rig.goto(_far_goal(second_deg=-40.0))
-    done = 0
-    for i in range(10):  # moving, the readback streaming what was acknowledged
-        new, done = rig.sent[done:], len(rig.sent)
-        rig.ack_all(new)
-        rig.advance(0.05)
-        if i % 2:
-            rig.readback(rig.core.status()["last_pwm_us"] or {})
+    done = _moving(rig)
     in_flight, done = rig.sent[done:], len(rig.sent)
     assert rig.servo(in_flight)  # a step on its way, not acknowledged yet
     output, shown = _foreign_2000_believed(rig)
