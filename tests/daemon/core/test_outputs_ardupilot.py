@@ -403,6 +403,22 @@ def _moving(rig) -> int:
     return done
 
 
+def _rebooted_and_released(rig) -> None:
+    """The autopilot reboots (silent 0.36 s, its clock back at 150 ms), shows no pulses since
+    its boot while its clock goes on, and says its switch is off; what the core sends after
+    that is left in ``rig.sent``."""
+    rig.advance(0.36)
+    rig.system_time(150)
+    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
+    rig.sent.clear()
+    for boot_ms in (170, 190, 210):
+        rig.readback({})
+        rig.clock.advance(0.02)
+        rig.system_time(boot_ms)
+    rig.switch_off()
+    rig.advance(0.05)
+
+
 def _step_us(rig) -> float:
     """One control step of the first output's joint in PWM, plus the 1 us quantum."""
     joint = rig.calibration.for_output(rig.calibration.outputs[0])
@@ -697,16 +713,7 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_another_s
     rig.sys_status(safety_on=True)
     rig.advance(0.05)
     output, _ = _foreign_2000_believed(rig)
-    rig.advance(0.36)  # the reboot's silence
-    rig.system_time(150)
-    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
-    rig.sent.clear()
-    for boot_ms in (170, 190, 210):  # no pulses since the boot; its clock goes on
-        rig.readback({})
-        rig.clock.advance(0.02)
-        rig.system_time(boot_ms)
-    rig.switch_off()
-    rig.advance(0.05)
+    _rebooted_and_released(rig)
     assert rig.servo()[output] == 2000
 
 
@@ -975,15 +982,6 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_the_motio
     held = rig.core.status()["current_deg"][0]
     assert held > at_switch  # a step went out after it (the band allows one)
     rig.clock_goes_on()
-    rig.advance(0.36)  # the reboot's silence
-    rig.system_time(150)
-    assert rig.core.status()["counters"]["autopilot_reboots"] == 1
-    rig.sent.clear()
-    for boot_ms in (170, 190, 210):  # no pulses since the boot; its clock goes on
-        rig.readback({})
-        rig.clock.advance(0.02)
-        rig.system_time(boot_ms)
-    rig.switch_off()
-    rig.advance(0.05)
+    _rebooted_and_released(rig)
     output = rig.calibration.outputs[0]
     assert abs(rig.angle(output, rig.servo()[output]) - held) <= STEP_DEG + 0.2
