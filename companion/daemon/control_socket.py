@@ -174,6 +174,10 @@ class ControlServer:
         self._stopping = threading.Event()
         self._flush_deadline = math.inf
         self._closed = False
+        #: Set once the last round has read what every connection sent: only then may a
+        #: connection with nothing to answer be closed for the stop (closing one with bytes
+        #: unread makes the kernel reset it, and its client never sees the answer).
+        self._drained = False
         self._sock, self._identity = _listening_socket(self.path, self.gid, self.group_name)
         try:
             self._sock.setblocking(False)
@@ -417,7 +421,7 @@ class ControlServer:
         waiting = conn.waiting
         if waiting is not None:
             self._follow(conn, waiting, now)
-        stopping = self._stopping.is_set()
+        stopping = self._drained
         while conn.waiting is None and len(conn.outbox) < MAX_QUEUED_REPLY_BYTES:
             end = conn.inbox.find(b"\n", conn.scanned)
             if end < 0 and conn.eof and conn.inbox:
@@ -554,6 +558,7 @@ class ControlServer:
             self._accept()
         for conn in list(self._connections.values()):
             self._guarded(conn, self._read)
+        self._drained = True
         self._stop_accepting()
 
     def _stop_accepting(self) -> None:

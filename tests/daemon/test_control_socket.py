@@ -7,6 +7,7 @@ import os
 import socket
 import stat
 import threading
+import time
 
 import pytest
 
@@ -237,6 +238,36 @@ def test_requests_sent_before_close_are_answered(tmp_path, unstarted):
     finally:
         for sock in socks:
             sock.close()
+
+
+def test_a_close_landing_mid_round_still_reads_what_was_sent(tmp_path, unstarted):
+    """A close that lands between a round's wait and its service of the connections: a
+    connection accepted before its request came is not closed unread in that round (the
+    client would see a reset, not its answer); the last round reads and answers it."""
+    unstarted.close()
+    srv = ControlServer(tmp_path / "c.sock", unstarted)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(5)
+    real_guarded = srv._guarded
+    try:
+        sock.connect(srv.path)
+        wait_until(lambda: srv.connections == 1, timeout_s=5)
+
+        def close_before_service(conn, work, *args):
+            if work.__name__ == "_service" and not srv._stopping.is_set():
+                sock.sendall(b'{"cmd": "goto", "pose": [45, 10, 20, 0, 45, 0]}\n')
+                srv._flush_deadline = time.monotonic() + 5.0
+                srv._stopping.set()  # what close() does, after the round looked
+            return real_guarded(conn, work, *args)
+
+        srv._guarded = close_before_service
+        srv._wake()
+        reply = json.loads(sock.recv(65536).split(b"\n")[0])
+        assert (reply["outcome"], reply["message"]) == ("temporarily_rejected", "daemon stopping")
+        assert sock.recv(65536) == b""
+    finally:
+        srv.close()
+        sock.close()
 
 
 def test_a_bug_in_the_loop_is_logged_and_the_socket_keeps_serving(
