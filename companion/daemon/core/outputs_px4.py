@@ -163,10 +163,13 @@ class Px4Outputs(OutputsTruth):
             # The joint is where the output puts it. Its marker is stored at once (PX4 would
             # apply what we stored in one step when the outputs come alive): it moves the
             # joint by MARKER_OFFSET_US then, and the readback shows it. Where the output shows
-            # a PWM outside the servo's range, the joint is where it was: that is held.
+            # a PWM outside the servo's range, the joint is where it was: the middle of what
+            # it may hold is held.
             i = joint_of[output]
             if self.in_range(output, shown):
                 state.position[i] = self._marker_deg(output, shown)
+            else:
+                state.position[i] = self._last_live_middle_deg(output, state.position[i])
             self._held_pwm[output] = core.config.calibration.for_output(output).angle_to_pwm_us(
                 state.position[i]
             )
@@ -403,6 +406,24 @@ class Px4Outputs(OutputsTruth):
             if output not in state.acked_pwm and start is not None and self.in_range(output, start):
                 pose[i] = self._marker_deg(output, start)
         return tuple(pose)
+
+    def _last_live_middle_deg(self, output: int, position_deg: float) -> float:
+        """Where the joint of an output just found dead, showing a PWM outside its servo's
+        range (which says nothing of where it is), may be: at the PWM a readback last showed
+        it hold live, or at any acknowledged since (a step applied just before the outputs
+        died; the motion holds from the first readback that disagreed, so those are the steps
+        sent before it: one at most when the readback is faster than the control rate). The
+        middle of those angles, half their spread from each: a joint held there, or stepped
+        from there once armed, moves by no more than that, whichever it holds."""
+        shown_s = self._shown_ack_s.get(output, -math.inf)
+        angles = [
+            self.angle_shown(output, pwm)
+            for t, pwm in self._ack_history.get(output, ())
+            if t >= shown_s
+        ]
+        if not angles:
+            return position_deg
+        return (min(angles) + max(angles)) / 2
 
     def _markers_held(self) -> bool:
         """Every output not live holds a PWM the readback tells from the one it shows (a

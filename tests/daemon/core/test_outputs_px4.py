@@ -470,3 +470,71 @@ def test_px4_the_clock_that_readbacks_waited_for_decides_at_once():
     assert "steadily" not in str(rig.core.status()["not_live"])
     rig.tick()
     assert [c for c in rig.sent if c.command == ACTUATOR]  # the markers go out
+
+
+def _heartbeat(rig: Rig, *, armed: bool) -> None:
+    flags = mavlink.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0
+    rig.frame(
+        lambda c: c.heartbeat_encode(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, flags, 0, 3
+        )
+    )
+
+
+def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_way():
+    # With the disarmed PWM outside the servo's range (SITL's 900 us), a dead output says
+    # nothing of where its joint is: at the last PWM a readback showed live, or at a step
+    # acknowledged after it that PX4 applied just before the outputs died. The joint is held
+    # at the middle of those, and the arm starts from there once armed again (here after a
+    # reboot that forgot what was stored): the first step is within half their spread of
+    # wherever the joint is, not a whole spread (a reload may lower the limit meanwhile).
+    rig, px4 = px4_rig(disarmed_us=900)
+    px4.readback()
+    run(rig, px4, 0.5)
+    _heartbeat(rig, armed=True)
+    px4.set_live(True)
+    run(rig, px4, 0.5)
+    rig.goto(near(PARK, 20.0))  # far: many steps
+    run(rig, px4, 0.3)
+    px4.readback()
+    shown_live = dict(px4.shown)
+    rig.advance(0.05)  # the next step goes out ...
+    px4.set_live(False)  # ... the outputs die before PX4 applies it ...
+    px4.handle()  # ... and it is stored and acknowledged
+    # What the outputs may hold: that, and the steps acknowledged until the readbacks are
+    # believed (the hold stored then lies between them).
+    band = {o: {pwm, px4.stored[o]} for o, pwm in shown_live.items()}
+    for _ in range(10):
+        run(rig, px4, 0.05)
+        for o, pwm in px4.stored.items():
+            band[o].add(pwm)
+    assert rig.core.status()["outputs_live"] is False
+    for i, output in enumerate(rig.calibration.outputs):
+        joint = rig.calibration.for_output(output)
+        middle_deg = (
+            joint.pwm_us_to_angle_deg(min(band[output]))
+            + joint.pwm_us_to_angle_deg(max(band[output]))
+        ) / 2
+        assert rig.core.state.position[i] == pytest.approx(middle_deg, abs=1e-6)
+    rig.system_time(600_000)
+    rig.advance(0.36)  # a reboot's silence
+    rig.system_time(150)  # rebooted: nothing stored, disarmed
+    px4.stored = dict.fromkeys(px4.stored)
+    px4.set_live(False)
+    _heartbeat(rig, armed=False)
+    run(rig, px4, 0.5)
+    px4.physical_moves.clear()
+    _heartbeat(rig, armed=True)
+    px4.set_live(True)
+    rig.goto(tuple(rig.core.state.position))  # stay: the first step is where it is held
+    run(rig, px4, 1.0)
+    firsts: dict[int, int] = {}
+    for output, before, after in px4.physical_moves:
+        if before == 900:
+            firsts.setdefault(output, after)
+    assert set(firsts) == set(rig.calibration.outputs)
+    for output, first in firsts.items():
+        low, high = min(band[output]), max(band[output])
+        assert high > low
+        for physical in (low, high):
+            assert abs(first - physical) <= (high - low) / 2 + 1
