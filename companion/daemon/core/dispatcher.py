@@ -229,6 +229,8 @@ class ControlCore:
             self.updates.on_statustext(str(text))
         elif kind == "SYSTEM_TIME":
             watch.on_system_time(actions, int(msg.time_boot_ms), at_s)
+            if self.outputs.hold_wanted:  # readbacks that waited for the clock were believed
+                self.motion.next_step(actions, immediate=True)
         elif kind == "SERVO_OUTPUT_RAW":
             shown = {
                 n: int(v)

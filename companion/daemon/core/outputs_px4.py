@@ -148,8 +148,10 @@ class Px4Outputs(OutputsTruth):
                 continue  # still dead, told to hold its marker (or the last PWM known)
             # Live showing another PWM, or dead showing one other than it did (another
             # sender's value stored meanwhile, brought out at arming; a new disarmed PWM): once
-            # believed, the joint is there, and its marker is taken from there.
-            if not self._disagrees(output, self.shown_s):
+            # believed, the joint is there, and its marker is taken from there. Believed with
+            # the autopilot's clock heard going on after the readbacks: while PX4 reboots,
+            # silent, forged frames are the only readbacks there are.
+            if not self._disagrees(output, self.shown_s, clock_after=True):
                 continue
             self._confirmed.discard(output)
             reason = (
@@ -268,6 +270,15 @@ class Px4Outputs(OutputsTruth):
         ):
             return False  # the readback's verdict on the step before is not in yet
         return True
+
+    def in_doubt(self, now: float) -> bool:
+        # Readbacks that disagreed long enough wait for the autopilot's clock (asked for at
+        # once) before they are believed: the motion holds until then too, past the doubt's
+        # own intervals (a step sent meanwhile would be stored into outputs that may be dead,
+        # and come out in one move with the next).
+        return super().in_doubt(now) or any(
+            met_s >= self._clock_heard_s for met_s in self._span_met_s.values()
+        )
 
     def may_pipeline(self) -> bool:
         return not self._store_hold_now and self._confirmed.issuperset(self._core.state.outputs)

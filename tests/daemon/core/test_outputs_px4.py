@@ -150,6 +150,11 @@ def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_read
     rig.clock.advance(0.02)
     px4.readback()  # the next: longer than an interval, none showing the stored PWM
     assert rig.core.status()["outputs_live"] is False
+    # Nor without the autopilot's clock heard after them (a forger's, while it reboots, are
+    # all the readbacks there are): the probe for it asked at once is answered.
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
+    rig.clock.advance(0.002)
+    rig.answer_clock_probes()
     # The markers go out at once (not at the next tick), 2 us from the disarmed PWM.
     sent = [c for c in rig.sent if c.command == ACTUATOR]
     assert len(sent) == 1
@@ -182,10 +187,12 @@ def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_ho
     on_its_way = px4.apply()
     assert on_its_way
     px4.set_live(False)
-    px4.readback()  # ...the outputs are found dead before its ACK (three readbacks)
-    for _ in range(2):
+    px4.readback()  # ...the outputs are found dead before its ACK (three readbacks and
+    for _ in range(2):  # the autopilot's clock after them)
         rig.clock.advance(0.02)
         px4.readback()
+    rig.clock.advance(0.002)
+    rig.answer_clock_probes()
     for _ in on_its_way:
         rig.ack(command=ACTUATOR)
     rig.advance(1.0 / RATE_HZ)
@@ -538,3 +545,32 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
         assert high > low
         for physical in (low, high):
             assert abs(first - physical) <= (high - low) / 2 + 1
+
+
+def test_px4_readbacks_forged_while_it_reboots_never_place_a_dead_output():
+    # The outputs died (a kill), then PX4 rebooted: while it was silent, frames forged at
+    # twice its readback rate showed other PWMs, with none of its own between them. They were
+    # believed (the joints taken where they said, a marker stored there), the pose file kept
+    # that, and the next daemon's first step after arming jumped 57 deg from where the joint
+    # was. A readback disagreeing with a dead output's hold is believed only with the
+    # autopilot's clock heard going on after it, as a live one's.
+    rig, px4 = px4_rig(disarmed_us=900)
+    px4.readback()
+    run(rig, px4, 0.5)
+    _heartbeat(rig, armed=True)
+    px4.set_live(True)
+    run(rig, px4, 0.5)
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 0.3)
+    px4.set_live(False)  # a kill: 900 everywhere
+    run(rig, px4, 0.5)
+    assert rig.core.status()["outputs_live"] is False
+    held = tuple(rig.core.state.position)
+    rig.sent.clear()
+    forged = {o: 1700 for o in px4.shown}  # PX4 reboots: silent; only forged frames come
+    for _ in range(8):
+        rig.clock.advance(0.01)
+        rig.readback(forged)
+        rig.tick()
+    assert tuple(rig.core.state.position) == held
+    assert not [c for c in rig.sent if c.command == ACTUATOR]
