@@ -256,7 +256,7 @@ class Px4Outputs(OutputsTruth):
         # step.
         if self._not_live:
             return not (self._markers_held() or now - state.last_step_s < PROBE_INTERVAL_S)
-        if self._unmarked_unknown():
+        if self._unmarked_unknown() or self._armed_out_of_range():
             # The start, a loss or a reboot: the markers say whether the outputs are live,
             # moving each joint by MARKER_OFFSET_US; the motion waits for that. (A motion step
             # could leave an output at the disarmed PWM it shows, and a readback of that would
@@ -405,6 +405,24 @@ class Px4Outputs(OutputsTruth):
             and (start := self._start_shown.get(o)) is not None
             and self.in_range(o, start)
             for o in state.outputs
+        )
+
+    def _armed_out_of_range(self) -> bool:
+        """Armed, with a target, an output with nothing of ours stored since the start, a loss
+        or a reboot shows a PWM outside its servo's range: its joint is where its last pulse
+        left it, known to within the poses held (the middle of a band: see
+        :meth:`_last_live_middle_deg`, ``pose_file``). Its first update is that pose alone,
+        within half the band of the joint (:meth:`_marker_pose` keeps it where it is held),
+        and the motion's steps go from there once a readback showed it; a step sent at once
+        would go up to half the band past the limit."""
+        core = self._core
+        return (
+            core.watch.armed is True
+            and core.motion.goal is not None
+            and any(
+                (start := self._start_shown.get(o)) is not None and not self.in_range(o, start)
+                for o in self._unplaced()
+            )
         )
 
     def _marker_pose(self) -> tuple[float, ...]:

@@ -492,9 +492,11 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
     # With the disarmed PWM outside the servo's range (SITL's 900 us), a dead output says
     # nothing of where its joint is: at the last PWM a readback showed live, or at a step
     # acknowledged after it that PX4 applied just before the outputs died. The joint is held
-    # at the middle of those, and the arm starts from there once armed again (here after a
-    # reboot that forgot what was stored): the first step is within half their spread of
-    # wherever the joint is, not a whole spread (a reload may lower the limit meanwhile).
+    # at the middle of those. Once armed again (here after a reboot that forgot what was
+    # stored, so the outputs show 900 us until told), the first update sends that middle
+    # alone, half their spread from wherever the joint is, and the motion's steps go on from
+    # there once a readback showed it (a step sent from the middle at once went up to half
+    # the spread past the limit).
     rig, px4 = px4_rig(disarmed_us=900)
     px4.readback()
     run(rig, px4, 0.5)
@@ -533,7 +535,7 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
     px4.physical_moves.clear()
     _heartbeat(rig, armed=True)
     px4.set_live(True)
-    rig.goto(tuple(rig.core.state.position))  # stay: the first step is where it is held
+    rig.goto(near(PARK, -20.0))  # back: the first update is the pose held, then the steps
     run(rig, px4, 1.0)
     firsts: dict[int, int] = {}
     for output, before, after in px4.physical_moves:
@@ -545,6 +547,9 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
         assert high > low
         for physical in (low, high):
             assert abs(first - physical) <= (high - low) / 2 + 1
+    px4.physical_moves[:] = [m for m in px4.physical_moves if m[1] != 900]
+    assert len(px4.physical_moves) > 6  # the motion went on
+    assert max_physical_step_us(px4) <= 1.0
 
 
 def test_px4_readbacks_forged_while_it_reboots_never_place_a_dead_output():
