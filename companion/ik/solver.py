@@ -869,21 +869,27 @@ def _load_kernels() -> None:
             return
         module = None if os.environ.get("ARMBRIDGE_IK_JIT") == "1" else aot.load()
         if module is not None:
-            origin = str(module.__file__)
-        else:
-            from companion.ik import kernels  # imports numba (~0.5 s)
+            _search, _goal_matrix = module.search, module.goal_matrix
+            _origin = str(module.__file__)
+            return
+        from companion.ik import kernels  # imports numba (~0.5 s)
 
-            if os.environ.get("ARMBRIDGE_IK_JIT") != "1":
-                log.info(
-                    "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
-                    "kernels run on numba's JIT",
-                    aot.file_name(),
-                )
-            if not jit_cache_ready():
-                log.warning(
-                    "compiling the IK kernels (once, ~20 s of CPU; `python -P -m companion.ik` "
-                    "does it at install)"
-                )
-            module, origin = kernels, "numba JIT"
-        _search, _goal_matrix = module.search, module.goal_matrix
-        _origin = origin
+        if os.environ.get("ARMBRIDGE_IK_JIT") != "1":
+            log.info(
+                "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
+                "kernels run on numba's JIT",
+                aot.file_name(),
+            )
+        if not jit_cache_ready():
+            log.warning(
+                "compiling the IK kernels (once, ~20 s of CPU; `python -P -m companion.ik` "
+                "does it at install)"
+            )
+        # The compiled functions themselves (what ``compile`` returns), not numba's
+        # dispatchers: a dispatcher looks up the type of every argument at every call to
+        # choose a compiled version, and there is one, for the types of the solver's arrays
+        # (the ahead-of-time module's signatures; _check_search_arrays holds the arrays to
+        # them). Loaded from numba's cache, or compiled here, before any solve.
+        _search = kernels.search.compile(aot.SEARCH_SIGNATURE)
+        _goal_matrix = kernels.goal_matrix.compile(aot.GOAL_MATRIX_SIGNATURE)
+        _origin = "numba JIT"
