@@ -1,7 +1,8 @@
 """The IK kernels of another git revision against this checkout's, in one process.
 
     .venv/bin/python -m bench.solver_ab [--rev HEAD~1] [--arms hyper,coil] [--poses 2000]
-                                        [--modes cold,tight] [--seed 2026] [--markdown FILE]
+                                        [--modes cold,tight] [--seed 2026] [--dispatcher]
+                                        [--markdown FILE]
 
 Two processes running the same solves differ by 10-50 % in CPU time on a shared machine (other
 programs' load, the host's), more than most changes to the kernels; here both versions of
@@ -10,7 +11,9 @@ machine's drift hits both alike. ``--rev``'s ``companion/ik/kernels.py`` is load
 of its own (its numba cache kept in a directory named after the file's digest, under the system's
 temporary directory) and compiled for the signature the solver calls; its ``layout.py`` must be
 this checkout's (the calling convention), or the comparison is refused. :func:`solve` itself is
-this checkout's for both: only the compiled search differs.
+this checkout's for both: only the compiled search differs, both called as ``solve()`` calls it
+(the compiled function; ``--dispatcher``: ``--rev``'s through numba's dispatcher, which with
+``--rev HEAD`` measures the dispatcher alone).
 
 Modes: ``cold``, every solve right after an rtb ``ik_LM`` call on the same pose and
 :func:`bench.solver.judge` of a zero joint vector (what ``bench.solver``'s interleaved tables run
@@ -51,7 +54,8 @@ def _git_show(rev: str, path: str) -> bytes:
 
 
 def kernels_of(rev: str) -> ModuleType:
-    """``rev``'s ``companion/ik/kernels.py`` imported as a module of its own."""
+    """``rev``'s ``companion/ik/kernels.py`` imported as a module of its own, its ``search``
+    compiled for the solver's signature."""
     if _git_show(rev, "companion/ik/layout.py") != (_ROOT / "companion/ik/layout.py").read_bytes():
         raise SystemExit(f"{rev}'s companion/ik/layout.py differs from this checkout's")
     source = _git_show(rev, "companion/ik/kernels.py")
@@ -139,6 +143,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--poses", type=int, default=2000)
     parser.add_argument("--modes", default="cold,tight")
     parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument(
+        "--dispatcher",
+        action="store_true",
+        help="call --rev's search through numba's dispatcher (which looks up the type of every "
+        "argument at every call), not the compiled function solve() calls",
+    )
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
     for n in args.arms.split(","):
@@ -152,7 +162,12 @@ def main(argv: list[str] | None = None) -> int:
         ["git", "rev-parse", "--short", args.rev], cwd=_ROOT, check=True, capture_output=True
     )
     label = f"{args.rev} ({rev.stdout.decode().strip()})"
-    searches = {label: kernels_of(args.rev).search, "this checkout": solver._search}
+    other = kernels_of(args.rev).search
+    if args.dispatcher:
+        label += " via numba's dispatcher"
+    else:
+        other = other.compile(aot.SEARCH_SIGNATURE)  # the compiled function, as solve() calls
+    searches = {label: other, "this checkout": solver._search}
     rows = []
     for mode in args.modes.split(","):
         for n in args.arms.split(","):
