@@ -179,7 +179,6 @@ def main(argv: list[str] | None = None) -> int:
             f"# IK kernels: this checkout against {label} (bench/solver_ab.py)",
             "",
             f"- kernels of this checkout: {solver.kernels_origin()}",
-            f"- command: `python -m bench.solver_ab {' '.join(sys.argv[1:])}`",
             "- thread CPU time per solve, ms; ratio = this checkout / the other",
             "",
             *md_table(
