@@ -12,9 +12,9 @@ pointing-direction mode); it holds every other kernel, compiled into it. Two way
 them. Ahead of time: ``python -m companion.ik`` (the board install runs it) builds the two into
 an extension module with explicit signatures (:mod:`companion.ik.aot`, numba's ``pycc``; a few
 seconds of CPU), which the solver then loads without importing numba. Otherwise numba's JIT,
-on first use (no explicit signatures: numba infers the types from the arrays
-:mod:`companion.ik.solver` passes), with the on-disk cache: the first call after an install
-compiles (about 20 s of CPU), later processes load the cache. Either way the daemon calls
+for the same signatures (:func:`companion.ik.warm_up` compiles them and the solver calls the
+compiled functions, not numba's dispatchers), with the on-disk cache: the first compile after
+an install takes about 20 s of CPU, later processes load the cache. Either way the daemon calls
 :func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
 writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the JIT kernels still work,
 compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
@@ -139,7 +139,9 @@ _int_layout = nb.njit(cache=CACHE)(int_layout)
 # _search and _scratch 19 KB of the kernels' 76 KB (numba's JIT on x86-64), fetched anew by a
 # call that finds the caches cold (another program ran between two solves: a daemon's usual
 # case). With these the two are 3 KB; the rest of the code is unchanged, and so are the results,
-# bit for bit.
+# bit for bit. Median CPU time per solve 0.92-0.95x on 8 arms not used to tune, after an rtb
+# ik_LM call and bench.solver's judge and in a tight loop (docs/measurements/solver_ab_views.md:
+# python -m bench.solver_ab --rev c0781f1 --poses 2000).
 def _view_typer(typingctx, buf, start, shape):
     """``_view(buf, start, shape)``: ``buf[start : start + prod(shape)]`` as a C-contiguous
     array of ``shape`` (a tuple of ints), sharing ``buf``'s memory. No bounds check:
