@@ -37,11 +37,12 @@ on as many of ``--tol-poses`` calibration poses (other draws than the measured o
   predictors cold for whichever peer comes next, and the order is shuffled, so each peer pays it
   alike in expectation. ``--context-poses N`` measures it: each peer timed after each of those
   alone, after all three, after an 8 MB sweep, and right after its own previous call (as warm as
-  a tight loop). On hyper ours took ~13 µs warm and 20-27 µs after any of them, rtb ~57 µs
-  and about as much more or less (its medians move by ±15 µs between runs): the additive cost
-  of a cold start is a few µs larger for rtb than for ours, and a larger share of ours
-  (``--arms hyper,cobra600 --poses 10 --sweep-poses 0 --limit-poses 0 --hog-poses 0 --laps 0
-  --methods restarts --no-cold-start --context-poses 300``);
+  a tight loop). On hyper, cobra600, coil and planar3, ours took 9.5-15 µs right after its own
+  previous call and 15-30 µs after any of the others, rtb 36-110 µs and 8-35 µs more: a cold
+  start costs rtb more than ours, and it is a larger share of ours; the 8 MB sweep cost ours
+  no more than the other contexts (``--arms hyper,cobra600,coil,planar3 --poses 10
+  --sweep-poses 0 --limit-poses 0 --hog-poses 0 --laps 0 --methods restarts --no-cold-start
+  --context-poses 600 --tol-poses 10``);
 * a seed the solver was not tuned on (the default, 2026; tuning used 0–99 and only the arms
   of :data:`TUNING_ARMS`);
 * success = position ≤ 1e-3 cm, orientation (rotation angle) ≤ 1e-3° and every joint within its
@@ -225,8 +226,9 @@ def prepare_rtb(arm: Arm, ets: Any, target: Pose, seed: int, tol: float = 1e-12)
     return call
 
 
-# 8 MB, more than this machine's caches: touching a float in every 64-byte line of it evicts
-# what the solvers had cached (a daemon that does other work between solves).
+# 8 MB, more than the development machine's L1 and L2 (1 MB a core), less than its L3 (32 MB,
+# shared): touching a float in every 64-byte line of it evicts what the solvers had in L1 and
+# L2, code as well as data (L2 holds both), as a daemon that does other work between solves.
 _SWEEP = np.zeros(8 * 2**20 // 8)
 
 
@@ -366,8 +368,7 @@ def interleaved(
     return rows
 
 
-#: What runs just before a timed call, for :func:`context_costs`: each a function of the peer
-#: about to be timed (its calls and the other peer's, by pose) and the pose index.
+#: What runs just before a timed call in :func:`context_costs` (its table's rows).
 CONTEXTS = (
     "itself",
     "the other peer",
@@ -379,7 +380,7 @@ CONTEXTS = (
 
 
 def context_costs(
-    name: str, arm: Arm, poses: list[Pose], seed: int, ets: Any, rtb_tol: float
+    name: str, arm: Arm, poses: list[Pose], budget_ms: float, seed: int, ets: Any, rtb_tol: float
 ) -> list[dict[str, Any]]:
     """What the interleaved tables' surroundings cost each peer: every call of both peers timed
     right after one of :data:`CONTEXTS` (the same peer's previous pose: as warm as a tight loop;
@@ -391,7 +392,7 @@ def context_costs(
     contexts. One row per context: medians and p90 of thread CPU time, ms."""
     calls = {
         "ours": [
-            prepare_ours(arm, t, seed + k, 20.0, DEFAULT_SETTINGS) for k, t in enumerate(poses)
+            prepare_ours(arm, t, seed + k, budget_ms, DEFAULT_SETTINGS) for k, t in enumerate(poses)
         ],
         "rtb": [prepare_rtb(arm, ets, t, seed + k, rtb_tol) for k, t in enumerate(poses)],
     }
@@ -405,7 +406,7 @@ def context_costs(
                 cache_sweep()
             return
         if context in ("next calls built", "all three (as interleaved)"):
-            prepare_ours(arm, poses[k], seed + k, 20.0, DEFAULT_SETTINGS)
+            prepare_ours(arm, poses[k], seed + k, budget_ms, DEFAULT_SETTINGS)
             prepare_rtb(arm, ets, poses[k], seed + k, rtb_tol)
         if context in ("the other peer", "all three (as interleaved)"):
             calls[other[who]][k]()
@@ -906,7 +907,7 @@ def main() -> None:
                 )
             if ets is not None and args.context_poses:
                 context_rows += context_costs(
-                    n, arm, poses[: args.context_poses + 1], args.seed, ets, tol
+                    n, arm, poses[: args.context_poses + 1], args.budget_ms, args.seed, ets, tol
                 )
             if len(methods) > 1 and args.method_poses:
                 method_rows += interleaved(
