@@ -6,7 +6,7 @@
                                      [--hog-poses 300] [--busy 1] [--tol-poses 300]
                                      [--budget-ms 20] [--seed 2026] [--arms a,b] [--laps 5]
                                      [--only-extras] [--only-hog] [--ceiling-ms MS]
-                                     [--no-cold-start] [--markdown FILE]
+                                     [--no-cold-start] [--context-poses N] [--markdown FILE]
 
 The peer is roboticstoolbox-python's C++ ``ets().ik_LM`` (joint limits on, its own restarts) on
 every arm of rtb's DH zoo (``roboticstoolbox.models.DH``, :data:`ZOO`: each converted to our arm
@@ -21,11 +21,28 @@ on as many of ``--tol-poses`` calibration poses (other draws than the measured o
   call turns its answer into a numpy joint vector in our units; what the tables read of our
   result is recorded after it (the result then dropped, as rtb's is);
 * the garbage collector frozen (``gc.freeze()``) and disabled around both;
-* thread CPU time (``time.thread_time``) beside wall time, per call;
+* thread CPU time (``time.thread_time``) beside wall time, per call; the two clock reads are
+  inside every timed call of both (1-3 µs of CPU each call, more after other work: the
+  ``--context-poses`` table's last column);
+* per call, whether this thread was switched out (its context switches, voluntary and
+  involuntary, from ``getrusage(RUSAGE_THREAD)``, read before and after the clocks, outside the
+  timed region): the tables give the share of calls switched out and the p99 over the calls that
+  were not, beside the full p99 (which is the target's);
 * optionally (``--sweep-poses``) an 8 MB buffer touched before every call of either, outside the
   timed region (a daemon that does other work between solves: caches cold for both);
 * optionally (``--busy``) busy-loop processes beside the interleaved tables (the issue's targets
   are for a machine at load ≥ 2);
+* every call as cold as its neighbours make it, for both: what runs before a timed call (the
+  other peer, the judge's numpy FK, building the next pose's calls) leaves the caches and branch
+  predictors cold for whichever peer comes next, and the order is shuffled, so each peer pays it
+  alike in expectation. ``--context-poses N`` measures it: each peer timed after each of those
+  alone, after all three, after an 8 MB sweep, and right after its own previous call (as warm as
+  a tight loop). On hyper, cobra600, coil and planar3, ours took 9.5-15 µs right after its own
+  previous call and 15-30 µs after any of the others, rtb 36-110 µs and 8-35 µs more: a cold
+  start costs rtb more than ours, and it is a larger share of ours; the 8 MB sweep cost ours
+  no more than the other contexts (``--arms hyper,cobra600,coil,planar3 --poses 10
+  --sweep-poses 0 --limit-poses 0 --hog-poses 0 --laps 0 --methods restarts --no-cold-start
+  --context-poses 600 --tol-poses 10``);
 * a seed the solver was not tuned on (the default, 2026; tuning used 0–99 and only the arms
   of :data:`TUNING_ARMS`);
 * success = position ≤ 1e-3 cm, orientation (rotation angle) ≤ 1e-3° and every joint within its
@@ -209,8 +226,9 @@ def prepare_rtb(arm: Arm, ets: Any, target: Pose, seed: int, tol: float = 1e-12)
     return call
 
 
-# 8 MB, more than this machine's caches: touching a float in every 64-byte line of it evicts
-# what the solvers had cached (a daemon that does other work between solves).
+# 8 MB, more than the development machine's L1 and L2 (1 MB a core), less than its L3 (32 MB,
+# shared): touching a float in every 64-byte line of it evicts what the solvers had in L1 and
+# L2, code as well as data (L2 holds both), as a daemon that does other work between solves.
 _SWEEP = np.zeros(8 * 2**20 // 8)
 
 
@@ -219,12 +237,24 @@ def cache_sweep() -> None:
     _SWEEP[::8] += 1.0
 
 
-def timed(call: Call, sweep: bool = False) -> tuple[np.ndarray, float, float]:
+def _switches() -> int:
+    """Context switches of this thread so far, voluntary and involuntary (Linux)."""
+    r = resource.getrusage(resource.RUSAGE_THREAD)
+    return r.ru_nvcsw + r.ru_nivcsw
+
+
+def timed(call: Call, sweep: bool = False) -> tuple[np.ndarray, float, float, bool]:
+    """``call``'s joints, thread CPU and wall time in ms, and whether this thread was switched
+    out meanwhile (its context-switch counts read before and after, outside the timed region:
+    a switch between a count and a clock is counted too, never missed)."""
     if sweep:
         cache_sweep()  # outside the timed region
+    before = _switches()
     w, c = time.perf_counter(), time.thread_time()
     q = call()
-    return q, (time.thread_time() - c) * 1e3, (time.perf_counter() - w) * 1e3
+    cpu = time.thread_time() - c
+    wall = time.perf_counter() - w
+    return q, cpu * 1e3, wall * 1e3, _switches() != before
 
 
 def rtb_tolerance(arm: Arm, ets: Any, poses: list[Pose], seed: int) -> tuple[float, str]:
@@ -258,7 +288,9 @@ def interleaved(
     keeps its arrays and estimates from one pose to the next, as a daemon would. One row per
     solver."""
     peers = list(methods) + (["rtb"] if ets is not None else [])
-    stats: dict[str, dict[str, list]] = {who: {"ok": [], "cpu": [], "wall": []} for who in peers}
+    stats: dict[str, dict[str, list]] = {
+        who: {"ok": [], "cpu": [], "wall": [], "switched": []} for who in peers
+    }
     # Each of our results is handed out of the timed call and dropped after what the table
     # reads of it is recorded (in arrays made beforehand), as a daemon drops each result. Kept
     # inside it, every solve grew the heap by its result (~1.5 KB): the first touch of each
@@ -286,7 +318,7 @@ def interleaved(
                 calls["rtb"] = prepare_rtb(arm, ets, target, seed + k, rtb_tol)
             for i in order.permutation(len(peers)):
                 who = peers[i]
-                q, cpu, wall = timed(calls[who], sweep)
+                q, cpu, wall, switched = timed(calls[who], sweep)
                 if who in last:
                     res = last[who].pop()
                     de_gen[who][k] = res.generations > res.restarts
@@ -296,6 +328,7 @@ def interleaved(
                 stats[who]["ok"].append(judge(arm, target, q))
                 stats[who]["cpu"].append(cpu)
                 stats[who]["wall"].append(wall)
+                stats[who]["switched"].append(switched)
     finally:
         gc.enable()
         gc.unfreeze()
@@ -304,6 +337,7 @@ def interleaved(
     for who in peers:
         s = stats[who]
         cpu, wall = np.asarray(s["cpu"]), np.asarray(s["wall"])
+        switched = np.asarray(s["switched"])
         row: dict[str, Any] = {
             "arm": name,
             "dof": arm.dof,
@@ -312,12 +346,16 @@ def interleaved(
             "ok %": 100.0 * float(np.mean(s["ok"])),
             "cpu med": float(np.median(cpu)),
             "cpu p99": float(np.percentile(cpu, 99)),
+            "switched %": 100.0 * float(np.mean(switched)),
+            "cpu p99 unswitched": _p99(cpu[~switched]),
             "wall med": float(np.median(wall)),
             "wall p99": float(np.percentile(wall, 99)),
         }
         if rtb_cpu is not None:
             row["ratio med"] = row["cpu med"] / float(np.median(rtb_cpu))
             row["ratio p99"] = row["cpu p99"] / float(np.percentile(rtb_cpu, 99))
+            rtb_unswitched = _p99(rtb_cpu[~np.asarray(stats["rtb"]["switched"])])
+            row["ratio p99 unswitched"] = row["cpu p99 unswitched"] / rtb_unswitched
         if who in last:
             row["DE gen %"] = 100.0 * float(np.mean(de_gen[who]))
             row["DE gain %"] = 100.0 * float(np.mean(de_gain[who]))
@@ -328,6 +366,92 @@ def interleaved(
             )
         rows.append(row)
     return rows
+
+
+#: What runs just before a timed call in :func:`context_costs` (its table's rows).
+CONTEXTS = (
+    "itself",
+    "the other peer",
+    "judge",
+    "next calls built",
+    "all three (as interleaved)",
+    "8 MB sweep",
+)
+
+
+def context_costs(
+    name: str, arm: Arm, poses: list[Pose], budget_ms: float, seed: int, ets: Any, rtb_tol: float
+) -> list[dict[str, Any]]:
+    """What the interleaved tables' surroundings cost each peer: every call of both peers timed
+    right after one of :data:`CONTEXTS` (the same peer's previous pose: as warm as a tight loop;
+    the other peer's call; :func:`judge`'s numpy FK; building a pose's two calls, as
+    :func:`interleaved` does before each pose; all three, in that order; an 8 MB
+    :func:`cache_sweep` after the same peer's previous pose). Peer and context take turns
+    pose by pose in a shuffled order, so the machine's drift hits every cell alike. Also the
+    floor: the two clock reads of :func:`timed` with nothing between them, after the same
+    contexts. One row per context: medians and p90 of thread CPU time, ms."""
+    calls = {
+        "ours": [
+            prepare_ours(arm, t, seed + k, budget_ms, DEFAULT_SETTINGS) for k, t in enumerate(poses)
+        ],
+        "rtb": [prepare_rtb(arm, ets, t, seed + k, rtb_tol) for k, t in enumerate(poses)],
+    }
+    other = {"ours": "rtb", "rtb": "ours"}
+    zero = np.zeros(arm.dof)
+
+    def before(context: str, who: str, k: int) -> None:
+        if context in ("itself", "8 MB sweep"):
+            calls[who][k - 1]()
+            if context == "8 MB sweep":
+                cache_sweep()
+            return
+        if context in ("next calls built", "all three (as interleaved)"):
+            prepare_ours(arm, poses[k], seed + k, budget_ms, DEFAULT_SETTINGS)
+            prepare_rtb(arm, ets, poses[k], seed + k, rtb_tol)
+        if context in ("the other peer", "all three (as interleaved)"):
+            calls[other[who]][k]()
+        if context in ("judge", "all three (as interleaved)"):
+            judge(arm, poses[k], zero)
+
+    cells = [(who, c) for c in CONTEXTS for who in ("ours", "rtb", "floor")]
+    times: dict[tuple[str, str], list[float]] = {cell: [] for cell in cells}
+    order = np.random.default_rng(seed)
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    try:
+        for k in range(1, len(poses)):
+            for i in order.permutation(len(cells)):
+                who, context = cells[i]
+                before(context, "ours" if who == "floor" else who, k)
+                if who == "floor":
+                    c = time.thread_time()
+                    times[who, context].append((time.thread_time() - c) * 1e3)
+                else:
+                    times[who, context].append(timed(calls[who][k])[1])
+    finally:
+        gc.enable()
+        gc.unfreeze()
+    rows = []
+    for context in CONTEXTS:
+        ours, rtb, floor = (np.asarray(times[who, context]) for who in ("ours", "rtb", "floor"))
+        rows.append(
+            {
+                "arm": name,
+                "just before the call": context,
+                "ours cpu med": float(np.median(ours)),
+                "ours cpu p90": float(np.percentile(ours, 90)),
+                "rtb cpu med": float(np.median(rtb)),
+                "rtb cpu p90": float(np.percentile(rtb, 90)),
+                "ratio med": float(np.median(ours) / np.median(rtb)),
+                "clocks alone med": float(np.median(floor)),
+            }
+        )
+    return rows
+
+
+def _p99(values: np.ndarray) -> float:
+    return float(np.percentile(values, 99)) if values.size else math.nan
 
 
 def _stop(reason: StopReason | None) -> str:
@@ -639,7 +763,13 @@ def target_rows(main_rows: list[dict], sweep_rows: list[dict], method: str) -> l
         if s is not None:
             row["swept ratio med"] = s["ratio med"]
             row["swept ratio p99"] = s["ratio p99"]
+        # The target is on the four ratios above; the ones over the calls that were not
+        # switched out stand beside them, for reading the tail, not for the verdict.
         ratios = [v for k, v in row.items() if "ratio" in k]
+        row["ratio p99 unswitched"] = r["ratio p99 unswitched"]
+        if s is not None:
+            row["swept ratio p99 unswitched"] = s["ratio p99 unswitched"]
+        row["ours switched %"] = r["switched %"]
         row["ours ok %"] = r["ok %"]
         row["met"] = "–" if math.isnan(limit) else "yes" if max(ratios) <= limit else "no"
         out.append(row)
@@ -704,6 +834,13 @@ def main() -> None:
         help="busy-loop processes beside the interleaved tables (the issue's targets are for a "
         "machine at load >= 2: on 2 cores, 1)",
     )
+    parser.add_argument(
+        "--context-poses",
+        type=int,
+        default=0,
+        help="poses per arm of the table of what runs before a timed call costs each peer "
+        "(0: none; needs rtb)",
+    )
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args()
 
@@ -732,6 +869,7 @@ def main() -> None:
     hog_rows: list[dict] = []
     tol_rows: list[dict] = []
     method_rows: list[dict] = []
+    context_rows: list[dict] = []
     arms = {n: load_arm(n) for n in names}
     hog_poses: dict[str, list[Pose]] = {}
     busy = [
@@ -766,6 +904,10 @@ def main() -> None:
                 at_limits = limit_targets(arm, args.limit_poses, rng)
                 limit_rows += interleaved(
                     n, arm, at_limits, args.budget_ms, args.seed, first, ets, tol
+                )
+            if ets is not None and args.context_poses:
+                context_rows += context_costs(
+                    n, arm, poses[: args.context_poses + 1], args.budget_ms, args.seed, ets, tol
                 )
             if len(methods) > 1 and args.method_poses:
                 method_rows += interleaved(
@@ -828,6 +970,17 @@ def main() -> None:
             "",
         ]
         lines += table(method_rows) + [""]
+    if context_rows:
+        lines += [
+            f"What runs just before a timed call, and what it costs each peer (the first "
+            f"{args.context_poses} poses of each arm, ours the default method; every peer and "
+            "context taking turns pose by pose in a shuffled order; 'itself': the same peer's "
+            "call on the previous pose, as warm as a tight loop; 'clocks alone': the two clock "
+            "reads of a timed call with nothing between them, after the same context, a cost "
+            "inside every timed call of both peers):",
+            "",
+        ]
+        lines += table(context_rows) + [""]
     if limit_rows:
         lines += ["Joints-at-limits poses (every joint within 0.5° of a limit):", ""]
         lines += table(limit_rows) + [""]

@@ -4,10 +4,10 @@
 compiles :func:`companion.ik.kernels.search` and :func:`~companion.ik.kernels.goal_matrix`, with
 the explicit signatures below, into an extension module. Importing that module takes well under
 a millisecond and does not import numba (whose own import and type registries are most of a
-start from the JIT cache, ~0.8 s on the development machine), and a call skips numba's
-dispatcher (the type of each argument looked up at every call). The code is the same: the same
-functions, compiled by the same numba and LLVM, give the same results bit for bit
-(``tests/ik/test_aot.py``).
+start from the JIT cache, ~0.8 s on the development machine); a call skips numba's dispatcher
+(the type of each argument looked up at every call), as the solver's calls of the JIT kernels
+do too. The code is the same: the same functions, compiled by the same numba and LLVM, give
+the same results bit for bit (``tests/ik/test_aot.py``).
 
 The build needs a C compiler and Python's headers (``pycc`` compiles a small C helper and links
 the module; on Debian ``sudo apt-get install gcc g++ python3-dev``), setuptools in the venv, and

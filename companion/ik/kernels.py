@@ -12,9 +12,9 @@ pointing-direction mode); it holds every other kernel, compiled into it. Two way
 them. Ahead of time: ``python -m companion.ik`` (the board install runs it) builds the two into
 an extension module with explicit signatures (:mod:`companion.ik.aot`, numba's ``pycc``; a few
 seconds of CPU), which the solver then loads without importing numba. Otherwise numba's JIT,
-on first use (no explicit signatures: numba infers the types from the arrays
-:mod:`companion.ik.solver` passes), with the on-disk cache: the first call after an install
-compiles (about 20 s of CPU), later processes load the cache. Either way the daemon calls
+for the same signatures (:func:`companion.ik.warm_up` compiles them and the solver calls the
+compiled functions, not numba's dispatchers), with the on-disk cache: the first compile after
+an install takes about 20 s of CPU, later processes load the cache. Either way the daemon calls
 :func:`companion.ik.warm_up` before READY, so no target pays for it. Where no cache location is
 writable (no ``NUMBA_CACHE_DIR``, a read-only install and home), the JIT kernels still work,
 compiled at every start, and a warning says how to fix it. The kernels are pure: arrays in and
@@ -51,6 +51,7 @@ from typing import Any
 
 import numba as nb
 import numpy as np
+from numba.extending import intrinsic
 
 from companion.ik.layout import (
     F_CR,
@@ -131,6 +132,51 @@ NO_NRT: dict[str, Any] = {"_nrt": False}
 # The buffers' layouts (plain-Python arithmetic in layout.py), compiled for search().
 _float_layout = nb.njit(cache=CACHE)(float_layout)
 _int_layout = nb.njit(cache=CACHE)(int_layout)
+
+
+# The views search() cuts its buffers into at every call (30 of them), built directly: numba's
+# slice and reshape check the bounds and the shape and call a C helper for each, code that made
+# _search and _scratch 19 KB of the kernels' 76 KB (numba's JIT on x86-64), fetched anew by a
+# call that finds the caches cold (another program ran between two solves: a daemon's usual
+# case). With these the two are 3 KB; the rest of the code is unchanged, and so are the results,
+# bit for bit. Median CPU time per solve 0.92-0.95x on 8 arms not used to tune, after an rtb
+# ik_LM call and bench.solver's judge and in a tight loop (docs/measurements/solver_ab_views.md:
+# python -m bench.solver_ab --rev c0781f1 --poses 2000).
+def _view_typer(typingctx, buf, start, shape):
+    """``_view(buf, start, shape)``: ``buf[start : start + prod(shape)]`` as a C-contiguous
+    array of ``shape`` (a tuple of ints), sharing ``buf``'s memory. No bounds check:
+    ``layout.float_layout`` and ``layout.int_layout`` size the buffers for every view cut from
+    them."""
+    ndim = len(shape)
+
+    def codegen(context, builder, sig, args):
+        intp = nb.types.intp
+        src = context.make_array(sig.args[0])(context, builder, args[0])
+        out = context.make_array(sig.return_type)(context, builder)
+        first = context.cast(builder, args[1], sig.args[1], intp)
+        dims = [
+            context.cast(builder, builder.extract_value(args[2], i), sig.args[2][i], intp)
+            for i in range(ndim)
+        ]
+        strides = [src.itemsize] * ndim
+        for i in range(ndim - 2, -1, -1):
+            strides[i] = builder.mul(strides[i + 1], dims[i + 1])
+        context.populate_array(
+            out,
+            data=builder.gep(src.data, [first], inbounds=True),
+            shape=dims,
+            strides=strides,
+            itemsize=src.itemsize,
+            meminfo=src.meminfo,
+            parent=src.parent,
+        )
+        return out._getvalue()
+
+    return nb.types.Array(buf.dtype, ndim, "C")(buf, start, shape), codegen
+
+
+# Any: numba's stubs type an intrinsic's call with the typer's own arguments (typingctx first).
+_view: Any = intrinsic(_view_typer)
 
 
 # No inline="always" on these three: LLVM inlines them anyway (solve times unchanged, 1500
@@ -801,37 +847,37 @@ def _scratch(buf, n, n_pop):
     then DE's trials and their costs. Made once per :func:`search` call: an allocation per LM
     run cost a few percent of a solve, and with none the kernels run without NRT."""
     o = 0
-    rot = buf[o : o + 9].reshape((3, 3))
+    rot = _view(buf, o, (3, 3))
     o += 9
-    pos = buf[o : o + 3]
+    pos = _view(buf, o, (3,))
     o += 3
-    axes = buf[o : o + 3 * n].reshape((n, 3))
+    axes = _view(buf, o, (n, 3))
     o += 3 * n
-    points = buf[o : o + 3 * n].reshape((n, 3))
+    points = _view(buf, o, (n, 3))
     o += 3 * n
-    res = buf[o : o + 6]
+    res = _view(buf, o, (6,))
     o += 6
-    jac = buf[o : o + 6 * n].reshape((n, 6))
+    jac = _view(buf, o, (n, 6))
     o += 6 * n
-    jtj = buf[o : o + n * n].reshape((n, n))
+    jtj = _view(buf, o, (n, n))
     o += n * n
-    jtr = buf[o : o + n]
+    jtr = _view(buf, o, (n,))
     o += n
-    a = buf[o : o + n * n].reshape((n, n))
+    a = _view(buf, o, (n, n))
     o += n * n
-    g = buf[o : o + n]
+    g = _view(buf, o, (n,))
     o += n
-    hold = buf[o : o + n]
+    hold = _view(buf, o, (n,))
     o += n
-    q_try = buf[o : o + n]
+    q_try = _view(buf, o, (n,))
     o += n
-    q = buf[o : o + n]
+    q = _view(buf, o, (n,))
     o += n
-    out = buf[o : o + 3]
+    out = _view(buf, o, (3,))
     o += 3
-    trials = buf[o : o + n_pop * n].reshape((n_pop, n))
+    trials = _view(buf, o, (n_pop, n))
     o += n_pop * n
-    trial_cost = buf[o : o + n_pop]
+    trial_cost = _view(buf, o, (n_pop,))
     return (
         rot,
         pos,
@@ -1180,26 +1226,26 @@ def search(
 @nb.njit(cache=CACHE, **NO_NRT)
 def _search(fbuf, ibuf, rng, start, x_cm, y_cm, z_cm, roll_deg, pitch_deg, yaw_deg, gens):
     """:func:`search`'s body: the views of the buffers, then the search."""
-    iparams = ibuf[:N_IPARAMS]
+    iparams = _view(ibuf, 0, (N_IPARAMS,))
     n = iparams[I_DOF]
     n_pop = iparams[I_POP]
     i_ip, i_st, i_stuck, i_end = _int_layout(n_pop)
-    counts = ibuf[i_st:i_stuck]
-    stuck = ibuf[i_stuck:i_end]
+    counts = _view(ibuf, i_st, (i_stuck - i_st,))
+    stuck = _view(ibuf, i_stuck, (i_end - i_stuck,))
     o_pop, o_cost, o_frames, o_jp, o_goal, o_q, o_fp, o_rec, o_rec_q, o_out, o_lm, o_end = (
         _float_layout(n, n_pop)
     )
-    pop = fbuf[o_pop:o_cost].reshape((n_pop, n))
-    cost = fbuf[o_cost:o_frames]
-    frames = fbuf[o_frames:o_jp].reshape((n + 1, 4, 4))
-    joint_params = fbuf[o_jp:o_goal].reshape((6, n))
-    goal = fbuf[o_goal:o_q].reshape((4, 4))
-    q_start = fbuf[o_q:o_fp]
-    fparams = fbuf[o_fp:o_rec]
-    record = fbuf[o_rec:o_rec_q]
-    record_q = fbuf[o_rec_q:o_out]
-    out = fbuf[o_out:o_lm]
-    scratch = _scratch(fbuf[o_lm:o_end], n, n_pop)
+    pop = _view(fbuf, o_pop, (n_pop, n))
+    cost = _view(fbuf, o_cost, (o_frames - o_cost,))
+    frames = _view(fbuf, o_frames, (n + 1, 4, 4))
+    joint_params = _view(fbuf, o_jp, (6, n))
+    goal = _view(fbuf, o_goal, (4, 4))
+    q_start = _view(fbuf, o_q, (o_fp - o_q,))
+    fparams = _view(fbuf, o_fp, (o_rec - o_fp,))
+    record = _view(fbuf, o_rec, (o_rec_q - o_rec,))
+    record_q = _view(fbuf, o_rec_q, (o_out - o_rec_q,))
+    out = _view(fbuf, o_out, (o_lm - o_out,))
+    scratch = _scratch(_view(fbuf, o_lm, (o_end - o_lm,)), n, n_pop)
     lo = joint_params[4]
     hi = joint_params[5]
     done = False

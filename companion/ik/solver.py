@@ -83,12 +83,11 @@ Importing this module does no work and does not import numba. :func:`warm_up` lo
 kernels: the ahead-of-time module (:mod:`companion.ik.aot`: a plain extension module, no numba
 at run time) where ``python -m companion.ik`` has built an up-to-date one (the board
 install in ``docs/board.md`` does, with a C compiler); otherwise numba's JIT, which compiles
-them on the first call
-(no explicit signatures: it infers them from the arrays; about 20 s of CPU on the 2-core
-development machine) and caches them on disk, so later processes load them (numba's import and
-first call, 0.5–0.8 s). The daemon calls :func:`warm_up` before it reports READY; a first
-:func:`solve` without it calls it before its clock starts. So no budget ever pays for loading
-or compiling.
+them for the same signatures (about 20 s of CPU on the 2-core development machine) and caches
+them on disk, so later processes load them (numba's import and first call, 0.5–0.8 s). Either
+way a solve calls the compiled functions directly, not through numba's dispatcher. The daemon
+calls :func:`warm_up` before it reports READY; a first :func:`solve` without it calls it before
+its clock starts. So no budget ever pays for loading or compiling.
 """
 
 from __future__ import annotations
@@ -869,21 +868,30 @@ def _load_kernels() -> None:
             return
         module = None if os.environ.get("ARMBRIDGE_IK_JIT") == "1" else aot.load()
         if module is not None:
-            origin = str(module.__file__)
-        else:
-            from companion.ik import kernels  # imports numba (~0.5 s)
+            _search, _goal_matrix = module.search, module.goal_matrix
+            _origin = str(module.__file__)
+            return
+        from companion.ik import kernels  # imports numba (~0.5 s)
 
-            if os.environ.get("ARMBRIDGE_IK_JIT") != "1":
-                log.info(
-                    "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
-                    "kernels run on numba's JIT",
-                    aot.file_name(),
-                )
-            if not jit_cache_ready():
-                log.warning(
-                    "compiling the IK kernels (once, ~20 s of CPU; `python -P -m companion.ik` "
-                    "does it at install)"
-                )
-            module, origin = kernels, "numba JIT"
-        _search, _goal_matrix = module.search, module.goal_matrix
-        _origin = origin
+        if os.environ.get("ARMBRIDGE_IK_JIT") != "1":
+            log.info(
+                "no ahead-of-time IK module %s (python -m companion.ik builds it): the "
+                "kernels run on numba's JIT",
+                aot.file_name(),
+            )
+        if not jit_cache_ready():
+            log.warning(
+                "compiling the IK kernels (once, ~20 s of CPU; `python -P -m companion.ik` "
+                "does it at install)"
+            )
+        # The compiled functions themselves (what ``compile`` returns), not numba's
+        # dispatchers: a dispatcher looks up the type of every argument at every call to
+        # choose a compiled version, and there is one, for the types of the solver's arrays
+        # (the ahead-of-time module's signatures; _check_search_arrays holds the arrays to
+        # them). Loaded from numba's cache, or compiled here, before any solve. Median CPU time
+        # per solve 0.94-0.97x after an rtb ik_LM call and bench.solver's judge, 0.94-1.05x in
+        # a tight loop, 8 arms (docs/measurements/solver_ab_dispatcher.md: python -m
+        # bench.solver_ab --rev HEAD --dispatcher --poses 2000).
+        _search = kernels.search.compile(aot.SEARCH_SIGNATURE)
+        _goal_matrix = kernels.goal_matrix.compile(aot.GOAL_MATRIX_SIGNATURE)
+        _origin = "numba JIT"

@@ -641,3 +641,40 @@ def test_de_reaches_the_daemons_tolerances_without_least_squares(seed):
     assert res.converged and res.lm_iterations == 0 and res.generations > 10
     pos, ori = independent_errors(ARM, res.q_deg, target)
     assert pos <= 0.01 and ori <= 0.1
+
+
+def test_jit_kernels_are_called_without_numbas_dispatcher(monkeypatch):
+    """On numba's JIT, solve() calls the compiled search itself, not the dispatcher that would
+    look up every argument's type at every call; the answers are those of the dispatcher, bit
+    for bit, in both the pose and the pointing-direction mode (which builds its goal with
+    ``goal_matrix``)."""
+    warm_up()
+    if solver.kernels_origin() != "numba JIT":
+        pytest.skip("the ahead-of-time module is loaded")
+    from companion.ik import kernels
+
+    assert solver._search is not kernels.search
+    assert solver._goal_matrix is not kernels.goal_matrix
+    targets = [reachable(seed) for seed in range(8)]
+
+    def answers() -> list[tuple]:
+        return [
+            (r.q, r.pos_err_cm, r.ori_err_deg, r.generations, r.lm_iterations)
+            for seed, t in enumerate(targets)
+            for r in (
+                solve(ARM, t, seed=seed, budget_ms=None, settings=UNTIMED),
+                solve(
+                    ARM,
+                    t,
+                    seed=seed,
+                    budget_ms=None,
+                    settings=UNTIMED,
+                    mode=TargetMode.POSITION_AXIS,
+                ),
+            )
+        ]
+
+    direct = answers()
+    monkeypatch.setattr(solver, "_search", kernels.search)
+    monkeypatch.setattr(solver, "_goal_matrix", kernels.goal_matrix)
+    assert answers() == direct
