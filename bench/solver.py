@@ -79,13 +79,12 @@ import time
 import tomllib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bench.report import interpreter, machine, md_table, write_markdown
+from bench.report import interpreter, md_table, write_markdown
 from companion.ik import (
     DEFAULT_SETTINGS,
     METHODS,
@@ -721,26 +720,13 @@ METHODS_NOTE = [
 ]
 
 
-def header(argv: list[str]) -> list[str]:
-    """Commit, UTC date, machine, load average and the exact command (a local header: the
-    shared one in bench/report.py is being written elsewhere)."""
-    try:
-        commit = subprocess.run(
-            ["git", "describe", "--always", "--dirty"],
-            capture_output=True,
-            text=True,
-            check=True,
-            cwd=Path(__file__).resolve().parent,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+def run_conditions() -> list[str]:
+    """What the shared header (``report.write_markdown``: command, commit, date, machine, load
+    when written) leaves out: the interpreter and numpy, and the load average at the start."""
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     return [
-        f"- commit: {commit}",
-        f"- date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
-        f"- machine: {machine()}; {interpreter()}",
+        f"- {interpreter()}",
         f"- load average at the start (1, 5, 15 min): {load}",
-        f"- command: `python -m bench.solver {' '.join(argv)}`",
     ]
 
 
@@ -862,7 +848,7 @@ def main() -> None:
             parser.error(f"--arms: {n!r} is not one of {', '.join(ARMS)}")
     started = time.perf_counter()
     lines = ["# IK solver: ours against roboticstoolbox ik_LM (bench/solver.py)", ""]
-    lines += header(sys.argv[1:])
+    lines += run_conditions()
     main_rows: list[dict] = []
     sweep_rows: list[dict] = []
     limit_rows: list[dict] = []
