@@ -74,6 +74,15 @@ def middle(band: Band) -> tuple[float, ...]:
 class OutputsTruth(abc.ABC):
     """What one firmware says of its outputs, and what the motion may do about it."""
 
+    #: Readbacks that disagree with what an output acknowledged are believed with the
+    #: autopilot's clock heard a readback interval or more into their run (asked for at the
+    #: run's second frame), not only after the run is long enough: it was there then, so one
+    #: of its own readbacks fell in the run and showed the same (else the run would have
+    #: broken), and it did not reboot under frames forged alone. PX4: an output found dead
+    #: gets its marker without the probe's round trip after the span (outputs alive again
+    #: within that, prearm off and on, came back to the marker in one step).
+    CLOCK_INTO_RUN = False
+
     def __init__(self, core: ControlCore) -> None:
         self._core = core
         #: The last SERVO_OUTPUT_RAW: output → PWM shown, and when it arrived.
@@ -207,11 +216,16 @@ class OutputsTruth(abc.ABC):
         count += 1
         self._mismatches[output] = (pwm, since_s, count)
         interval_s = self._core.settings.readback_interval_s
+        if clock_after and self.CLOCK_INTO_RUN and count == 2:
+            self._probe_wanted = True  # answered before the span is met: no wait then
         believed = count >= READBACK_MISMATCHES and at_s - since_s >= (
             READBACK_SPAN_INTERVALS * interval_s
         )
         if believed and clock_after:
-            believed = self._clock_after(output, at_s)
+            if self.CLOCK_INTO_RUN and self._clock_heard_s >= since_s + interval_s:
+                believed = True
+            else:
+                believed = self._clock_after(output, at_s)
         if believed:
             self._doubt_until_s.pop(output, None)
         else:

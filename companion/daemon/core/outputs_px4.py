@@ -66,6 +66,8 @@ def marker_pwm_candidates(shown_us: int, middle_us: float, nearest_us: int) -> l
 class Px4Outputs(OutputsTruth):
     """PX4: the readback says which outputs are live (see the module docstring)."""
 
+    CLOCK_INTO_RUN = True
+
     def __init__(self, core: ControlCore) -> None:
         super().__init__(core)
         #: Outputs whose readback does not show what they acknowledged → the reason, and the
