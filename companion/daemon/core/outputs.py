@@ -414,8 +414,18 @@ class OutputsTruth(abc.ABC):
         """An update to ``step`` went out."""
 
     def acknowledged(self, output: int, pwm: int, now: float) -> None:
-        """``output`` acknowledged ``pwm`` at ``now``."""
-        self._ack_history.setdefault(output, collections.deque(maxlen=64)).append((now, pwm))
+        """``output`` acknowledged ``pwm`` at ``now``. The readbacks may lag behind it, so a
+        run of them disagreeing starts again, unless the PWM they show is none that output
+        ever acknowledged (the disarmed PWM of outputs that died under a step): a lag never
+        shows that, and the run goes on (restarting it kept a dead output's marker a readback
+        interval longer from going out)."""
+        history = self._ack_history.setdefault(output, collections.deque(maxlen=64))
+        history.append((now, pwm))
+        run = self._mismatches.get(output)
+        if run is not None and all(
+            abs(run[0] - acked) > READBACK_TOLERANCE_US for _, acked in history
+        ):
+            return
         self._agrees(output)
 
     def all_acknowledged(self) -> None:  # noqa: B027

@@ -576,3 +576,31 @@ def test_px4_readbacks_forged_while_it_reboots_never_place_a_dead_output():
         rig.tick()
     assert tuple(rig.core.state.position) == held
     assert not [c for c in rig.sent if c.command == ACTUATOR]
+
+
+def test_px4_an_ack_arriving_after_the_outputs_died_does_not_restart_the_readbacks_run():
+    # A step's ACK that comes after the first readback showing the disarmed PWM: a readback
+    # may lag behind an ACK, but never shows a PWM the output never acknowledged, so the run
+    # of readbacks showing it goes on. Restarted there, the marker went out a readback
+    # interval later, and outputs alive again within that (prearm off and on 70 ms apart)
+    # came back to it in one step.
+    rig, px4 = px4_rig(disarmed_us=1500)
+    px4.set_live(True)
+    px4.readback()
+    rig.goto(near(PARK, 20.0))
+    run(rig, px4, 0.2)
+    rig.advance(1.0 / RATE_HZ)  # a step goes out ...
+    on_its_way = px4.apply()
+    assert on_its_way
+    px4.set_live(False)
+    px4.readback()  # ... the outputs are seen dead before its ACK ...
+    rig.clock.advance(0.005)
+    for _ in on_its_way:
+        rig.ack(command=ACTUATOR)  # ... which comes after
+    rig.sent.clear()
+    for advance_s in (0.015, 0.02):
+        rig.clock.advance(advance_s)
+        px4.readback()
+    # Three readbacks over 40 ms since the first, the clock heard in between: believed.
+    assert [c for c in rig.sent if c.command == ACTUATOR]
+    assert rig.core.status()["outputs_live"] is False
