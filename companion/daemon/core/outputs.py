@@ -80,7 +80,7 @@ class OutputsTruth(abc.ABC):
     #: of its own readbacks fell in the run and showed the same (else the run would have
     #: broken), and it did not reboot under frames forged alone. PX4: an output found dead
     #: gets its marker without the probe's round trip after the span (outputs alive again
-    #: within that, prearm off and on, came back to the marker in one step).
+    #: within that, prearm off and on, would come back to the marker in one step).
     CLOCK_INTO_RUN = False
 
     def __init__(self, core: ControlCore) -> None:
@@ -417,8 +417,8 @@ class OutputsTruth(abc.ABC):
         """``output`` acknowledged ``pwm`` at ``now``. The readbacks may lag behind it, so a
         run of them disagreeing starts again, unless the PWM they show is none that output
         ever acknowledged (the disarmed PWM of outputs that died under a step): a lag never
-        shows that, and the run goes on (restarting it kept a dead output's marker a readback
-        interval longer from going out)."""
+        shows that, and the run goes on (restarting it would keep a dead output's marker a
+        readback interval longer from going out)."""
         history = self._ack_history.setdefault(output, collections.deque(maxlen=64))
         history.append((now, pwm))
         run = self._mismatches.get(output)

@@ -485,15 +485,9 @@ def _heartbeat(rig: Rig, *, armed: bool) -> None:
     )
 
 
-def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_way():
-    # With the disarmed PWM outside the servo's range (SITL's 900 us), a dead output says
-    # nothing of where its joint is: at the last PWM a readback showed live, or at a step
-    # acknowledged after it that PX4 applied just before the outputs died. The joint is held
-    # at the middle of those. Once armed again (here after a reboot that forgot what was
-    # stored, so the outputs show 900 us until told), the first update sends that middle
-    # alone, half their spread from wherever the joint is, and the motion's steps go on from
-    # there once a readback showed it (a step sent from the middle at once went up to half
-    # the spread past the limit).
+def _moving_at_900() -> tuple[Rig, Px4OutputsModel]:
+    """PX4 with SITL's disarmed 900 us (outside every servo's range), armed, the arm moving
+    towards a far target."""
     rig, px4 = px4_rig(disarmed_us=900)
     px4.readback()
     run(rig, px4, 0.5)
@@ -502,6 +496,19 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
     run(rig, px4, 0.5)
     rig.goto(near(PARK, 20.0))  # far: many steps
     run(rig, px4, 0.3)
+    return rig, px4
+
+
+def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_way():
+    # With the disarmed PWM outside the servo's range (SITL's 900 us), a dead output says
+    # nothing of where its joint is: at the last PWM a readback showed live, or at a step
+    # acknowledged after it that PX4 applied just before the outputs died. The joint is held
+    # at the middle of those. Once armed again (here after a reboot that forgot what was
+    # stored, so the outputs show 900 us until told), the first update sends that middle
+    # alone, half their spread from wherever the joint is, and the motion's steps go on from
+    # there once a readback showed it (a step from the middle at once would go up to half the
+    # spread past the limit).
+    rig, px4 = _moving_at_900()
     px4.readback()
     shown_live = dict(px4.shown)
     rig.advance(0.05)  # the next step goes out ...
@@ -550,20 +557,13 @@ def test_px4_a_step_stored_as_the_outputs_died_outside_their_range_is_held_half_
 
 
 def test_px4_readbacks_forged_while_it_reboots_never_place_a_dead_output():
-    # The outputs died (a kill), then PX4 rebooted: while it was silent, frames forged at
-    # twice its readback rate showed other PWMs, with none of its own between them. They were
-    # believed (the joints taken where they said, a marker stored there), the pose file kept
-    # that, and the next daemon's first step after arming jumped 57 deg from where the joint
-    # was. A readback disagreeing with a dead output's hold is believed only with the
-    # autopilot's clock heard going on after it, as a live one's.
-    rig, px4 = px4_rig(disarmed_us=900)
-    px4.readback()
-    run(rig, px4, 0.5)
-    _heartbeat(rig, armed=True)
-    px4.set_live(True)
-    run(rig, px4, 0.5)
-    rig.goto(near(PARK, 20.0))
-    run(rig, px4, 0.3)
+    # The outputs died (a kill), then PX4 rebooted: while it is silent, frames forged at twice
+    # its readback rate show other PWMs, with none of its own between them. Believed, they
+    # would take the joints where they say and store a marker there; the pose file would keep
+    # that, and the next daemon's first step after arming would jump from where the joint is
+    # (57 deg in bench.state_cycles). A readback disagreeing with a dead output's hold is
+    # believed only with the autopilot's clock heard going on into their run, as a live one's.
+    rig, px4 = _moving_at_900()
     px4.set_live(False)  # a kill: 900 everywhere
     run(rig, px4, 0.5)
     assert rig.core.status()["outputs_live"] is False
@@ -581,9 +581,9 @@ def test_px4_readbacks_forged_while_it_reboots_never_place_a_dead_output():
 def test_px4_an_ack_arriving_after_the_outputs_died_does_not_restart_the_readbacks_run():
     # A step's ACK that comes after the first readback showing the disarmed PWM: a readback
     # may lag behind an ACK, but never shows a PWM the output never acknowledged, so the run
-    # of readbacks showing it goes on. Restarted there, the marker went out a readback
+    # of readbacks showing it goes on. Restarted there, the marker would go out a readback
     # interval later, and outputs alive again within that (prearm off and on 70 ms apart)
-    # came back to it in one step.
+    # would come back to it in one step.
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
     px4.readback()
