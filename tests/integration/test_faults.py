@@ -380,8 +380,12 @@ def test_pty_hangup_the_daemon_holds_reopens_within_2_s_and_resends_first(sims, 
         assert wait_until(lambda: not daemon.status()["moving"], WAIT_S)
         state = sim.state()
         assert sim_pwm(state, calibration.outputs) == daemon.status()["last_pwm_us"]
-        pos_cm, ori_deg = hand_errors(third, state["hand"])
-        assert pos_cm < QUANT_POS_CM and ori_deg < QUANT_ORI_DEG
+        # Within what whole-µs PWMs allow at the joints reached: the solver's seed, and so
+        # the solution and its rounding, differs from run to run, and at some solutions the
+        # rounding adds up to more than a fixed 0.2 cm.
+        pos_cm, ori_deg = assert_within_quantisation(
+            third, state["hand"], daemon.status()["current_deg"]
+        )
 
         first_rx = min(e["t_s"] for e in sim.events("rx") if e["t_s"] > reopen["t_s"])
         checked = assert_pwm_within_calibration(sim, calibration)
