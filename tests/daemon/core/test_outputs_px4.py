@@ -171,25 +171,31 @@ def test_px4_outputs_found_dead_hold_a_marker_and_are_seen_live_at_the_next_read
     assert max_physical_step_us(px4) <= 1.0
 
 
-def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_hold():
-    # Found dead while a step was on its way: that step's ACK came after, and its pose was
-    # taken as the joints' (the hold stored it: at a re-arm the outputs went from the
-    # disarmed PWM to it, bench.output_cycles' "arm then arm" fast command steps).
+def _died_under_a_step() -> tuple[Rig, Px4OutputsModel, list]:
+    """PX4 live, the arm moving; a step goes out, PX4 applies it (its ACK not sent yet), the
+    outputs die (disarmed PWM 1500 us) and a readback shows them dead. Returns the rig, the
+    model and the commands on their way."""
     rig, px4 = px4_rig(disarmed_us=1500)
     px4.set_live(True)
     px4.readback()
     rig.goto(near(PARK, 20.0))  # 7 steps
     run(rig, px4, 0.2)
-    rig.advance(1.0 / RATE_HZ)  # the next step goes out...
+    rig.advance(1.0 / RATE_HZ)  # the next step goes out ...
     on_its_way = px4.apply()
     assert on_its_way
     px4.set_live(False)
-    px4.readback()  # ...the outputs are found dead before its ACK (three readbacks and
-    for _ in range(2):  # the autopilot's clock after them)
+    px4.readback()  # ... the outputs are seen dead before its ACK
+    return rig, px4, on_its_way
+
+
+def test_px4_an_update_on_its_way_when_the_outputs_die_does_not_replace_their_hold():
+    # Found dead while a step was on its way: that step's ACK came after, and its pose was
+    # taken as the joints' (the hold stored it: at a re-arm the outputs went from the
+    # disarmed PWM to it, bench.output_cycles' "arm then arm" fast command steps).
+    rig, px4, on_its_way = _died_under_a_step()
+    for _ in range(2):  # ...found dead before its ACK (three readbacks)
         rig.clock.advance(0.02)
         px4.readback()
-    rig.clock.advance(0.002)
-    rig.answer_clock_probes()
     for _ in on_its_way:
         rig.ack(command=ACTUATOR)
     rig.advance(1.0 / RATE_HZ)
@@ -584,16 +590,7 @@ def test_px4_an_ack_arriving_after_the_outputs_died_does_not_restart_the_readbac
     # of readbacks showing it goes on. Restarted there, the marker would go out a readback
     # interval later, and outputs alive again within that (prearm off and on 70 ms apart)
     # would come back to it in one step.
-    rig, px4 = px4_rig(disarmed_us=1500)
-    px4.set_live(True)
-    px4.readback()
-    rig.goto(near(PARK, 20.0))
-    run(rig, px4, 0.2)
-    rig.advance(1.0 / RATE_HZ)  # a step goes out ...
-    on_its_way = px4.apply()
-    assert on_its_way
-    px4.set_live(False)
-    px4.readback()  # ... the outputs are seen dead before its ACK ...
+    rig, px4, on_its_way = _died_under_a_step()
     rig.clock.advance(0.005)
     for _ in on_its_way:
         rig.ack(command=ACTUATOR)  # ... which comes after
