@@ -249,7 +249,7 @@ class ControlCore:
         elif kind in ("ATTITUDE", "LOCAL_POSITION_NED"):
             self.world.on_frame(msg, at_s)
         elif kind == "PARAM_VALUE":
-            self.outputs.on_param(_param_name(msg.param_id), msg.param_value)
+            self.outputs.on_param(actions, _param_name(msg.param_id), msg.param_value, at_s)
         return actions
 
     def _probe_clock(self, actions: list[Action]) -> None:

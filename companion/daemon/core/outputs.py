@@ -348,8 +348,11 @@ class OutputsTruth(abc.ABC):
     def on_sys_status(self, actions: list[Action], safety_on: bool, at_s: float) -> None:
         """A SYS_STATUS saying where the safety switch is, arrived at ``at_s``."""
 
-    def on_param(self, name: str, value: float) -> None:  # noqa: B027
-        """A PARAM_VALUE from the pinned autopilot (default: none is read)."""
+    def on_param(  # noqa: B027
+        self, actions: list[Action], name: str, value: float, at_s: float
+    ) -> None:
+        """A PARAM_VALUE from the pinned autopilot, arrived at ``at_s`` (default: none is
+        read)."""
 
     def params_to_read(self) -> list[str]:
         """Parameters to read whenever the streams are asked for (default: none)."""

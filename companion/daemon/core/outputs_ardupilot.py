@@ -12,6 +12,11 @@ unsigned link, alternate with its own), nor one after "on" before the autopilot'
 on after it (while it reboots, forged frames are all there is). What the outputs may hold
 while the switch is unseen stays within a band a step wide (``SAFETY_STEPS_AHEAD``); once the
 switch is seen on, the held outputs are sent back to the middle of that band (the rewind).
+Outputs in BRD_SAFETY_MASK stay live with the switch on, but the mask may change at any moment
+(a ground station sets it; ArduPilot applies it within MASK_APPLY_S): while the switch is on,
+the mask is asked for at every SYS_STATUS, and an answer narrows a joint's band as an "off"
+would, to the poses sent since it was asked, once the output has been in every answer for
+MASK_APPLY_S.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
+from companion.daemon.core.actions import ReadParam
 from companion.daemon.core.outputs import (
     READBACK_TOLERANCE_US,
     Band,
@@ -51,6 +57,14 @@ SYS_STATUS_STALE_INTERVALS = 4
 SYS_STATUS_SILENT_S = 0.5
 
 SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
+#: ArduPilot's output driver reads BRD_SAFETY_MASK at 10 Hz: a new mask applies within 0.1 s of
+#: being set (with a margin here). An output the mask newly frees may still be held that long
+#: after an answer says it is in it; one it newly holds is held only after the answer said
+#: otherwise, so the pose it holds is among those sent since that answer was asked for.
+MASK_APPLY_S = 0.15
+#: While the switch is on, BRD_SAFETY_MASK asked for and unanswered this many SYS_STATUS
+#: intervals (a lost request or answer) is asked for again.
+MASK_ASK_AGAIN_INTERVALS = 4
 #: A SYS_STATUS saying the switch is off is believed only this many SYS_STATUS intervals after
 #: the last one that said it is on: the autopilot's own stream, saying on, would otherwise be
 #: overruled by a frame forged between two of its frames.
@@ -99,6 +113,13 @@ class ArduPilotOutputs(OutputsTruth):
         super().__init__(core)
         #: BRD_SAFETY_MASK (None: not read yet; then no output is assumed to be in it).
         self._safety_mask: int | None = None
+        #: The switch on: when BRD_SAFETY_MASK was last asked for, not answered yet (None: no
+        #: request outstanding).
+        self._mask_asked_s: float | None = None
+        #: The switch on: per arm output in every BRD_SAFETY_MASK seen since the switch was
+        #: seen on, from when it is surely live (the first such answer's arrival plus
+        #: MASK_APPLY_S); an answer to a request asked after that narrows its joint's band.
+        self._mask_live_from_s: dict[int, float] = {}
         self._sys_status_asked_s = core.clock()
         self._sys_status_s: float | None = None  # when the last SYS_STATUS came (None: none)
         #: A SYS_STATUS came from this autopilot once: it streams them, so the arm never moves
@@ -148,7 +169,7 @@ class ArduPilotOutputs(OutputsTruth):
     def on_sys_status(self, actions: list[Action], safety_on: bool, at_s: float) -> None:
         """The safety switch, as a SYS_STATUS arrived at ``at_s`` says (see
         ``SAFETY_STEPS_AHEAD`` and ``SAFETY_ON_STICKY_INTERVALS``)."""
-        core, state = self._core, self._core.state
+        core = self._core
         self._sys_status_s = core.clock()
         self._sys_status_ever = True
         interval_s = core.settings.sys_status_interval_s
@@ -193,22 +214,19 @@ class ArduPilotOutputs(OutputsTruth):
                 self._rewind_joints = self._switch_holds()
             elif not safety_on:
                 self._rewind_to = None
+            if safety_on:
+                # What the mask frees counts from answers given since (module docstring).
+                self._mask_live_from_s.clear()
+                if self._held_since_off is None:  # no "off" since the start: from now on
+                    self._held_since_off = band_of(self._poses_since(math.inf))
         self.safety_on = safety_on
         if safety_on:
+            self._ask_mask(actions, interval_s)
             return
         # Off now: the outputs hold what was acknowledged, or a step still on its way (or one
-        # whose update ended unanswered: it is sent again before anything else).
-        poses = [f.step_deg for f in state.flights]
-        if state.unconfirmed is not None:
-            poses.append(state.unconfirmed)
-        if self._held_before_loss is not None:  # what they held before is unknown: that band
-            poses += [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
-        else:
-            poses.append(tuple(state.position))
-        since_s = at_s - SYS_STATUS_AGE_INTERVALS * interval_s
-        for sent_s, base, step in self._steps_sent:
-            if sent_s >= since_s:
-                poses += [base, step]
+        # whose update ended unanswered: it is sent again before anything else), or any step
+        # sent since the frame left the autopilot.
+        poses = self._poses_since(at_s - SYS_STATUS_AGE_INTERVALS * interval_s)
         band = self._held_since_off
         if band is not None and at_s < self._cadence_broken_until_s:
             for pose in poses:  # perhaps forged: nothing narrows
@@ -217,9 +235,44 @@ class ArduPilotOutputs(OutputsTruth):
             if band is not None:
                 self._bands_before = [*self._bands_before[-1:], band]
             self._held_since_off = band_of(poses)
-        if self._step_waits_for_sys_status and state.link_up:
+        self._step_held_back(actions)
+
+    def _poses_since(self, since_s: float) -> list[tuple[float, ...]]:
+        """The poses the outputs may hold of what was sent up to now since ``since_s``: the
+        one acknowledged (or the band held before a loss), the steps on their way or to be
+        sent again, and each step sent since ``since_s`` with the pose it went from."""
+        state = self._core.state
+        poses = [f.step_deg for f in state.flights]
+        if state.unconfirmed is not None:
+            poses.append(state.unconfirmed)
+        if self._held_before_loss is not None:  # what they held before is unknown: that band
+            poses += [tuple(self._held_before_loss[0]), tuple(self._held_before_loss[1])]
+        else:
+            poses.append(tuple(state.position))
+        for sent_s, base, step in self._steps_sent:
+            if sent_s >= since_s:
+                poses += [base, step]
+        return poses
+
+    def _step_held_back(self, actions: list[Action]) -> None:
+        """A band narrowed: the motion step it held back goes out."""
+        if self._step_waits_for_sys_status and self._core.state.link_up:
             self._step_waits_for_sys_status = False
-            core.motion.next_step(actions, immediate=False)  # the step held back for this
+            self._core.motion.next_step(actions, immediate=False)
+
+    def _ask_mask(self, actions: list[Action], interval_s: float) -> None:
+        """The switch on, every arm output in BRD_SAFETY_MASK as last read: ask for it (one
+        request at a time; again after MASK_ASK_AGAIN_INTERVALS unanswered)."""
+        core = self._core
+        pinned = core.watch.pinned
+        if pinned is None or not core.state.link_up or self._safety_mask is None or self.dead():
+            return
+        now = core.clock()
+        asked_s = self._mask_asked_s
+        if asked_s is not None and now - asked_s < MASK_ASK_AGAIN_INTERVALS * interval_s:
+            return
+        self._mask_asked_s = now
+        actions.append(ReadParam(pinned, SAFETY_MASK_PARAM))
 
     def _check_cadence(self, at_s: float, interval_s: float) -> None:
         """A SYS_STATUS arrived at ``at_s``: less than SYS_STATUS_CADENCE_INTERVALS after the
@@ -384,10 +437,42 @@ class ArduPilotOutputs(OutputsTruth):
         log.info("output %d shows %d us: the joint is taken there (%.1f deg)", output, shown, angle)
         self._joint_at(i, angle)
 
-    def on_param(self, name: str, value: float) -> None:
-        if name == SAFETY_MASK_PARAM:
-            # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
-            self._safety_mask = int(value) if math.isfinite(value) and value >= 0 else None
+    def on_param(self, actions: list[Action], name: str, value: float, at_s: float) -> None:
+        if name != SAFETY_MASK_PARAM:
+            return
+        # From the pinned autopilot, but a frame forged as it (no signing) may say NaN.
+        mask = int(value) if math.isfinite(value) and value >= 0 else None
+        outputs = self._core.state.outputs
+        was_live = set(o for o in outputs if o not in self.dead())
+        self._safety_mask = mask
+        asked_s, self._mask_asked_s = self._mask_asked_s, None
+        for output in outputs:
+            if mask is not None and mask >> (output - 1) & 1:
+                self._mask_live_from_s.setdefault(output, at_s + MASK_APPLY_S)
+            else:
+                self._mask_live_from_s.pop(output, None)
+        band = self._held_since_off
+        if not self.safety_on or band is None:
+            return
+        if was_live - set(o for o in outputs if o not in self.dead()):
+            # The mask holds an output it left live: it holds one of the poses sent since this
+            # was asked for, all within the band; the held outputs go back to its middle.
+            log.warning("BRD_SAFETY_MASK changed with the safety switch on: outputs not live")
+            self._rewind_to = middle(band)
+            self._rewind_joints = self._switch_holds()
+            return
+        if asked_s is None:
+            return  # not ours (a ground station set it): says nothing of when it applied
+        narrowed = [
+            i
+            for i, output in enumerate(outputs)
+            if self._mask_live_from_s.get(output, math.inf) <= asked_s
+        ]
+        if narrowed:
+            since = band_of(self._poses_since(asked_s))
+            for i in narrowed:
+                band[0][i], band[1][i] = since[0][i], since[1][i]
+            self._step_held_back(actions)
 
     def params_to_read(self) -> list[str]:
         return [SAFETY_MASK_PARAM] if self._safety_mask is None else []
@@ -409,6 +494,8 @@ class ArduPilotOutputs(OutputsTruth):
         self._off_since_s = None
         self._held_since_off = self._rewind_to = None
         self._bands_before = []
+        self._mask_asked_s = None
+        self._mask_live_from_s.clear()
 
     def _resend_pose(self, flights: Sequence[Flight]) -> tuple[float, ...]:
         """After a loss or a reboot: the pose to send every output to again, within one step of

@@ -96,8 +96,10 @@ MOTORS = mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
 class ArduPilotOutputsModel(Autopilot):
     """The core linked to a model of ArduPilot's outputs, as the simulator has them: a servo
     command is applied (and its ACK comes) ``ack_delay_s`` after it was sent; the safety switch
-    (``BRD_SAFETY_MASK`` 0) keeps every arm output without pulses (its servo holds where it was)
-    while the commands are still stored and acknowledged, and they go out at its release; a
+    keeps every arm output not in ``BRD_SAFETY_MASK`` (``mask``, 0 unless set) without pulses
+    (its servo holds where it was) while the commands are still stored and acknowledged, and
+    they go out at its release; a new mask applies at the next tenth of a second since boot
+    (ArduPilot's output driver reads it at 10 Hz); a
     reboot is silent for 0.36 s and comes back with no pulses on the arm's outputs, the switch at
     ``BRD_SAFETY_DEFLT`` and every stream forgotten (SYSTEM_TIME, SYS_STATUS: asked again or
     never sent). ``changes`` collects every physical change of a pulse: (t_s, output, from_us,
@@ -114,6 +116,8 @@ class ArduPilotOutputsModel(Autopilot):
         self.ack_delay_s = ack_delay_s
         self.safety_default_on = safety_default_on
         self.safety_on = False
+        self.mask = self.applied_mask = 0
+        self.mask_due_s: float | None = None
         self.streams: dict[int, float] = {}
         self.due_s: dict[int, float] = {}
         self.boot_s = self.clock()
@@ -126,14 +130,14 @@ class ArduPilotOutputsModel(Autopilot):
 
     # -- what the outputs do --
 
-    def live(self) -> bool:
-        return self.rebooting_until_s is None and not self.safety_on
+    def live(self, output: int) -> bool:
+        if self.rebooting_until_s is not None:
+            return False
+        return not self.safety_on or bool(self.applied_mask >> (output - 1) & 1)
 
     def refresh(self) -> None:
-        if not self.live():
-            return
         for output, pwm in self.commanded.items():
-            if pwm and self.pulse.get(output) != pwm:
+            if pwm and self.live(output) and self.pulse.get(output) != pwm:
                 if output in self.pulse:
                     self.changes.append((self.clock(), output, self.pulse[output], pwm))
                 self.pulse[output] = pwm
@@ -142,6 +146,20 @@ class ArduPilotOutputsModel(Autopilot):
         if self.rebooting_until_s is None:  # (as the simulator: not while rebooting)
             self.safety_on = on
             self.refresh()
+
+    def set_mask(self, mask: int, *, broadcast: bool = True) -> None:
+        """A ground station sets BRD_SAFETY_MASK (``broadcast``: the PARAM_VALUE ArduPilot
+        sends every link on a change reaches the core); it applies at the next tick."""
+        self.mask = mask
+        ticks = math.floor((self.clock() - self.boot_s) / 0.1 + 1e-9) + 1
+        self.mask_due_s = self.boot_s + ticks * 0.1
+        if broadcast:
+            self.carry_out(self.frame(self.mask_value()))
+
+    def mask_value(self) -> Any:
+        return self.codec.param_value_encode(
+            b"BRD_SAFETY_MASK", float(self.mask), mavlink.MAV_PARAM_TYPE_INT32, 1, 65535
+        )
 
     def reboot_now(self) -> None:
         self.rebooting_until_s = self.clock() + 0.36
@@ -162,9 +180,7 @@ class ArduPilotOutputsModel(Autopilot):
         if self.rebooting_until_s is not None:
             return  # deaf
         if isinstance(action, ReadParam):
-            self.carry_out(
-                self.frame(self.codec.param_value_encode(b"BRD_SAFETY_MASK", 0.0, 6, 1, 65535))
-            )
+            self.carry_out(self.frame(self.mask_value()))
             return
         if action.command == SERVO:
             self.commanded[int(action.params[0])] = int(action.params[1])
@@ -193,11 +209,15 @@ class ArduPilotOutputsModel(Autopilot):
                 self.commanded = {}
                 self.streams.clear()
                 self.safety_on = self.safety_default_on
+                self.applied_mask, self.mask_due_s = self.mask, None
                 self.frame(
                     self.codec.heartbeat_encode(
                         mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 3
                     )
                 )
+            if self.mask_due_s is not None and now >= self.mask_due_s - 1e-9:
+                self.applied_mask, self.mask_due_s = self.mask, None
+                self.refresh()
             due = [p for p in self.pending if p[0] <= now]
             self.pending = [p for p in self.pending if p[0] > now]
             for _, action in due:

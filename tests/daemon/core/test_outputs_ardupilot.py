@@ -225,6 +225,53 @@ def test_ardupilot_no_joint_moves_faster_than_a_step_through_switch_and_reboot_c
     assert ap.fast_changes() == []
 
 
+def test_ardupilot_with_the_arm_in_the_safety_mask_it_moves_on_with_the_switch_on():
+    """The arm's outputs in BRD_SAFETY_MASK (doctor's advice), the switch goes on mid-motion:
+    the arm pauses (the mask is asked for, and believed MASK_APPLY_S after the first answer)
+    and then goes on at its speed to the target, the switch still on."""
+    ap = ArduPilotOutputsModel()
+    ap.set_mask(ARM_MASK)
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    target = [start[0] + 60.0, *start[1:]]
+    ap.goto(target)
+    ap.run(0.2)
+    ap.set_safety(True)
+    ap.run(0.3)
+    at_deg = ap.core.status()["current_deg"][0]
+    ap.run(0.3)
+    assert ap.core.status()["safety_on"] is True
+    speed_deg_s = abs(ap.core.status()["current_deg"][0] - at_deg) / 0.3
+    assert speed_deg_s >= 0.95 * ap.config.joint_speed_deg_s
+    ap.run(1.0)
+    assert ap.core.status()["current_deg"][0] == pytest.approx(target[0], abs=0.01)
+    asked = sum(isinstance(a, ReadParam) for a in ap.core.tick(True))
+    assert asked <= 1  # one request at a time
+    assert ap.fast_changes() == []
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_ardupilot_a_mask_changed_with_the_switch_on_never_releases_a_jump(seed):
+    """A ground station sets BRD_SAFETY_MASK at any moment, the switch on or off, its
+    PARAM_VALUE broadcast reaching the core or lost (it applies within 0.1 s either way):
+    every physical change of a pulse is within one control tick's step of the one before."""
+    rng = np.random.default_rng(seed)
+    ap = ArduPilotOutputsModel()
+    ap.set_mask(ARM_MASK)
+    ap.run(0.3)
+    for _ in range(80):
+        roll = rng.random()
+        if roll < 0.35:
+            ap.goto(far_target(ap, rng))
+        elif roll < 0.6:
+            ap.set_safety(not ap.safety_on)
+        elif roll < 0.9:
+            ap.set_mask(ARM_MASK if ap.mask == 0 else 0, broadcast=bool(rng.random() < 0.5))
+        ap.run(float(np.exp(rng.uniform(math.log(0.01), math.log(0.6)))))
+    assert len(ap.changes) > 100
+    assert ap.fast_changes() == []
+
+
 # -- the safety band, alone ----------------------------------------------------------------------
 
 
