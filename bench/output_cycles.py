@@ -15,9 +15,8 @@ boot, the arm's outputs in ``BRD_SAFETY_MASK`` at start). Each cycle, seeded:
   station's link: the simulator applies it at once, prearmed from 5 s after boot), ``reboot``;
   ArduPilot ``safety_on`` / ``safety_off`` (query socket), ``reboot``, and
   ``mask_arm`` / ``mask_none`` (``BRD_SAFETY_MASK`` with or without the arm's outputs by
-  PARAM_SET, then a reboot: ArduPilot applies a new mask at boot, the simulator at once, which
-  is the same while the switch is off, so a mask event drawn while it is on is ``safety_off``
-  instead). Reboots are drawn half as often as the others;
+  PARAM_SET, the switch on or off: its output driver takes a new mask at its next 10 Hz tick,
+  as ArduPilot's does). Reboots are drawn half as often as the others;
 * with probability 0.7 a **target**: a random reachable pose (forward kinematics of joints drawn
   within 90 % of their limits), ``goto`` on the control socket, not waited for;
 * a **dwell** drawn log-uniformly in [min, max] (default 0.03–1 s), during which the daemon's
@@ -71,7 +70,7 @@ from bench.loopback import ControlSocketInput, Stack, load_average
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.core import READBACK_FAST_INTERVAL_S, READBACK_INTERVAL_S
 from companion.kinematics.arm import Arm, Pose
-from devkit.joint_steps import JointStep, joint_steps, output_changes
+from devkit.joint_steps import ALIVE_CAUSES, JointStep, joint_steps, output_changes
 from firmware_interface.calibration import JointCalibration, default_calibration
 from sim_servo.config import PX4_DISARMED_PWM_US
 from sim_servo.gcs import GroundStation
@@ -99,8 +98,6 @@ EVENTS = {
 }
 #: BRD_SAFETY_MASK with the arm's outputs (9–14: bits 8–13).
 ARM_MASK = sum(1 << (o - 1) for o in ARM_OUTPUTS)
-#: Causes of an output change that bring stored values out (the outputs coming alive).
-ALIVE_CAUSES = frozenset({"arm", "prearm", "param", "safety_off", "boot"})
 
 
 @dataclass
@@ -231,7 +228,7 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
     }
     out = Run(flavour, args.cycles, load_before=load_average())
     # ArduPilot starts with the arm's outputs in BRD_SAFETY_MASK (what doctor asks for), so the
-    # daemon reads that at start; mask_none then takes them out (with a reboot).
+    # daemon reads that at start; mask_none then takes them out.
     sim_args = () if flavour == "px4" else ("--param", f"BRD_SAFETY_MASK={ARM_MASK}")
     with Stack(dialect=flavour, daemon=daemon, sim_args=sim_args) as stack:
         assert stack.sim is not None
@@ -249,10 +246,7 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
             elif event in ("prearm_on", "prearm_off"):
                 set_param(gcs, flavour, "COM_PREARM_MODE", 2 if event == "prearm_on" else 0)
             elif event in ("mask_arm", "mask_none"):
-                # ArduPilot applies a new mask at boot (@RebootRequired); the simulator at once,
-                # which is the same while the switch is off (drawn only then): set, reboot.
                 set_param(gcs, flavour, "BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0)
-                sim.reboot()
             elif event == "reboot":
                 sim.reboot()
             else:
@@ -267,8 +261,6 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
                 if pending is not None:
                     out.agreements.append(pending)  # censored: the next event came first
                 state = sim.state()
-                if event.startswith("mask_") and state["safety_on"]:
-                    event = "safety_off"  # the mask is changed with the switch off
                 before = sim_live(state)
                 out.timeline.append((time.monotonic(), event))  # before it acts
                 act(event)

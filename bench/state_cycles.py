@@ -423,8 +423,6 @@ class Cycles:
                 run.agreements.append(self.pending)  # censored: the next event came first
                 self.pending = None
             state = self.sim.state()
-            if event.startswith("mask_") and state["safety_on"]:
-                event = "safety_off"  # the mask is changed with the switch off
             before = sim_live(state)
             run.timeline.append((time.monotonic(), event))  # before it acts
             run.events[event] += 1
@@ -508,7 +506,6 @@ class Cycles:
                 self.gcs, self.flavour, "BRD_SAFETY_MASK", ARM_MASK if event == "mask_arm" else 0
             )
             self.mask_has_arm = event == "mask_arm"
-            sim.reboot()
         elif event == "reboot":
             sim.reboot()
         elif event in ("daemon_kill", "daemon_restart"):
@@ -596,7 +593,7 @@ class Cycles:
             run.timeline[-1] = (run.timeline[-1][0], "mask_none")
             run.events["mask_none"] += 1
             self.act("mask_none")
-            self.dwell(1.0)  # back from the reboot, the daemon in step again
+            self.dwell(0.3)  # the output driver takes the mask at its next tick
             run.timeline.append((time.monotonic(), "forge_safety"))
         if not sim.state()["safety_on"]:
             sim.safety(True)

@@ -76,7 +76,7 @@ RACE_DEAD = "race: the outputs alive again before a readback could show them dea
 DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
 FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
 #: Causes of an output change that bring stored values out (the outputs coming alive).
-ALIVE_CAUSES = frozenset({"arm", "prearm", "param", "safety_off", "boot"})
+ALIVE_CAUSES = frozenset({"arm", "prearm", "param", "mask", "safety_off", "boot"})
 
 
 @dataclass(frozen=True)

@@ -258,6 +258,7 @@ class SimAutopilot:
         self._forger.run(now_s)
         if not self._state.rebooting:
             self._outputs.run_prearm(now_s)
+            self._outputs.run_mask(now_s)
             self._run_inbox(now_s)
             if self._lua is not None:
                 self._lua.run(now_s)
@@ -285,6 +286,8 @@ class SimAutopilot:
             prearm_s = self._outputs.prearm_due_s()
             if prearm_s is not None and not self._outputs.prearmed:
                 candidates.append(prearm_s)
+            if (mask_s := self._outputs.mask_due_s()) is not None:
+                candidates.append(mask_s)
         if (vehicle_s := self._world.next_event_s()) is not None:
             candidates.append(vehicle_s)
         candidates += self._wire.links_due_s()

@@ -234,8 +234,7 @@ class ArduPilot(Flavour):
         return not outputs.safety_on
 
     def live(self, outputs: Outputs, output: int) -> bool:
-        mask = outputs.params["BRD_SAFETY_MASK"].value
-        return not outputs.safety_on or bool(mask >> (output - 1) & 1)
+        return not outputs.safety_on or bool(outputs.safety_mask >> (output - 1) & 1)
 
     def output_us(self, outputs: Outputs, output: int) -> tuple[int, int]:
         # SERVO_OUTPUT_RAW reads back what the output driver was told, while the safety switch

@@ -12,7 +12,8 @@ at each boot when ``BRD_SAFETY_DEFLT`` is 1 (0 here by default, so outputs are l
 :meth:`Outputs.set_safety` flips it. While on, an output whose bit (output − 1) is not in
 ``BRD_SAFETY_MASK`` sends no pulses; DO_SET_SERVO is still ACCEPTED and SERVO_OUTPUT_RAW still
 reports the PWM given (``read()`` returns the stored period); switched off, the stored PWMs go
-out in one step.
+out in one step. A new ``BRD_SAFETY_MASK`` applies at the next tenth of a second since boot
+(``RCOutput::safety_update`` reads it at 10 Hz), a reboot's at once.
 
 PX4: disarmed at boot (``SimConfig.armed``: armed at start); MAV_CMD_COMPONENT_ARM_DISARM param1
 1 / 0 arms / disarms (param2 21196: forced, a kill) → ACCEPTED, other values DENIED.
@@ -60,6 +61,8 @@ ARDUPILOT_FREE_FUNCTIONS = frozenset({0, 1, *range(51, 67)})
 STATUSTEXT_IN_USE = "ServoRelayEvent: Channel {output} is already in use"
 #: What an output assigned to a function (a motor, disarmed) reports before any command.
 IDLE_ASSIGNED_PWM_US = 1000
+#: ArduPilot's output driver reads BRD_SAFETY_MASK this often (``RCOutput::safety_update``).
+MASK_PERIOD_S = 0.1
 #: MAV_CMD_COMPONENT_ARM_DISARM param2 that forces (PX4 skips its checks; here: a kill).
 PX4_FORCE_MAGIC = 21196
 
@@ -124,6 +127,10 @@ class Outputs:
         self.commanded_us: dict[int, int] = self._boot_pwm_us()
         #: ArduPilot: the safety switch (BRD_SAFETY_DEFLT at each boot).
         self.safety_on = self._flavour.safety_at_boot(params)
+        #: ArduPilot: the BRD_SAFETY_MASK the output driver applies, and when it next reads a
+        #: changed one (None: unchanged).
+        self.safety_mask = self._mask_param()
+        self._mask_due_s: float | None = None
         #: What the autopilot reports (SERVO_OUTPUT_RAW, ACTUATOR_OUTPUT_STATUS) …
         self.pwm_us: dict[int, int] = {}
         #: … and what each servo physically receives (0: no pulses).
@@ -201,9 +208,29 @@ class Outputs:
             )
 
     def on_param_change(self, now_s: float) -> None:
-        """A parameter was set: the prearm mode, functions, limits and mask apply at once."""
+        """A parameter was set: the prearm mode, functions and limits apply at once, the mask
+        at the output driver's next tick."""
         self.run_prearm(now_s)
+        if self._mask_param() != self.safety_mask and self._mask_due_s is None:
+            since_boot_s = now_s - self._state.boot_s
+            ticks = math.floor(since_boot_s / MASK_PERIOD_S + 1e-9) + 1
+            self._mask_due_s = self._state.boot_s + ticks * MASK_PERIOD_S
         self.refresh(now_s, "param")
+
+    def _mask_param(self) -> int:
+        param = self.params.get("BRD_SAFETY_MASK")
+        return 0 if param is None else int(param.value)
+
+    def mask_due_s(self) -> float | None:
+        """When the output driver takes a changed BRD_SAFETY_MASK (None: none changed)."""
+        return self._mask_due_s
+
+    def run_mask(self, now_s: float) -> None:
+        if self._mask_due_s is not None and now_s >= self._mask_due_s:
+            self._mask_due_s = None
+            if self._mask_param() != self.safety_mask:
+                self.safety_mask = self._mask_param()
+                self.refresh(now_s, "mask")
 
     # -- arming, prearm, safety --------------------------------------------------------------
 
@@ -377,6 +404,7 @@ class Outputs:
         self.commanded_us = self._boot_pwm_us()
         self.actuator_values = [math.nan] * PX4_ACTUATOR_SET_COUNT
         safety_on = self._flavour.safety_at_boot(self.params)
+        self.safety_mask, self._mask_due_s = self._mask_param(), None
         if safety_on != self.safety_on:
             self.safety_on = safety_on
             self._state.emit(now_s, "safety", on=safety_on, cause="boot")

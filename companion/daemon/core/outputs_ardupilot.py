@@ -481,7 +481,7 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_asked_s = now
 
     def rebooted(self) -> None:
-        # It reads BRD_SAFETY_MASK anew at boot: a new mask applies only then.
+        # Set and not applied yet, a mask applies at the boot: it is read anew.
         self._safety_mask = None
 
     # -- losses -----------------------------------------------------------------------------

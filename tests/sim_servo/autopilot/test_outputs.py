@@ -26,6 +26,7 @@ from tests.sim_servo.autopilot.conftest import (
     ardupilot,
     faulty,
     mapped,
+    param_values,
     px4,
     routing_harness,
 )
@@ -318,6 +319,25 @@ def test_ardupilot_safety_on_keeps_outputs_out_of_the_mask_dead_then_they_jump()
     h.run_for(0.2)
     assert h.ap.safety_on and h.ap.output_us[9] == 0
     assert [e["on"] for e in h.events if e["event"] == "safety"] == [False, True]
+
+
+def test_ardupilot_a_new_safety_mask_applies_at_the_output_drivers_next_tick():
+    # ArduPilot's output driver reads BRD_SAFETY_MASK at 10 Hz: the PARAM_VALUE of a change
+    # comes at once, the outputs follow at the next tenth of a second since boot.
+    h = ardupilot(params={"BRD_SAFETY_DEFLT": 1})
+    h.command(mavlink.MAV_CMD_DO_SET_SERVO, 9, 1700)
+    h.run_for(0.02)
+    assert h.ap.output_us[9] == 0  # held by the switch
+    h.run_for(0.05 - (h.now - START_S) % 0.1)  # half a tick to the next (booted at START_S)
+    mask = 1 << (9 - 1)
+    h.send(h.gcs.param_set_encode(1, 1, b"BRD_SAFETY_MASK", mask, mavlink.MAV_PARAM_TYPE_INT32))
+    assert param_values(h.run_for(0.01))[0].param_value == mask
+    assert h.ap.output_us[9] == 0
+    h.run_for(0.05)
+    assert h.ap.output_us[9] == 1700
+    [step] = [e for e in h.events if e["event"] == "output" and e["output"] == 9]
+    assert step["cause"] == "mask"
+    assert step["t_s"] == pytest.approx(round(step["t_s"], 1), abs=1e-6)  # (since the boot)
 
 
 def test_ardupilot_sys_status_says_whether_the_safety_switch_holds_the_outputs():
