@@ -120,6 +120,10 @@ class ArduPilotOutputs(OutputsTruth):
         #: seen on, from when it is surely live (the first such answer's arrival plus
         #: MASK_APPLY_S); an answer to a request asked after that narrows its joint's band.
         self._mask_live_from_s: dict[int, float] = {}
+        #: Per arm output a BRD_SAFETY_MASK put in it (none before had it): when that came. The
+        #: switch on, it is taken as held MASK_APPLY_S more (ArduPilot applies it within 0.1 s;
+        #: what is sent meanwhile is stored, and goes out with the release).
+        self._mask_freed_s: dict[int, float] = {}
         self._sys_status_asked_s = core.clock()
         self._sys_status_s: float | None = None  # when the last SYS_STATUS came (None: none)
         #: A SYS_STATUS came from this autopilot once: it streams them, so the arm never moves
@@ -444,13 +448,16 @@ class ArduPilotOutputs(OutputsTruth):
         mask = int(value) if math.isfinite(value) and value >= 0 else None
         outputs = self._core.state.outputs
         was_live = set(o for o in outputs if o not in self.dead())
-        self._safety_mask = mask
+        before, self._safety_mask = self._safety_mask, mask
         asked_s, self._mask_asked_s = self._mask_asked_s, None
         for output in outputs:
             if mask is not None and mask >> (output - 1) & 1:
                 self._mask_live_from_s.setdefault(output, at_s + MASK_APPLY_S)
+                if before is None or not before >> (output - 1) & 1:
+                    self._mask_freed_s[output] = at_s
             else:
                 self._mask_live_from_s.pop(output, None)
+                self._mask_freed_s.pop(output, None)
         band = self._held_since_off
         if not self.safety_on or band is None:
             return
@@ -636,11 +643,19 @@ class ArduPilotOutputs(OutputsTruth):
         if not self.safety_on:
             return {}
         mask = self._safety_mask or 0
-        return {
+        dead = {
             o: f"safety switch on (output {o} not in BRD_SAFETY_MASK)"
             for o in self._core.state.outputs
             if not mask >> (o - 1) & 1
         }
+        now = self._core.clock()
+        for output, freed_s in self._mask_freed_s.items():
+            if now < freed_s + MASK_APPLY_S and output not in dead:
+                dead[output] = (
+                    f"safety switch on (output {output} just put in BRD_SAFETY_MASK: "
+                    "ArduPilot frees it within 0.1 s)"
+                )
+        return dead
 
     def unknown(self, now: float) -> dict[int, str]:
         """While its SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a

@@ -250,6 +250,32 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_it_moves_on_with_the_switch_o
     assert ap.fast_changes() == []
 
 
+def test_ardupilot_outputs_a_new_mask_frees_get_nothing_until_it_applied():
+    """Moving, the switch on holds the arm (mask 0); a ground station's servo test stores
+    2000 us on one output. Then BRD_SAFETY_MASK takes the arm in: ArduPilot frees the outputs
+    up to 0.1 s later, bringing out what they store. The core sends nothing to them before
+    (it would be stored, and its step from where the readback shows would go out from where
+    the servo was held), so the release brings out the ground station's PWM, not ours."""
+    ap = ArduPilotOutputsModel()
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 60.0, *start[1:]])
+    ap.run(0.3)
+    ap.set_safety(True)
+    ap.run(0.3)
+    ap.commanded[10] = 2000  # behind the switch: stored, the readback shows it
+    ap.run(0.5)
+    held = ap.pulse[10]
+    ap.set_mask(ARM_MASK)
+    while ap.applied_mask != ARM_MASK:
+        ap.run(0.005)
+    assert ap.changes[-1][1:] == (10, held, 2000)  # out with the release: the ground station's
+    at_deg = ap.core.status()["current_deg"][0]
+    ap.run(0.5)
+    assert ap.core.status()["safety_on"] is True
+    assert abs(ap.core.status()["current_deg"][0] - at_deg) > 10.0  # on its way again
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_ardupilot_a_mask_changed_with_the_switch_on_never_releases_a_jump(seed):
     """A ground station sets BRD_SAFETY_MASK at any moment, the switch on or off, its
