@@ -17,7 +17,7 @@ from companion.daemon.core import (
     SendCommand,
 )
 from companion.daemon.core.outputs import band_of, middle
-from companion.daemon.core.outputs_ardupilot import band_allows, widen
+from companion.daemon.core.outputs_ardupilot import MASK_APPLY_S, band_allows, widen
 from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.autopilot_models import (
     ARM_MASK,
@@ -43,7 +43,9 @@ def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(
     assert rig.core.status()["outputs_live"] is False  # a NaN mask frees nothing
     mask = sum(1 << (o - 1) for o in rig.calibration.outputs)
     rig.frame(lambda c: c.param_value_encode(b"BRD_SAFETY_MASK", mask, 6, 1, 0))
-    rig.advance(0.05)
+    rig.advance(0.05)  # ArduPilot frees them within 0.1 s of the change: not before
+    assert rig.core.status()["outputs_live"] is False
+    rig.advance(MASK_APPLY_S)
     assert rig.core.status()["outputs_live"] is True and rig.servo()
 
 
