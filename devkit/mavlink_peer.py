@@ -334,7 +334,9 @@ class ScriptedPeer(MavPeer):
     Script knobs: ``drop_acks`` (ACKs to swallow before answering), ``failed_outputs``
     ({output: STATUSTEXT sent with a FAILED ACK; after it, as ArduPilot does, unless
     ``statustext_after_ack`` is False}), ``ack_result`` (default ACCEPTED),
-    ``on_command`` (called with each COMMAND_LONG before answering), ``signing_key``.
+    ``on_command`` (called with each COMMAND_LONG before answering), ``signing_key``,
+    ``answers_heartbeat_requests`` (a HEARTBEAT after the ACK of MAV_CMD_REQUEST_MESSAGE for one,
+    as ArduPilot and PX4 do; off unless set, so a test's HEARTBEATs are its own).
     """
 
     def __init__(
@@ -356,6 +358,7 @@ class ScriptedPeer(MavPeer):
         self._sys_status_interval_s: float | None = None
         self._sys_status_due_s = 0.0
         self.ack_result = mavlink.MAV_RESULT_ACCEPTED
+        self.answers_heartbeat_requests = False
         self.on_command: Callable[[Any], object] | None = None
         super().__init__(
             endpoint, system_id=system_id, component_id=component_id, signing_key=signing_key
@@ -410,6 +413,12 @@ class ScriptedPeer(MavPeer):
             if cmd.param2 > 0:
                 self._sys_status_interval_s = cmd.param2 / 1e6
                 self._sys_status_due_s = time.monotonic() + self._sys_status_interval_s
+        if (
+            self.answers_heartbeat_requests
+            and cmd.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+            and int(cmd.param1) == mavlink.MAVLINK_MSG_ID_HEARTBEAT
+        ):
+            self.send_heartbeat()
         if text is not None and self.statustext_after_ack:
             # One main-loop pass later, as ArduPilot's queued STATUSTEXT goes out.
             timer = threading.Timer(self.statustext_delay_s, self.send_statustext, (text,))

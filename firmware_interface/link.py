@@ -16,7 +16,12 @@ pymavlink's generated MAVLink 2 codec (``pymavlink.dialects.v20.ardupilotmega``)
   and decoding use two separate codec objects for the same reason.
 
 Link state (:class:`LinkState`) is computed from the injected ``clock``: UP while the autopilot's
-HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. It is
+HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. An
+autopilot HEARTBEAT comes once a second: while none was heard lately (a start, a reopen, a
+loss), another frame from the autopilot's component (its streams flow on, asked for by an
+earlier run) makes the link ask that system for one at once (MAV_CMD_REQUEST_MESSAGE, at most
+every ``HEARTBEAT_ASK_INTERVAL_S``): the link comes up within a round trip, not up to a second
+later. Only a HEARTBEAT pins the autopilot, as before. It is
 also LOST while the transport is down, and after a reopen until a HEARTBEAT arrives on the new
 port: a serial adapter that re-enumerated often means a flight controller that rebooted. It is
 FAULT while signing is on and its state cannot be stored (:attr:`MavlinkLink.fault` says why):
@@ -122,6 +127,10 @@ def is_autopilot_heartbeat(msg: MavMessage) -> bool:
 
 #: :meth:`MavlinkLink.caught_up`: how long a caller waits at most for the reader, and how
 #: often it looks (sleeping meanwhile, so the reader thread gets the interpreter).
+#: Asking for a HEARTBEAT (module docstring): no more often than this, and only while none came
+#: for this long (a second and a half of the autopilot's 1 Hz).
+HEARTBEAT_ASK_INTERVAL_S = 0.25
+HEARTBEAT_ASK_AFTER_S = 1.5
 CATCH_UP_S = 0.005
 CATCH_UP_POLL_S = 0.0002
 
@@ -441,6 +450,7 @@ class MavlinkLink:
         self._autopilot_event = threading.Event()
         self._last_heartbeat_at: float | None = None
         self._heard_on_transport = False  # an autopilot HEARTBEAT came in on this transport
+        self._heartbeat_asked_at = -float("inf")
         self._counts = dict.fromkeys(
             (
                 "rx_messages",
@@ -760,6 +770,11 @@ class MavlinkLink:
         kind = msg.get_type()
         if kind == "HEARTBEAT":
             self._handle_heartbeat(msg)
+        elif (
+            not self._heard_on_transport
+            or self.clock() - (self._last_heartbeat_at or -float("inf")) > HEARTBEAT_ASK_AFTER_S
+        ):
+            self._ask_heartbeat(msg)
         with self._sub_lock:
             subscriptions = self._subs_by_type.get(kind)
             if subscriptions is None:
@@ -921,6 +936,40 @@ class MavlinkLink:
         system = self.config.target_system
         component = self.config.target_component or mavlink.MAV_COMP_ID_AUTOPILOT1
         return system in (None, source[0]) and component == source[1]
+
+    def _ask_heartbeat(self, msg: MavMessage) -> None:
+        """No autopilot HEARTBEAT lately and ``msg`` came from the autopilot's component (the
+        configured ids, the pinned autopilot's, else component 1 of any system): ask that
+        system for a HEARTBEAT now (module docstring)."""
+        autopilot = self._autopilot
+        system, component = msg.get_srcSystem(), msg.get_srcComponent()
+        wanted_system = self.config.target_system or (autopilot.system_id if autopilot else None)
+        wanted_component = self.config.target_component or (
+            autopilot.component_id if autopilot else mavlink.MAV_COMP_ID_AUTOPILOT1
+        )
+        if component != wanted_component or wanted_system not in (None, system):
+            return
+        now = self.clock()
+        if now - self._heartbeat_asked_at < HEARTBEAT_ASK_INTERVAL_S:
+            return
+        self._heartbeat_asked_at = now
+        ask = self._encoder.command_long_encode(
+            system,
+            component,
+            mavlink.MAV_CMD_REQUEST_MESSAGE,
+            0,
+            float(mavlink.MAVLINK_MSG_ID_HEARTBEAT),
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        )
+        try:
+            self.send(ask)
+        except LinkError as exc:  # closed, a write that failed, signing at fault: a loss's
+            log.debug("%s: HEARTBEAT not asked for: %s", self.description, exc)
 
     def _handle_heartbeat(self, msg: MavMessage) -> None:
         if not is_autopilot_heartbeat(msg):

@@ -58,6 +58,25 @@ def test_discovers_the_autopilot_and_adopts_its_system_id(udp_peer, udp_link):
     )
 
 
+def test_an_autopilot_heard_before_its_heartbeat_is_asked_for_one(udp_peer, udp_link):
+    # A restart: the autopilot's streams flow on (an earlier run asked for them); its 1 Hz
+    # HEARTBEAT would come up to a second later. A frame from another component (sent first)
+    # asks nothing.
+    udp_peer.answers_heartbeat_requests = True
+    udp_peer.wait_for_messages("HEARTBEAT")  # ours: the peer knows where we are
+    gimbal = mavlink.MAVLink(None, 42, mavlink.MAV_COMP_ID_GIMBAL)
+    udp_peer.endpoint.write(gimbal.system_time_encode(0, 1000).pack(gimbal))
+    for _ in range(3):
+        udp_peer.send(udp_peer.mav.system_time_encode(0, 1000))
+    info = udp_link.wait_for_autopilot(timeout_s=5.0)
+    assert (info.system_id, info.component_id) == (42, 1)
+    asks = [
+        m for m in udp_peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_REQUEST_MESSAGE
+    ]
+    assert len(asks) == 1  # one per HEARTBEAT_ASK_INTERVAL_S (the fake clock stands still)
+    assert (asks[0].target_system, asks[0].target_component, asks[0].param1) == (42, 1, 0)
+
+
 def test_configured_target_ignores_other_systems(udp_peer, clock):
     config = LinkConfig(target_system=7, system_id=7, **FAST)
     url = f"udpout:127.0.0.1:{udp_peer.endpoint.port}"
