@@ -305,5 +305,7 @@ class Streams:
         msg_id = int(command.params[0]) if math.isfinite(command.params[0]) else -1
         if msg_id not in self.ids:
             return mavlink.MAV_RESULT_FAILED
+        if msg_id == HEARTBEAT and self._heartbeat_paused_at(now_s):
+            return mavlink.MAV_RESULT_ACCEPTED  # the fault: no HEARTBEAT, asked for or not
         self._wire.defer(self.message(msg_id, now_s), now_s)
         return mavlink.MAV_RESULT_ACCEPTED

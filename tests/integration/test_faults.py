@@ -253,7 +253,11 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
 
         assert wait_until(lambda: not daemon.status()["holding"], WAIT_S)
         [resumed] = sim.events("fault", fault="heartbeat_resumed")
-        commands = sim.events("rx", msg="COMMAND_LONG")
+        commands = [
+            e
+            for e in sim.events("rx", msg="COMMAND_LONG")
+            if e["fields"]["command"] == mavlink.MAV_CMD_DO_SET_SERVO
+        ]
         during = [e for e in commands if held_sim_s <= e["t_s"] <= resumed["t_s"]]
         assert during == [], f"servo commands while holding: {during[:3]}"
         # Back up: the PWMs held are sent again first, then the move carries on.
@@ -277,7 +281,8 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
             angle = joint.pwm_us_to_angle_deg(pwm)
             acked = held["current_deg"][calibration.outputs.index(output)]
             assert abs(angle - acked) <= step_deg + 0.2, (output, angle, acked)
-        recovered_s = min(e["t_s"] for e in commands if e["t_s"] > resumed["t_s"]) - resumed["t_s"]
+        servo_after = [e["t_s"] for e in sim.events("servo") if e["t_s"] > resumed["t_s"]]
+        recovered_s = min(servo_after) - resumed["t_s"]
 
         assert daemon.request("goto", pose=list(near))["outcome"] == "accepted"
         assert daemon.request("stop")["outcome"] == "accepted"
@@ -296,8 +301,8 @@ def test_heartbeat_pause_holds_within_3_s_refuses_targets_and_recovers(sims, dae
         report(
             "heartbeat-pause",
             pause_to_hold_s=round(hold_s, 3),
-            commands_while_holding=len(during),
-            resume_to_first_command_s=round(recovered_s, 3),
+            servo_commands_while_holding=len(during),
+            resume_to_first_servo_command_s=round(recovered_s, 3),
             counters=status["counters"],
             pwm_checked=checked,
         )
