@@ -338,21 +338,26 @@ class Reload:
 @dataclass
 class SpeedLimits:
     """The joint speed limit over time: ``base`` until the first reload, each reload's ``new``
-    after its window (reloads in time order, windows not overlapping)."""
+    after its window (reloads in time order; windows may overlap: reloads sent in quick
+    succession)."""
 
     base: float
     reloads: list[Reload] = field(default_factory=list)
 
     def at(self, t_s: float) -> tuple[float, float]:
-        """(lower, higher) limit that may be in force at ``t_s``: equal outside a window."""
+        """(lower, higher) limit that may be in force at ``t_s``: equal outside a window; in
+        one or more, any of their old and new limits."""
         speed = self.base
+        may_be: set[float] = set()
         for reload in self.reloads:
             if t_s < reload.start_s:
                 break
             if t_s <= reload.end_s:
-                return min(reload.old, reload.new), max(reload.old, reload.new)
+                may_be |= {reload.old, reload.new}
             speed = reload.new
-        return speed, speed
+        if not may_be:
+            return speed, speed
+        return min(may_be), max(may_be)
 
 
 def judge(

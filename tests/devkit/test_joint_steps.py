@@ -138,6 +138,17 @@ def test_whose_step_it_is():
     assert step_kind(arm, disarmed_us=None, stored_foreign=False) == DAEMON_ALIVE
 
 
+def test_overlapping_reload_windows_allow_any_of_their_limits():
+    # Two reloads 40 ms apart (30 -> 40, then 40 -> 60): in the second's window the daemon may
+    # already step at 60, though the first's window is not over (seen: a 2.3 deg step judged
+    # against 40 deg/s alone).
+    limits = SpeedLimits(30.0, [Reload(1.0, 1.105, 30.0, 40.0), Reload(1.04, 1.145, 40.0, 60.0)])
+    assert limits.at(1.02) == (30.0, 40.0)
+    assert limits.at(1.09) == (30.0, 60.0)
+    assert limits.at(1.12) == (40.0, 60.0)
+    assert limits.at(1.2) == (60.0, 60.0)
+
+
 def test_a_reload_window_is_judged_against_both_limits():
     limits = SpeedLimits(60.0, [Reload(1.0, 1.2, 60.0, 20.0), Reload(3.0, 3.1, 20.0, 120.0)])
     assert limits.at(0.5) == (60.0, 60.0)

@@ -61,7 +61,7 @@ SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
 #: being set (with a margin here). An output the mask newly frees may still be held that long
 #: after an answer says it is in it; one it newly holds is held only after the answer said
 #: otherwise, so the pose it holds is among those sent since that answer was asked for.
-MASK_APPLY_S = 0.15
+MASK_APPLY_S = 0.12
 #: While the switch is on, BRD_SAFETY_MASK asked for and unanswered this many SYS_STATUS
 #: intervals (a lost request or answer) is asked for again.
 MASK_ASK_AGAIN_INTERVALS = 4
