@@ -17,7 +17,7 @@ pymavlink's generated MAVLink 2 codec (``pymavlink.dialects.v20.ardupilotmega``)
 
 Link state (:class:`LinkState`) is computed from the injected ``clock``: UP while the autopilot's
 HEARTBEAT was heard within ``loss_timeout_s``, LOST after, WAITING before the first one. An
-autopilot HEARTBEAT comes once a second: while none was heard lately (a start, a reopen, a
+autopilot HEARTBEAT comes once a second: while the link is not up (a start, a reopen, a
 loss), another frame from the autopilot's component (its streams flow on, asked for by an
 earlier run) makes the link ask that system for one at once (MAV_CMD_REQUEST_MESSAGE, at most
 every ``HEARTBEAT_ASK_INTERVAL_S``): the link comes up within a round trip, not up to a second
@@ -127,10 +127,8 @@ def is_autopilot_heartbeat(msg: MavMessage) -> bool:
 
 #: :meth:`MavlinkLink.caught_up`: how long a caller waits at most for the reader, and how
 #: often it looks (sleeping meanwhile, so the reader thread gets the interpreter).
-#: Asking for a HEARTBEAT (module docstring): no more often than this, and only while none came
-#: for this long (a second and a half of the autopilot's 1 Hz).
+#: Asking for a HEARTBEAT while the link is not up (module docstring): no more often than this.
 HEARTBEAT_ASK_INTERVAL_S = 0.25
-HEARTBEAT_ASK_AFTER_S = 1.5
 CATCH_UP_S = 0.005
 CATCH_UP_POLL_S = 0.0002
 
@@ -770,10 +768,7 @@ class MavlinkLink:
         kind = msg.get_type()
         if kind == "HEARTBEAT":
             self._handle_heartbeat(msg)
-        elif (
-            not self._heard_on_transport
-            or self.clock() - (self._last_heartbeat_at or -float("inf")) > HEARTBEAT_ASK_AFTER_S
-        ):
+        elif self._published_state is not LinkState.UP:  # no clock read per frame while up
             self._ask_heartbeat(msg)
         with self._sub_lock:
             subscriptions = self._subs_by_type.get(kind)
@@ -938,7 +933,7 @@ class MavlinkLink:
         return system in (None, source[0]) and component == source[1]
 
     def _ask_heartbeat(self, msg: MavMessage) -> None:
-        """No autopilot HEARTBEAT lately and ``msg`` came from the autopilot's component (the
+        """The link not up and ``msg`` came from the autopilot's component (the
         configured ids, the pinned autopilot's, else component 1 of any system): ask that
         system for a HEARTBEAT now (module docstring)."""
         autopilot = self._autopilot
