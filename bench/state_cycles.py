@@ -68,8 +68,12 @@ which lies between the SIGHUP and the ``reloaded`` line seen in its log plus two
 limits, and the steps over the lower one only are counted apart ("reload window"). Outputs
 coming alive bring out a value stored earlier: such a step is judged by the higher of the
 limits in force when it was stored and at the release (a safety switch held the joint
-mid-motion; the rewind stored a pose within the band of that motion's steps). A killed or
-restarted daemon's successor reads the config in force.
+mid-motion; the rewind stored a pose within the band of that motion's steps). So is the first
+pulse after no pulses, by the limits when the pulses stopped and at the step (the servo stopped
+somewhere in the band of the steps sent before: a switch seen late, forged SYS_STATUS; after a
+reboot the daemon re-sends the band's middle, at most a step of that motion from the truth).
+The steps over the lower limit only, in any of these, are counted apart ("over the lower limit
+only"). A killed or restarted daemon's successor reads the config in force.
 
 **Gotos answered**: each ``goto`` goes on a control connection of its own (a pool: a connection
 answers one request at a time, so a goto never waits behind another's answer); answered within
@@ -792,7 +796,7 @@ def steps_table(runs: list[Run]) -> list[str]:
                 "daemon: commands",
                 "daemon: coming alive",
                 "largest daemon step (°)",
-                "daemon, reload window: over the lower limit only",
+                "daemon, over the lower limit only (a reload between)",
                 "foreign: commands",
                 "foreign: coming alive",
                 "foreign: autopilot to its disarmed PWM",

@@ -53,7 +53,9 @@ would see the same jump).
 **A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
 instant known only within a window (the signal sent … the daemon said it applied it): a step in
 the window is judged against the higher of the two limits (either may be in force) and, apart,
-against the lower; elsewhere against the limit in force.
+against the lower; elsewhere against the limit in force. A value stored earlier coming out, and
+the first pulse after no pulses, are judged by the limit when it was stored (when the pulses
+stopped) too: they move the joint by at most a step of the motion that was interrupted.
 """
 
 from __future__ import annotations
@@ -106,6 +108,9 @@ class JointStep:
     #: |Δangle| from the pulse before ``from_us`` (None: none): a step coming alive after a
     #: short dead time, compared with where the joint was before it (:data:`RACE_DEAD`).
     back_deg: float | None = None
+    #: The first pulse after no pulses (a safety switch, a reboot): when the pulses stopped
+    #: (None: no gap before this step), see :func:`judge`.
+    gap_from_s: float | None = None
 
     @property
     def fast(self) -> bool:
@@ -182,6 +187,7 @@ def joint_steps(
     pulse: int | None = None  # the last pulse (> 0): where the servo holds
     before: int | None = None  # the pulse before it
     previous_s: float | None = None
+    stopped_s: float | None = None  # when the pulses stopped (None: they go on)
     ordered = list(changes)
     for k, change in enumerate(ordered):
         if k + 1 < len(ordered) and ordered[k + 1].t_s == change.t_s:
@@ -189,7 +195,10 @@ def joint_steps(
         dt_s = change.t_s - previous_s if previous_s is not None else float("inf")
         previous_s = change.t_s
         if change.pwm_us == 0:
+            if stopped_s is None:
+                stopped_s = change.t_s
             continue  # no pulses: the servo holds
+        gap_from_s, stopped_s = stopped_s, None
         if pulse is None:
             first.append(change)
         elif change.pwm_us != pulse:
@@ -207,6 +216,7 @@ def joint_steps(
                     back_deg=None
                     if before is None
                     else abs(to_angle_deg(change.pwm_us) - to_angle_deg(before)),
+                    gap_from_s=gap_from_s,
                 )
             )
         if change.pwm_us != pulse:
@@ -373,10 +383,15 @@ def judge(
     out a stored value (outputs coming alive: ``stored_s``, when it was stored) is judged by
     the limit in force then too, the higher of the two: a safety switch that held a joint
     mid-motion releases it by up to a step of the motion it interrupted, whatever limit a
-    reload set while it was held."""
+    reload set while it was held. So is the first pulse after no pulses (``step.gap_from_s``):
+    where the servo stopped is known only to within the poses the daemon sent before it
+    stopped (a switch gone on unseen, forged SYS_STATUS, a reboot: the daemon re-sends the
+    middle of that band), at most a step of the motion it interrupted from the truth."""
     lower, higher = limits.at(step.t_s)
     if stored_s is not None and step.cause != "command":
         higher = max(higher, limits.at(stored_s)[1])
+    if step.gap_from_s is not None:
+        higher = max(higher, limits.at(step.gap_from_s)[1])
     return (
         step.step_deg > higher / rate_hz + quantum_deg,
         step.step_deg > lower / rate_hz + quantum_deg,

@@ -73,8 +73,11 @@ def test_no_pulses_hold_and_the_next_pulse_is_compared_with_the_last():
     found, first = steps(changes)
     assert first == [Change(1.0, 1400, "command")]
     assert found == [
-        JointStep(9, 5.0, 1400, 1600, pytest.approx(20.0), 1.0, pytest.approx(3.1), "command")
-    ]
+        JointStep(
+            9, 5.0, 1400, 1600, pytest.approx(20.0), 1.0, pytest.approx(3.1), "command",
+            gap_from_s=4.0,
+        )
+    ]  # fmt: skip
 
 
 def test_output_changes_from_the_log_and_a_gap_is_an_error():
@@ -278,3 +281,27 @@ def test_a_stored_value_coming_alive_is_judged_by_the_limit_it_was_stored_under_
     assert verdict("safety_off", 2.0) == (True, True)  # stored at 20 °/s
     assert verdict("command", 0.5) == (True, True)  # a command is its own storing
     assert verdict("safety_off", None) == (True, True)
+
+
+def test_the_first_pulse_after_a_gap_is_judged_by_the_limit_when_the_pulses_stopped_too():
+    # The switch stopped the pulses at 60 °/s (a band of steps sent before it), a reload set
+    # 20 °/s, a reboot; the restarted daemon re-sends the band's middle: 2.5° from the truth.
+    changes = [
+        Change(0.0, 1500, "start"),
+        Change(0.5, 1530, "command"),
+        Change(1.0, 0, "safety_on"),
+        Change(2.0, 0, "reboot"),
+        Change(4.0, 1555, "command"),
+        Change(4.05, 1580, "command"),
+    ]
+    found, _ = joint_steps(
+        9, changes, angle, joint_speed_deg_s=60.0, rate_hz=20.0, quantum_deg=DEG_PER_US
+    )
+    assert [s.gap_from_s for s in found] == [None, 1.0, None]
+    limits = SpeedLimits(60.0, [Reload(1.5, 1.6, 60.0, 20.0)])
+    verdicts = [judge(s, limits, rate_hz=20.0, quantum_deg=DEG_PER_US) for s in found]
+    assert verdicts[1] == (False, True)  # within a step at 60 °/s; over 20 °/s: apart
+    assert verdicts[2] == (True, True)  # the next step is judged by 20 °/s alone
+    # Stopped after the reload: 20 °/s alone.
+    late = SpeedLimits(60.0, [Reload(0.6, 0.7, 60.0, 20.0)])
+    assert judge(found[1], late, rate_hz=20.0, quantum_deg=DEG_PER_US) == (True, True)
