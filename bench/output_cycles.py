@@ -48,7 +48,10 @@ when the dwell already exceeded it, and apart otherwise. The bound is one readba
 50 ms (the 20 ms poll, the stream's phase and the loopback hops). On PX4 a dead output is seen
 at the first readback after the event, a live one at the first that shows its marker
 (``MARKER_OFFSET_US``); at the start, after a reboot or a loss, a readback settled
-``READBACK_SETTLE_S`` (0.15 s) after the marker's ACK, twice, tells that it is not live.
+``READBACK_SETTLE_S`` (0.15 s) after the marker's ACK, twice, tells that it is not live. Of the
+events over the bound, those where a poll past the bound found the status saying live while the
+outputs were not are counted apart ("said live while not"): a false claim, where "not known
+live" while they are live (readbacks that contradict each other, a restart) is caution.
 """
 
 from __future__ import annotations
@@ -110,6 +113,21 @@ class Agreement:
     latency_s: float | None = None  # None: not agreed before the next event (censored)
     dwell_s: float = 0.0
     truth_changed: bool = False
+    #: A poll later than the bound found the status saying live while the outputs were not
+    #: (the other way round, "not known live" while live, is caution, not a false claim).
+    said_live_late: bool = False
+
+    def poll(self, polled_s: float, truth: bool, said: bool, bound_s: float) -> bool:
+        """A poll at ``polled_s`` found the simulator's ``truth`` and the daemon's ``said``:
+        whether they agree, the first time (the wait is over)."""
+        self.dwell_s = polled_s - self.t_s
+        self.truth_changed |= truth != self.truth_before
+        if said and not truth and self.dwell_s > bound_s:
+            self.said_live_late = True
+        if truth == said and self.latency_s is None:
+            self.latency_s = self.dwell_s
+            return True
+        return False
 
 
 @dataclass
@@ -286,13 +304,9 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
                     if not last_agree:
                         out.disagree_s += polled - last_poll_s
                 last_poll_s, last_agree = polled, truth == said
-                if pending is not None:
-                    pending.dwell_s = polled - pending.t_s
-                    pending.truth_changed |= truth != pending.truth_before
-                    if truth == said and pending.latency_s is None:
-                        pending.latency_s = polled - pending.t_s
-                        out.agreements.append(pending)
-                        pending = None
+                if pending is not None and pending.poll(polled, truth, said, bound_s(flavour)):
+                    out.agreements.append(pending)
+                    pending = None
         if pending is not None:
             out.agreements.append(pending)
         out.wall_s = time.monotonic() - t_start
@@ -413,6 +427,7 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             _ms(agreed, 99),
             max(agreed, default=math.nan) * 1e3, _ms(changed, 99),
             max(changed, default=math.nan) * 1e3, over,
+            sum(1 for a in r.agreements if a.said_live_late),
             sum(1 for a in censored if a.dwell_s <= bound),
             100.0 * r.disagree_s / r.polled_s if r.polled_s else math.nan,
         ])  # fmt: skip
@@ -428,6 +443,7 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             "truth changed: p99 ms",
             "max ms",
             "over the bound",
+            "of which said live while not (past the bound)",
             "next event first (dwell under the bound)",
             "time disagreeing %",
         ],

@@ -465,13 +465,9 @@ class Cycles:
             last_poll_s, last_agree = polled, truth == said
             last_unknown = truth and unknown
             pending = self.pending
-            if pending is not None:
-                pending.dwell_s = polled - pending.t_s
-                pending.truth_changed |= truth != pending.truth_before
-                if truth == said and pending.latency_s is None:
-                    pending.latency_s = polled - pending.t_s
-                    run.agreements.append(pending)
-                    self.pending = None
+            if pending is not None and pending.poll(polled, truth, said, bound_s(run.flavour)):
+                run.agreements.append(pending)
+                self.pending = None
 
     def daemon_live(self) -> tuple[bool, bool] | None:
         """The daemon's ``outputs_live``, and whether every output it says is not live is only
@@ -894,6 +890,7 @@ def status_table(runs: list[Run]) -> list[str]:
         rows.append([
             r.flavour, bound * 1e3, len(r.agreements), _ms(agreed, 50), _ms(agreed, 99),
             max(agreed, default=math.nan) * 1e3, over,
+            sum(1 for a in r.agreements if a.said_live_late),
             sum(1 for a in censored if a.dwell_s <= bound),
             100.0 * r.disagree_s / r.polled_s if r.polled_s else math.nan,
             100.0 * r.unknown_s / r.polled_s if r.polled_s else math.nan,
@@ -910,6 +907,7 @@ def status_table(runs: list[Run]) -> list[str]:
                 "p99 ms",
                 "max ms",
                 "over the bound",
+                "of which said live while not (past the bound)",
                 "next event first (dwell under the bound)",
                 "time disagreeing %",
                 "of which live but said not known live %",
