@@ -62,6 +62,7 @@ import shutil
 import struct
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -366,6 +367,40 @@ def bound_s(flavour: str) -> float:
     return READBACK_PERIOD_S[flavour] + MARGIN_S
 
 
+def over_bound_lines(
+    agreements: Sequence[Agreement],
+    timeline: Sequence[tuple[float, str]],
+    sim_t0: float,
+    bound: float,
+    *,
+    false_claims_only: bool = False,
+) -> list[str]:
+    """A line for each event whose status took longer than ``bound`` to agree (or, with
+    ``false_claims_only``, said live while the outputs were not past it)."""
+    lines = []
+    events = [e for _, e in timeline]
+    times = [t for t, _ in timeline]
+    for a in agreements:
+        took = a.latency_s if a.latency_s is not None else a.dwell_s
+        if took <= bound or (false_claims_only and not a.said_live_late):
+            continue
+        k = max(i for i, t in enumerate(times) if t <= a.t_s)
+        before = f"{events[k - 1]} {a.t_s - times[k - 1]:.2f} s before" if k else "none"
+        lines.append(
+            f"- {a.event} at {a.t_s - sim_t0:.3f} s (sim clock): "
+            + (
+                f"agreed after {took * 1e3:.0f} ms"
+                if a.latency_s is not None
+                else f"not agreed in its {took * 1e3:.0f} ms dwell"
+            )
+            + f"; truth before {'live' if a.truth_before else 'not live'}"
+            + f"{', changed' if a.truth_changed else ''}"
+            + ("; said live while not" if a.said_live_late else "")
+            + f"; event before: {before}"
+        )
+    return lines
+
+
 def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
     lines = [
         f"# Output cycles ({args.cycles} cycles a flavour, seed {args.seed})",
@@ -478,24 +513,7 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
                 "over the bound by event: "
                 + ", ".join(f"{k} {v}" for k, v in sorted(slow_by_event.items()))
             )
-            events = [e for _, e in r.timeline]
-            times = [t for t, _ in r.timeline]
-            for a in r.agreements:
-                took = a.latency_s if a.latency_s is not None else a.dwell_s
-                if took <= bound_s(r.flavour):
-                    continue
-                k = max(i for i, t in enumerate(times) if t <= a.t_s)
-                before = f"{events[k - 1]} {a.t_s - times[k - 1]:.2f} s before" if k else "none"
-                lines.append(
-                    f"- {a.event} at {a.t_s - r.sim_t0:.3f} s (sim clock): "
-                    + (
-                        f"agreed after {took * 1e3:.0f} ms"
-                        if a.latency_s is not None
-                        else f"not agreed in its {took * 1e3:.0f} ms dwell"
-                    )
-                    + f"; truth before {'live' if a.truth_before else 'not live'}"
-                    + f"{', changed' if a.truth_changed else ''}; event before: {before}"
-                )
+            lines += over_bound_lines(r.agreements, r.timeline, r.sim_t0, bound_s(r.flavour))
         commands = sorted(s.step_deg for s in fast if s.cause == "command")
         if commands:
             lines.append(

@@ -122,6 +122,7 @@ from bench.output_cycles import (
     Agreement,
     bound_s,
     joint_angle,
+    over_bound_lines,
     quantum_deg,
     random_poses,
     set_param,
@@ -978,6 +979,11 @@ def details(r: Run, answer_bound_s: float) -> list[str]:
         else:
             took = "lost in a kill" if g.lost else "never answered"
         lines.append(f"- sent at {g.sent_s - r.sim_t0:.3f} s after {g.after}: {took}")
+    claims = over_bound_lines(
+        r.agreements, r.timeline, r.sim_t0, bound_s(r.flavour), false_claims_only=True
+    )
+    if claims:
+        lines += ["", "Status said live while the outputs were not, past the bound:", "", *claims]
     return lines
 
 

@@ -501,7 +501,7 @@ def _step_us(rig) -> float:
     return STEP_DEG / span_deg * (joint.pwm_max_us - joint.pwm_min_us) + 1
 
 
-def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
+def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig, caplog):
     # A ground station's servo test (DO_SET_SERVO) put output 9 at 2000 us: status showed the
     # readback but the daemon went on believing its own PWM, and the next goto jumped 78-132
     # deg in one command.
@@ -522,7 +522,10 @@ def test_ardupilot_a_foreign_servo_command_is_taken_as_where_the_joint_is(rig):
     rig.clock.advance(0.005)  # its answer, a round trip later
     rig.system_time(600_000)
     rig.clock.advance(0.02)
-    rig.readback(shown)
+    with caplog.at_level("WARNING", logger="armbridge"):
+        rig.readback(shown)
+    [said] = [r.getMessage() for r in caplog.records if "another sender" in r.getMessage()]
+    assert f"output {output} shows 2000 us, not the {acked} us acknowledged" in said
     status = rig.core.status()
     assert status["foreign_command"]["output"] == output
     assert status["foreign_command"]["shown_us"] == 2000
