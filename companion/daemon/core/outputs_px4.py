@@ -50,16 +50,6 @@ assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from t
 #: rebooted PX4 forgot them).
 READBACK_STALE_INTERVALS = 2
 READBACK_SILENT_S = 0.5
-#: A readback that would find an output dead (and store its marker) is acted on only if it was
-#: taken within this long of its arrival: one that waited longer (the control thread busy, a
-#: SYSTEM_TIME that completed the belief after it) leaves the verdict to the next one. PX4's
-#: outputs may have come alive since it was sent (an arm, prearm on, right after a disarm), and
-#: a marker stored into live outputs moves each joint from its pose to next to the disarmed PWM
-#: in one step (seen: 57-92 deg, the marker landing 5-14 ms after prearm on). The less time
-#: between the readback and the marker, the narrower that window.
-READBACK_FRESH_S = 0.005
-#: ... but for no longer than this: a control thread always behind still finds them dead.
-READBACK_FRESH_WAIT_S = 0.1
 
 
 def marker_pwm_candidates(shown_us: int, middle_us: float, nearest_us: int) -> list[int]:
@@ -97,9 +87,6 @@ class Px4Outputs(OutputsTruth):
         #: Outputs with nothing of ours acknowledged since the start, a loss or a reboot: the
         #: PWM the readbacks show steadily (see :meth:`_judge_start`).
         self._start_shown: dict[int, int] = {}
-        #: Outputs whose readbacks are believed dead but were taken late → since when
-        #: (:data:`READBACK_FRESH_S`).
-        self._late_since_s: dict[int, float] = {}
 
     # -- frames -----------------------------------------------------------------------------
 
@@ -137,7 +124,6 @@ class Px4Outputs(OutputsTruth):
             if any(abs(shown - pwm) <= READBACK_TOLERANCE_US for pwm in shown_ok | on_its_way):
                 self._agrees(output)
                 self._shown_ack(output, shown)
-                self._late_since_s.pop(output, None)
                 dead_pwm = self._dead_pwm.get(output)
                 if dead_pwm is not None and abs(shown - dead_pwm) <= READBACK_TOLERANCE_US:
                     continue  # the hold at the disarmed PWM: shown either way, proves nothing
@@ -169,8 +155,6 @@ class Px4Outputs(OutputsTruth):
             # silent, forged frames are the only readbacks there are.
             if not self._disagrees(output, self.shown_s, clock_after=True):
                 continue
-            if not self._fresh_enough(output, now):
-                continue
             self._confirmed.discard(output)
             reason = (
                 f"output {output} shows {shown} us, not the {acked} us acknowledged "
@@ -198,20 +182,6 @@ class Px4Outputs(OutputsTruth):
             self._shown_ack_s.pop(output, None)
             self._agrees(output)
             self._store_hold_now = True
-
-    def _fresh_enough(self, output: int, now: float) -> bool:
-        """The readbacks of ``output`` are believed to disagree: whether the one just shown
-        was taken soon enough after its arrival to act on (:data:`READBACK_FRESH_S`). If not,
-        the motion holds and the next readback says (for at most READBACK_FRESH_WAIT_S)."""
-        if now - self.shown_s <= READBACK_FRESH_S:
-            self._late_since_s.pop(output, None)
-            return True
-        since_s = self._late_since_s.setdefault(output, now)
-        if now - since_s >= READBACK_FRESH_WAIT_S:
-            self._late_since_s.pop(output, None)
-            return True
-        self._hold_for(output, now)
-        return False
 
     def _judge_start(self, i: int, output: int, shown: int) -> None:
         """Nothing of ours acknowledged since the start, a loss or a reboot (nor on its way):
@@ -246,7 +216,6 @@ class Px4Outputs(OutputsTruth):
         self._held_pwm.clear()
         self._start_shown.clear()
         self._steady_seen.clear()
-        self._late_since_s.clear()
         self._store_hold_now = False
         self.safety_on = None
         self._readback_since_s = now

@@ -151,11 +151,10 @@ class Rig:
         boot_ms, at_s = self._boot
         self.system_time(boot_ms + round((self.clock() - at_s) * 1000))
 
-    def readback(self, pwm_by_output, src=(1, 1), received_s=None):
-        """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0); ``received_s``: when it
-        arrived (default: now)."""
+    def readback(self, pwm_by_output, src=(1, 1)):
+        """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0)."""
         values = [int(pwm_by_output.get(n, 0)) for n in range(1, 17)]
-        return self.frame(lambda c: c.servo_output_raw_encode(0, 0, *values), src, received_s)
+        return self.frame(lambda c: c.servo_output_raw_encode(0, 0, *values), src)
 
     def sys_status(self, safety_on, src=(1, 1), *, stream=True):
         """A SYS_STATUS; from the autopilot (``stream``), it goes on streaming that."""
