@@ -447,6 +447,18 @@ class OutputsTruth(abc.ABC):
     def unknown(self, now: float) -> dict[int, str]:
         """For status, the arm's outputs not known to be live, with the reason."""
 
+    def readback_silence(self, now: float, intervals: float) -> str | None:
+        """Why status cannot say the outputs are live: the readback stream, once heard, silent
+        for more than ``intervals`` of its intervals (an autopilot that reboots sends nothing;
+        frames forged as its own may still say its outputs are live). None: it is not."""
+        silent_s = now - self.shown_s
+        if (
+            self.shown_s > -math.inf
+            and silent_s > intervals * self._core.settings.readback_interval_s
+        ):
+            return f"not known live (no SERVO_OUTPUT_RAW for {silent_s * 1e3:.0f} ms)"
+        return None
+
     @abc.abstractmethod
     def streams_silent(self, now: float) -> bool:
         """Whether the stream this firmware's truth comes from fell silent long enough to ask

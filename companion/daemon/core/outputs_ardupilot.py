@@ -55,6 +55,10 @@ SYS_STATUS_STALE_INTERVALS = 4
 #: again (a rebooted ArduPilot forgot them; one asked while it reboots is lost), so a reboot is
 #: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
 SYS_STATUS_SILENT_S = 0.5
+#: For status: a readback stream silent this many intervals says the autopilot is silent (a reboot),
+#: whatever SYS_STATUS frames still come (forged as its own, on an unsigned link): its outputs
+#: are not known to be live. Three lost frames in a row are not yet a silence.
+READBACK_STALE_INTERVALS = 4
 
 SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
 #: ArduPilot's output driver reads BRD_SAFETY_MASK at 10 Hz: a new mask applies within 0.1 s of
@@ -659,7 +663,9 @@ class ArduPilotOutputs(OutputsTruth):
 
     def unknown(self, now: float) -> dict[int, str]:
         """While its SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a
-        reboot, a loss) or has not said where the switch is since a loss or a reboot."""
+        reboot, a loss) or has not said where the switch is since a loss or a reboot; and
+        while its readback stream (once heard) is silent for READBACK_STALE_INTERVALS: the
+        autopilot is (a reboot), and SYS_STATUS frames still coming are not its own."""
         if not self._sys_status_ever:
             why = "safety switch unknown (no SYS_STATUS from the autopilot yet)"
             return dict.fromkeys(self._core.state.outputs, why)
@@ -669,7 +675,10 @@ class ArduPilotOutputs(OutputsTruth):
             silent_s = now - self._sys_status_s
             interval_s = self._core.settings.sys_status_interval_s
             if silent_s <= SYS_STATUS_STALE_INTERVALS * interval_s:
-                return {}
+                silence = self.readback_silence(now, READBACK_STALE_INTERVALS)
+                if silence is None:
+                    return {}
+                return dict.fromkeys(self._core.state.outputs, silence)
             why = f"safety switch unknown (no SYS_STATUS for {silent_s * 1e3:.0f} ms)"
         return dict.fromkeys(self._core.state.outputs, why)
 

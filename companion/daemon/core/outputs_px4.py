@@ -345,10 +345,9 @@ class Px4Outputs(OutputsTruth):
         outputs = self._core.state.outputs
         if self.shown_s == -math.inf:
             return dict.fromkeys(outputs, "not known live (no SERVO_OUTPUT_RAW yet)")
-        silent_s = now - self.shown_s
-        if silent_s > READBACK_STALE_INTERVALS * self._core.settings.readback_interval_s:
-            why = f"not known live (no SERVO_OUTPUT_RAW for {silent_s * 1e3:.0f} ms)"
-            return dict.fromkeys(outputs, why)
+        silence = self.readback_silence(now, READBACK_STALE_INTERVALS)
+        if silence is not None:
+            return dict.fromkeys(outputs, silence)
         why = (
             "not known live yet (no readback has shown what it stores since the start, "
             "a loss or a reboot)"

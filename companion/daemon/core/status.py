@@ -94,8 +94,8 @@ class StatusAndAnswers:
             dead = dict.fromkeys(state.outputs, "not known live (no autopilot heard)")
         elif not state.link_up:
             dead = dict.fromkeys(state.outputs, "not known live (autopilot link down)")
-        for output, why in state.refused.items():
-            dead.setdefault(output, f"refused by the autopilot: {why}")
+        for output, why in state.refused.items():  # what it said outweighs what is unknown
+            dead[output] = f"refused by the autopilot: {why}"
         outputs = {}
         for output in state.outputs:
             if output in state.refused:

@@ -17,10 +17,16 @@ from companion.daemon.core import (
     SendCommand,
 )
 from companion.daemon.core.outputs import band_of, middle
-from companion.daemon.core.outputs_ardupilot import MASK_APPLY_S, band_allows, widen
+from companion.daemon.core.outputs_ardupilot import (
+    MASK_APPLY_S,
+    READBACK_STALE_INTERVALS,
+    band_allows,
+    widen,
+)
 from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.autopilot_models import (
     ARM_MASK,
+    MOTORS,
     SYS_STATUS,
     ArduPilotOutputsModel,
     Autopilot,
@@ -46,6 +52,7 @@ def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(
     rig.advance(0.05)  # ArduPilot frees them within 0.1 s of the change: not before
     assert rig.core.status()["outputs_live"] is False
     rig.advance(MASK_APPLY_S)
+    rig.readback({})  # its readback stream goes on (nothing of ours applied yet)
     assert rig.core.status()["outputs_live"] is True and rig.servo()
 
 
@@ -1063,3 +1070,27 @@ def test_ardupilot_with_the_arm_in_the_safety_mask_a_resend_goes_where_the_motio
     _rebooted_and_released(rig)
     output = rig.calibration.outputs[0]
     assert abs(rig.angle(output, rig.servo()[output]) - held) <= STEP_DEG + 0.2
+
+
+def test_ardupilot_status_is_not_fooled_by_forged_sys_status_while_the_autopilot_reboots():
+    """The autopilot reboots (silent 0.36 s, its outputs without pulses) while SYS_STATUS frames
+    forged as its own keep saying the switch is off, every 10 ms: its readback stream stopped,
+    so within READBACK_STALE_INTERVALS of its interval status no longer says the outputs are
+    live, and says why."""
+    ap = ArduPilotOutputsModel()
+    ap.run(0.3)
+    assert ap.core.status()["outputs_live"] is True
+    readback_s = ap.core.settings.readback_interval_s
+    forged = ap.codec.sys_status_encode(MOTORS, MOTORS, MOTORS, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    ap.reboot_now()
+    said_live_s = 0.0
+    while ap.rebooting_until_s is not None and ap.clock() < ap.rebooting_until_s - 0.02:
+        ap.carry_out(ap.frame(forged))
+        ap.run(0.01)
+        status = ap.core.status()
+        if status["outputs_live"]:
+            said_live_s += 0.01
+        else:
+            assert "no SERVO_OUTPUT_RAW for" in status["not_live"]["9"]
+    assert said_live_s <= (READBACK_STALE_INTERVALS + 1) * readback_s + 0.01
+    assert status["outputs_live"] is False
