@@ -1,11 +1,14 @@
-"""Compiled kernels of the deadline-bounded IK solver: memetic differential evolution.
+"""Compiled kernels of the deadline-bounded IK solver: one search loop, three methods.
 
-DE (rand/1/bin) is the global search over the joint box. After each generation, a few
-damped-least-squares (Levenberg–Marquardt) iterations with the analytic geometric Jacobian
-refine the best individual that is not yet known to be stuck. The result is clamped to the
-limits, accepted only if the pose error drops, and written back into the population. On
-stagnation the population is re-drawn (a quarter of it at corners of the joint box) and the
-best found so far is kept aside ("record").
+A generation is either a DE step (rand/1/bin over the joint box) or a restart: the population
+drawn anew (a quarter of it at corners of the joint box), the best found so far kept aside
+("record"). After each, damped-least-squares (Levenberg–Marquardt) iterations with the analytic
+geometric Jacobian refine the best individual that is not yet known to be stuck; the result is
+clamped to the limits, accepted only if the pose error drops, and written back into the
+population. The settings (:data:`companion.ik.METHODS`) make the methods: ``restarts``, the
+default, restarts at every generation (LM from the best of NP fresh draws, no DE step);
+``memetic`` runs DE steps and restarts after ``stall_generations`` without improvement; the
+papers' ``de`` runs no LM.
 
 :func:`search` is the entry point the solver calls (with :func:`goal_matrix` for the
 pointing-direction mode); it holds every other kernel, compiled into it. Two ways to compile
