@@ -26,6 +26,10 @@ log = logging.getLogger("armbridge")
 #: With no readback this long after the start (or, on PX4, a loss or a reboot), move without it
 #: (and say so).
 READBACK_WAIT_S = 2.0
+#: A readback stream (once seen) silent this long (and at least its firmware's stale intervals)
+#: is asked for again with every stream: a rebooted autopilot forgot them, and its reboot is then
+#: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
+READBACK_SILENT_S = 0.5
 #: A readback PWM within this of the acknowledged one is "the same" (PX4 rounds its mapping).
 READBACK_TOLERANCE_US = 1
 #: A readback this long after an output's ACK shows what the output does with that command
@@ -446,6 +450,21 @@ class OutputsTruth(abc.ABC):
     @abc.abstractmethod
     def unknown(self, now: float) -> dict[int, str]:
         """For status, the arm's outputs not known to be live, with the reason."""
+
+    def readback_stream_silent(self, now: float, intervals: float) -> bool:
+        """Whether the readback stream (once seen) has been silent for READBACK_SILENT_S, and
+        at least ``intervals`` of its intervals, since it was last heard or the streams were
+        last asked for (said in the log once a silence)."""
+        if self.shown_s == -math.inf:
+            return False
+        silent_s = max(READBACK_SILENT_S, intervals * self._core.settings.readback_interval_s)
+        if now - max(self.shown_s, self._core.watch.streams_asked_s) < silent_s:
+            return False
+        silent_for_s = now - self.shown_s
+        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
+        say = log.info if silent_for_s < 2 * silent_s else log.debug
+        say("no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", silent_for_s)
+        return True
 
     def readback_silence(self, now: float, intervals: float) -> str | None:
         """Why status cannot say the outputs are live: the readback stream, once heard, silent

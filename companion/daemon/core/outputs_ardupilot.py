@@ -685,7 +685,12 @@ class ArduPilotOutputs(OutputsTruth):
     def streams_silent(self, now: float) -> bool:
         """A SYS_STATUS stream that fell silent holds the arm (``SAFETY_STEPS_AHEAD``; after a
         loss or a reboot, until one says where the switch is); every SYS_STATUS_SILENT_S of
-        silence, every stream is asked for again (a request lost in a reboot)."""
+        silence, every stream is asked for again (a request lost in a reboot). So too after
+        READBACK_SILENT_S of a readback stream's silence: SYS_STATUS frames forged as the
+        autopilot's while it rebooted would otherwise hide that it forgot every stream, and
+        with the readback gone, where another sender put an output since goes unseen."""
+        if self.readback_stream_silent(now, READBACK_STALE_INTERVALS):
+            return True
         if not self._sys_status_ever:
             return False
         heard = -math.inf if self._sys_status_s is None else self._sys_status_s

@@ -49,7 +49,6 @@ assert MARKER_OFFSET_US > READBACK_TOLERANCE_US  # a marker shown is told from t
 #: READBACK_SILENT_S (at least this many intervals), every stream is asked for again (a
 #: rebooted PX4 forgot them).
 READBACK_STALE_INTERVALS = 2
-READBACK_SILENT_S = 0.5
 
 
 def marker_pwm_candidates(shown_us: int, middle_us: float, nearest_us: int) -> list[int]:
@@ -371,19 +370,8 @@ class Px4Outputs(OutputsTruth):
 
     def streams_silent(self, now: float) -> bool:
         """A readback stream (once seen) silent for READBACK_SILENT_S: a rebooted PX4 forgot
-        the streams, so the reboot is seen from the SYSTEM_TIME that comes back rather than
-        after SYSTEM_TIME_SILENT_S."""
-        if self.shown_s == -math.inf:
-            return False
-        interval_s = self._core.settings.readback_interval_s
-        silent_s = max(READBACK_SILENT_S, READBACK_STALE_INTERVALS * interval_s)
-        if now - max(self.shown_s, self._core.watch.streams_asked_s) < silent_s:
-            return False
-        silent_for_s = now - self.shown_s
-        # Said once a silence (a stream that never comes back is asked for every 0.5 s).
-        say = log.info if silent_for_s < 2 * silent_s else log.debug
-        say("no SERVO_OUTPUT_RAW for %.2f s: asking for every stream again", silent_for_s)
-        return True
+        the streams."""
+        return self.readback_stream_silent(now, READBACK_STALE_INTERVALS)
 
     def refusal_advice(self, refused: dict[int, str]) -> tuple[str, str]:
         first = min(refused)

@@ -59,7 +59,9 @@ class Rig:
     ArduPilot: once the test says where the safety switch is (:meth:`sys_status`), the rig
     streams SYS_STATUS saying so at the interval the core asked for, as ArduPilot does, until
     the link goes down or the core asks for the stream again (a reboot or a silence: the test
-    says when the autopilot answers)."""
+    says when the autopilot answers). From :meth:`up` it streams the readback too, showing
+    what the core has acknowledged (ArduPilot shows what it was told), until the link goes
+    down, the core asks for it again or the test sends a readback of its own."""
 
     def __init__(
         self, dialect: str = "ardupilot", sections: dict | None = None, **link: object
@@ -85,7 +87,11 @@ class Rig:
         #: The safety switch the rig's SYS_STATUS stream says (None: not streaming).
         self.safety_stream: bool | None = None
         self._status_due_s = math.inf
-        self.status_interval_s = stream_intervals_s(ardupilot=True, url=config.link.url)[1]
+        intervals_s = stream_intervals_s(ardupilot=True, url=config.link.url)
+        self.readback_interval_s, self.status_interval_s = intervals_s
+        #: Whether the rig streams the readback (ArduPilot, see the class docstring).
+        self.readback_stream = False
+        self._readback_due_s = math.inf
         #: The autopilot's clock by the last SYSTEM_TIME it sent: time_boot_ms, and when.
         self._boot = (600_000, self.clock())
 
@@ -101,11 +107,12 @@ class Rig:
                 self.reads.append(action)
             else:
                 new.append(action)
-                if (
-                    action.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL
-                    and action.params[0] == mavlink.MAVLINK_MSG_ID_SYS_STATUS
-                ):
-                    self.safety_stream = None  # asked again: the test says when it answers
+                if action.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
+                    # Asked again: the test says when it answers.
+                    if action.params[0] == mavlink.MAVLINK_MSG_ID_SYS_STATUS:
+                        self.safety_stream = None
+                    elif action.params[0] == mavlink.MAVLINK_MSG_ID_SERVO_OUTPUT_RAW:
+                        self.readback_stream = False
         self.sent += new
         return new
 
@@ -151,8 +158,11 @@ class Rig:
         boot_ms, at_s = self._boot
         self.system_time(boot_ms + round((self.clock() - at_s) * 1000))
 
-    def readback(self, pwm_by_output, src=(1, 1)):
-        """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0)."""
+    def readback(self, pwm_by_output, src=(1, 1), *, stream=False):
+        """A SERVO_OUTPUT_RAW showing ``pwm_by_output`` (others 0); from the autopilot, it ends
+        the rig's readback stream unless ``stream`` (the rig's own)."""
+        if src == (1, 1) and not stream:
+            self.readback_stream = False
         values = [int(pwm_by_output.get(n, 0)) for n in range(1, 17)]
         return self.frame(lambda c: c.servo_output_raw_encode(0, 0, *values), src)
 
@@ -171,8 +181,13 @@ class Rig:
     def tick(self, link_up=True):
         if not link_up:
             self.safety_stream = None
-        elif self.safety_stream is not None and self.clock() >= self._status_due_s:
-            self.sys_status(self.safety_stream)
+            self.readback_stream = False
+        else:
+            if self.safety_stream is not None and self.clock() >= self._status_due_s:
+                self.sys_status(self.safety_stream)
+            if self.readback_stream and self.clock() >= self._readback_due_s:
+                self._readback_due_s = self.clock() + self.readback_interval_s
+                self.readback(dict(self.core.state.acked_pwm), stream=True)
         return self.take(self.core.tick(link_up))
 
     def advance(self, seconds, link_up=True):
@@ -186,6 +201,8 @@ class Rig:
             # ArduPilot moves once a readback said where the joints are (no pulses on the
             # arm's outputs since its boot: nothing) and it knows the switch is off.
             self.readback({})
+            self.readback_stream = True
+            self._readback_due_s = self.clock() + self.readback_interval_s
             self.switch_off()
         return sent
 

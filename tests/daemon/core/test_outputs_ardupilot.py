@@ -16,7 +16,7 @@ from companion.daemon.core import (
     ReadParam,
     SendCommand,
 )
-from companion.daemon.core.outputs import band_of, middle
+from companion.daemon.core.outputs import READBACK_SILENT_S, band_of, middle
 from companion.daemon.core.outputs_ardupilot import (
     MASK_APPLY_S,
     READBACK_STALE_INTERVALS,
@@ -27,6 +27,7 @@ from companion.daemon.requests import Outcome, Request
 from tests.daemon.core.autopilot_models import (
     ARM_MASK,
     MOTORS,
+    SERVO_OUTPUT_RAW,
     SYS_STATUS,
     ArduPilotOutputsModel,
     Autopilot,
@@ -1094,3 +1095,24 @@ def test_ardupilot_status_is_not_fooled_by_forged_sys_status_while_the_autopilot
             assert "no SERVO_OUTPUT_RAW for" in status["not_live"]["9"]
     assert said_live_s <= (READBACK_STALE_INTERVALS + 1) * readback_s + 0.01
     assert status["outputs_live"] is False
+
+
+def test_ardupilot_streams_are_asked_for_again_after_a_reboot_forged_sys_status_hides():
+    """SYS_STATUS frames forged as the autopilot's, every 10 ms, through its reboot: no silence
+    of SYS_STATUS or of the autopilot shows that it forgot every stream. Its readback stream's
+    silence does: every stream is asked for again within READBACK_SILENT_S of its last
+    readback, so an output another sender sets after the boot shows within a readback."""
+    ap = ArduPilotOutputsModel()
+    ap.run(0.3)
+    forged = ap.codec.sys_status_encode(MOTORS, MOTORS, MOTORS, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    rebooted_s = ap.clock()  # its last readback came just before
+    ap.reboot_now()
+    end_s = ap.clock() + 2.0
+    booted_s = None
+    while ap.clock() < end_s and (booted_s is None or SERVO_OUTPUT_RAW not in ap.streams):
+        ap.carry_out(ap.frame(forged))
+        ap.run(0.01)
+        if booted_s is None and ap.rebooting_until_s is None:
+            booted_s = ap.clock()  # back, every stream forgotten
+    assert booted_s is not None and SERVO_OUTPUT_RAW in ap.streams
+    assert ap.clock() - rebooted_s <= READBACK_SILENT_S + 0.03  # (and the command's way)
