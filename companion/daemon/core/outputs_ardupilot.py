@@ -55,9 +55,9 @@ SYS_STATUS_STALE_INTERVALS = 4
 #: again (a rebooted ArduPilot forgot them; one asked while it reboots is lost), so a reboot is
 #: seen from the SYSTEM_TIME that comes back rather than after SYSTEM_TIME_SILENT_S.
 SYS_STATUS_SILENT_S = 0.5
-#: For status: a readback stream silent this many intervals says the autopilot is silent (a reboot),
-#: whatever SYS_STATUS frames still come (forged as its own, on an unsigned link): its outputs
-#: are not known to be live. Three lost frames in a row are not yet a silence.
+#: For status: a readback stream silent this many intervals says the autopilot is silent (a
+#: reboot), whatever SYS_STATUS frames still come (forged as its own, on an unsigned link): its
+#: outputs are not known to be live. Three lost frames in a row are not yet a silence.
 READBACK_STALE_INTERVALS = 4
 
 SAFETY_MASK_PARAM = "BRD_SAFETY_MASK"
@@ -665,7 +665,7 @@ class ArduPilotOutputs(OutputsTruth):
         """While its SYS_STATUS stream (once seen) is silent for SYS_STATUS_STALE_INTERVALS (a
         reboot, a loss) or has not said where the switch is since a loss or a reboot; and
         while its readback stream (once heard) is silent for READBACK_STALE_INTERVALS: the
-        autopilot is (a reboot), and SYS_STATUS frames still coming are not its own."""
+        autopilot is silent (a reboot), and SYS_STATUS frames still coming are not its own."""
         if not self._sys_status_ever:
             why = "safety switch unknown (no SYS_STATUS from the autopilot yet)"
             return dict.fromkeys(self._core.state.outputs, why)
