@@ -384,7 +384,14 @@ class ArduPilotOutputs(OutputsTruth):
         if not state.ever_sent:
             # The start: ArduPilot keeps what its outputs were told (by an earlier daemon)
             # until it reboots; the joint is there, not at the park pose.
-            self._start_at(i, self.angle_shown(output, shown))
+            angle = self.angle_shown(output, shown)
+            log.info(
+                "output %d shows %d us at the start: the joint is taken there (%.1f deg)",
+                output,
+                shown,
+                angle,
+            )
+            self._start_at(i, angle)
             if self._held_since_off is not None:  # nothing sent: they hold that
                 self._held_since_off = band_of([tuple(state.position)])
         else:
