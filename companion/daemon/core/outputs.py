@@ -108,6 +108,9 @@ class OutputsTruth(abc.ABC):
         #: cannot show the ones before it any more; no entry: none shown since its history
         #: began).
         self._shown_ack_s: dict[int, float] = {}
+        #: Per output: a PWM of ours on its way that a readback showed before its ACK came
+        #: (the output took it): that ACK, when it comes, is one the readback showed.
+        self._shown_before_ack: dict[int, int] = {}
         #: Per output: the PWM settled readbacks in a row showed instead of the acknowledged
         #: one (within READBACK_TOLERANCE_US), when the first of them arrived, and how many.
         self._mismatches: dict[int, tuple[int, float, int]] = {}
@@ -175,7 +178,25 @@ class OutputsTruth(abc.ABC):
         for t, pwm in history:
             if t >= shown_s and abs(pwm - shown) <= READBACK_TOLERANCE_US:
                 self._shown_ack_s[output] = t
+                self._shown_before_ack.pop(output, None)
                 return
+        # Not acknowledged yet: a step on its way, shown before its ACK. Without this, its ACK
+        # would leave the readback free to show the PWM before it again, and a ground station
+        # setting that PWM just then went unseen (the next step moved the joint from it).
+        for flight in self._core.state.flights:
+            on_its_way = flight.pwm_by_output.get(output)
+            if on_its_way is not None and abs(on_its_way - shown) <= READBACK_TOLERANCE_US:
+                self._shown_before_ack[output] = shown
+                return
+
+    def _forget_shown_acks(self, output: int | None = None) -> None:
+        """Which ACKs the readback showed, for ``output`` (None: every output)."""
+        if output is None:
+            self._shown_ack_s.clear()
+            self._shown_before_ack.clear()
+        else:
+            self._shown_ack_s.pop(output, None)
+            self._shown_before_ack.pop(output, None)
 
     def clock_heard(self, at_s: float) -> None:
         """A SYSTEM_TIME that continues the autopilot's clock arrived at ``at_s``."""
@@ -428,6 +449,10 @@ class OutputsTruth(abc.ABC):
         readback interval longer from going out)."""
         history = self._ack_history.setdefault(output, collections.deque(maxlen=64))
         history.append((now, pwm))
+        early = self._shown_before_ack.get(output)
+        if early is not None and abs(early - pwm) <= READBACK_TOLERANCE_US:
+            del self._shown_before_ack[output]
+            self._shown_ack_s[output] = now
         run = self._mismatches.get(output)
         if run is not None and all(
             abs(run[0] - acked) > READBACK_TOLERANCE_US for _, acked in history

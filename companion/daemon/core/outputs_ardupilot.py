@@ -371,7 +371,7 @@ class ArduPilotOutputs(OutputsTruth):
             }
             state.acked_pwm[output] = shown
             self._ack_history.pop(output, None)
-            self._shown_ack_s.pop(output, None)
+            self._forget_shown_acks(output)
             self.acknowledged(output, shown, now)
             self._joint_at(i, angle)
 

@@ -178,7 +178,7 @@ class Px4Outputs(OutputsTruth):
             )
             state.acked_pwm.pop(output, None)
             self._ack_history.pop(output, None)
-            self._shown_ack_s.pop(output, None)
+            self._forget_shown_acks(output)
             self._agrees(output)
             self._store_hold_now = True
 
@@ -207,7 +207,7 @@ class Px4Outputs(OutputsTruth):
         nothing), so whether each output is live is unknown again until its marker, sent
         anew, shows or does not (status: not known live)."""
         self._ack_history.clear()
-        self._shown_ack_s.clear()
+        self._forget_shown_acks()
         self._confirmed.clear()
         self._not_live.clear()
         self._dead_pwm.clear()

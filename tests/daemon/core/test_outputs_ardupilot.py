@@ -34,7 +34,7 @@ from tests.daemon.core.autopilot_models import (
     deg_per_us,
     far_target,
 )
-from tests.daemon.core.rig import PARK, STEP_DEG, Rig, near
+from tests.daemon.core.rig import PARK, RATE_HZ, STEP_DEG, Rig, near
 
 
 def test_ardupilot_safety_on_holds_everything_unless_the_mask_frees_the_outputs(rig):
@@ -1116,3 +1116,30 @@ def test_ardupilot_streams_are_asked_for_again_after_a_reboot_forged_sys_status_
             booted_s = ap.clock()  # back, every stream forgotten
     assert booted_s is not None and SERVO_OUTPUT_RAW in ap.streams
     assert ap.clock() - rebooted_s <= READBACK_SILENT_S + 0.03  # (and the command's way)
+
+
+def test_ardupilot_a_ground_station_setting_back_the_pwm_before_a_step_shown_early_is_doubted(
+    rig,
+):
+    """A readback showed our step before its ACK came (the output took it), then a ground
+    station set the PWM the output held before that step: the readback can no longer show
+    that PWM as a lag, so it is doubted and the motion holds, rather than the next step going
+    out from ours and moving the joint from the ground station's PWM (9.4 deg in
+    bench.state_cycles)."""
+    _settle(rig, near(PARK))
+    output = rig.calibration.outputs[0]
+    before = dict(rig.core.status()["last_pwm_us"])
+    start = rig.core.status()["current_deg"]
+    rig.goto((start[0] + 40.0, *start[1:]))
+    step = rig.servo()
+    assert output in step
+    shown = {**before, **step}
+    rig.clock.advance(0.005)
+    rig.readback(shown)  # the step shows before its ACK
+    rig.clock.advance(0.002)
+    rig.ack_all(list(rig.sent))
+    rig.sent.clear()
+    rig.clock.advance(0.013)
+    rig.readback({**shown, output: before[output]})  # a ground station's command
+    rig.advance(1.0 / RATE_HZ - 0.02)
+    assert output not in rig.servo()
