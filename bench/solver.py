@@ -287,13 +287,22 @@ def interleaved(
     keeps its arrays and estimates from one pose to the next, as a daemon would. One row per
     solver."""
     peers = list(methods) + (["rtb"] if ets is not None else [])
-    stats: dict[str, dict[str, list]] = {
-        who: {"ok": [], "cpu": [], "wall": [], "switched": []} for who in peers
+    # Every figure goes into arrays made beforehand, for both peers. Each of our results is
+    # handed out of the timed call and dropped after what the table reads of it is recorded,
+    # as a daemon drops each result. Kept, every solve grew the heap by its result (~1.5 KB):
+    # the first touch of each new page, a page fault, fell in the timed call of 9 % of hyper's
+    # solves (~7 µs each). Lists of floats grew it too (~100 bytes a pose): a fault in 2 % of
+    # hyper's solves, enough to set a p99.
+    n = len(poses)
+    stats: dict[str, dict[str, np.ndarray]] = {
+        who: {
+            "ok": np.zeros(n, dtype=bool),
+            "cpu": np.zeros(n),
+            "wall": np.zeros(n),
+            "switched": np.zeros(n, dtype=bool),
+        }
+        for who in peers
     }
-    # Each of our results is handed out of the timed call and dropped after what the table
-    # reads of it is recorded (in arrays made beforehand), as a daemon drops each result. Kept
-    # inside it, every solve grew the heap by its result (~1.5 KB): the first touch of each
-    # new page, a page fault, fell in the timed call of 9 % of hyper's solves (~7 µs each).
     last: dict[str, list[IKResult]] = {m: [] for m in methods}
     de_gen = {m: np.zeros(len(poses), dtype=bool) for m in methods}
     de_gain = {m: np.zeros(len(poses), dtype=bool) for m in methods}
@@ -317,26 +326,26 @@ def interleaved(
                 calls["rtb"] = prepare_rtb(arm, ets, target, seed + k, rtb_tol)
             for i in order.permutation(len(peers)):
                 who = peers[i]
-                q, cpu, wall, switched = timed(calls[who], sweep)
+                q, cpu_ms, wall_ms, was_switched = timed(calls[who], sweep)
                 if who in last:
                     res = last[who].pop()
                     de_gen[who][k] = res.generations > res.restarts
                     de_gain[who][k] = res.de_improvements > 0
                     stops[who][k] = res.stop_reason
                     del res
-                stats[who]["ok"].append(judge(arm, target, q))
-                stats[who]["cpu"].append(cpu)
-                stats[who]["wall"].append(wall)
-                stats[who]["switched"].append(switched)
+                s = stats[who]
+                s["ok"][k] = judge(arm, target, q)
+                s["cpu"][k] = cpu_ms
+                s["wall"][k] = wall_ms
+                s["switched"][k] = was_switched
     finally:
         gc.enable()
         gc.unfreeze()
-    rtb_cpu = np.asarray(stats["rtb"]["cpu"]) if ets is not None else None
+    rtb_cpu = stats["rtb"]["cpu"] if ets is not None else None
     rows = []
     for who in peers:
         s = stats[who]
-        cpu, wall = np.asarray(s["cpu"]), np.asarray(s["wall"])
-        switched = np.asarray(s["switched"])
+        cpu, wall, switched = s["cpu"], s["wall"], s["switched"]
         row: dict[str, Any] = {
             "arm": name,
             "dof": arm.dof,
@@ -353,7 +362,7 @@ def interleaved(
         if rtb_cpu is not None:
             row["ratio med"] = row["cpu med"] / float(np.median(rtb_cpu))
             row["ratio p99"] = row["cpu p99"] / float(np.percentile(rtb_cpu, 99))
-            rtb_unswitched = _p99(rtb_cpu[~np.asarray(stats["rtb"]["switched"])])
+            rtb_unswitched = _p99(rtb_cpu[~stats["rtb"]["switched"]])
             row["ratio p99 unswitched"] = row["cpu p99 unswitched"] / rtb_unswitched
         if who in last:
             row["DE gen %"] = 100.0 * float(np.mean(de_gen[who]))
@@ -413,7 +422,8 @@ def context_costs(
             judge(arm, poses[k], zero)
 
     cells = [(who, c) for c in CONTEXTS for who in ("ours", "rtb", "floor")]
-    times: dict[tuple[str, str], list[float]] = {cell: [] for cell in cells}
+    # In arrays made beforehand, as in :func:`interleaved` (lists of floats grow the heap).
+    times = {cell: np.zeros(len(poses) - 1) for cell in cells}
     order = np.random.default_rng(seed)
     gc.collect()
     gc.freeze()
@@ -425,15 +435,15 @@ def context_costs(
                 before(context, "ours" if who == "floor" else who, k)
                 if who == "floor":
                     c = time.thread_time()
-                    times[who, context].append((time.thread_time() - c) * 1e3)
+                    times[who, context][k - 1] = (time.thread_time() - c) * 1e3
                 else:
-                    times[who, context].append(timed(calls[who][k])[1])
+                    times[who, context][k - 1] = timed(calls[who][k])[1]
     finally:
         gc.enable()
         gc.unfreeze()
     rows = []
     for context in CONTEXTS:
-        ours, rtb, floor = (np.asarray(times[who, context]) for who in ("ours", "rtb", "floor"))
+        ours, rtb, floor = (times[who, context] for who in ("ours", "rtb", "floor"))
         rows.append(
             {
                 "arm": name,
@@ -581,7 +591,12 @@ def warm_row(arm: Arm, kind: str, budget_ms: float, laps: int) -> dict:
     """Ours along a path, each solve started from the previous solution (the daemon's way)."""
     poses = path_poses(arm, kind, 200) * laps
     q_prev = np.array(solve(arm, poses[0], budget_ms=1e3, seed=0).q_deg)
-    cpu, ok, steps = [], [], []
+    # In arrays made beforehand, as in :func:`interleaved` (lists of floats grow the heap).
+    cpu, ok, steps = (
+        np.zeros(len(poses) - 1),
+        np.zeros(len(poses) - 1, dtype=bool),
+        np.zeros(len(poses) - 1),
+    )
     gc.collect()
     gc.freeze()
     gc.disable()
@@ -589,9 +604,9 @@ def warm_row(arm: Arm, kind: str, budget_ms: float, laps: int) -> dict:
         for k, target in enumerate(poses[1:], start=1):
             c = time.thread_time()
             res = solve(arm, target, budget_ms=budget_ms, seed=k, q_start_deg=q_prev)
-            cpu.append((time.thread_time() - c) * 1e3)
-            ok.append(judge(arm, target, res.q_rad))
-            steps.append(float(np.abs(np.array(res.q_deg) - q_prev).max()))
+            cpu[k - 1] = (time.thread_time() - c) * 1e3
+            ok[k - 1] = judge(arm, target, res.q_rad)
+            steps[k - 1] = np.abs(np.array(res.q_deg) - q_prev).max()
             q_prev = np.array(res.q_deg)
     finally:
         gc.enable()
@@ -602,7 +617,7 @@ def warm_row(arm: Arm, kind: str, budget_ms: float, laps: int) -> dict:
         "ok %": 100.0 * float(np.mean(ok)),
         "cpu med": float(np.median(cpu)),
         "cpu p99": float(np.percentile(cpu, 99)),
-        "max joint step deg": max(steps),
+        "max joint step deg": float(steps.max()),
     }
 
 
