@@ -26,8 +26,9 @@ on as many of ``--tol-poses`` calibration poses (other draws than the measured o
   ``--context-poses`` table's last column);
 * per call, whether this thread was switched out (its context switches, voluntary and
   involuntary, from ``getrusage(RUSAGE_THREAD)``, read before and after the clocks, outside the
-  timed region): the tables give the share of calls switched out and the p99 over the calls that
-  were not, beside the full p99 (which is the target's);
+  timed region): the tables give the share of calls switched out, the p99 over the calls that
+  were not beside the full p99 (which is the target's), and the median over each kind (what a
+  switch costs a call: the kernel's work and caches the other task left cold);
 * optionally (``--sweep-poses``) an 8 MB buffer touched before every call of either, outside the
   timed region (a daemon that does other work between solves: caches cold for both);
 * optionally (``--busy``) busy-loop processes beside the interleaved tables (the issue's targets
@@ -356,6 +357,8 @@ def interleaved(
             "cpu p99": float(np.percentile(cpu, 99)),
             "switched %": 100.0 * float(np.mean(switched)),
             "cpu p99 unswitched": _p99(cpu[~switched]),
+            "cpu med unswitched": float(np.median(cpu[~switched])),
+            "cpu med switched": float(np.median(cpu[switched])) if switched.any() else math.nan,
             "wall med": float(np.median(wall)),
             "wall p99": float(np.percentile(wall, 99)),
         }
@@ -771,6 +774,9 @@ def target_rows(main_rows: list[dict], sweep_rows: list[dict], method: str) -> l
         if s is not None:
             row["swept ratio p99 unswitched"] = s["ratio p99 unswitched"]
         row["ours switched %"] = r["switched %"]
+        row["ours cpu med, unswitched / switched"] = (
+            f"{r['cpu med unswitched'] * 1e3:.0f} / {r['cpu med switched'] * 1e3:.0f} µs"
+        )
         row["ours ok %"] = r["ok %"]
         row["met"] = "–" if math.isnan(limit) else "yes" if max(ratios) <= limit else "no"
         out.append(row)
