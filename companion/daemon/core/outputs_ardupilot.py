@@ -379,11 +379,11 @@ class ArduPilotOutputs(OutputsTruth):
         """Readbacks steadily show ``output`` (index ``i``), nothing of ours acknowledged, at
         ``shown``: the joint is there."""
         state = self._core.state
-        if self._as_held(i, output, shown):
-            return  # where it was taken to be
         if not state.ever_sent:
             # The start: ArduPilot keeps what its outputs were told (by an earlier daemon)
             # until it reboots; the joint is there, not at the park pose.
+            if self._as_held(i, output, shown):
+                return
             angle = self.angle_shown(output, shown)
             log.info(
                 "output %d shows %d us at the start: the joint is taken there (%.1f deg)",
@@ -394,7 +394,7 @@ class ArduPilotOutputs(OutputsTruth):
             self._start_at(i, angle)
             if self._held_since_off is not None:  # nothing sent: they hold that
                 self._held_since_off = band_of([tuple(state.position)])
-        else:
+        elif not self._as_held(i, output, shown):
             # After a loss or a reboot: another sender set the output since the boot; the pose
             # re-sent keeps it there.
             self._take_shown(i, output, shown)
@@ -434,12 +434,15 @@ class ArduPilotOutputs(OutputsTruth):
 
     def _as_held(self, i: int, output: int, shown: int) -> bool:
         """Whether ``shown`` is the PWM of where joint ``i`` is taken to be (the pose still to
-        re-send, else the acknowledged one)."""
+        re-send, else the acknowledged one). Before anything is sent, that PWM exactly: a pose
+        restored from the file a PWM off what the output shows, taken as held, put the first
+        step a PWM further than a step from where the joint was."""
         state = self._core.state
         angle = (state.unconfirmed or state.position)[i]
         joint = self._core.config.calibration.for_output(output)
         angle = min(max(angle, joint.angle_min_deg), joint.angle_max_deg)
-        return abs(joint.mapped_pwm_us(angle) - shown) <= READBACK_TOLERANCE_US
+        tolerance_us = READBACK_TOLERANCE_US if state.ever_sent else 0
+        return abs(joint.mapped_pwm_us(angle) - shown) <= tolerance_us
 
     def _take_shown(self, i: int, output: int, shown: int) -> None:
         """The joint of ``output`` (index ``i``) is where its readback shows."""
