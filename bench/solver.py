@@ -306,6 +306,7 @@ def interleaved(
     }
     last: dict[str, list[IKResult]] = {m: [] for m in methods}
     de_gen = {m: np.zeros(len(poses), dtype=bool) for m in methods}
+    lm_its = {m: np.zeros(len(poses)) for m in methods}
     de_gain = {m: np.zeros(len(poses), dtype=bool) for m in methods}
     stops: dict[str, list[StopReason | None]] = {m: [None] * len(poses) for m in methods}
     for m in methods:  # each method's workspace is made before the clock starts
@@ -331,6 +332,7 @@ def interleaved(
                 if who in last:
                     res = last[who].pop()
                     de_gen[who][k] = res.generations > res.restarts
+                    lm_its[who][k] = res.lm_iterations
                     de_gain[who][k] = res.de_improvements > 0
                     stops[who][k] = res.stop_reason
                     del res
@@ -370,6 +372,11 @@ def interleaved(
         if who in last:
             row["DE gen %"] = 100.0 * float(np.mean(de_gen[who]))
             row["DE gain %"] = 100.0 * float(np.mean(de_gain[who]))
+            # Whether the slowest calls did more search than the rest, or the same work slower.
+            slowest = np.argsort(cpu)[-max(1, len(poses) // 50) :]
+            row["LM its med, all / slowest 2 %"] = (
+                f"{np.median(lm_its[who]):g} / {np.median(lm_its[who][slowest]):g}"
+            )
             failed = [i for i, good in enumerate(s["ok"]) if not good]
             row["failures: stop, wall/cpu ms"] = (
                 ", ".join(f"{_stop(stops[who][i])} {wall[i]:.1f}/{cpu[i]:.2f}" for i in failed[:3])
