@@ -668,7 +668,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     # monotonic_s: t_s = 0 on CLOCK_MONOTONIC (system-wide), to line events up with other
-    # processes' time.monotonic() stamps.
+    # processes' time.monotonic() stamps; wall_s: the same instant on the wall clock, for logs
+    # stamped with the time of day (a daemon's, outside journald).
     autopilot.emit(
         start_s,
         "start",
@@ -682,6 +683,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         outputs_us=dict(autopilot.output_us),
         gcs_url=gcs.url if gcs is not None else None,
         monotonic_s=start_s,
+        wall_s=time.time() - (time.monotonic() - start_s),
         vehicle=config.vehicle.as_dict(),
     )
     print(endpoint.url, flush=True)

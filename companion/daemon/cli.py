@@ -30,8 +30,8 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Mapping, Sequence
+from typing import Any, TextIO
 
 from companion import __version__
 from companion.errors import ConfigError
@@ -725,12 +725,33 @@ def _parser() -> argparse.ArgumentParser:
     return build_parser()  # ~10 ms to build (a parser per verb): once per process
 
 
+#: The time of day a log line starts with outside journald (:func:`log_format`), to which
+#: ``%(msecs)03d`` adds the milliseconds.
+LOG_DATE_FORMAT = "%Y-%m-%d %H:%M:%S"
+
+
+def log_format(environ: Mapping[str, str], stream: TextIO) -> str:
+    """One line per event. Under systemd with ``stream`` going to the journal (it is the
+    ``JOURNAL_STREAM`` systemd names, device:inode), journald stamps each line; elsewhere (a
+    terminal, a file a bench keeps) the line starts with the time of day to the millisecond."""
+    device, _, inode = environ.get("JOURNAL_STREAM", "").partition(":")
+    try:
+        st = os.fstat(stream.fileno())
+    except (OSError, ValueError, AttributeError):  # not a file (a test's StringIO)
+        st = None
+    if st is not None and device.isdigit() and inode.isdigit():
+        if (st.st_dev, st.st_ino) == (int(device), int(inode)):
+            return "%(levelname)s %(name)s: %(message)s"
+    return "%(asctime)s.%(msecs)03d %(levelname)s %(name)s: %(message)s"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = args.log_level or ("DEBUG" if args.verbose else "WARNING" if args.quiet else "INFO")
     logging.basicConfig(
         level=level,
-        format="%(levelname)s %(name)s: %(message)s",  # one line per event; journald timestamps
+        format=log_format(os.environ, sys.stderr),
+        datefmt=LOG_DATE_FORMAT,
         stream=sys.stderr,
     )
     try:

@@ -4,12 +4,14 @@ client verbs without a daemon. ``run`` as a subprocess: ``test_cli_run.py``."""
 from __future__ import annotations
 
 import json
+import logging
+import os
 import re
 import socket
 
 import pytest
 
-from companion.daemon.cli import format_status, main, read_trajectory
+from companion.daemon.cli import LOG_DATE_FORMAT, format_status, log_format, main, read_trajectory
 from companion.kinematics.arm import Arm
 
 WAIT_S = 15.0
@@ -421,3 +423,21 @@ def test_shipped_prints_the_file_the_package_carries(name, capsys):
     text = capsys.readouterr().out
     first = {"unit": "[Unit]", "config": "[link]", "lua": "--[["}[name]
     assert first in text
+
+
+def test_log_lines_carry_the_time_of_day_unless_journald_stamps_them(tmp_path):
+    # A terminal or a bench's log file: each line starts with the time, to the millisecond;
+    # under systemd (stderr is the JOURNAL_STREAM named) journald stamps it.
+    with open(tmp_path / "stderr", "w") as stream:
+        st = os.fstat(stream.fileno())
+        journal = {"JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino}"}
+        assert "asctime" not in log_format(journal, stream)
+        for environ in (
+            {},
+            {"JOURNAL_STREAM": f"{st.st_dev}:{st.st_ino + 1}"},
+            {"JOURNAL_STREAM": "x"},
+        ):
+            fmt = log_format(environ, stream)
+            record = logging.LogRecord("armbridge", logging.INFO, __file__, 1, "up", None, None)
+            line = logging.Formatter(fmt, LOG_DATE_FORMAT).format(record)
+            assert re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} INFO armbridge: up", line)
