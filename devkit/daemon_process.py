@@ -19,9 +19,9 @@ from typing import Any
 from companion.daemon.control_socket import request
 from devkit.config import write_config
 from devkit.process import kill, terminate
+from devkit.provenance import ROOT  # the checkout
 from devkit.timing import WAIT_S, wait_until
 
-ROOT = Path(__file__).resolve().parents[1]
 #: Start-up bound: importing numba and loading the solver's kernels take seconds when loaded.
 READY_S = 30.0
 

@@ -18,13 +18,12 @@ from companion.kinematics import rotation_angle
 from companion.kinematics.arm import Arm, Pose
 from companion.kinematics.jacobian import geometric_jacobian
 from devkit.process import kill, terminate
+from devkit.provenance import ROOT  # the checkout
 from devkit.timing import WAIT_S, wait_until
 from firmware_interface.calibration import ArmCalibration, default_calibration
 from sim_servo.errors import SimIOError
 from sim_servo.eventlog import read_events
 from sim_servo.query import query
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 class SimProcess:
