@@ -81,7 +81,9 @@ SAFETY_ON_STICKY_INTERVALS = 1.5
 #: more always comes this close to the autopilot's frames; one sending no more often than the
 #: stream, between its frames, is not told apart (signing is the remedy). A link that bunches
 #: frames, or a stalled reader, breaks the cadence too: the arm then waits within its band for
-#: a clean "off".
+#: a clean "off". A release ("off" believed after "on", which the autopilot's own "on" frames
+#: and its clock vouch for) narrows the band whatever the cadence, to the poses sent since the
+#: hold, and drops the bands from before it: the outputs bring out what they stored.
 SYS_STATUS_CADENCE_INTERVALS = 0.4
 #: A SYS_STATUS saying off speaks of the moment it left the autopilot, which may be before
 #: steps taken since (the control thread takes it later than the reader did, a busy board or
@@ -212,6 +214,7 @@ class ArduPilotOutputs(OutputsTruth):
             if self._clock_heard_s <= self._off_since_s:
                 self._probe_wanted = True
                 return
+        released = safety_on is False and self.safety_on is True
         if safety_on != self.safety_on:
             if safety_on:
                 log.warning("safety switch on: outputs not live")
@@ -236,7 +239,14 @@ class ArduPilotOutputs(OutputsTruth):
         # sent since the frame left the autopilot.
         poses = self._poses_since(at_s - SYS_STATUS_AGE_INTERVALS * interval_s)
         band = self._held_since_off
-        if band is not None and at_s < self._cadence_broken_until_s:
+        if released:
+            # Believed released (no "on" for SAFETY_ON_STICKY_INTERVALS, the autopilot's clock
+            # heard since), whatever the cadence: the held outputs brought out what they
+            # stored, which is among these poses. No band from before the hold is kept: what
+            # the outputs held then is no longer where they are.
+            self._held_since_off = band_of(poses)
+            self._bands_before = []
+        elif band is not None and at_s < self._cadence_broken_until_s:
             for pose in poses:  # perhaps forged: nothing narrows
                 widen(band, pose)
         else:

@@ -197,6 +197,8 @@ class ArduPilotOutputsModel(Autopilot):
                 )
             )
         )
+        if action.command == mavlink.MAV_CMD_REQUEST_MESSAGE:  # (a clock probe)
+            self.carry_out(self.frame(self.stream_frame(int(action.params[0]))))
 
     def run(self, seconds: float, dt_s: float = 0.005) -> None:
         end_s = self.clock() + seconds

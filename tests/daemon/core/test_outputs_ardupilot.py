@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
+from companion.daemon.config import parse_config
 from companion.daemon.core import (
     SAFETY_STEPS_AHEAD,
     SYS_STATUS_SILENT_S,
@@ -1163,3 +1164,52 @@ def test_ardupilot_a_ground_station_setting_back_the_pwm_before_a_step_shown_ear
     rig.readback({**shown, output: before[output]})  # a ground station's command
     rig.advance(1.0 / RATE_HZ - 0.02)
     assert output not in rig.servo()
+
+
+def test_ardupilot_a_release_believed_among_forged_off_frames_holds_what_the_outputs_showed():
+    """The switch goes on mid-motion and the held outputs are sent back to the middle of the
+    band (the rewind); then SYS_STATUS frames forged as "off" come every 10 ms (the cadence
+    broken: the narrowings before the hold are undone, the band widens to those bands), and a
+    reload lowers the speed limit. The switch is released: the outputs show the rewind live,
+    and "off" is believed. It goes on again: the rewind must go to what the outputs showed,
+    not to the middle of the band from before the first hold, whose release moved a joint
+    1.26 deg where 20 deg/s allows 1.18 (bench.state_cycles)."""
+    ap = ArduPilotOutputsModel()
+    ap.run(0.3)
+    start = ap.core.status()["current_deg"]
+    ap.goto([start[0] + 80.0, start[1] - 60.0, *start[2:]])
+    ap.run(0.25)
+    forged = ap.codec.sys_status_encode(MOTORS, MOTORS, MOTORS, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+
+    def run(seconds: float, *, forge: bool = True) -> None:
+        for _ in range(round(seconds / 0.01)):
+            ap.run(0.01)
+            if forge:
+                ap.carry_out(ap.frame(forged))
+
+    ap.set_safety(True)
+    run(0.2, forge=False)  # seen on, the held outputs sent back
+    run(0.1)
+    slower = {"link": {"url": "udpout:127.0.0.1:14550", "dialect": "ardupilot"}}
+    slower["arm"] = {"joint_speed_deg_s": ap.config.joint_speed_deg_s / 3}
+    ap.config = parse_config(slower)
+    ap.core.reconfigure(ap.config)
+    run(0.2)
+    ap.set_safety(False)
+    run(0.2)
+    assert ap.core.status()["safety_on"] is False
+    live = dict(ap.pulse)
+    ap.set_safety(True)
+    run(0.5)
+    ap.set_safety(False)
+    ap.run(0.01)
+    step_deg = ap.config.joint_speed_deg_s / ap.config.rate_hz + deg_per_us(ap)
+    calibration = ap.config.calibration
+    moved = {
+        o: abs(
+            calibration.for_output(o).pwm_us_to_angle_deg(ap.pulse[o])
+            - calibration.for_output(o).pwm_us_to_angle_deg(live[o])
+        )
+        for o in live
+    }
+    assert max(moved.values()) <= step_deg + 1e-9, (live, ap.pulse)
