@@ -74,23 +74,35 @@ MASK_ASK_AGAIN_INTERVALS = 4
 #: overruled by a frame forged between two of its frames.
 SAFETY_ON_STICKY_INTERVALS = 1.5
 #: Two SYS_STATUS arriving less than this many intervals apart break the stream's cadence:
-#: one of them is not the autopilot's (frames forged as its own, on an unsigned link). Then an
-#: "off" does not narrow the band of what the outputs may hold (the switch may have gone on
-#: just before a forged one), the last two narrowings are undone, and so until
-#: SAFETY_ON_STICKY_INTERVALS after the last such frame. A forger sending twice an interval or
-#: more always comes this close to the autopilot's frames; one sending no more often than the
+#: one of them is not the autopilot's (frames forged as its own, on an unsigned link), and so
+#: until SAFETY_ON_STICKY_INTERVALS after the last such frame. Then an "off" says only what no
+#: "on" says (see SYS_STATUS_ON_WITHIN_INTERVALS). A forger sending twice an interval or more
+#: always comes this close to the autopilot's frames; one sending no more often than the
 #: stream, between its frames, is not told apart (signing is the remedy). A link that bunches
-#: frames, or a stalled reader, breaks the cadence too: the arm then waits within its band for
-#: a clean "off". A release ("off" believed after "on", which the autopilot's own "on" frames
-#: and its clock vouch for) narrows the band whatever the cadence, to the poses sent since the
-#: hold, and drops the bands from before it: the outputs bring out what they stored.
+#: frames, or a stalled reader, breaks the cadence too: the arm then moves on more slowly,
+#: within its band. A release ("off" believed after "on", which the autopilot's own "on"
+#: frames and its clock vouch for) narrows the band as a clean "off" does, whatever the
+#: cadence: the outputs bring out what they stored.
 SYS_STATUS_CADENCE_INTERVALS = 0.4
+#: The switch going on shows in the autopilot's next SYS_STATUS, and "on" is believed at once:
+#: with none saying on for this many intervals (three of its frames lost in a row), the switch
+#: was off that long ago. So with the cadence broken, an "off" (the autopilot's or a forger's)
+#: narrows the band to the poses held since this many intervals before it arrived, each step
+#: sent since and the pose it was sent from; a clean "off" narrows it to those since
+#: SYS_STATUS_AGE_INTERVALS. Only while the readback stream flows: a fade that loses the
+#: autopilot's frames loses those too, and "off" frames still coming are a forger's (nothing
+#: narrows then, the band only takes in what is sent).
+SYS_STATUS_ON_WITHIN_INTERVALS = SYS_STATUS_STALE_INTERVALS
 #: A SYS_STATUS saying off speaks of the moment it left the autopilot, which may be before
 #: steps taken since (the control thread takes it later than the reader did, a busy board or
 #: a held frame): "off" narrows the band to the poses held since this many intervals before
 #: it arrived, each step sent since and the pose it was sent from (without them, the switch
 #: going on just before a step was acknowledged left the pose it held out of the band).
 SYS_STATUS_AGE_INTERVALS = 0.5
+#: The most steps kept for the bands: more than SYS_STATUS_ON_WITHIN_INTERVALS + 1 of
+#: SYS_STATUS's slowest interval (0.25 s, a slow serial line) at the highest control rate
+#: (400 Hz): 500.
+STEPS_KEPT = 1024
 
 
 def band_allows(band: Band, step: Sequence[float], width_deg: float) -> bool:
@@ -155,11 +167,10 @@ class ArduPilotOutputs(OutputsTruth):
         #: The switch unknown (start, loss, reboot): since when SYS_STATUS says it is off, with
         #: none saying on since (None: none said off yet).
         self._off_since_s: float | None = None
-        #: When the last SYS_STATUS arrived, and until when "off" narrows no band (see
-        #: SYS_STATUS_CADENCE_INTERVALS); the band as it was before the last two narrowings.
+        #: When the last SYS_STATUS arrived, and until when an "off" narrows the band only to
+        #: what no "on" says (see SYS_STATUS_CADENCE_INTERVALS).
         self._sys_status_at_s = -math.inf
         self._cadence_broken_until_s = -math.inf
-        self._bands_before: list[Band] = []
         #: Joints taken where another sender put their output, none of our ACKs for it since
         #: (a step on its way from before says nothing of where it is).
         self._taken: set[int] = set()
@@ -169,9 +180,10 @@ class ArduPilotOutputs(OutputsTruth):
         #: Per output, the PWM its readback showed when the first of the ACKs it has was
         #: given (see :meth:`acknowledged`).
         self._shown_before: dict[int, int | None] = {}
-        #: The steps sent lately: when, the pose each was sent from, the step.
+        #: The steps sent in the last SYS_STATUS_ON_WITHIN_INTERVALS (and one before): when,
+        #: the pose each was sent from, the step (at most STEPS_KEPT: memory stays flat).
         self._steps_sent: collections.deque[tuple[float, tuple[float, ...], tuple[float, ...]]] = (
-            collections.deque(maxlen=32)
+            collections.deque(maxlen=STEPS_KEPT)
         )
 
     # -- frames -----------------------------------------------------------------------------
@@ -237,22 +249,22 @@ class ArduPilotOutputs(OutputsTruth):
         # Off now: the outputs hold what was acknowledged, or a step still on its way (or one
         # whose update ended unanswered: it is sent again before anything else), or any step
         # sent since the frame left the autopilot.
-        poses = self._poses_since(at_s - SYS_STATUS_AGE_INTERVALS * interval_s)
         band = self._held_since_off
-        if released:
-            # Believed released (no "on" for SAFETY_ON_STICKY_INTERVALS, the autopilot's clock
-            # heard since), whatever the cadence: the held outputs brought out what they
-            # stored, which is among these poses. No band from before the hold is kept: what
-            # the outputs held then is no longer where they are.
-            self._held_since_off = band_of(poses)
-            self._bands_before = []
-        elif band is not None and at_s < self._cadence_broken_until_s:
-            for pose in poses:  # perhaps forged: nothing narrows
-                widen(band, pose)
+        if band is None or released or at_s >= self._cadence_broken_until_s:
+            # A clean "off", or a release believed (no "on" for SAFETY_ON_STICKY_INTERVALS, the
+            # autopilot's clock heard since): the held outputs brought out what they stored.
+            self._held_since_off = band_of(
+                self._poses_since(at_s - SYS_STATUS_AGE_INTERVALS * interval_s)
+            )
+        elif self._autopilot_flowing(at_s):
+            # Perhaps forged: no "on" for SYS_STATUS_ON_WITHIN_INTERVALS says as much.
+            self._held_since_off = band_of(
+                self._poses_since(at_s - SYS_STATUS_ON_WITHIN_INTERVALS * interval_s)
+            )
         else:
-            if band is not None:
-                self._bands_before = [*self._bands_before[-1:], band]
-            self._held_since_off = band_of(poses)
+            for pose in self._poses_since(at_s - SYS_STATUS_AGE_INTERVALS * interval_s):
+                # (a forger's: nothing narrows)
+                widen(band, pose)
         self._step_held_back(actions)
 
     def _poses_since(self, since_s: float) -> list[tuple[float, ...]]:
@@ -295,7 +307,8 @@ class ArduPilotOutputs(OutputsTruth):
     def _check_cadence(self, at_s: float, interval_s: float) -> None:
         """A SYS_STATUS arrived at ``at_s``: less than SYS_STATUS_CADENCE_INTERVALS after the
         one before, one of them is not the autopilot's, and so perhaps the "off" frames that
-        narrowed the band lately: those narrowings are undone (see the constant)."""
+        narrowed the band lately: it takes in again what was held since
+        SYS_STATUS_ON_WITHIN_INTERVALS (see the constants)."""
         gap_s = at_s - self._sys_status_at_s
         if gap_s < 0:
             return  # stamped before the one before: says nothing of the cadence
@@ -305,10 +318,16 @@ class ArduPilotOutputs(OutputsTruth):
         self._cadence_broken_until_s = at_s + SAFETY_ON_STICKY_INTERVALS * interval_s
         band = self._held_since_off
         if band is not None:
-            for before in self._bands_before:
-                widen(band, before[0])
-                widen(band, before[1])
-        self._bands_before = []
+            for pose in self._poses_since(at_s - SYS_STATUS_ON_WITHIN_INTERVALS * interval_s):
+                widen(band, pose)
+
+    def _autopilot_flowing(self, now: float) -> bool:
+        """Whether the autopilot's readback stream is heard (not silent for
+        READBACK_STALE_INTERVALS): its frames are reaching us, an "on" among them."""
+        return (
+            self.shown_s > -math.inf
+            and self.readback_silence(now, READBACK_STALE_INTERVALS) is None
+        )
 
     def _check_readback(self) -> None:
         """At the start the joints are where the readback shows; later, an output that shows
@@ -427,7 +446,7 @@ class ArduPilotOutputs(OutputsTruth):
         self._taken_seq[output] = state.updates_sent
         # So do the bands a broken cadence would restore and the steps an "off" would take in:
         # what they hold of this joint is from before the other sender's step.
-        for band in (self._held_before_loss, self._held_since_off, *self._bands_before):
+        for band in (self._held_before_loss, self._held_since_off):
             if band is not None:
                 band[0][i] = band[1][i] = angle
         self._steps_sent = collections.deque(
@@ -524,7 +543,6 @@ class ArduPilotOutputs(OutputsTruth):
         self._sys_status_s = None
         self._off_since_s = None
         self._held_since_off = self._rewind_to = None
-        self._bands_before = []
         self._mask_asked_s = None
         self._mask_live_from_s.clear()
 
@@ -640,7 +658,11 @@ class ArduPilotOutputs(OutputsTruth):
     def stepped_to(self, step: tuple[float, ...]) -> None:
         """A step to ``step`` went out: the outputs may hold it."""
         state = self._core.state
-        self._steps_sent.append((self._core.clock(), tuple(state.position), step))
+        now = self._core.clock()
+        kept_s = (SYS_STATUS_ON_WITHIN_INTERVALS + 1) * self._core.settings.sys_status_interval_s
+        while self._steps_sent and self._steps_sent[0][0] < now - kept_s:
+            self._steps_sent.popleft()
+        self._steps_sent.append((now, tuple(state.position), step))
         if self._held_since_off is not None:
             widen(self._held_since_off, step)
 

@@ -44,6 +44,7 @@ class Autopilot:
         if rate_hz is not None:
             tables["control"] = {"rate_hz": rate_hz}
         config = parse_config(tables)
+        self.tables = tables
         self.config = config
         self.core = ControlCore(config, solve=solve_to_itself, clock=self.clock)
         self.codec = mavlink.MAVLink(None, 1, 1)
@@ -103,7 +104,14 @@ class ArduPilotOutputsModel(Autopilot):
     reboot is silent for 0.36 s and comes back with no pulses on the arm's outputs, the switch at
     ``BRD_SAFETY_DEFLT`` and every stream forgotten (SYSTEM_TIME, SYS_STATUS: asked again or
     never sent). ``changes`` collects every physical change of a pulse: (t_s, output, from_us,
-    to_us), from the last pulse before a gap."""
+    to_us), from the last pulse before a gap, and ``allowed_deg`` the most each may move the
+    joint, as ``devkit/joint_steps.py`` judges the simulator's: a step at the speed limit in
+    force (either, within RELOAD_WINDOW_S of a :meth:`reload`), or at the one when the value
+    coming out was stored or the pulses stopped, if higher."""
+
+    #: A step computed before a reload goes out up to a control period and the command's way
+    #: after it.
+    RELOAD_WINDOW_S = 0.06
 
     def __init__(
         self,
@@ -125,6 +133,10 @@ class ArduPilotOutputsModel(Autopilot):
         self.commanded: dict[int, int] = {}
         self.pulse: dict[int, int] = {}  # the last pulse each servo got (held through gaps)
         self.changes: list[tuple[float, int, int, int]] = []
+        self.allowed_deg: list[float] = []
+        self.speeds: list[tuple[float, float]] = [(self.clock(), self.config.joint_speed_deg_s)]
+        self.stored_s: dict[int, float] = {}  # per output, when its value was stored
+        self.held_s: dict[int, float] = {}  # per output, when its pulses stopped
         self.pending: list[tuple[float, Any]] = []  # (due, SendCommand) on their way
         self.carry_out(self.actions)
 
@@ -136,11 +148,36 @@ class ArduPilotOutputsModel(Autopilot):
         return not self.safety_on or bool(self.applied_mask >> (output - 1) & 1)
 
     def refresh(self) -> None:
+        now = self.clock()
         for output, pwm in self.commanded.items():
-            if pwm and self.live(output) and self.pulse.get(output) != pwm:
+            if not self.live(output):
+                self.held_s.setdefault(output, now)
+            elif pwm and self.pulse.get(output) != pwm:
                 if output in self.pulse:
-                    self.changes.append((self.clock(), output, self.pulse[output], pwm))
+                    self.changes.append((now, output, self.pulse[output], pwm))
+                    times = (now, self.stored_s.get(output, now), self.held_s.get(output, now))
+                    fastest = max(self.speed_at(t) for t in times)
+                    self.allowed_deg.append(fastest / self.config.rate_hz)
                 self.pulse[output] = pwm
+            if self.live(output) and pwm:
+                self.held_s.pop(output, None)
+
+    def speed_at(self, t_s: float) -> float:
+        """The highest speed limit that may be in force at ``t_s``."""
+        return max(
+            speed
+            for k, (since_s, speed) in enumerate(self.speeds)
+            if since_s <= t_s
+            and (k + 1 == len(self.speeds) or self.speeds[k + 1][0] >= t_s - self.RELOAD_WINDOW_S)
+        )
+
+    def reload(self, joint_speed_deg_s: float) -> None:
+        """The daemon reloaded with a new speed limit."""
+        arm = {**self.tables.get("arm", {}), "joint_speed_deg_s": joint_speed_deg_s}
+        self.tables = {**self.tables, "arm": arm}
+        self.config = parse_config(self.tables)
+        self.core.reconfigure(self.config)
+        self.speeds.append((self.clock(), joint_speed_deg_s))
 
     def set_safety(self, on: bool) -> None:
         if self.rebooting_until_s is None:  # (as the simulator: not while rebooting)
@@ -162,6 +199,8 @@ class ArduPilotOutputsModel(Autopilot):
         )
 
     def reboot_now(self) -> None:
+        for output in self.pulse:
+            self.held_s.setdefault(output, self.clock())
         self.rebooting_until_s = self.clock() + 0.36
         self.pending.clear()
 
@@ -184,6 +223,7 @@ class ArduPilotOutputsModel(Autopilot):
             return
         if action.command == SERVO:
             self.commanded[int(action.params[0])] = int(action.params[1])
+            self.stored_s[int(action.params[0])] = self.clock()
             self.refresh()
         elif action.command == INTERVAL:
             msg_id, interval_us = int(action.params[0]), action.params[1]
@@ -248,10 +288,12 @@ class ArduPilotOutputsModel(Autopilot):
         return request
 
     def fast_changes(self) -> list[tuple[float, int, int, int, float]]:
-        """Physical changes more than one control tick's step (plus one µs) of the joint."""
-        step_deg = self.config.joint_speed_deg_s / self.config.rate_hz
+        """Physical changes more than their allowance (``allowed_deg``) plus one µs of the
+        joint."""
         fast = []
-        for t_s, output, before, after in self.changes:
+        for (t_s, output, before, after), step_deg in zip(
+            self.changes, self.allowed_deg, strict=True
+        ):
             joint = self.config.calibration.for_output(output)
             moved = abs(joint.pwm_us_to_angle_deg(after) - joint.pwm_us_to_angle_deg(before))
             if moved > step_deg + deg_per_us(self) + 1e-9:

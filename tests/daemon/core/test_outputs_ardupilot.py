@@ -1213,3 +1213,37 @@ def test_ardupilot_a_release_believed_among_forged_off_frames_holds_what_the_out
         for o in live
     }
     assert max(moved.values()) <= step_deg + 1e-9, (live, ap.pulse)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_ardupilot_no_joint_moves_faster_than_a_step_through_forged_sys_status_and_reloads(seed):
+    """Random targets, the safety switch on and off, reboots, reloads of the speed limit (20 to
+    120 deg/s) and spells of SYS_STATUS frames forged as "off" every 10 ms: every physical
+    change of a pulse is within a step at the limit that judges it (``allowed_deg``). A band of
+    poses kept from before a release, or from a faster limit, whose middle the held outputs
+    were sent back to, moved joints up to 2.2 deg where 20 deg/s allows 1."""
+    rng = np.random.default_rng(seed)
+    ap = ArduPilotOutputsModel(safety_default_on=bool(seed % 2))
+    forged = ap.codec.sys_status_encode(MOTORS, MOTORS, MOTORS, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    ap.run(0.3)
+    if ap.safety_on:
+        ap.set_safety(False)
+    forging = False
+    for _ in range(80):
+        roll = rng.random()
+        if roll < 0.3:
+            ap.goto(far_target(ap, rng))
+        elif roll < 0.55:
+            ap.set_safety(not ap.safety_on)
+        elif roll < 0.7:
+            forging = not forging
+        elif roll < 0.85:
+            ap.reload(float(rng.choice([20.0, 30.0, 60.0, 90.0, 120.0])))
+        elif roll < 0.9 and ap.rebooting_until_s is None:
+            ap.reboot_now()
+        for _ in range(round(float(np.exp(rng.uniform(math.log(0.01), math.log(0.6)))) / 0.01)):
+            ap.run(0.01)
+            if forging:
+                ap.carry_out(ap.frame(forged))
+    assert len(ap.changes) > 100
+    assert ap.fast_changes() == []
