@@ -137,6 +137,7 @@ class ArduPilotOutputsModel(Autopilot):
         self.speeds: list[tuple[float, float]] = [(self.clock(), self.config.joint_speed_deg_s)]
         self.stored_s: dict[int, float] = {}  # per output, when its value was stored
         self.held_s: dict[int, float] = {}  # per output, when its pulses stopped
+        self.pose_left: tuple[dict[int, int], dict[int, int]] | None = None
         self.pending: list[tuple[float, Any]] = []  # (due, SendCommand) on their way
         self.carry_out(self.actions)
 
@@ -197,6 +198,21 @@ class ArduPilotOutputsModel(Autopilot):
         return self.codec.param_value_encode(
             b"BRD_SAFETY_MASK", float(self.mask), mavlink.MAV_PARAM_TYPE_INT32, 1, 65535
         )
+
+    def restart_daemon(self) -> None:
+        """The daemon is killed and started again at once: a new core, given where the
+        outputs were left as the last daemon to know wrote it (``pose_file``)."""
+        left = self.core.outputs_left()
+        if left is not None:
+            self.pose_left = left
+        self.core = ControlCore(self.config, solve=solve_to_itself, clock=self.clock)
+        if self.pose_left is not None:
+            self.core.restore_pose(self.pose_left)
+        kind = mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA
+        self.carry_out(
+            self.frame(self.codec.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, kind, 0, 0, 3))
+        )
+        self.carry_out(self.core.tick(True))
 
     def reboot_now(self) -> None:
         for output in self.pulse:

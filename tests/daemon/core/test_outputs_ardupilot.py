@@ -1169,11 +1169,11 @@ def test_ardupilot_a_ground_station_setting_back_the_pwm_before_a_step_shown_ear
 def test_ardupilot_a_release_believed_among_forged_off_frames_holds_what_the_outputs_showed():
     """The switch goes on mid-motion and the held outputs are sent back to the middle of the
     band (the rewind); then SYS_STATUS frames forged as "off" come every 10 ms (the cadence
-    broken: the narrowings before the hold are undone, the band widens to those bands), and a
-    reload lowers the speed limit. The switch is released: the outputs show the rewind live,
-    and "off" is believed. It goes on again: the rewind must go to what the outputs showed,
-    not to the middle of the band from before the first hold, whose release moved a joint
-    1.26 deg where 20 deg/s allows 1.18 (bench.state_cycles)."""
+    broken), and a reload lowers the speed limit. The switch is released: the outputs show the
+    rewind live, and "off" is believed. It goes on again: the rewind must go to what the
+    outputs showed. The middle of the band from before the first hold (restored by the broken
+    cadence, and kept through the release) moved a joint 1.26 deg where 20 deg/s allows 1.18
+    (bench.state_cycles)."""
     ap = ArduPilotOutputsModel()
     ap.run(0.3)
     start = ap.core.status()["current_deg"]
@@ -1215,13 +1215,14 @@ def test_ardupilot_a_release_believed_among_forged_off_frames_holds_what_the_out
     assert max(moved.values()) <= step_deg + 1e-9, (live, ap.pulse)
 
 
-@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("seed", range(10))
 def test_ardupilot_no_joint_moves_faster_than_a_step_through_forged_sys_status_and_reloads(seed):
-    """Random targets, the safety switch on and off, reboots, reloads of the speed limit (20 to
-    120 deg/s) and spells of SYS_STATUS frames forged as "off" every 10 ms: every physical
-    change of a pulse is within a step at the limit that judges it (``allowed_deg``). A band of
-    poses kept from before a release, or from a faster limit, whose middle the held outputs
-    were sent back to, moved joints up to 2.2 deg where 20 deg/s allows 1."""
+    """Random targets, the safety switch on and off, reboots, daemon restarts, reloads of the
+    speed limit (20 to 120 deg/s) and spells of SYS_STATUS frames forged as "off" every 10 ms:
+    every physical change of a pulse is within a step at the limit that judges it
+    (``allowed_deg``). A band of poses kept from before a release, or from a faster limit,
+    whose middle the held outputs were sent back to, moved joints up to 2.2 deg where 20 deg/s
+    allows 1."""
     rng = np.random.default_rng(seed)
     ap = ArduPilotOutputsModel(safety_default_on=bool(seed % 2))
     forged = ap.codec.sys_status_encode(MOTORS, MOTORS, MOTORS, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
@@ -1241,9 +1242,11 @@ def test_ardupilot_no_joint_moves_faster_than_a_step_through_forged_sys_status_a
             ap.reload(float(rng.choice([20.0, 30.0, 60.0, 90.0, 120.0])))
         elif roll < 0.9 and ap.rebooting_until_s is None:
             ap.reboot_now()
+        elif roll < 0.95:
+            ap.restart_daemon()
         for _ in range(round(float(np.exp(rng.uniform(math.log(0.01), math.log(0.6)))) / 0.01)):
             ap.run(0.01)
             if forging:
                 ap.carry_out(ap.frame(forged))
-    assert len(ap.changes) > 100
+    assert len(ap.changes) > 50
     assert ap.fast_changes() == []
