@@ -91,7 +91,8 @@ SYS_STATUS_CADENCE_INTERVALS = 0.4
 #: sent since and the pose it was sent from; a clean "off" narrows it to those since
 #: SYS_STATUS_AGE_INTERVALS. Only while the readback stream flows: a fade that loses the
 #: autopilot's frames loses those too, and "off" frames still coming are a forger's (nothing
-#: narrows then, the band only takes in what is sent).
+#: narrows then, the band only takes in what is sent; one forging the readback too through a
+#: fade is not told apart: signing is the remedy).
 SYS_STATUS_ON_WITHIN_INTERVALS = SYS_STATUS_STALE_INTERVALS
 #: A SYS_STATUS saying off speaks of the moment it left the autopilot, which may be before
 #: steps taken since (the control thread takes it later than the reader did, a busy board or
@@ -444,8 +445,8 @@ class ArduPilotOutputs(OutputsTruth):
             flight.pending = [c for c in flight.pending if output not in c.outputs]
             flight.step_deg = _pinned(flight.step_deg, i, angle)  # the next step goes from it
         self._taken_seq[output] = state.updates_sent
-        # So do the bands a broken cadence would restore and the steps an "off" would take in:
-        # what they hold of this joint is from before the other sender's step.
+        # So do the bands, and the steps an "off" or a broken cadence would take in: what they
+        # hold of this joint is from before the other sender's step.
         for band in (self._held_before_loss, self._held_since_off):
             if band is not None:
                 band[0][i] = band[1][i] = angle
