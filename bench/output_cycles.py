@@ -34,9 +34,12 @@ asks for the park PWM there), *coming alive* (arm, prearm, safety off, boot: the
 appear at once) and *commands* (the daemon's own updates). The last two are the daemon's
 responsibility (the target: 0), except PX4's outputs coming alive ``DEAD_WINDOW_S`` or less
 after going dead, back to within a step of where they were (a kill, then an arm at once): dead
-too briefly for the readbacks to show it, counted apart as a race. The count under the looser
-reading (allowance ``joint_speed_deg_s × max(Δt, 1 / rate_hz)``, Δt since the output's previous
-change) is given too.
+too briefly for the readbacks to show it, counted apart as a race; and a daemon command PX4's
+commander carried out on outputs alive again from the disarmed PWM, that reached it less than
+``MARKER_HOP_S`` after the first readback showing them alive (the marker sent for outputs the
+readbacks showed dead): counted apart as a race too, with its largest step. The count under
+the looser reading (allowance ``joint_speed_deg_s × max(Δt, 1 / rate_hz)``, Δt since the
+output's previous change) is given too.
 
 **Status "outputs live" against the simulator's truth.** After each event, the time from the
 event (the query answered, or the PARAM_SET sent) until a poll finds the daemon's
@@ -74,7 +77,15 @@ from bench.loopback import ControlSocketInput, Stack, load_average
 from bench.report import machine, md_table, write_markdown
 from companion.daemon.core import READBACK_FAST_INTERVAL_S, READBACK_INTERVAL_S
 from companion.kinematics.arm import Arm, Pose
-from devkit.joint_steps import ALIVE_CAUSES, JointStep, joint_steps, output_changes
+from devkit.joint_steps import (
+    ALIVE_CAUSES,
+    JointStep,
+    commands_received,
+    joint_steps,
+    marker_race,
+    output_changes,
+    readbacks_shown,
+)
 from firmware_interface.calibration import JointCalibration, default_calibration
 from sim_servo.config import PX4_DISARMED_PWM_US
 from sim_servo.gcs import GroundStation
@@ -88,6 +99,10 @@ MARGIN_S = 0.05
 #: PX4's outputs dead for less than this are not seen by the readbacks (the first showing them
 #: dead, the third to believe it, a hop): see :func:`category`.
 DEAD_WINDOW_S = 3 * READBACK_FAST_INTERVAL_S + 0.01
+#: A daemon command PX4's commander carried out on outputs alive again from the disarmed PWM,
+#: that reached it less than this after the first readback showing them alive: the readback's
+#: way to the daemon and the command's way back (``devkit.joint_steps.MARKER_RACE``).
+MARKER_HOP_S = 0.01
 POLL_S = 0.02
 EVENT_P = 0.6
 TARGET_P = 0.7
@@ -139,6 +154,8 @@ class Run:
     outcomes: Counter = field(default_factory=Counter)
     agreements: list[Agreement] = field(default_factory=list)
     steps: list[JointStep] = field(default_factory=list)
+    #: (output, t_s) of the steps that are marker races (see :func:`category`).
+    marker_raced: set[tuple[int, float]] = field(default_factory=set)
     first_pulses: int = 0
     #: (monotonic s, event) of every event, and the simulator's t_s 0 on CLOCK_MONOTONIC.
     timeline: list[tuple[float, str]] = field(default_factory=list)
@@ -162,12 +179,17 @@ def quantum_deg(joint: JointCalibration) -> float:
     return (joint.angle_max_deg - joint.angle_min_deg) / (joint.pwm_max_us - joint.pwm_min_us)
 
 
-def category(step: JointStep, flavour: str) -> str:
+def category(step: JointStep, run: Run) -> str:
     """Whose step it is: ``command`` (the daemon's update), ``alive`` (stored values coming out),
     ``disarmed`` (PX4 driving its outputs to the disarmed PWM), ``dead_race`` (PX4's outputs
     alive again within ``DEAD_WINDOW_S`` of going dead, back to within a step of where they were:
-    dead too briefly for the readbacks to show it, see ``devkit.joint_steps.RACE_DEAD``)."""
+    dead too briefly for the readbacks to show it, see ``devkit.joint_steps.RACE_DEAD``),
+    ``marker_race`` (the daemon's command for outputs the readbacks showed dead, carried out
+    after they came alive, before a readback could show it: ``devkit.joint_steps.MARKER_RACE``)."""
+    flavour = run.flavour
     if step.cause == "command":
+        if (step.output, step.t_s) in run.marker_raced:
+            return "marker_race"
         return "command"
     if flavour == "px4" and step.to_us == PX4_DISARMED_PWM_US and step.cause not in ("arm",):
         return "disarmed"
@@ -328,6 +350,8 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
     out.sim_t0 = next(e["monotonic_s"] for e in events if e["event"] == "start")
     calibration = default_calibration(ARM_OUTPUTS)
     changes = output_changes(events)
+    readbacks = readbacks_shown(events)
+    received = commands_received(events)
     for output in ARM_OUTPUTS:
         joint = calibration.for_output(output)
         steps, first = joint_steps(
@@ -339,6 +363,17 @@ def run_flavour(flavour: str, args: argparse.Namespace) -> Run:
             quantum_deg=quantum_deg(joint),
         )
         out.steps += steps
+        out.marker_raced |= {
+            (output, step.t_s)
+            for step in steps
+            if marker_race(
+                step,
+                disarmed_us=PX4_DISARMED_PWM_US if flavour == "px4" else None,
+                received_s=received.get(output, {}).get(step.t_s),
+                shown=readbacks.get(output, []),
+                hop_s=MARKER_HOP_S,
+            )
+        }
         out.first_pulses += len(first)
     return out
 
@@ -415,20 +450,23 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
     rows = []
     for r in runs:
         fast = [s for s in r.steps if s.fast]
-        by = Counter(category(s, r.flavour) for s in fast)
+        by = Counter(category(s, r) for s in fast)
         loose = sum(
             1
             for s in r.steps
-            if category(s, r.flavour) in ("command", "alive")
+            if category(s, r) in ("command", "alive")
             and s.loose(JOINT_SPEED_DEG_S, RATE_HZ, s.allowed_deg - JOINT_SPEED_DEG_S / RATE_HZ)
         )
         worst = max(
-            (s.step_deg for s in r.steps if category(s, r.flavour) in ("command", "alive")),
+            (s.step_deg for s in r.steps if category(s, r) in ("command", "alive")),
             default=0.0,
+        )
+        worst_race = max(
+            (s.step_deg for s in r.steps if category(s, r) == "marker_race"), default=0.0
         )
         rows.append([
             r.flavour, len(r.steps), by["command"], by["alive"], loose, worst, by["dead_race"],
-            by["disarmed"], r.first_pulses,
+            by["marker_race"], worst_race, by["disarmed"], r.first_pulses,
         ])  # fmt: skip
     lines += md_table(
         [
@@ -439,6 +477,8 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             "loose reading (daemon's)",
             "largest daemon-side step (°)",
             "race: alive again before a readback could show them dead",
+            "race: alive again before the daemon's command for them dead took effect",
+            "largest such race (°)",
             "autopilot to its disarmed PWM",
             "first pulses",
         ],
@@ -485,7 +525,7 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
         rows,
     )
     for r in runs:
-        fast = [s for s in r.steps if s.fast and category(s, r.flavour) in ("command", "alive")]
+        fast = [s for s in r.steps if s.fast and category(s, r) in ("command", "alive")]
         lines += [
             "",
             f"**{r.flavour}**: {r.wall_s:.0f} s; load before {r.load_before}; events "
@@ -534,6 +574,18 @@ def report(runs: list[Run], args: argparse.Namespace) -> list[str]:
             lines.append(
                 f"- output {s.output} t={s.t_s:.3f} s: {s.from_us} → {s.to_us} µs "
                 f"({s.step_deg:.1f}°, cause {s.cause}, {s.dt_s:.3f} s after its previous change; "
+                f"after {events_before(r, s, detail=True)})"
+            )
+        raced = [s for s in r.steps if s.fast and category(s, r) == "marker_race"]
+        if raced:
+            lines.append(
+                "races: the daemon's command for outputs shown dead, carried out after they came "
+                "alive (the largest):"
+            )
+        for s in sorted(raced, key=lambda s: -s.step_deg)[:5]:
+            lines.append(
+                f"- output {s.output} t={s.t_s:.3f} s: {s.from_us} → {s.to_us} µs "
+                f"({s.step_deg:.1f}°, {s.dt_s:.3f} s after they came alive; "
                 f"after {events_before(r, s, detail=True)})"
             )
     return lines

@@ -142,11 +142,13 @@ from devkit.joint_steps import (
     JointStep,
     Reload,
     SpeedLimits,
+    commands_received,
     first_shown_after,
     foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
+    marker_race,
     output_changes,
     readbacks_shown,
     step_kind,
@@ -183,7 +185,9 @@ FORGE_INTERVAL_S = 0.01
 #: A daemon command from a PWM a foreign command set is a race (``devkit.joint_steps.RACE``)
 #: when it reached the simulator less than this after the first readback showing that PWM left
 #: it: the readback's way to the daemon (held up to 4.8 ms, ``[link_timing]``) and the command's
-#: way back.
+#: way back. So is one PX4's commander carried out on outputs alive again from the disarmed
+#: PWM, that reached it less than this after the first readback showing them alive
+#: (``devkit.joint_steps.MARKER_RACE``).
 RACE_HOP_S = 0.01
 #: The most that can take at 50 Hz (a readback interval and a hop): a log without ``readback``
 #: events is judged with it.
@@ -639,6 +643,7 @@ class Cycles:
         changes = output_changes(events)
         stored = stored_by_foreign(events)
         readbacks = readbacks_shown(events)
+        received = commands_received(events)
         reboots_s = sorted(
             e["t_s"] for e in events if e["event"] == "fault" and e.get("fault") == "reboot"
         )
@@ -679,6 +684,13 @@ class Cycles:
                         and reboot_within(reboots_s, step.t_s - before_s, BELIEF_WINDOW_S),
                         dead_window_s=DEAD_WINDOW_S,
                         back_allowed_deg=in_force_deg_s / RATE_HZ + quantum,
+                        marker_raced=marker_race(
+                            step,
+                            disarmed_us=run.disarmed_us,
+                            received_s=received.get(output, {}).get(step.t_s),
+                            shown=readbacks.get(output, []),
+                            hop_s=RACE_HOP_S,
+                        ),
                     )
                 )
                 run.verdicts.append(

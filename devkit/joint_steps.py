@@ -48,7 +48,11 @@ autopilot reboots. **A dead-time race** (apart too): PX4's outputs went to the d
 and came alive again within ``dead_window_s`` (a kill, then an arm at once), before the
 readbacks could show them dead and the daemon store a marker there; they came back to within
 a step of the pulse they had before, as PX4 brings out what it stored (a daemon holding still
-would see the same jump).
+would see the same jump). **A marker race** (apart too, :func:`marker_race`): the daemon's
+command that reached PX4 while its outputs were dead, or before a readback could show the
+daemon they had come alive again (the first such readback, and a hop), and that its commander
+carried out after they came alive: sent for dead outputs (the marker next to the disarmed
+PWM, which brings outputs that stay dead alive within a step), it moved live ones.
 
 **A limit that changes** (:class:`SpeedLimits`). A reload changes ``joint_speed_deg_s`` at an
 instant known only within a window (the signal sent … the daemon said it applied it): a step in
@@ -75,6 +79,7 @@ AUTOPILOT = "foreign: autopilot to its disarmed PWM"
 RACE = "race: the daemon's command before a readback could show a foreign one"
 RACE_REBOOT = "race: a reboot before the readbacks could confirm a foreign command"
 RACE_DEAD = "race: the outputs alive again before a readback could show them dead"
+MARKER_RACE = "race: the outputs alive again before the daemon's command for them dead took effect"
 DAEMON_KINDS = (DAEMON_COMMAND, DAEMON_ALIVE)
 FOREIGN_KINDS = (FOREIGN_COMMAND, FOREIGN_ALIVE, AUTOPILOT)
 #: Causes of an output change that bring stored values out (the outputs coming alive).
@@ -111,6 +116,9 @@ class JointStep:
     #: The first pulse after no pulses (a safety switch, a reboot): when the pulses stopped
     #: (None: no gap before this step), see :func:`judge`.
     gap_from_s: float | None = None
+    #: The pulse before ``from_us`` (None: none), and the cause of the change to ``from_us``.
+    before_us: int | None = None
+    from_cause: str | None = None
 
     @property
     def fast(self) -> bool:
@@ -185,6 +193,7 @@ def joint_steps(
     steps: list[JointStep] = []
     first: list[Change] = []
     pulse: int | None = None  # the last pulse (> 0): where the servo holds
+    pulse_cause: str | None = None  # the cause of the change to it
     before: int | None = None  # the pulse before it
     previous_s: float | None = None
     stopped_s: float | None = None  # when the pulses stopped (None: they go on)
@@ -217,10 +226,13 @@ def joint_steps(
                     if before is None
                     else abs(to_angle_deg(change.pwm_us) - to_angle_deg(before)),
                     gap_from_s=gap_from_s,
+                    before_us=before,
+                    from_cause=pulse_cause,
                 )
             )
         if change.pwm_us != pulse:
             before = pulse
+            pulse_cause = change.cause
         pulse = change.pwm_us
     return steps, first
 
@@ -240,6 +252,42 @@ def stored_by_foreign(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tup
             last_pwm[output] = pwm
             stored.setdefault(output, []).append((float(event["t_s"]), bool(event.get("src"))))
     return stored
+
+
+def commands_received(events: Iterable[Mapping[str, Any]]) -> dict[int, dict[float, float]]:
+    """Per output, for each ``servo`` event that says when its command arrived (PX4's
+    commander acts on it later: ``received_t_s``), its time to that arrival."""
+    received: dict[int, dict[float, float]] = {}
+    for event in events:
+        if event["event"] == "servo" and event.get("received_t_s") is not None:
+            by_t = received.setdefault(int(event["output"]), {})
+            by_t[float(event["t_s"])] = float(event["received_t_s"])
+    return received
+
+
+def marker_race(
+    step: JointStep,
+    *,
+    disarmed_us: int | None,
+    received_s: float | None,
+    shown: Sequence[tuple[float, int]],
+    hop_s: float,
+) -> bool:
+    """Whether ``step``, the daemon's command right after its output came alive from PX4's
+    disarmed PWM (``disarmed_us``), reached PX4 (``received_s``) before a readback could show
+    the daemon that it had: the first at or after it came alive to show ``step.from_us``
+    (``shown``, from :func:`readbacks_shown`), and ``hop_s`` (:data:`MARKER_RACE`)."""
+    if (
+        disarmed_us is None
+        or received_s is None
+        or step.cause != "command"
+        or step.source is not None
+        or step.before_us != disarmed_us
+        or step.from_cause not in ALIVE_CAUSES
+    ):
+        return False
+    shown_s = first_shown_after(shown, step.from_us, step.t_s - step.dt_s)
+    return shown_s is None or received_s < shown_s + hop_s
 
 
 def readbacks_shown(events: Iterable[Mapping[str, Any]]) -> dict[int, list[tuple[float, int]]]:
@@ -293,6 +341,7 @@ def step_kind(
     reboot_cut_short: bool = False,
     dead_window_s: float = 0.0,
     back_allowed_deg: float | None = None,
+    marker_raced: bool = False,
 ) -> str:
     """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
     :data:`FOREIGN_KINDS`, :data:`RACE` or :data:`RACE_REBOOT`. ``disarmed_us``: PX4's
@@ -307,7 +356,9 @@ def step_kind(
     :data:`RACE_REBOOT`); ``dead_window_s``: outputs back from PX4's disarmed PWM this soon
     after going there, to within a step of where they were before, were dead for less than
     the readbacks need to show it (:data:`RACE_DEAD`); "a step" is ``back_allowed_deg`` (the
-    limit in force, e.g. after a reload; default ``step.allowed_deg``)."""
+    limit in force, e.g. after a reload; default ``step.allowed_deg``); ``marker_raced``: the
+    daemon's command took effect on outputs alive again before it could know
+    (:func:`marker_race`, :data:`MARKER_RACE`)."""
     if step.cause == "command":
         if step.source is not None:
             return FOREIGN_COMMAND
@@ -315,6 +366,8 @@ def step_kind(
             return RACE
         if foreign_before_s is not None and reboot_cut_short:
             return RACE_REBOOT
+        if marker_raced:
+            return MARKER_RACE
         return DAEMON_COMMAND
     if disarmed_us is not None and step.to_us == disarmed_us:
         return AUTOPILOT

@@ -11,6 +11,7 @@ streams.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -33,6 +34,8 @@ class Command:
     params: tuple[float, ...]
     source: tuple[int, int]
     channel: int = 0
+    #: When it arrived (set when it waits for PX4's commander: it acts later).
+    received_s: float | None = None
 
 
 #: Acts on a command at a time; the MAV_RESULT.
@@ -117,7 +120,7 @@ class Commands:
         state = self._state
         due_s = state.flavour.commander_due_s(state.config, command.command, now_s, state.boot_s)
         if due_s is not None:
-            self._commander.append((due_s, command))
+            self._commander.append((due_s, dataclasses.replace(command, received_s=now_s)))
             return
         self.execute(command, now_s)
 

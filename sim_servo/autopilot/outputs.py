@@ -331,7 +331,12 @@ class Outputs:
                 continue  # a foreign command's events name only the slots it set
             low, high = self.params.pwm_limits(output)
             pwm = min(max(px4_actuator_pwm_us(value), low), high)
-            self._servo_event(output, pwm, now_s, value=value, live=self.live(output), **origin)
+            received = {}
+            if command.received_s is not None:  # (it waited for the commander)
+                received["received_t_s"] = self._state.t(command.received_s)
+            self._servo_event(
+                output, pwm, now_s, value=value, live=self.live(output), **origin, **received
+            )
         return mavlink.MAV_RESULT_ACCEPTED
 
     def arm_disarm(self, command: Command, now_s: float) -> int:

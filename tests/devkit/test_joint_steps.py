@@ -10,6 +10,7 @@ from devkit.joint_steps import (
     DAEMON_COMMAND,
     FOREIGN_ALIVE,
     FOREIGN_COMMAND,
+    MARKER_RACE,
     RACE,
     RACE_DEAD,
     RACE_REBOOT,
@@ -17,11 +18,13 @@ from devkit.joint_steps import (
     JointStep,
     Reload,
     SpeedLimits,
+    commands_received,
     first_shown_after,
     foreign_command_before,
     foreign_stored_at,
     joint_steps,
     judge,
+    marker_race,
     output_changes,
     readbacks_shown,
     step_kind,
@@ -75,7 +78,7 @@ def test_no_pulses_hold_and_the_next_pulse_is_compared_with_the_last():
     assert found == [
         JointStep(
             9, 5.0, 1400, 1600, pytest.approx(20.0), 1.0, pytest.approx(3.1), "command",
-            gap_from_s=4.0,
+            gap_from_s=4.0, from_cause="command",
         )
     ]  # fmt: skip
 
@@ -305,3 +308,49 @@ def test_the_first_pulse_after_a_gap_is_judged_by_the_limit_when_the_pulses_stop
     # Stopped after the reload: 20 °/s alone.
     late = SpeedLimits(60.0, [Reload(0.6, 0.7, 60.0, 20.0)])
     assert judge(found[1], late, rate_hz=20.0, quantum_deg=DEG_PER_US) == (True, True)
+
+
+def test_a_command_for_outputs_shown_dead_taking_effect_after_they_came_alive_is_a_race():
+    # Prearm off, then on 50 ms later: the readbacks showed the outputs dead, the daemon sent
+    # their marker next to the disarmed PWM, and PX4's commander carried it out 14 ms after
+    # they came alive, before a readback could show the daemon that they had.
+    changes = [
+        Change(0.0, 1500, "start"),
+        Change(1.0, 1000, "prearm"),
+        Change(1.05, 1500, "prearm"),
+        Change(1.064, 1002, "command"),  # the marker, received at 1.058
+        Change(2.0, 1000, "prearm"),
+        Change(2.4, 1002, "prearm"),  # the marker stored while dead comes alive
+        Change(2.45, 1030, "command"),  # the motion on from there: not fast
+        Change(3.0, 1000, "prearm"),
+        Change(3.05, 1500, "prearm"),
+        Change(3.2, 1002, "command"),  # received after a readback showed them alive
+    ]
+    events = [
+        {"t_s": 1.064, "event": "servo", "output": 9, "pwm_us": 1002, "received_t_s": 1.058},
+        {"t_s": 3.2, "event": "servo", "output": 9, "pwm_us": 1002, "received_t_s": 3.19},
+        {"t_s": 3.2, "event": "servo", "output": 10, "pwm_us": 1002},
+    ]
+    received = commands_received(events)
+    assert received == {9: {1.064: 1.058, 3.2: 3.19}}
+    shown = [(1.0, 1000), (1.07, 1500), (1.09, 1002), (3.01, 1000), (3.06, 1500)]
+    found, _ = steps(changes)
+    commands = [s for s in found if s.cause == "command"]
+    assert [(s.from_us, s.to_us, s.before_us, s.from_cause) for s in commands] == [
+        (1500, 1002, 1000, "prearm"),
+        (1002, 1030, 1000, "prearm"),
+        (1500, 1002, 1000, "prearm"),
+    ]
+    raced = [
+        marker_race(s, disarmed_us=1000, received_s=received[9].get(s.t_s), shown=shown, hop_s=0.01)
+        for s in commands
+    ]
+    assert raced == [True, False, False]  # (the second has no arrival: not one of PX4's waits)
+    kind = {"disarmed_us": 1000, "stored_foreign": False}
+    assert step_kind(commands[0], marker_raced=True, **kind) == MARKER_RACE
+    assert step_kind(commands[2], **kind) == DAEMON_COMMAND
+    # Received before the readback showing them alive, but more than a hop after it: the
+    # daemon could have known.
+    assert not marker_race(commands[0], disarmed_us=1000, received_s=1.081, shown=shown, hop_s=0.01)
+    # On ArduPilot (no disarmed PWM) never.
+    assert not marker_race(commands[0], disarmed_us=None, received_s=1.058, shown=shown, hop_s=0.01)

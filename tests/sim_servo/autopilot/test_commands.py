@@ -69,6 +69,19 @@ def test_px4_timing_commander_cycle_and_main_loop():
     assert all(min(p, 1 - p) < 1e-6 for p in phases)
 
 
+def test_px4_a_servo_event_says_when_its_command_arrived_before_the_commander_acted():
+    h = Harness(READY_PX4, px4_timing=Px4TimingConfig())
+    h.run_for(0.013)
+    sent = h.now
+    h.command(SET_ACTUATOR, 0.1, 0, 0, 0, 0, 0, 0)
+    wait_ack(h)
+    servos = [e for e in h.events if e["event"] == "servo"]
+    assert servos
+    for event in servos:
+        assert event["received_t_s"] == pytest.approx(sent - START_S, abs=1e-6)
+        assert event["t_s"] > event["received_t_s"]  # the commander's next cycle
+
+
 # -- the commands part alone -----------------------------------------------------------------
 
 
