@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
-from companion.daemon.config import parse_config
 from companion.daemon.core import (
     SAFETY_STEPS_AHEAD,
     SYS_STATUS_SILENT_S,
@@ -1190,10 +1189,7 @@ def test_ardupilot_a_release_believed_among_forged_off_frames_holds_what_the_out
     ap.set_safety(True)
     run(0.2, forge=False)  # seen on, the held outputs sent back
     run(0.1)
-    slower = {"link": {"url": "udpout:127.0.0.1:14550", "dialect": "ardupilot"}}
-    slower["arm"] = {"joint_speed_deg_s": ap.config.joint_speed_deg_s / 3}
-    ap.config = parse_config(slower)
-    ap.core.reconfigure(ap.config)
+    ap.reload(ap.config.joint_speed_deg_s / 3)
     run(0.2)
     ap.set_safety(False)
     run(0.2)
