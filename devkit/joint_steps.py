@@ -344,7 +344,8 @@ def step_kind(
     marker_raced: bool = False,
 ) -> str:
     """Whose step ``step`` is (module docstring): one of :data:`DAEMON_KINDS`,
-    :data:`FOREIGN_KINDS`, :data:`RACE` or :data:`RACE_REBOOT`. ``disarmed_us``: PX4's
+    :data:`FOREIGN_KINDS` or a race (:data:`RACE`, :data:`RACE_REBOOT`, :data:`RACE_DEAD`,
+    :data:`MARKER_RACE`). ``disarmed_us``: PX4's
     disarmed PWM (None on ArduPilot); ``stored_foreign``: the output's stored value came from
     a foreign command; ``foreign_before_s``: the command before this one was a foreign
     sender's, this long before
